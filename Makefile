@@ -1,0 +1,43 @@
+# Two commands do all set-up on a fresh machine: `make demo` and `make test`.
+# Set-up is idempotent: .venv is (re)built only when pyproject.toml or constraints.txt changed.
+PYTHON ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+
+.PHONY: setup demo test test-slow bench clean system-deps
+
+setup: $(STAMP)
+
+# open3d needs Debian's libusb-1.0-0 at import time.
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian package libusb-1.0-0 (needed by open3d)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else \
+	    echo "error: open3d needs the system library libusb-1.0-0; install it (apt-get install libusb-1.0-0) and re-run" >&2; exit 2; \
+	  fi; \
+	fi
+
+$(STAMP): pyproject.toml constraints.txt | system-deps
+	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install -q --upgrade pip wheel setuptools
+	$(VENV)/bin/python -m pip install -q -c constraints.txt torch==2.13.0
+	$(VENV)/bin/python -m pip install -q -c constraints.txt -e '.[test]'
+	@touch $(STAMP)
+
+demo: setup
+	$(VENV)/bin/omniscs demo
+
+test: setup
+	$(VENV)/bin/python -m pytest -n 2 -q
+
+test-slow: setup
+	$(VENV)/bin/python -m pytest -q -m slow
+
+bench: setup
+	$(VENV)/bin/omniscs bench world
+
+clean:
+	rm -rf $(VENV) omniscs-data .pytest_cache

@@ -1,0 +1,242 @@
+"""Rigid-body geometry in float64: quaternions (w, x, y, z, Hamilton), SE(3), boxes, pinhole cameras.
+
+Conventions (DESIGN.md): world z up; agent frame x forward, y left, z up; cameras OpenCV
+(x right, y down, z forward); transforms are 4x4 float64 named ``a_from_b``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from omniscs.errors import OmniscsError
+
+#: Quaternions shorter than this cannot be normalised into a rotation.
+MIN_QUAT_NORM = 1e-12
+
+#: Points closer to the camera than this (metres along +z) do not project.
+DEFAULT_NEAR = 0.01
+
+
+# ----------------------------------------------------------------------------- quaternions
+def quat_normalize(q: np.ndarray) -> np.ndarray:  # [..., 4] -> [..., 4]
+    """Unit quaternion with non-negative w (q and -q are the same rotation; this picks one)."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(~np.isfinite(q)) or np.any(norm < MIN_QUAT_NORM):
+        raise OmniscsError("quaternion has zero norm or is not finite; give a non-zero (w, x, y, z)")
+    q = q / norm
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:  # [..., 4] (w, x, y, z) -> [..., 3, 3]
+    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] -> [..., 4] (w >= 0)
+    """Shepperd's method: picks the largest of w, x, y, z to divide by, so 180° turns stay exact."""
+    R = np.asarray(R, dtype=np.float64)
+    batch = R.shape[:-2]
+    m = R.reshape(-1, 3, 3)
+    tr = np.trace(m, axis1=1, axis2=2)
+    diag = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
+    pick = np.argmax(diag, -1)
+    q = np.empty((m.shape[0], 4))
+    for i, k in enumerate(pick):
+        r = m[i]
+        if k == 0:
+            s = 2.0 * np.sqrt(max(1.0 + tr[i], 0.0))
+            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+        elif k == 1:
+            s = 2.0 * np.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
+            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+        elif k == 2:
+            s = 2.0 * np.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0))
+            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+        else:
+            s = 2.0 * np.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0))
+            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    return quat_normalize(q).reshape(*batch, 4)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # [..., 4] x [..., 4] -> [..., 4]
+    """Hamilton product a ⊗ b (apply b first, then a)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def quat_from_axis_angle(axis: np.ndarray, angle: float | np.ndarray) -> np.ndarray:  # [3] -> [4]
+    axis = np.asarray(axis, dtype=np.float64)
+    n = np.linalg.norm(axis, axis=-1, keepdims=True)
+    if np.any(n < MIN_QUAT_NORM):
+        raise OmniscsError("rotation axis has zero length; give a non-zero axis")
+    half = 0.5 * np.asarray(angle, dtype=np.float64)[..., None]
+    return np.concatenate([np.cos(half), np.sin(half) * axis / n], -1)
+
+
+def yaw_to_quat(yaw: float | np.ndarray) -> np.ndarray:  # [...] -> [..., 4]
+    return quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), yaw)
+
+
+def rotmat_from_euler(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll): roll about the agent's x (forward), then pitch, then yaw."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def yaw_of(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] -> [...]
+    """Heading of the rotated x axis in the xy plane."""
+    R = np.asarray(R, dtype=np.float64)
+    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    """Angle in [-pi, pi)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+# ----------------------------------------------------------------------------- SE(3)
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:  # [..., 3, 3], [..., 3] -> [..., 4, 4]
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def pose_from_xyz_yaw(x: float, y: float, z: float, yaw: float) -> np.ndarray:  # -> [4, 4]
+    return make_transform(rotmat_from_euler(yaw=yaw), [x, y, z])
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:  # [..., 4, 4] rigid -> [..., 4, 4]
+    """Exact inverse of a rigid transform (transpose of R, not a general matrix inverse)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    Rt = np.swapaxes(R, -1, -2)
+    return make_transform(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def compose(*transforms: np.ndarray) -> np.ndarray:
+    """compose(a_from_b, b_from_c, ...) -> a_from_(last). The one place transforms are chained."""
+    out = np.asarray(transforms[0], dtype=np.float64)
+    for T in transforms[1:]:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return out
+
+
+def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:  # [4,4], [N,3] -> [N,3]
+    a_from_b = np.asarray(a_from_b, dtype=np.float64)
+    points_b = np.asarray(points_b, dtype=np.float64)
+    return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
+
+
+def is_rigid(T: np.ndarray, tol: float = 1e-6) -> bool:
+    """True when T is a finite 4x4 with an orthonormal, right-handed rotation and last row 0 0 0 1."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (
+        np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1.0) < tol
+        and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
+    )
+
+
+# ----------------------------------------------------------------------------- boxes
+_UNIT_CORNERS = np.array(
+    [[sx, sy, sz] for sx in (0.5, -0.5) for sy in (0.5, -0.5) for sz in (0.5, -0.5)], dtype=np.float64
+)  # [8, 3]: front-left-top first; first four corners are the front face (+x)
+
+
+def world_from_box(center: np.ndarray, yaw: float, rotation: np.ndarray | None = None) -> np.ndarray:
+    """Pose of a box frame; ``rotation`` (3x3) overrides yaw for full 3D orientation (e.g. overturned)."""
+    R = rotmat_from_euler(yaw=yaw) if rotation is None else np.asarray(rotation, dtype=np.float64)
+    return make_transform(R, center)
+
+
+def box_corners(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:  # -> [8, 3]
+    """Corners of a box (centre, (length, width, height), yaw); the first four lie on the front face."""
+    return transform_points(world_from_box(center, yaw), _UNIT_CORNERS * np.asarray(size, dtype=np.float64))
+
+
+def points_in_box(points: np.ndarray, center: np.ndarray, size: np.ndarray, yaw: float,
+                  margin: float = 0.0) -> np.ndarray:  # [N, 3] -> [N] bool
+    local = transform_points(invert_transform(world_from_box(center, yaw)), points)
+    half = 0.5 * np.asarray(size, dtype=np.float64) + margin
+    return np.all(np.abs(local) <= half, axis=-1)
+
+
+# ----------------------------------------------------------------------------- cameras
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:  # -> [3, 3]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def intrinsics_from_fov(width: int, height: int, hfov_rad: float) -> np.ndarray:  # -> [3, 3]
+    f = 0.5 * width / np.tan(0.5 * hfov_rad)
+    return intrinsics_matrix(f, f, 0.5 * width, 0.5 * height)
+
+
+def project(points_cam: np.ndarray, K: np.ndarray, near: float = DEFAULT_NEAR
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pinhole projection of camera-frame points.
+
+    points_cam [N, 3] (OpenCV camera), K [3, 3] -> uv [N, 2] pixels, depth [N] (z), in_front [N] bool.
+    Points at or behind ``near`` get ``in_front`` False and finite uv (their uv carries no meaning).
+    """
+    p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    z = p[:, 2]
+    in_front = z > near
+    safe_z = np.where(in_front, z, 1.0)
+    uv = (p[:, :2] / safe_z[:, None]) @ np.asarray(K)[:2, :2].T + np.asarray(K)[:2, 2]
+    uv = np.where(in_front[:, None], uv, 0.0)
+    return uv, z.copy(), in_front
+
+
+def unproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:  # [N,2],[N] -> [N,3]
+    """Camera-frame points at z-depth ``depth`` along the rays through pixels ``uv``."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+    K = np.asarray(K, dtype=np.float64)
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    return np.stack([x * depth, y * depth, depth], -1)
+
+
+def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:  # [N, 2] -> [N] bool
+    return (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+
+
+#: camera_from_rig for an OpenCV camera mounted looking along the rig's +x (x forward, y left, z up).
+CAMERA_FROM_FORWARD_RIG = np.array(
+    [[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+def ego_from_camera_mount(x: float, y: float, z: float, yaw: float, pitch: float = 0.0) -> np.ndarray:
+    """ego_from_camera for a camera at (x, y, z) in the ego frame, looking along heading ``yaw``
+    (0 = forward), tilted down by ``pitch`` radians."""
+    ego_from_rig = make_transform(rotmat_from_euler(pitch=pitch, yaw=yaw), [x, y, z])
+    return compose(ego_from_rig, invert_transform(CAMERA_FROM_FORWARD_RIG))
