@@ -1,0 +1,17 @@
+"""Scene store: load, validate and write driving logs in the project's canonical form."""
+from omniscs.scene.store import (
+    BOX_COLUMNS,
+    SCHEMA_VERSION,
+    CameraRecord,
+    Scene,
+    SceneWriter,
+    boxes_frame,
+    load_scene,
+)
+
+__all__ = ["BOX_COLUMNS", "SCHEMA_VERSION", "CameraRecord", "Scene", "SceneWriter", "boxes_frame", "load_scene"]
+from omniscs.scene.ingest import IngestResult, StoreSource, ingest, parse_source, source_from_dict
+from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene, write_world_scene
+
+__all__ += ["IngestResult", "StoreSource", "SyntheticSource", "ingest", "parse_source", "source_from_dict",
+            "write_synthetic_scene", "write_world_scene"]
