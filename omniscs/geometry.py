@@ -182,6 +182,28 @@ def box_corners(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
     return transform_points(world_from_box(center, yaw), _UNIT_CORNERS * np.asarray(size, dtype=np.float64))
 
 
+def box_corners_from_pose(world_from_box: np.ndarray, size: np.ndarray) -> np.ndarray:  # [4,4],[3] -> [8,3]
+    """Corners of a box in any orientation (e.g. overturned); same order as ``box_corners``."""
+    return transform_points(world_from_box, _UNIT_CORNERS * np.asarray(size, dtype=np.float64))
+
+
+#: The 12 edges of a box as pairs of indices into the corner order of ``box_corners``.
+BOX_EDGES = ((0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7))
+
+
+def clip_segment_to_near(a: np.ndarray, b: np.ndarray, near: float = DEFAULT_NEAR
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Clip a camera-frame segment to z >= near; None when it lies wholly behind the plane."""
+    za, zb = a[2], b[2]
+    if za < near and zb < near:
+        return None
+    if za >= near and zb >= near:
+        return a, b
+    t = (near - za) / (zb - za)
+    cut = a + t * (b - a)
+    return (cut, b) if za < near else (a, cut)
+
+
 def points_in_box(points: np.ndarray, center: np.ndarray, size: np.ndarray, yaw: float,
                   margin: float = 0.0) -> np.ndarray:  # [N, 3] -> [N] bool
     local = transform_points(invert_transform(world_from_box(center, yaw)), points)

@@ -1,0 +1,1 @@
+"""Prefect flows: the factory's pipelines, composed from tasks."""

@@ -1,0 +1,168 @@
+"""The Parquet catalog: table schemas (declared here once), validated writes, DuckDB queries.
+
+Layout: ``<root>/<table>/run_id=<run_id>/<writer>-<uuid>.parquet``: hive-partitioned by run, one new
+file per task, never edited in place. ``run_id`` lives in the path only, and DuckDB adds it back.
+"""
+from __future__ import annotations
+
+import io
+import re
+import uuid
+from pathlib import Path
+
+import duckdb
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from omniscs.errors import OmniscsError
+from omniscs.storage import atomic_write_bytes
+
+SCHEMAS: dict[str, pa.Schema] = {
+    "runs": pa.schema([
+        pa.field("flow", pa.string(), nullable=False),
+        pa.field("status", pa.string(), nullable=False),          # completed | failed
+        pa.field("started_at_us", pa.int64(), nullable=False),
+        pa.field("finished_at_us", pa.int64(), nullable=False),
+        pa.field("n_scenes", pa.int32(), nullable=False),
+        pa.field("config_json", pa.string(), nullable=False),
+        pa.field("omniscs_version", pa.string(), nullable=False),
+        pa.field("error", pa.string()),
+    ]),
+    "scenes": pa.schema([
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("source_kind", pa.string(), nullable=False),     # synthetic | store | nuscenes | ...
+        pa.field("source_json", pa.string(), nullable=False),
+        pa.field("template", pa.string()),
+        pa.field("lighting", pa.string()),
+        pa.field("seed", pa.int64()),
+        pa.field("path", pa.string(), nullable=False),
+        pa.field("content_hash", pa.string(), nullable=False),
+        pa.field("n_frames", pa.int32(), nullable=False),
+        pa.field("duration_s", pa.float64(), nullable=False),
+        pa.field("cameras", pa.list_(pa.string()), nullable=False),
+        pa.field("n_tracks", pa.int32(), nullable=False),
+        pa.field("n_moving", pa.int32(), nullable=False),
+        pa.field("has_lidar", pa.bool_(), nullable=False),
+        pa.field("has_gt", pa.bool_(), nullable=False),
+        pa.field("reused", pa.bool_(), nullable=False),
+        pa.field("ingest_seconds", pa.float64(), nullable=False),
+        pa.field("preview_path", pa.string()),
+    ]),
+    "agents": pa.schema([
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("track_id", pa.int64(), nullable=False),
+        pa.field("category", pa.string(), nullable=False),
+        pa.field("source_category", pa.string()),
+        pa.field("length", pa.float64(), nullable=False),
+        pa.field("width", pa.float64(), nullable=False),
+        pa.field("height", pa.float64(), nullable=False),
+        pa.field("first_frame", pa.int32(), nullable=False),
+        pa.field("last_frame", pa.int32(), nullable=False),
+        pa.field("n_frames", pa.int32(), nullable=False),
+        pa.field("path_length_m", pa.float64(), nullable=False),
+        pa.field("max_speed_mps", pa.float64(), nullable=False),
+        pa.field("moving", pa.bool_(), nullable=False),
+        pa.field("frames_visible", pa.int32()),                   # frames with any visible pixel; null if unknown
+        pa.field("mean_visible_pixels", pa.float64()),
+        pa.field("max_visible_pixels", pa.int64()),
+        pa.field("mean_lidar_points", pa.float64()),
+        pa.field("min_distance_to_ego_m", pa.float64(), nullable=False),
+    ]),
+    "frames": pa.schema([
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("frame_idx", pa.int32(), nullable=False),
+        pa.field("timestamp_us", pa.int64(), nullable=False),
+        pa.field("ego_x", pa.float64(), nullable=False),
+        pa.field("ego_y", pa.float64(), nullable=False),
+        pa.field("ego_z", pa.float64(), nullable=False),
+        pa.field("ego_yaw", pa.float64(), nullable=False),
+        pa.field("ego_speed_mps", pa.float64(), nullable=False),
+        pa.field("n_boxes", pa.int32(), nullable=False),
+        pa.field("n_visible_agents", pa.int32()),
+    ]),
+}
+
+_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+def catalog_root(workspace: Path) -> Path:
+    return Path(workspace) / "catalog"
+
+
+def _check_id(kind: str, value: str) -> None:
+    if not _SAFE_ID.match(value or ""):
+        raise OmniscsError(f"{kind} {value!r} must be letters, digits, '.', '_' or '-'")
+
+
+def validated_table(table: str, rows: list[dict]) -> pa.Table:
+    """Rows as an Arrow table of the declared schema; unknown or missing required fields are errors."""
+    if table not in SCHEMAS:
+        raise OmniscsError(f"unknown catalog table {table!r}; tables: {sorted(SCHEMAS)}")
+    schema = SCHEMAS[table]
+    for i, row in enumerate(rows):
+        extra = set(row) - set(schema.names)
+        if extra:
+            raise OmniscsError(f"catalog table {table}: row {i} has undeclared field(s) {sorted(extra)}")
+        missing = [f.name for f in schema if not f.nullable and row.get(f.name) is None]
+        if missing:
+            raise OmniscsError(f"catalog table {table}: row {i} lacks required field(s) {missing}")
+    try:
+        return pa.Table.from_pylist(rows, schema=schema)
+    except (pa.ArrowInvalid, pa.ArrowTypeError, TypeError, ValueError) as exc:
+        raise OmniscsError(f"catalog table {table}: a row does not fit the schema ({exc})") from None
+
+
+def write_rows(root: Path, table: str, run_id: str, rows: list[dict], writer: str = "task") -> Path | None:
+    """Write ``rows`` as one new Parquet file in ``table``'s partition for ``run_id``; returns its path."""
+    _check_id("run id", run_id)
+    _check_id("writer", writer)
+    arrow = validated_table(table, rows)
+    if arrow.num_rows == 0:
+        return None
+    buf = io.BytesIO()
+    pq.write_table(arrow, buf)
+    path = Path(root) / table / f"run_id={run_id}" / f"{writer}-{uuid.uuid4().hex[:12]}.parquet"
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def _glob(root: Path, table: str) -> str:
+    return str(Path(root) / table / "run_id=*" / "*.parquet")
+
+
+def connect(root: Path) -> duckdb.DuckDBPyConnection:
+    """An in-memory DuckDB connection with one view per catalog table (empty tables when no files yet)."""
+    con = duckdb.connect()
+    for table, schema in SCHEMAS.items():
+        if any((Path(root) / table).glob("run_id=*/*.parquet")):
+            con.execute(
+                f"CREATE VIEW {table} AS SELECT * FROM read_parquet('{_glob(root, table)}', "
+                "hive_partitioning = true, union_by_name = true)"
+            )
+        else:
+            empty = schema.insert(0, pa.field("run_id", pa.string())).empty_table()
+            con.register(f"_{table}_empty", empty)
+            con.execute(f"CREATE VIEW {table} AS SELECT * FROM _{table}_empty")
+    return con
+
+
+def query(root: Path, sql: str) -> pa.Table:
+    """Run SQL over the catalog views; a SQL mistake is reported as an OmniscsError."""
+    con = connect(root)
+    try:
+        return con.sql(sql).to_arrow_table()
+    except duckdb.Error as exc:
+        first = str(exc).strip().splitlines()[0]
+        raise OmniscsError(f"catalog query failed: {first}") from None
+    finally:
+        con.close()
+
+
+def views_sql(root: str = "omniscs-data/catalog") -> str:
+    """DuckDB statements that create the catalog views, for use in the duckdb shell."""
+    lines = ["-- Catalog views for the duckdb shell; generated by omniscs.catalog.views_sql()."]
+    for table in SCHEMAS:
+        lines.append(
+            f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet('{root}/{table}/run_id=*/*.parquet', "
+            "hive_partitioning = true, union_by_name = true);"
+        )
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,243 @@
+"""The ``omniscs`` command line: the top floor, which starts flows and runs quick domain tools."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from omniscs.errors import OmniscsError
+
+app = typer.Typer(help="OmniSCS data factory: safety-critical driving scenarios from ordinary logs.",
+                  pretty_exceptions_enable=False, no_args_is_help=True)
+world_app = typer.Typer(help="Procedural driving worlds (the embedded synthetic default input).", no_args_is_help=True)
+scene_app = typer.Typer(help="Inspect scene stores.", no_args_is_help=True)
+catalog_app = typer.Typer(help="Query the Parquet catalog with DuckDB.", no_args_is_help=True)
+bench_app = typer.Typer(help="Benchmarks; results go to reports/.", no_args_is_help=True)
+app.add_typer(world_app, name="world")
+app.add_typer(scene_app, name="scene")
+app.add_typer(catalog_app, name="catalog")
+app.add_typer(bench_app, name="bench")
+
+console = Console()
+err_console = Console(stderr=True)
+
+#: Sources of the demo run: one per road template, a lighting variant, and the parked-truck scene.
+DEMO_SOURCES = ("syn:straight:0:day", "syn:t_junction:1:dusk", "syn:intersection:2:day")
+DEMO_FRAMES = 20
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, transient=False)
+
+
+def _print_table(rows: list[dict], title: str | None = None) -> None:
+    table = Table(title=title)
+    if not rows:
+        console.print("(no rows)")
+        return
+    for col in rows[0]:
+        table.add_column(str(col))
+    for row in rows:
+        table.add_row(*[_fmt(v) for v in row.values()])
+    console.print(table)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+# ----------------------------------------------------------------------------- world
+@world_app.command("make")
+def world_make(
+    out: Path = typer.Option(..., help="Directory to write the scene store to (must not exist)."),
+    template: str = typer.Option("straight", help="Road layout template."),
+    seed: int = typer.Option(0, help="Seed for layout, assets and traffic."),
+    frames: int = typer.Option(40, help="Frames at 10 Hz."),
+    cameras: int = typer.Option(3, help="Cameras, 1 to 6, nuScenes-like placement."),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    lighting: str = typer.Option("day", help="day, dusk, night or fog."),
+    overwrite: bool = typer.Option(False, help="Replace an existing scene store at --out."),
+) -> None:
+    """Generate a procedural driving log and render it into a scene store with exact ground truth."""
+    from omniscs.scene import SyntheticSource, load_scene
+    from omniscs.scene.ingest import _check_synthetic
+    from omniscs.scene.synthetic import write_synthetic_scene
+
+    source = SyntheticSource(template, seed, lighting, frames, cameras, width, height)
+    _check_synthetic(source)
+    if out.exists() and not overwrite:
+        raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    started = time.perf_counter()
+    with _progress() as bar:
+        task = bar.add_task(f"render {source.scene_id()}", total=frames * (cameras + 1))
+        write_synthetic_scene(source, out, overwrite=overwrite, progress=lambda d, t: bar.update(task, completed=d))
+    scene = load_scene(out)
+    console.print(f"wrote {scene} to {out} in {time.perf_counter() - started:.1f} s")
+
+
+# ----------------------------------------------------------------------------- scene
+@scene_app.command("info")
+def scene_info(path: Path, as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
+    """Summarise a scene store: source, frames, cameras, tracks."""
+    from omniscs.scene import load_scene
+    from omniscs.scene.summary import agent_rows
+
+    scene = load_scene(path)
+    agents = agent_rows(scene)
+    info = {
+        "scene_id": scene.scene_id, "path": str(scene.path), "source": scene.source,
+        "n_frames": scene.n_frames,
+        "duration_s": float((scene.frames.timestamp_us.iloc[-1] - scene.frames.timestamp_us.iloc[0]) * 1e-6),
+        "cameras": {c: {"size": list(scene.image_size(c))} for c in scene.camera_names},
+        "has_lidar": scene.has_lidar, "has_gt": scene.has_gt, "content_hash": scene.content_hash,
+        "n_tracks": len(agents), "n_moving": sum(a["moving"] for a in agents),
+        "tracks": [{k: a[k] for k in ("track_id", "category", "n_frames", "path_length_m", "moving",
+                                      "max_visible_pixels", "min_distance_to_ego_m")} for a in agents],
+    }
+    if as_json:
+        typer.echo(json.dumps(info, indent=2, default=str))
+        return
+    console.print(f"[bold]{info['scene_id']}[/]  {info['path']}")
+    console.print(f"source: {json.dumps(info['source'])}")
+    console.print(f"{info['n_frames']} frames over {info['duration_s']:.1f} s; cameras: "
+                  + ", ".join(f"{c} {v['size'][0]}x{v['size'][1]}" for c, v in info["cameras"].items()))
+    console.print(f"LiDAR: {info['has_lidar']}; ground truth: {info['has_gt']}; "
+                  f"{info['n_tracks']} tracks ({info['n_moving']} moving)")
+    _print_table(info["tracks"], title="tracks")
+
+
+@scene_app.command("preview")
+def scene_preview(path: Path, out: Optional[Path] = typer.Option(None, help="Folder for the PNGs (default: PATH/preview).")) -> None:
+    """Write a contact sheet (cameras over time, boxes projected) and a bird's-eye trajectory plot."""
+    from omniscs.preview import write_previews
+    from omniscs.scene import load_scene
+
+    scene = load_scene(path)
+    paths = write_previews(scene, out or Path(path) / "preview")
+    for name, p in paths.items():
+        console.print(f"{name}: {p}")
+
+
+# ----------------------------------------------------------------------------- flows
+def _run_generate(sources: list[str], workspace: Optional[Path], run_id: Optional[str], frames: int, cameras: int,
+                  width: int, height: int, previews: bool) -> dict:
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    from omniscs.scene import parse_source
+    for s in sources:  # fail on a bad source before starting the orchestrator
+        parse_source(s)
+    from flows.generate import generate_dataset
+
+    return generate_dataset(sources=list(sources), workspace=str(workspace) if workspace else None, run_id=run_id,
+                            n_frames=frames, n_cameras=cameras, width=width, height=height, previews=previews)
+
+
+@app.command("generate")
+def generate(
+    sources: list[str] = typer.Argument(..., help="syn:TEMPLATE:SEED[:LIGHTING] or scene-store paths."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
+    run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+    frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    previews: bool = typer.Option(True, help="Write contact sheets and BEV plots."),
+) -> None:
+    """Run the generate_dataset flow over the given sources."""
+    result = _run_generate(sources, workspace, run_id, frames, cameras, width, height, previews)
+    console.print(f"run {result['run_id']}: {len(result['scenes'])} scene(s) in {result['workspace']}")
+
+
+@app.command("demo")
+def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data).")) -> None:
+    """A small multi-scene run on the embedded synthetic world; prints where everything went."""
+    from omniscs import catalog
+    from omniscs.storage import workspace_root
+
+    started = time.perf_counter()
+    result = _run_generate(list(DEMO_SOURCES), workspace, None, DEMO_FRAMES, 3, 480, 270, True)
+    ws = workspace_root(result["workspace"])
+    root = catalog.catalog_root(ws)
+    rows = catalog.query(root, f"""
+        SELECT s.scene_id, s.n_frames, s.n_tracks, s.n_moving, s.reused,
+               round(s.ingest_seconds, 1) AS ingest_s,
+               (SELECT count(*) FROM agents a WHERE a.run_id = s.run_id AND a.scene_id = s.scene_id
+                AND a.max_visible_pixels > 0) AS visible_tracks
+        FROM scenes s WHERE s.run_id = '{result['run_id']}' ORDER BY s.scene_id""").to_pylist()
+    _print_table(rows, title=f"run {result['run_id']}")
+    console.print(f"scene stores: {ws / 'scenes'}")
+    for s in result["scenes"]:
+        console.print(f"  {s['path']}")
+    console.print(f"previews:     {ws / 'previews'}")
+    for p in result["previews"]:
+        console.print(f"  {p}/contact_sheet.png  {p}/bev.png")
+    console.print(f"catalog:      {root}  (try: omniscs catalog query \"SELECT category, count(*) FROM agents GROUP BY 1\""
+                  + (f" --workspace {ws}" if workspace else "") + ")")
+    console.print(f"demo finished in {time.perf_counter() - started:.1f} s")
+
+
+# ----------------------------------------------------------------------------- catalog
+@catalog_app.command("query")
+def catalog_query(
+    sql: str = typer.Argument(..., help="SQL over the views runs, scenes, agents, frames."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON rows."),
+    as_csv: bool = typer.Option(False, "--csv", help="Print CSV."),
+) -> None:
+    """Run DuckDB SQL over the catalog and print the result."""
+    from omniscs import catalog
+    from omniscs.storage import workspace_root
+
+    table = catalog.query(catalog.catalog_root(workspace_root(workspace)), sql)
+    if as_json:
+        typer.echo(json.dumps(table.to_pylist(), indent=2, default=str))
+    elif as_csv:
+        typer.echo(table.to_pandas().to_csv(index=False), nl=False)
+    else:
+        _print_table(table.to_pylist())
+
+
+@catalog_app.command("views")
+def catalog_views(workspace: Optional[Path] = typer.Option(None)) -> None:
+    """Print DuckDB statements that create the catalog views (for the duckdb shell)."""
+    from omniscs import catalog
+    from omniscs.storage import workspace_root
+
+    typer.echo(catalog.views_sql(str(catalog.catalog_root(workspace_root(workspace)))), nl=False)
+
+
+# ----------------------------------------------------------------------------- benchmarks
+@bench_app.command("world")
+def bench_world(
+    seeds: str = typer.Option("0", help="Comma-separated seeds."),
+    out: Path = typer.Option(Path("reports"), help="Folder for world_render.json/.md."),
+    frames: int = typer.Option(40), cameras: int = typer.Option(3),
+) -> None:
+    """Time rendering a 40-frame, 3-camera 480x270 scene with LiDAR."""
+    from omniscs.world.bench import run_world_benchmark
+
+    result = run_world_benchmark(out, seeds=tuple(int(s) for s in seeds.split(",")), n_frames=frames,
+                                 n_cameras=cameras)
+    console.print((out / "world_render.md").read_text())
+    console.print(f"wrote {out / 'world_render.json'}")
+    del result
+
+
+def main() -> None:
+    try:
+        app()
+    except OmniscsError as exc:
+        err_console.print(f"[red]error:[/] {exc}", highlight=False)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

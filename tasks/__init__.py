@@ -1,0 +1,1 @@
+"""Prefect tasks: thin wrappers around omniscs functions that pass ids and paths, never tensors."""
