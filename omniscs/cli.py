@@ -235,7 +235,7 @@ def main() -> None:
     try:
         app()
     except OmniscsError as exc:
-        err_console.print(f"[red]error:[/] {exc}", highlight=False)
+        err_console.print(f"[red]error:[/] {exc}", highlight=False, soft_wrap=True)
         sys.exit(2)
 
 
