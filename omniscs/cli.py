@@ -29,8 +29,9 @@ app.add_typer(bench_app, name="bench")
 console = Console()
 err_console = Console(stderr=True)
 
-#: Sources of the demo run: one per road template, a lighting variant, and the parked-truck scene.
-DEMO_SOURCES = ("syn:straight:0:day", "syn:t_junction:1:dusk", "syn:intersection:2:day")
+#: Sources of the demo run: every road template, the parked-truck scene, and low-light variants.
+DEMO_SOURCES = ("syn:straight_parked_truck:3:day", "syn:t_junction:1:dusk", "syn:intersection:2:day",
+                "syn:straight:0:night")
 DEMO_FRAMES = 20
 
 

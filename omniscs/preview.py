@@ -85,39 +85,67 @@ def contact_sheet(scene: Scene, out_png: Path, rows: int = CONTACT_SHEET_ROWS) -
     return atomic_write_bytes(out_png, png.tobytes())
 
 
+#: Metres around the ego path that a BEV plot shows; agents wholly outside are left out.
+BEV_MARGIN_M = 35.0
+#: Width of a BEV figure in inches; its height follows the region's aspect within these bounds.
+BEV_WIDTH_IN, BEV_MIN_HEIGHT_IN, BEV_MAX_HEIGHT_IN = 11.0, 4.0, 11.0
+
+
 def bev_plot(scene: Scene, out_png: Path) -> Path:
-    """Bird's-eye view of the ego path and every track, with box footprints at first and last frame."""
+    """Bird's-eye view around the ego path: map (for synthetic scenes), ego path and every nearby
+    track with box footprints at its first and last frame. Written atomically."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 8), dpi=110)
     ego = scene.world_from_ego_all[:, :3, 3]
-    ax.plot(ego[:, 0], ego[:, 1], "-", color="black", lw=2.5, label="ego", zorder=3)
-    ax.annotate("ego start", ego[0, :2], fontsize=8)
+    lo, hi = ego[:, :2].min(0) - BEV_MARGIN_M, ego[:, :2].max(0) + BEV_MARGIN_M
+    span = hi - lo
+    height_in = float(np.clip(BEV_WIDTH_IN * span[1] / span[0], BEV_MIN_HEIGHT_IN, BEV_MAX_HEIGHT_IN))
+    fig, ax = plt.subplots(figsize=(BEV_WIDTH_IN, height_in), dpi=110)
+    world = scene.world
+    if world is not None:
+        from omniscs.world import layout_for
+
+        layout = layout_for(world)
+        for poly in layout.sidewalk_polygons:
+            ax.fill(poly[:, 0], poly[:, 1], color="0.85", zorder=0, lw=0)
+        for poly in layout.drivable_polygons:
+            ax.fill(poly[:, 0], poly[:, 1], color="0.65", zorder=0, lw=0)
+    ax.plot(ego[:, 0], ego[:, 1], "-", color="black", lw=2.5, label="ego path", zorder=4)
+    ax.plot(*ego[0, :2], "o", color="black", zorder=4)
+    shown = 0
     for track_id, g in scene.boxes.groupby("track_id"):
         g = g.sort_values("frame_idx")
+        xy = g[["cx", "cy"]].to_numpy()
+        if not np.any(np.all((xy >= lo) & (xy <= hi), axis=1)):
+            continue
+        shown += 1
         colour = np.array(track_colour(track_id)) / 255.0
-        ax.plot(g.cx, g.cy, "-", color=colour, lw=1.5, zorder=2)
-        for row in (g.iloc[0], g.iloc[-1]):
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=colour, lw=1.5, zorder=3)
+        for k, row in enumerate((g.iloc[0], g.iloc[-1])):
             corners = box_corners_from_pose(box_pose(row), [row.length, row.width, row.height])
             foot = corners[[0, 2, 6, 4, 0], :2]  # outline of the face at +z
-            ax.fill(foot[:, 0], foot[:, 1], color=colour, alpha=0.35, zorder=2)
-            ax.plot(foot[:, 0], foot[:, 1], color=colour, lw=0.8)
-        first = g.iloc[0]
-        ax.annotate(f"{first.category} {track_id}", (first.cx, first.cy), fontsize=7, color=colour * 0.7)
+            ax.fill(foot[:, 0], foot[:, 1], color=colour, alpha=0.25 if k == 0 else 0.6, zorder=3)
+            ax.plot(foot[:, 0], foot[:, 1], color=colour, lw=0.8, zorder=3)
+        last = g.iloc[-1]
+        ax.annotate(str(track_id), (last.cx, last.cy), fontsize=7, ha="center", va="center", zorder=5)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.set_xlabel("x (m, world)")
     ax.set_ylabel("y (m, world)")
-    ax.set_title(f"{scene.scene_id}: {scene.boxes.track_id.nunique()} tracks, {scene.n_frames} frames")
+    ax.set_title(f"{scene.scene_id}: {shown} of {scene.boxes.track_id.nunique()} tracks near the ego path, "
+                 f"{scene.n_frames} frames (faint box = first frame, solid = last)", fontsize=9)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    tmp = Path(out_png).with_suffix(".tmp.png")
-    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_png.with_name(f".{out_png.name}.tmp.png")
     fig.savefig(tmp)
     plt.close(fig)
     tmp.replace(out_png)
-    return Path(out_png)
+    return out_png
 
 
 def write_previews(scene: Scene, out_dir: Path) -> dict[str, Path]:

@@ -52,3 +52,21 @@ def test_bad_source_fails_before_anything_is_written(prefect_harness, tmp_path):
     with pytest.raises(OmniscsError, match="neither syn:TEMPLATE:SEED nor an existing scene-store"):
         generate_dataset([str(tmp_path / "missing")], workspace=str(ws), run_id="bad")
     assert not (ws / "scenes").exists() and not any(ws.rglob("*.parquet"))
+
+
+def test_synthetic_source_is_rendered_once_and_reused_by_the_next_run(prefect_harness, tmp_path):
+    from flows.generate import generate_dataset
+
+    ws = tmp_path / "ws"
+    kwargs = dict(workspace=str(ws), n_frames=2, n_cameras=1, width=64, height=36)
+    first = generate_dataset(["syn:straight_parked_truck:0:night"], run_id="r1", **kwargs)
+    second = generate_dataset(["syn:straight_parked_truck:0:night"], run_id="r2", previews=False, **kwargs)
+    assert first["scenes"][0]["scene_id"] == second["scenes"][0]["scene_id"]
+    assert [first["scenes"][0]["reused"], second["scenes"][0]["reused"]] == [False, True]
+    root = catalog.catalog_root(ws)
+    rows = catalog.query(root, "SELECT run_id, template, lighting, has_gt, reused FROM scenes ORDER BY run_id").to_pylist()
+    assert rows == [{"run_id": "r1", "template": "straight_parked_truck", "lighting": "night", "has_gt": True, "reused": False},
+                    {"run_id": "r2", "template": "straight_parked_truck", "lighting": "night", "has_gt": True, "reused": True}]
+    big = catalog.query(root, "SELECT category FROM agents WHERE run_id = 'r1' AND category IN ('truck', 'trailer') "
+                              "AND NOT moving").to_pylist()
+    assert big, "the parked-truck template must catalogue its large static object"

@@ -3,6 +3,7 @@
 Arrays are float32 in memory; arithmetic is float64 in registers (free in scalar code, and it keeps
 the float32 path close to the float64 reference). Every parallel loop writes disjoint memory, and
 per-Gaussian gradients are summed in a fixed order, so results are bitwise reproducible.
+A pixel is skipped, in forward and backward alike, by the same tests in the same order.
 """
 from __future__ import annotations
 
@@ -11,26 +12,59 @@ import math
 import numba as nb
 import numpy as np
 
-from omniscs.render.constants import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_STOP
+from omniscs.render.constants import ALPHA_THRESHOLD, MAX_ALPHA, TILE_SIZE, TRANSMITTANCE_STOP
 
-#: Slack on the per-Gaussian Mahalanobis cut-off (which only skips exp for pixels whose alpha is
-#: below ALPHA_THRESHOLD anyway); rounding can never move a visible pixel past it.
+#: Slack on the per-Gaussian cut-off of the Mahalanobis half-distance sigma beyond which alpha is
+#: below ALPHA_THRESHOLD anyway; only saves exp() calls, never removes a visible pixel.
 SIGMA_CUT_SLACK = 1e-6
+
+#: Extra slack (in sigma) of the test that skips tile rows missing the cut-off ellipse entirely, so
+#: rounding never skips a row holding a pixel that passes the per-pixel sigma test.
+ROW_SPAN_SLACK = 1e-4
+
+#: Columns of a Gaussian record: centre x, y; conic a, b, c; opacity; sigma cut-off; then for the
+#: row test: 2 a (cut-off + ROW_SPAN_SLACK), a c - b^2, 1 / a.
+N_RECORD = 10
+
+#: exp(-sigma) is evaluated as (Taylor polynomial at sigma / 2^EXP_SQUARINGS)^(2^EXP_SQUARINGS): plain
+#: arithmetic that vectorises (libm exp does not), relative error < 1e-7 for sigma up to ln(255).
+EXP_SQUARINGS = 6
 
 #: Gradient slots per intersection before the colour channels: means2d (2), conic (3), opacity (1), |means2d| (2).
 N_GEOMETRY_SLOTS = 8
 
 
-@nb.njit(cache=True, inline="always")
-def _sigma_cut(opacity):
-    """Mahalanobis half-distance beyond which alpha < ALPHA_THRESHOLD."""
-    return math.log(max(opacity, ALPHA_THRESHOLD) / ALPHA_THRESHOLD) + SIGMA_CUT_SLACK
+@nb.njit(cache=True, parallel=True)
+def make_records(means2d, conics, opacities, radii):  # [G, 2], [G, 3], [G], [G, 2] -> [G, N_RECORD] float64, [G] bool
+    """Pack what the pixel loops read per Gaussian into one row; flag Gaussians that can be drawn."""
+    n = means2d.shape[0]
+    records = np.empty((n, N_RECORD), dtype=np.float64)
+    drawable = np.empty(n, dtype=np.bool_)
+    for g in nb.prange(n):
+        opacity = np.float64(opacities[g])
+        records[g, 0] = means2d[g, 0]
+        records[g, 1] = means2d[g, 1]
+        records[g, 2] = conics[g, 0]
+        records[g, 3] = conics[g, 1]
+        records[g, 4] = conics[g, 2]
+        records[g, 5] = opacity
+        records[g, 6] = math.log(max(opacity, ALPHA_THRESHOLD) / ALPHA_THRESHOLD) + SIGMA_CUT_SLACK
+        records[g, 7] = 2.0 * records[g, 2] * (records[g, 6] + ROW_SPAN_SLACK)
+        records[g, 8] = records[g, 2] * records[g, 4] - records[g, 3] * records[g, 3]
+        records[g, 9] = 1.0 / records[g, 2] if records[g, 2] > 0.0 else 0.0
+        finite = True
+        for k in range(N_RECORD):
+            finite = finite and math.isfinite(records[g, k])
+        positive = records[g, 2] > 0.0 and records[g, 8] > 0.0
+        drawable[g] = radii[g, 0] > 0 and radii[g, 1] > 0 and finite and positive
+    return records, drawable
 
 
 @nb.njit(cache=True)
 def bin_gaussians(
-    means2d,       # [C*N, 2] float32
-    radii,         # [C*N, 2] int32, 0 where culled
+    records,       # [C*N, N_RECORD]
+    drawable,      # [C*N] bool
+    radii,         # [C*N, 2] int32
     depth_order,   # [C, N] int64 per-camera indices sorted by depth (stable), visible ones first
     n_visible,     # [C] int64
     width, height, tile,
@@ -52,10 +86,10 @@ def bin_gaussians(
         pixel_boxes[g, 1] = 0
         pixel_boxes[g, 2] = 1
         pixel_boxes[g, 3] = 0
-        if radii[g, 0] <= 0:
+        if not drawable[g]:
             continue
-        mx = np.float64(means2d[g, 0])
-        my = np.float64(means2d[g, 1])
+        mx = records[g, 0]
+        my = records[g, 1]
         # pixel px is inside when |px + 0.5 - mx| <= rx; clip in float before converting to int
         x_lo = max(0.0, math.ceil(min(mx - radii[g, 0] - 0.5, width)))
         x_hi = min(width - 1.0, math.floor(max(mx + radii[g, 0] - 0.5, -1.0)))
@@ -100,78 +134,112 @@ def bin_gaussians(
     return tile_offsets, isect_gaussians, pixel_boxes, gaussian_offsets, gaussian_isects
 
 
+@nb.njit(cache=True, inline="always")
+def _exp_neg(sigma):
+    """exp(-sigma) for 0 <= sigma <= ~6 by scaled Taylor series and repeated squaring."""
+    t = sigma * (1.0 / (1 << EXP_SQUARINGS))
+    p = 1.0 - t * (1.0 - t * (0.5 - t * (1.0 / 6.0 - t * (1.0 / 24.0 - t * (1.0 / 120.0)))))
+    # EXP_SQUARINGS squarings, written out: a loop here would stop LLVM vectorising the caller
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return p
+
+
+@nb.njit(cache=True, inline="always")
+def _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row):
+    """exp(-sigma) and alpha of Gaussian g over the TILE_SIZE pixels of one tile row (alpha 0 = skipped).
+
+    Lanes first..last (tile-relative columns) are the Gaussian's pixel box; the loop has a fixed
+    trip count and no branches so that LLVM vectorises it. Forward and backward both call it, so
+    they take identical decisions.
+    """
+    mx = records[g, 0]
+    ca = records[g, 2]
+    cb_dy = records[g, 3] * dy
+    cc_dy2 = records[g, 4] * dy * dy
+    opacity = records[g, 5]
+    cut = records[g, 6]
+    for i in range(TILE_SIZE):
+        dx = mx - (x0 + i + 0.5)
+        sigma = 0.5 * (ca * dx * dx + cc_dy2) + cb_dy * dx
+        inside = (i >= first) & (i <= last) & (sigma >= 0.0) & (sigma <= cut)
+        gaussian = _exp_neg(min(max(sigma, 0.0), cut))
+        alpha = min(MAX_ALPHA, opacity * gaussian)
+        gaussian_row[i] = gaussian
+        alpha_row[i] = alpha if inside & (alpha >= ALPHA_THRESHOLD) else 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _tile_of(job, width, height):
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    n_tiles = tiles_x * tiles_y
+    cam = job // n_tiles
+    x0 = ((job % n_tiles) % tiles_x) * TILE_SIZE
+    y0 = ((job % n_tiles) // tiles_x) * TILE_SIZE
+    return cam, x0, y0, min(TILE_SIZE, width - x0), min(TILE_SIZE, height - y0)
+
+
 @nb.njit(cache=True, parallel=True)
 def rasterize_forward(
-    tile_offsets, isect_gaussians, pixel_boxes,
-    means2d,    # [C*N, 2] float32
-    conics,     # [C*N, 3] float32
-    colors,     # [C*N, D] float32
-    opacities,  # [C*N] float32
-    width, height, tile,
+    tile_offsets, isect_gaussians, pixel_boxes, records,
+    colors,             # [C*N, D] float32
     out_colors,         # [C, H, W, D] float32
     out_transmittance,  # [C, H, W] float32
     out_counts,         # [C, H, W] int32: list entries up to and including the last one composited
 ):
-    n_cams = out_colors.shape[0]
-    n_channels = colors.shape[1]
-    tiles_x = (width + tile - 1) // tile
-    tiles_y = (height + tile - 1) // tile
-    n_tiles = tiles_x * tiles_y
-    for job in nb.prange(n_cams * n_tiles):
-        cam = job // n_tiles
-        ty = (job % n_tiles) // tiles_x
-        tx = (job % n_tiles) % tiles_x
-        x0 = tx * tile
-        y0 = ty * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        tw = x1 - x0
-        th = y1 - y0
-        transmittance = np.ones((th, tw), dtype=np.float64)
-        accumulated = np.zeros((th, tw, n_channels), dtype=np.float64)
-        counts = np.zeros((th, tw), dtype=np.int32)
-        done = np.zeros((th, tw), dtype=np.bool_)
+    n_cams, height, width, n_channels = out_colors.shape
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    for job in nb.prange(n_cams * tiles_x * tiles_y):
+        cam, x0, y0, tw, th = _tile_of(job, width, height)
+        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        active = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)  # 1 until the pixel stops
+        counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
+        accumulated = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        gaussian_row = np.empty(TILE_SIZE, dtype=np.float64)
+        alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
+        weight_row = np.empty(TILE_SIZE, dtype=np.float64)
+        live_in_row = np.zeros(TILE_SIZE, dtype=np.int64)  # pixels of each row still compositing
+        live_in_row[:th] = tw
         n_done = 0
         start = tile_offsets[job]
-        end = tile_offsets[job + 1]
-        for p in range(start, end):
+        for p in range(start, tile_offsets[job + 1]):
             g = isect_gaussians[p]
-            bx0 = max(pixel_boxes[g, 0], x0)
-            bx1 = min(pixel_boxes[g, 1], x1 - 1)
-            by0 = max(pixel_boxes[g, 2], y0)
-            by1 = min(pixel_boxes[g, 3], y1 - 1)
-            mx = np.float64(means2d[g, 0])
-            my = np.float64(means2d[g, 1])
-            ca = np.float64(conics[g, 0])
-            cb = np.float64(conics[g, 1])
-            cc = np.float64(conics[g, 2])
-            opacity = np.float64(opacities[g])
-            cut = _sigma_cut(opacity)
-            for py in range(by0, by1 + 1):
-                dy = my - (py + 0.5)
+            first = max(pixel_boxes[g, 0], x0) - x0
+            last = min(pixel_boxes[g, 1], x0 + tw - 1) - x0
+            for py in range(max(pixel_boxes[g, 2], y0), min(pixel_boxes[g, 3], y0 + th - 1) + 1):
                 ly = py - y0
-                for px in range(bx0, bx1 + 1):
-                    lx = px - x0
-                    if done[ly, lx]:
-                        continue
-                    dx = mx - (px + 0.5)
-                    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if sigma < 0.0 or sigma > cut:
-                        continue
-                    alpha = min(MAX_ALPHA, opacity * math.exp(-sigma))
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
-                    t_before = transmittance[ly, lx]
+                dy = records[g, 1] - (py + 0.5)
+                if live_in_row[ly] == 0 or records[g, 7] < dy * dy * records[g, 8]:
+                    continue  # the row is finished or misses the cut-off ellipse
+                _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
+                stopped = 0
+                composited = 0
+                for i in range(TILE_SIZE):
+                    alpha = alpha_row[i]
+                    t_before = transmittance[ly, i]
                     t_after = t_before * (1.0 - alpha)
-                    if t_after <= TRANSMITTANCE_STOP:
-                        done[ly, lx] = True
-                        n_done += 1
-                        continue
-                    weight = alpha * t_before
+                    live = (alpha > 0.0) & (active[ly, i] > 0.0)
+                    go = live & (t_after > TRANSMITTANCE_STOP)
+                    stop = live & (t_after <= TRANSMITTANCE_STOP)
+                    weight_row[i] = alpha * t_before if go else 0.0
+                    transmittance[ly, i] = t_after if go else t_before
+                    counts[ly, i] = p - start + 1 if go else counts[ly, i]
+                    active[ly, i] = 0.0 if stop else active[ly, i]
+                    stopped += 1 if stop else 0
+                    composited += 1 if go else 0
+                if composited > 0:
                     for k in range(n_channels):
-                        accumulated[ly, lx, k] += weight * colors[g, k]
-                    transmittance[ly, lx] = t_after
-                    counts[ly, lx] = p - start + 1
+                        color = np.float64(colors[g, k])
+                        for i in range(TILE_SIZE):
+                            accumulated[k, ly, i] += weight_row[i] * color
+                live_in_row[ly] -= stopped
+                n_done += stopped
             if n_done == tw * th:
                 break
         for ly in range(th):
@@ -179,123 +247,123 @@ def rasterize_forward(
                 out_transmittance[cam, y0 + ly, x0 + lx] = transmittance[ly, lx]
                 out_counts[cam, y0 + ly, x0 + lx] = counts[ly, lx]
                 for k in range(n_channels):
-                    out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[ly, lx, k]
+                    out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[k, ly, lx]
 
 
 @nb.njit(cache=True, parallel=True)
 def rasterize_backward(
-    tile_offsets, isect_gaussians, pixel_boxes,
-    means2d, conics, colors, opacities,   # as in rasterize_forward
-    width, height, tile,
+    tile_offsets, isect_gaussians, pixel_boxes, records, colors,   # as in rasterize_forward
     transmittance_final,  # [C, H, W] float32 from the forward pass
     counts,               # [C, H, W] int32 from the forward pass
     grad_colors,          # [C, H, W, D] float32, dL/d(render colours without background)
     grad_transmittance,   # [C, H, W] float32, dL/d(final transmittance)
     slots,                # [M, N_GEOMETRY_SLOTS + D] float32 out: this intersection's gradient terms
 ):
-    """Walk each tile's list back to front, rebuilding transmittance by division (as gsplat)."""
-    n_cams = transmittance_final.shape[0]
-    n_channels = colors.shape[1]
-    tiles_x = (width + tile - 1) // tile
-    tiles_y = (height + tile - 1) // tile
-    n_tiles = tiles_x * tiles_y
-    for job in nb.prange(n_cams * n_tiles):
-        cam = job // n_tiles
-        ty = (job % n_tiles) // tiles_x
-        tx = (job % n_tiles) % tiles_x
-        x0 = tx * tile
-        y0 = ty * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        tw = x1 - x0
-        th = y1 - y0
+    """Walk each tile's list back to front, rebuilding transmittance by division (as gsplat).
+
+    Per-Gaussian sums are kept per lane (pixel column) and added across lanes in a fixed order at
+    the end, which vectorises without reassociating floating-point sums.
+    """
+    n_cams, height, width, n_channels = grad_colors.shape
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    n_slots = N_GEOMETRY_SLOTS + n_channels
+    for job in nb.prange(n_cams * tiles_x * tiles_y):
+        cam, x0, y0, tw, th = _tile_of(job, width, height)
         start = tile_offsets[job]
-        end = tile_offsets[job + 1]
-        for p in range(start, end):
-            for k in range(slots.shape[1]):
+        for p in range(start, tile_offsets[job + 1]):
+            for k in range(n_slots):
                 slots[p, k] = 0.0
-        transmittance = np.empty((th, tw), dtype=np.float64)
-        behind = np.zeros((th, tw, n_channels), dtype=np.float64)  # colour composited behind the current Gaussian
+        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        final = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        grad_final = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        tile_counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
+        grad_out = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        behind = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)  # colour composited behind
         max_count = 0
+        row_max_count = np.zeros(TILE_SIZE, dtype=np.int64)  # no pixel of the row composited beyond this
         for ly in range(th):
             for lx in range(tw):
-                transmittance[ly, lx] = transmittance_final[cam, y0 + ly, x0 + lx]
+                final[ly, lx] = transmittance_final[cam, y0 + ly, x0 + lx]
+                transmittance[ly, lx] = final[ly, lx]
+                grad_final[ly, lx] = grad_transmittance[cam, y0 + ly, x0 + lx]
+                tile_counts[ly, lx] = counts[cam, y0 + ly, x0 + lx]
                 max_count = max(max_count, counts[cam, y0 + ly, x0 + lx])
-        grad_color_local = np.empty(n_channels, dtype=np.float64)
+                row_max_count[ly] = max(row_max_count[ly], counts[cam, y0 + ly, x0 + lx])
+                for k in range(n_channels):
+                    grad_out[k, ly, lx] = grad_colors[cam, y0 + ly, x0 + lx, k]
+        gaussian_row = np.empty(TILE_SIZE, dtype=np.float64)
+        alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
+        t_before_row = np.empty(TILE_SIZE, dtype=np.float64)
+        inv_keep_row = np.empty(TILE_SIZE, dtype=np.float64)
+        weight_row = np.empty(TILE_SIZE, dtype=np.float64)
+        grad_alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
+        lanes = np.empty((n_slots, TILE_SIZE), dtype=np.float64)
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
             g = isect_gaussians[p]
-            bx0 = max(pixel_boxes[g, 0], x0)
-            bx1 = min(pixel_boxes[g, 1], x1 - 1)
-            by0 = max(pixel_boxes[g, 2], y0)
-            by1 = min(pixel_boxes[g, 3], y1 - 1)
-            mx = np.float64(means2d[g, 0])
-            my = np.float64(means2d[g, 1])
-            ca = np.float64(conics[g, 0])
-            cb = np.float64(conics[g, 1])
-            cc = np.float64(conics[g, 2])
-            opacity = np.float64(opacities[g])
-            cut = _sigma_cut(opacity)
-            g_mx = 0.0
-            g_my = 0.0
-            g_ca = 0.0
-            g_cb = 0.0
-            g_cc = 0.0
-            g_opacity = 0.0
-            g_abs_x = 0.0
-            g_abs_y = 0.0
-            for k in range(n_channels):
-                grad_color_local[k] = 0.0
-            for py in range(by0, by1 + 1):
-                dy = my - (py + 0.5)
+            mx = records[g, 0]
+            ca = records[g, 2]
+            cb = records[g, 3]
+            cc = records[g, 4]
+            opacity = records[g, 5]
+            first = max(pixel_boxes[g, 0], x0) - x0
+            last = min(pixel_boxes[g, 1], x0 + tw - 1) - x0
+            lanes[:, :] = 0.0
+            touched = 0
+            for py in range(max(pixel_boxes[g, 2], y0), min(pixel_boxes[g, 3], y0 + th - 1) + 1):
                 ly = py - y0
-                for px in range(bx0, bx1 + 1):
-                    if rank >= counts[cam, py, px]:
-                        continue
-                    lx = px - x0
-                    dx = mx - (px + 0.5)
-                    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    if sigma < 0.0 or sigma > cut:
-                        continue
-                    gaussian = math.exp(-sigma)
-                    raw_alpha = opacity * gaussian
-                    alpha = min(MAX_ALPHA, raw_alpha)
-                    if alpha < ALPHA_THRESHOLD:
-                        continue
+                dy = records[g, 1] - (py + 0.5)
+                if rank >= row_max_count[ly] or records[g, 7] < dy * dy * records[g, 8]:
+                    continue
+                _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
+                valid_lanes = 0
+                for i in range(TILE_SIZE):
+                    alpha = alpha_row[i]
+                    valid = (alpha > 0.0) & (rank < tile_counts[ly, i])
                     inv_keep = 1.0 / (1.0 - alpha)
-                    t_before = transmittance[ly, lx] * inv_keep
-                    transmittance[ly, lx] = t_before
-                    weight = alpha * t_before
-                    grad_alpha = 0.0
-                    for k in range(n_channels):
-                        g_out = np.float64(grad_colors[cam, py, px, k])
-                        grad_color_local[k] += weight * g_out
-                        grad_alpha += (colors[g, k] * t_before - behind[ly, lx, k] * inv_keep) * g_out
-                        behind[ly, lx, k] += colors[g, k] * weight
-                    t_final = np.float64(transmittance_final[cam, py, px])
-                    grad_alpha -= t_final * inv_keep * grad_transmittance[cam, py, px]
-                    if raw_alpha <= MAX_ALPHA:
-                        grad_sigma = -raw_alpha * grad_alpha
-                        g_ca += 0.5 * grad_sigma * dx * dx
-                        g_cb += grad_sigma * dx * dy
-                        g_cc += 0.5 * grad_sigma * dy * dy
-                        gx = grad_sigma * (ca * dx + cb * dy)
-                        gy = grad_sigma * (cb * dx + cc * dy)
-                        g_mx += gx
-                        g_my += gy
-                        g_abs_x += abs(gx)
-                        g_abs_y += abs(gy)
-                        g_opacity += gaussian * grad_alpha
-            slots[p, 0] = g_mx
-            slots[p, 1] = g_my
-            slots[p, 2] = g_ca
-            slots[p, 3] = g_cb
-            slots[p, 4] = g_cc
-            slots[p, 5] = g_opacity
-            slots[p, 6] = g_abs_x
-            slots[p, 7] = g_abs_y
-            for k in range(n_channels):
-                slots[p, N_GEOMETRY_SLOTS + k] = grad_color_local[k]
+                    t_before = transmittance[ly, i] * inv_keep
+                    transmittance[ly, i] = t_before if valid else transmittance[ly, i]
+                    t_before_row[i] = t_before
+                    inv_keep_row[i] = inv_keep
+                    weight_row[i] = alpha * t_before if valid else 0.0
+                    grad_alpha_row[i] = -final[ly, i] * inv_keep * grad_final[ly, i] if valid else 0.0
+                    valid_lanes += 1 if valid else 0
+                if valid_lanes == 0:
+                    continue
+                touched += valid_lanes
+                for k in range(n_channels):
+                    color = np.float64(colors[g, k])
+                    for i in range(TILE_SIZE):
+                        g_out = grad_out[k, ly, i]
+                        weight = weight_row[i]
+                        lanes[N_GEOMETRY_SLOTS + k, i] += weight * g_out
+                        term = (color * t_before_row[i] - behind[k, ly, i] * inv_keep_row[i]) * g_out
+                        grad_alpha_row[i] += term if weight > 0.0 else 0.0
+                        behind[k, ly, i] += color * weight
+                for i in range(TILE_SIZE):
+                    dx = mx - (x0 + i + 0.5)
+                    raw_alpha = opacity * gaussian_row[i]
+                    unclamped = (weight_row[i] > 0.0) & (raw_alpha <= MAX_ALPHA)
+                    grad_alpha = grad_alpha_row[i] if unclamped else 0.0
+                    grad_sigma = -raw_alpha * grad_alpha
+                    gx = grad_sigma * (ca * dx + cb * dy)
+                    gy = grad_sigma * (cb * dx + cc * dy)
+                    lanes[0, i] += gx
+                    lanes[1, i] += gy
+                    lanes[2, i] += 0.5 * grad_sigma * dx * dx
+                    lanes[3, i] += grad_sigma * dx * dy
+                    lanes[4, i] += 0.5 * grad_sigma * dy * dy
+                    lanes[5, i] += gaussian_row[i] * grad_alpha
+                    lanes[6, i] += abs(gx)
+                    lanes[7, i] += abs(gy)
+            if touched == 0:
+                continue
+            for k in range(n_slots):
+                total = 0.0
+                for i in range(first, last + 1):
+                    total += lanes[k, i]
+                slots[p, k] = total
 
 
 @nb.njit(cache=True, parallel=True)

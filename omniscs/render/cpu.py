@@ -57,23 +57,20 @@ class TileRasterizer(torch.autograd.Function):
         visible = radii[..., 0] > 0
         sort_key = torch.where(visible, depths.detach(), torch.full_like(depths, float("inf")))
         depth_order = torch.sort(sort_key, dim=1, stable=True).indices
-        arrays = (
-            _as_float32(means2d, (flat, 2)),
-            _as_float32(conics, (flat, 3)),
-            _as_float32(colors, (flat, n_channels)),
-            _as_float32(opacities, (flat,)),
-        )
-        bins = kernels.bin_gaussians(
-            arrays[0], np.ascontiguousarray(radii.reshape(flat, 2).numpy()), depth_order.numpy(),
-            visible.sum(1).numpy(), width, height, TILE_SIZE,
-        )
+        means2d_np = _as_float32(means2d, (flat, 2))
+        colors_np = _as_float32(colors, (flat, n_channels))
+        radii_np = np.ascontiguousarray(radii.reshape(flat, 2).numpy())
+        records, drawable = kernels.make_records(
+            means2d_np, _as_float32(conics, (flat, 3)), _as_float32(opacities, (flat,)), radii_np)
+        bins = kernels.bin_gaussians(records, drawable, radii_np, depth_order.numpy(), visible.sum(1).numpy(),
+                                     width, height, TILE_SIZE)
         out_colors = np.empty((n_cams, height, width, n_channels), dtype=np.float32)
         out_transmittance = np.empty((n_cams, height, width), dtype=np.float32)
         out_counts = np.empty((n_cams, height, width), dtype=np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
-            kernels.rasterize_forward(bins[0], bins[1], bins[2], *arrays, width, height, TILE_SIZE,
+            kernels.rasterize_forward(bins[0], bins[1], bins[2], records, colors_np,
                                       out_colors, out_transmittance, out_counts)
-        ctx.arrays = arrays
+        ctx.arrays = (records, colors_np)
         ctx.bins = bins
         ctx.image = (width, height, out_transmittance, out_counts)
         ctx.absgrad = absgrad
@@ -86,7 +83,7 @@ class TileRasterizer(torch.autograd.Function):
     def backward(ctx, grad_colors: Tensor | None, grad_transmittance: Tensor | None):
         (means2d,) = ctx.saved_tensors
         width, height, transmittance, counts = ctx.image
-        means2d_np, conics_np, colors_np, opacities_np = ctx.arrays
+        records, colors_np = ctx.arrays
         tile_offsets, isect_gaussians, pixel_boxes, gaussian_offsets, gaussian_isects = ctx.bins
         n_cams = transmittance.shape[0]
         n_channels = colors_np.shape[1]
@@ -97,13 +94,12 @@ class TileRasterizer(torch.autograd.Function):
         slots = np.empty((isect_gaussians.shape[0], kernels.N_GEOMETRY_SLOTS + n_channels), dtype=np.float32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             kernels.rasterize_backward(
-                tile_offsets, isect_gaussians, pixel_boxes, means2d_np, conics_np, colors_np, opacities_np,
-                width, height, TILE_SIZE, transmittance, counts,
+                tile_offsets, isect_gaussians, pixel_boxes, records, colors_np, transmittance, counts,
                 _as_float32(grad_colors, tuple(grad_colors.shape)),
                 _as_float32(grad_transmittance, tuple(grad_transmittance.shape)),
                 slots,
             )
-        per_gaussian = np.empty((means2d_np.shape[0], slots.shape[1]), dtype=np.float32)
+        per_gaussian = np.empty((records.shape[0], slots.shape[1]), dtype=np.float32)
         kernels.reduce_slots(gaussian_offsets, gaussian_isects, slots, per_gaussian)
         grads = torch.from_numpy(per_gaussian).reshape(n_cams, -1, slots.shape[1])
         dt_means, dt_conics, dt_colors, dt_opacities = ctx.dtypes

@@ -108,22 +108,24 @@ class MeshBuilder:
 
     def box(self, centre, size, colour, material, semantic: int, R: np.ndarray | None = None,
             side_material: dict[str, int] | None = None, side_colour: dict[str, np.ndarray] | None = None,
-            params=None) -> None:
+            side_semantic: dict[str, int] | None = None, params=None) -> None:
         """Axis-aligned box (then rotated by R about its centre); sides named +x -x +y -y +z -z."""
         h = 0.5 * np.asarray(size, dtype=np.float64)
         corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * h
         quads = {"-x": (0, 1, 3, 2), "+x": (4, 6, 7, 5), "-y": (0, 4, 5, 1),
                  "+y": (2, 3, 7, 6), "-z": (0, 2, 6, 4), "+z": (1, 5, 7, 3)}
-        faces, mats, cols = [], [], []
+        faces, mats, cols, sems = [], [], [], []
         for name, (a, b, c, d) in quads.items():
             faces += [(a, b, c), (a, c, d)]
             m = (side_material or {}).get(name, material)
             col = (side_colour or {}).get(name, colour)
+            sem = (side_semantic or {}).get(name, semantic)
             mats += [m, m]
             cols += [col, col]
+            sems += [sem, sem]
         rot = np.eye(3) if R is None else R
         verts = corners @ rot.T + np.asarray(centre, dtype=np.float64)
-        self.add(verts, faces, np.array(cols), np.array(mats), semantic, params)
+        self.add(verts, faces, np.array(cols), np.array(mats), np.array(sems), params)
 
     def prism(self, profile, lo: float, hi: float, colour, material, semantic: int, axis: int = 1,
               edge_material: list[int] | None = None, edge_colour: list | None = None,
