@@ -26,7 +26,7 @@ app.add_typer(scene_app, name="scene")
 app.add_typer(catalog_app, name="catalog")
 app.add_typer(bench_app, name="bench")
 
-console = Console()
+console = Console(soft_wrap=True)  # paths and ids stay whole when output is not a terminal
 err_console = Console(stderr=True)
 
 #: Sources of the demo run: every road template, the parked-truck scene, and low-light variants.
@@ -46,7 +46,7 @@ def _print_table(rows: list[dict], title: str | None = None) -> None:
         console.print("(no rows)")
         return
     for col in rows[0]:
-        table.add_column(str(col))
+        table.add_column(str(col), overflow="fold")
     for row in rows:
         table.add_row(*[_fmt(v) for v in row.values()])
     console.print(table)

@@ -298,7 +298,7 @@ def rasterize_backward(
         inv_keep_row = np.empty(TILE_SIZE, dtype=np.float64)
         weight_row = np.empty(TILE_SIZE, dtype=np.float64)
         grad_alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
-        lanes = np.empty((n_slots, TILE_SIZE), dtype=np.float64)
+        lanes = np.zeros((n_slots, TILE_SIZE), dtype=np.float64)  # back to 0 after each Gaussian
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
             g = isect_gaussians[p]
@@ -309,7 +309,6 @@ def rasterize_backward(
             opacity = records[g, 5]
             first = max(pixel_boxes[g, 0], x0) - x0
             last = min(pixel_boxes[g, 1], x0 + tw - 1) - x0
-            lanes[:, :] = 0.0
             touched = 0
             for py in range(max(pixel_boxes[g, 2], y0), min(pixel_boxes[g, 3], y0 + th - 1) + 1):
                 ly = py - y0
@@ -358,11 +357,12 @@ def rasterize_backward(
                     lanes[6, i] += abs(gx)
                     lanes[7, i] += abs(gy)
             if touched == 0:
-                continue
+                continue  # lanes were only ever incremented by zero
             for k in range(n_slots):
                 total = 0.0
                 for i in range(first, last + 1):
                     total += lanes[k, i]
+                    lanes[k, i] = 0.0
                 slots[p, k] = total
 
 
@@ -371,11 +371,13 @@ def reduce_slots(
     gaussian_offsets,  # [C*N + 1]
     gaussian_isects,   # [M]
     slots,             # [M, S] float32
-    out,               # [C*N, S] float32: per-Gaussian sums, in tile order
+    out,               # [C*N, S] float64: per-Gaussian sums, in tile order
 ):
+    n_slots = slots.shape[1]
     for g in nb.prange(out.shape[0]):
-        for k in range(slots.shape[1]):
-            total = 0.0
-            for i in range(gaussian_offsets[g], gaussian_offsets[g + 1]):
-                total += slots[gaussian_isects[i], k]
-            out[g, k] = total
+        for k in range(n_slots):
+            out[g, k] = 0.0
+        for i in range(gaussian_offsets[g], gaussian_offsets[g + 1]):
+            row = gaussian_isects[i]
+            for k in range(n_slots):
+                out[g, k] += slots[row, k]

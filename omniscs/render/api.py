@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
-from omniscs.render.cpu import rasterize_cpu
+from omniscs.render.cpu import project_cpu, rasterize_cpu
 from omniscs.render.gsplat_backend import rasterize_gsplat
 from omniscs.render.projection import project_gaussians
 from omniscs.render.reference import rasterize_reference
@@ -68,8 +68,9 @@ def rasterize(
             backgrounds=backgrounds, render_mode=render_mode, antialiased=antialiased, absgrad=absgrad,
         )
 
-    screen = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height,
-                               near_plane, far_plane, eps2d, antialiased)
+    project = project_cpu if chosen == "cpu" else project_gaussians
+    screen = project(means, quats, scales, opacities, viewmats, Ks, width, height,
+                     near_plane, far_plane, eps2d, antialiased)
     n_cameras = viewmats.shape[0]
     if sh_degree is not None:
         features = colors_from_sh(sh_degree, colors, means, viewmats)
@@ -174,6 +175,8 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
     chosen = ("gsplat" if means.is_cuda else "cpu") if backend == "auto" else backend
     if chosen == "cpu" and means.device.type != "cpu":
         _fail(f"rasterize: backend 'cpu' needs CPU tensors, got {means.device}; use backend='gsplat' or move them")
+    if chosen == "cpu" and (viewmats.requires_grad or Ks.requires_grad):
+        _fail("rasterize: backend 'cpu' does not differentiate viewmats or Ks; detach them or use backend='reference'")
     if absgrad and chosen == "reference":
         _fail("rasterize: absgrad needs backend 'cpu' or 'gsplat' (the reference has no per-pixel gradient sums)")
     return chosen
