@@ -2,7 +2,9 @@
 
 The same list of edits is applied to the ground-truth world (``omniscs.world.apply_edits``) and to a
 fitted scene graph, so an edit's fidelity can be measured against an exact re-render. Pose edits act
-in the agent's local frame (x forward, y left, z up; origin at the box centre) for every frame.
+in the agent's local frame (x forward, y left, z up; origin at the box centre) for every frame, and a
+list applies in order, each edit in the frame the previous ones left (after a 180° roll, +lateral
+points to the agent's former right).
 """
 from __future__ import annotations
 

@@ -1,126 +1,329 @@
 """Rasteriser benchmark: forward and forward+backward time per resolution, Gaussian count and backend.
 
-Scene-like layout (``make_street_scene``): a road plane, two building facades and car-sized boxes,
-scales 0.05-0.5 m, one camera at driving height looking down the street.
+Scene-like layout (``scenes.street_scene``): a road plane, two facades and car-sized boxes, scales
+0.05-0.5 m, one camera at driving height looking down the street. Machines are shared and noisy:
+compare backends as ratios within one run and read the load averages recorded with the results.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import logging
-import math
 import os
 import platform
 import resource
 import statistics
+import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-import numpy as np
+import numba
 import torch
-from torch import Tensor
 
 from omniscs.render.api import rasterize
+from omniscs.render.scenes import StreetScene, street_scene
 
 log = logging.getLogger(__name__)
 
-#: Street layout, metres (world: x down the street, y left, z up).
-STREET_LENGTH = 80.0
-STREET_START = 1.0
-FACADE_OFFSET = 8.0
-FACADE_HEIGHT = 12.0
-CAMERA_HEIGHT = 1.6
-CAMERA_PITCH_DOWN = math.radians(5.0)
-CAMERA_HFOV = math.radians(70.0)
-CAR_SIZE = (4.5, 1.8, 1.5)
-CARS_PER_SCENE = 16
-LANE_OFFSETS = (-2.0, 2.0, -6.0, 6.0)
+DEFAULT_RESOLUTIONS = ((320, 180), (640, 360), (1280, 720))
+DEFAULT_COUNTS = (10_000, 100_000, 1_000_000)
 
-#: Scale range of benchmark Gaussians (metres) and the thickness of surface-hugging ones.
-MIN_SCALE, MAX_SCALE = 0.05, 0.5
+#: The issue's targets, for one 640x360 camera and 100k Gaussians on this 2-core machine.
+TARGET_RESOLUTION, TARGET_COUNT = (640, 360), 100_000
+TARGET_FORWARD_HZ, TARGET_FORWARD_BACKWARD_HZ, TARGET_SPEEDUP = 10.0, 3.0, 20.0
 
-#: Fractions of Gaussians on the road, on facades; the rest are on cars.
-GROUND_FRACTION, FACADE_FRACTION = 0.45, 0.35
+#: Size of the run that calibrates the reference's cost per pixel-Gaussian pair.
+CALIBRATION_RESOLUTION, CALIBRATION_COUNT = (96, 54), 2_000
+
+#: Backward costs this many forwards at most (used only to predict reference times for skipping).
+BACKWARD_COST_FACTOR = 4.0
+
+#: Pixel-Gaussian pairs the reference may hold for one fwd+bwd (its checkpoints keep per-chunk state).
+REFERENCE_MAX_PAIRS = 2e10
 
 
-@dataclass(frozen=True)
-class StreetScene:
-    """Activated Gaussian parameters and one camera, float32."""
-
-    means: Tensor      # [N, 3] world
-    quats: Tensor      # [N, 4] (w, x, y, z)
-    scales: Tensor     # [N, 3]
-    opacities: Tensor  # [N]
-    colors: Tensor     # [N, 3]
-    viewmats: Tensor   # [1, 4, 4] cam_from_world
-    Ks: Tensor         # [1, 3, 3]
-    width: int
-    height: int
-
-    def as_kwargs(self) -> dict[str, Any]:
-        return dict(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                    colors=self.colors, viewmats=self.viewmats, Ks=self.Ks, width=self.width, height=self.height)
+def _median_time(fn: Callable[[], Any], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
-def street_camera(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:  # viewmat [4, 4], K [3, 3]
-    """Camera at driving height on the street's centre line, looking down the street, pitched slightly down."""
-    forward = np.array([math.cos(CAMERA_PITCH_DOWN), 0.0, -math.sin(CAMERA_PITCH_DOWN)])
-    right = np.array([0.0, -1.0, 0.0])
-    down = np.cross(forward, right)
-    world_from_cam = np.eye(4)
-    world_from_cam[:3, :3] = np.stack([right, down, forward], 1)
-    world_from_cam[:3, 3] = (0.0, 0.0, CAMERA_HEIGHT)
-    focal = 0.5 * width / math.tan(0.5 * CAMERA_HFOV)
-    K = np.array([[focal, 0.0, 0.5 * width], [0.0, focal, 0.5 * height], [0.0, 0.0, 1.0]])
-    return np.linalg.inv(world_from_cam), K
+def _forward(scene: StreetScene, backend: str) -> Callable[[], Any]:
+    def run() -> None:
+        with torch.no_grad():
+            rasterize(**scene.as_kwargs(), backend=backend)
+    return run
 
 
-def _yaw_quats(yaw: np.ndarray) -> np.ndarray:  # [n] -> [n, 4]
-    return np.stack([np.cos(yaw / 2), np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2)], -1)
+def _forward_backward(scene: StreetScene, backend: str) -> Callable[[], Any]:
+    names = ("means", "quats", "scales", "opacities", "colors")
+
+    def run() -> None:
+        params = {name: getattr(scene, name).detach().clone().requires_grad_(True) for name in names}
+        colors, alphas, meta = rasterize(**{**scene.as_kwargs(), **params}, backend=backend)
+        meta["means2d"].retain_grad()
+        (colors.sum() + alphas.sum()).backward()
+    return run
 
 
-def make_street_scene(n: int, width: int, height: int, seed: int = 0) -> StreetScene:
-    """N Gaussians on a road, two facades and cars, seen by one street camera."""
-    rng = np.random.default_rng(seed)
-    n_ground = int(n * GROUND_FRACTION)
-    n_facade = int(n * FACADE_FRACTION)
-    n_car = n - n_ground - n_facade
-    scales = np.exp(rng.uniform(math.log(MIN_SCALE), math.log(MAX_SCALE), (n, 3)))
-    quats = np.zeros((n, 4))
-    colors = np.zeros((n, 3))
+def _reset_peak_rss() -> str:
+    """Reset the kernel's peak-RSS counter if allowed; say which measure the next reading is."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return "VmHWM after resetting it via /proc/self/clear_refs (peak resident set of this step)"
+    except OSError:
+        return "ru_maxrss increase (process-lifetime peak; 0 when an earlier step peaked higher)"
 
-    ground = np.stack([rng.uniform(STREET_START, STREET_START + STREET_LENGTH, n_ground),
-                       rng.uniform(-FACADE_OFFSET, FACADE_OFFSET, n_ground), np.zeros(n_ground)], -1)
-    scales[:n_ground, 2] = MIN_SCALE
-    quats[:n_ground] = _yaw_quats(rng.uniform(0, 2 * math.pi, n_ground))
-    colors[:n_ground] = 0.35 + 0.1 * rng.standard_normal((n_ground, 1))
 
-    side = rng.choice([-1.0, 1.0], n_facade)
-    facade = np.stack([rng.uniform(STREET_START, STREET_START + STREET_LENGTH, n_facade),
-                       side * FACADE_OFFSET, rng.uniform(0.0, FACADE_HEIGHT, n_facade)], -1)
-    sl = slice(n_ground, n_ground + n_facade)
-    scales[sl, 1] = MIN_SCALE
-    quats[sl] = _yaw_quats(rng.uniform(-0.2, 0.2, n_facade))
-    building = np.floor(facade[:, 0] / 10.0) + 7 * (side > 0)
-    colors[sl] = 0.3 + 0.5 * np.stack([np.sin(building), np.sin(building * 1.7 + 1), np.sin(building * 2.3 + 2)], -1) ** 2
+def _peak_rss_bytes() -> int:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
-    car_centres = np.stack([rng.uniform(5.0, STREET_START + STREET_LENGTH - 5.0, CARS_PER_SCENE),
-                            rng.choice(LANE_OFFSETS, CARS_PER_SCENE), np.full(CARS_PER_SCENE, CAR_SIZE[2] / 2)], -1)
-    which = rng.integers(0, CARS_PER_SCENE, n_car)
-    face_axis = rng.integers(0, 3, n_car)
-    local = rng.uniform(-0.5, 0.5, (n_car, 3))
-    local[np.arange(n_car), face_axis] = rng.choice([-0.5, 0.5], n_car)
-    cars = car_centres[which] + local * np.array(CAR_SIZE)
-    sl = slice(n_ground + n_facade, n)
-    quats[sl] = rng.standard_normal((n_car, 4))
-    car_colors = rng.uniform(0.05, 0.95, (CARS_PER_SCENE, 3))
-    colors[sl] = car_colors[which]
 
-    viewmat, K = street_camera(width, height)
-    as32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-    return StreetScene(
-        means=as32(np.concatenate([ground, facade, cars])), quats=as32(quats), scales=as32(scales),
-        opacities=as32(rng.uniform(0.2, 1.0, n)), colors=as32(np.clip(colors, 0.0, 1.0)),
-        viewmats=as32(viewmat[None]), Ks=as32(K[None]), width=width, height=height,
-    )
+def _current_rss_bytes() -> int:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def _measure_peak_memory(scene: StreetScene) -> dict[str, Any]:
+    method = _reset_peak_rss()
+    baseline = _current_rss_bytes() if method.startswith("VmHWM") else _peak_rss_bytes()
+    _forward_backward(scene, "cpu")()
+    peak = _peak_rss_bytes()
+    return {"peak_rss_bytes": peak, "baseline_rss_bytes": baseline, "peak_increase_bytes": max(0, peak - baseline),
+            "method": method}
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", delete=False) as tmp:
+        tmp.write(data)
+    os.replace(tmp.name, path)
+
+
+def run_render_benchmark(
+    out_dir: Path,
+    resolutions: tuple[tuple[int, int], ...] = DEFAULT_RESOLUTIONS,
+    counts: tuple[int, ...] = DEFAULT_COUNTS,
+    backends: tuple[str, ...] = ("cpu", "reference"),
+    repeats: int = 5,
+    reference_budget_s: float = 30.0,
+) -> dict[str, Any]:
+    """Time every (resolution, count, backend); write render_bench.{json,md,png} to out_dir; return the results.
+
+    Times are medians of ``repeats`` runs after one warm-up run (the reference runs once: it is the
+    slow oracle). The reference is skipped, and recorded as skipped, where its predicted time
+    exceeds ``reference_budget_s``. Compile (or cache-load) time of the Numba kernels is measured
+    separately, on the first call.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()
+    start = time.perf_counter()
+    _forward_backward(street_scene(1_000, 64, 36), "cpu")()
+    first_call_s = time.perf_counter() - start
+
+    reference_cost = None
+    if "reference" in backends:
+        calib = street_scene(CALIBRATION_COUNT, *CALIBRATION_RESOLUTION)
+        pairs = _visible_count(calib) * CALIBRATION_RESOLUTION[0] * CALIBRATION_RESOLUTION[1]
+        _forward(calib, "reference")()
+        reference_cost = {
+            "forward_s_per_pair": _median_time(_forward(calib, "reference"), 1) / max(pairs, 1),
+            "forward_backward_s_per_pair": _median_time(_forward_backward(calib, "reference"), 1) / max(pairs, 1),
+        }
+
+    rows: list[dict[str, Any]] = []
+    memory: dict[str, Any] = {}
+    for width, height in resolutions:
+        for count in counts:
+            scene = street_scene(count, width, height)
+            visible = _visible_count(scene)
+            for backend in backends:
+                row = {"width": width, "height": height, "count": count, "visible": visible, "backend": backend}
+                if backend == "reference":
+                    pairs = visible * width * height
+                    predicted = pairs * reference_cost["forward_backward_s_per_pair"]
+                    if predicted > reference_budget_s or pairs > REFERENCE_MAX_PAIRS:
+                        row.update(skipped=True, reason=f"predicted {predicted:.0f} s > budget {reference_budget_s:.0f} s")
+                        rows.append(row)
+                        log.info("skip reference %dx%d N=%d (predicted %.0f s)", width, height, count, predicted)
+                        continue
+                    n_repeats = 1
+                else:
+                    n_repeats = repeats
+                    _forward(scene, backend)()  # warm-up
+                forward_s = _median_time(_forward(scene, backend), n_repeats)
+                forward_backward_s = _median_time(_forward_backward(scene, backend), n_repeats)
+                row.update(skipped=False, forward_s=forward_s, forward_backward_s=forward_backward_s,
+                           forward_hz=1.0 / forward_s, forward_backward_hz=1.0 / forward_backward_s)
+                rows.append(row)
+                log.info("%s %dx%d N=%d: forward %.1f ms, forward+backward %.1f ms", backend, width, height, count,
+                         forward_s * 1e3, forward_backward_s * 1e3)
+            if count == max(counts) and "cpu" in backends:
+                memory[f"{width}x{height}"] = _measure_peak_memory(scene)
+
+    results = {
+        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
+                    "torch_threads": torch.get_num_threads(), "numba_threading_layer": _threading_layer(),
+                    "load_average_before": load_before, "load_average_after": os.getloadavg()},
+        "settings": {"repeats": repeats, "reference_repeats": 1, "reference_budget_s": reference_budget_s,
+                     "dtype": "float32", "scene": "street_scene (road, facades, cars; scales 0.05-0.5 m)"},
+        "first_call_s": first_call_s,
+        "reference_cost": reference_cost,
+        "rows": rows,
+        "speedups": _speedups(rows),
+        "peak_memory_at_max_count": memory,
+        "targets": _targets(rows),
+    }
+    _write_atomic(out_dir / "render_bench.json", json.dumps(results, indent=2).encode())
+    _write_atomic(out_dir / "render_bench.md", render_markdown(results).encode())
+    _plot(results, out_dir / "render_bench.png")
+    return results
+
+
+def _threading_layer() -> str:
+    try:
+        return numba.threading_layer()
+    except ValueError:  # no parallel function has run yet
+        return "unknown"
+
+
+def _visible_count(scene: StreetScene) -> int:
+    with torch.no_grad():
+        _, _, meta = rasterize(**scene.as_kwargs(), backend="cpu")
+    return int((meta["radii"][..., 0] > 0).sum())
+
+
+def _find(rows: list[dict[str, Any]], width: int, height: int, count: int, backend: str) -> dict[str, Any] | None:
+    for row in rows:
+        if (row["width"], row["height"], row["count"], row["backend"]) == (width, height, count, backend):
+            return None if row["skipped"] else row
+    return None
+
+
+def _speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """reference time / cpu time wherever both ran in this run."""
+    out = []
+    for row in rows:
+        if row["backend"] != "cpu" or row["skipped"]:
+            continue
+        ref = _find(rows, row["width"], row["height"], row["count"], "reference")
+        if ref is not None:
+            out.append({"width": row["width"], "height": row["height"], "count": row["count"],
+                        "forward": ref["forward_s"] / row["forward_s"],
+                        "forward_backward": ref["forward_backward_s"] / row["forward_backward_s"]})
+    return out
+
+
+def _targets(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    cpu = _find(rows, *TARGET_RESOLUTION, TARGET_COUNT, "cpu")
+    if cpu is None:
+        return {"measured": False}
+    speedups = _speedups(rows)
+    best = min((s["forward_backward"] for s in speedups), default=None)
+    return {
+        "measured": True, "forward_hz": cpu["forward_hz"], "forward_backward_hz": cpu["forward_backward_hz"],
+        "forward_met": cpu["forward_hz"] >= TARGET_FORWARD_HZ,
+        "forward_backward_met": cpu["forward_backward_hz"] >= TARGET_FORWARD_BACKWARD_HZ,
+        "smallest_speedup": best, "speedup_met": None if best is None else best >= TARGET_SPEEDUP,
+    }
+
+
+def render_markdown(results: dict[str, Any]) -> str:
+    """The results as a Markdown report (the table a person reads)."""
+    machine = results["machine"]
+    lines = [
+        "# Rasteriser benchmark", "",
+        f"Street scene, one camera, float32; medians of {results['settings']['repeats']} runs (reference: 1 run). "
+        f"{machine['cpu_count']} CPUs, Numba {machine['numba_threads']} threads ({machine['numba_threading_layer']}), "
+        f"load average before/after: {machine['load_average_before'][0]:.2f} / {machine['load_average_after'][0]:.2f} "
+        "(shared machine: compare within this run).", "",
+        f"First call (Numba compile or cache load): {results['first_call_s']:.1f} s.", "",
+        "| resolution | Gaussians | visible | backend | forward ms | fwd+bwd ms | forward Hz | fwd+bwd Hz |",
+        "|---|---:|---:|---|---:|---:|---:|---:|",
+    ]
+    for row in results["rows"]:
+        head = f"| {row['width']}x{row['height']} | {row['count']:,} | {row['visible']:,} | {row['backend']} |"
+        if row["skipped"]:
+            lines.append(f"{head} skipped | {row['reason']} | | |")
+        else:
+            lines.append(f"{head} {row['forward_s'] * 1e3:.1f} | {row['forward_backward_s'] * 1e3:.1f} | "
+                         f"{row['forward_hz']:.1f} | {row['forward_backward_hz']:.1f} |")
+    if results["speedups"]:
+        lines += ["", "| resolution | Gaussians | cpu speed-up, forward | cpu speed-up, fwd+bwd |", "|---|---:|---:|---:|"]
+        for s in results["speedups"]:
+            lines.append(f"| {s['width']}x{s['height']} | {s['count']:,} | {s['forward']:.0f}x | {s['forward_backward']:.0f}x |")
+    if results["peak_memory_at_max_count"]:
+        lines += ["", "| resolution | peak RSS increase, cpu fwd+bwd at max count | method |", "|---|---:|---|"]
+        for key, mem in results["peak_memory_at_max_count"].items():
+            lines.append(f"| {key} | {mem['peak_increase_bytes'] / 2**20:.0f} MiB | {mem['method']} |")
+    targets = results["targets"]
+    if targets.get("measured"):
+        lines += ["", f"Targets at {TARGET_RESOLUTION[0]}x{TARGET_RESOLUTION[1]}, {TARGET_COUNT:,} Gaussians: "
+                  f"forward {targets['forward_hz']:.1f} Hz (target {TARGET_FORWARD_HZ:.0f}), "
+                  f"forward+backward {targets['forward_backward_hz']:.1f} Hz (target {TARGET_FORWARD_BACKWARD_HZ:.0f})"
+                  + ("" if targets["smallest_speedup"] is None else
+                     f", smallest measured speed-up {targets['smallest_speedup']:.0f}x (target {TARGET_SPEEDUP:.0f}x)") + "."]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(results: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    for ax, key, title in ((axes[0], "forward_s", "forward"), (axes[1], "forward_backward_s", "forward + backward")):
+        series: dict[tuple[str, int, int], list[tuple[int, float]]] = {}
+        for row in results["rows"]:
+            if not row["skipped"]:
+                series.setdefault((row["backend"], row["width"], row["height"]), []).append((row["count"], row[key] * 1e3))
+        for (backend, width, height), points in sorted(series.items()):
+            points.sort()
+            ax.plot([p[0] for p in points], [p[1] for p in points], marker="o",
+                    linestyle="-" if backend == "cpu" else "--", label=f"{backend} {width}x{height}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("Gaussians")
+        ax.set_title(title)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("time per frame (ms)")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--quick", action="store_true", help="small sizes only (a smoke run)")
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.quick:
+        results = run_render_benchmark(args.out_dir, resolutions=((160, 90),), counts=(1_000, 10_000), repeats=args.repeats)
+    else:
+        results = run_render_benchmark(args.out_dir, repeats=args.repeats)
+    logging.getLogger(__name__).info("\n%s", render_markdown(results))
+
+
+if __name__ == "__main__":
+    main()

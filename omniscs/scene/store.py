@@ -147,13 +147,14 @@ class Scene:
         c = self.camera(cam)
         return c.width, c.height
 
-    def _check_frame(self, frame_idx: int) -> int:
+    def check_frame(self, frame_idx: int) -> int:
+        """``frame_idx`` as an int, or an OmniscsError when the scene has no such frame."""
         if not 0 <= int(frame_idx) < self.n_frames:
             raise OmniscsError(f"frame {frame_idx} is out of range; scene {self.scene_id} has frames 0..{self.n_frames - 1}")
         return int(frame_idx)
 
     def world_from_ego(self, frame_idx: int) -> np.ndarray:  # [4, 4]
-        return self._poses[self._check_frame(frame_idx)].copy()
+        return self._poses[self.check_frame(frame_idx)].copy()
 
     @property
     def world_from_ego_all(self) -> np.ndarray:  # [F, 4, 4]
@@ -163,14 +164,14 @@ class Scene:
         return self.world_from_ego(frame_idx) @ self.camera(cam).ego_from_camera
 
     def image(self, cam: str, frame_idx: int) -> np.ndarray:  # uint8 [H, W, 3] RGB
-        path = image_path(self.path, self.camera(cam).name, self._check_frame(frame_idx))
+        path = image_path(self.path, self.camera(cam).name, self.check_frame(frame_idx))
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise ValidationError(f"{path}: image is missing or unreadable")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def lidar(self, frame_idx: int) -> np.ndarray:  # float32 [N, 4] ego frame
-        path = lidar_path(self.path, self._check_frame(frame_idx))
+        path = lidar_path(self.path, self.check_frame(frame_idx))
         if not self.has_lidar:
             raise OmniscsError(f"scene {self.scene_id} has no LiDAR")
         return np.load(path).astype(np.float32, copy=False)
@@ -178,7 +179,7 @@ class Scene:
     def _gt(self, cam: str, frame_idx: int, key: str) -> np.ndarray | None:
         if not self.has_gt:
             return None
-        path = gt_path(self.path, self.camera(cam).name, self._check_frame(frame_idx))
+        path = gt_path(self.path, self.camera(cam).name, self.check_frame(frame_idx))
         with np.load(path) as data:
             return data[key]
 
@@ -192,7 +193,7 @@ class Scene:
         return self._gt(cam, frame_idx, "semantic")
 
     def boxes_at(self, frame_idx: int) -> pd.DataFrame:
-        return self.boxes[self.boxes.frame_idx == self._check_frame(frame_idx)]
+        return self.boxes[self.boxes.frame_idx == self.check_frame(frame_idx)]
 
     @cached_property
     def world(self):
