@@ -1,0 +1,174 @@
+"""The per-scene plan: what a scene needs modelled, decided from its tracks and the requested edits.
+
+"Model only what a scene requires" (DESIGN.md): tracks that move or that an edit names become agent
+nodes; everything else stays in the background. Edits that turn an agent far from its observed
+views need a 360° model; moving or removing a large static object needs background repair. The
+Gaussian budget follows the area the cameras see along the ego path. Stages nothing needs do not run.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from omniscs.edits import Edit, Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate
+from omniscs.errors import OmniscsError
+from omniscs.scene.store import Scene
+from omniscs.scene.summary import MOVING_PATH_LENGTH_M, agent_rows
+
+PLAN_VERSION = 1
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """Thresholds that decide what a scene needs; presets scale the Gaussian budget."""
+
+    moving_path_length_m: float = MOVING_PATH_LENGTH_M
+    """A track whose centre travels further than this becomes an agent node."""
+    rotation_needing_360_deg: float = 45.0
+    """An edit that turns an agent by more than this shows unobserved sides: it needs a 360° model."""
+    large_object_volume_m3: float = 20.0
+    """Static objects at least this big leave a visible hole when moved or removed: repair background."""
+    view_range_m: float = 60.0
+    """How far beside and ahead of the ego path the modelled background reaches."""
+    gaussians_per_m2: float = 6.0
+    """Background Gaussian density per square metre of the modelled area, per camera."""
+    gaussians_per_agent: int = 3_000
+    """Gaussians per agent node."""
+    min_gaussians: int = 20_000
+    """Floor on the total budget."""
+    max_gaussians: int = 400_000
+    """Ceiling on the total budget (memory and time on a 2-core machine)."""
+    holdout_every: int = 4
+    """Every Nth frame (N-1, 2N-1, ...) is held out of fitting for evaluation; 0 holds none out."""
+
+
+@dataclass(frozen=True)
+class ScenePlan:
+    """What to model for one scene; written next to each checkpoint and shown by the CLI."""
+
+    scene_id: str
+    content_hash: str
+    agent_nodes: tuple[int, ...]
+    """Track ids modelled as agent nodes (own Gaussians in the agent frame + per-frame pose)."""
+    node_reasons: dict[int, str]
+    """Why each node exists: 'moving', 'edited', or 'moving+edited'."""
+    background_tracks: tuple[int, ...]
+    """Static, unedited tracks: left in the background Gaussians."""
+    needs_360: tuple[int, ...]
+    """Agent nodes whose edits show sides never observed (large rotations, model swaps)."""
+    background_repair: tuple[int, ...]
+    """Large static objects that an edit moves or removes: their footprint needs repair."""
+    inserted: tuple[int, ...]
+    """Track ids that edits insert (they come from the model pool, not from this log)."""
+    cameras: tuple[str, ...]
+    train_frames: tuple[int, ...]
+    heldout_frames: tuple[int, ...]
+    modelled_area_m2: float
+    gaussian_budget: int
+    stages: dict[str, bool]
+    """Which pipeline stages run for this scene."""
+    version: int = PLAN_VERSION
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["node_reasons"] = {str(k): v for k, v in self.node_reasons.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ScenePlan":
+        d = dict(d)
+        if d.get("version") != PLAN_VERSION:
+            raise OmniscsError(f"plan version {d.get('version')} is not {PLAN_VERSION}; re-plan the scene")
+        d["node_reasons"] = {int(k): v for k, v in d["node_reasons"].items()}
+        for key in ("agent_nodes", "background_tracks", "needs_360", "background_repair", "inserted", "cameras",
+                    "train_frames", "heldout_frames"):
+            d[key] = tuple(d[key])
+        return cls(**d)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    def summary(self) -> str:
+        return (f"{len(self.agent_nodes)} agent node(s) {list(self.agent_nodes)}, "
+                f"{len(self.background_tracks)} track(s) left in the background, "
+                f"360° models for {list(self.needs_360)}, background repair for {list(self.background_repair)}, "
+                f"{self.gaussian_budget:,} Gaussians over {self.modelled_area_m2:,.0f} m², "
+                f"{len(self.train_frames)} training / {len(self.heldout_frames)} held-out frames")
+
+
+def _edited_tracks(edits: list[Edit]) -> dict[int, list[Edit]]:
+    by_track: dict[int, list[Edit]] = {}
+    for e in edits:
+        by_track.setdefault(int(e.track_id), []).append(e)
+    return by_track
+
+
+def _turns_far(edit: Edit, limit_deg: float) -> bool:
+    if isinstance(edit, Rotate):
+        return max(abs(edit.yaw_deg), abs(edit.roll_deg), abs(edit.pitch_deg)) > limit_deg
+    return isinstance(edit, ReplaceModel)
+
+
+def modelled_area(scene: Scene, view_range_m: float) -> float:
+    """Area of the ego path's bounding box grown by ``view_range_m`` (m²): what the cameras can see."""
+    xy = scene.world_from_ego_all[:, :2, 3]
+    extent = xy.max(axis=0) - xy.min(axis=0) + 2 * view_range_m
+    return float(extent[0] * extent[1])
+
+
+def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
+              cameras: list[str] | None = None) -> ScenePlan:
+    """Decide what to model for ``scene`` given the edits the requested variants will apply."""
+    edits = list(edits or [])
+    agents = {a["track_id"]: a for a in agent_rows(scene)}
+    inserted = tuple(sorted(int(e.track_id) for e in edits if isinstance(e, Insert)))
+    clash = sorted(set(inserted) & set(agents))
+    if clash:
+        raise OmniscsError(f"insert edits reuse track id(s) {clash} that the scene already has; pick new ids")
+    by_track = {t: es for t, es in _edited_tracks(edits).items() if t not in inserted}
+    unknown = sorted(set(by_track) - set(agents))
+    if unknown:
+        raise OmniscsError(f"edits name track id(s) {unknown} that scene {scene.scene_id} does not have")
+    cams = tuple(cameras or scene.camera_names)
+    for c in cams:
+        scene.camera(c)
+
+    reasons: dict[int, str] = {}
+    for tid, a in agents.items():
+        moving = a["path_length_m"] > config.moving_path_length_m
+        edited = tid in by_track
+        if moving or edited:
+            reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited)) if on)
+    nodes = tuple(sorted(reasons))
+    needs_360 = tuple(sorted(t for t, es in by_track.items()
+                             if any(_turns_far(e, config.rotation_needing_360_deg) for e in es)))
+    repair = tuple(sorted(
+        t for t, es in by_track.items()
+        if not agents[t]["moving"]
+        and agents[t]["length"] * agents[t]["width"] * agents[t]["height"] >= config.large_object_volume_m3
+        and any(isinstance(e, (Translate, Rotate, Remove, SetTrajectory)) for e in es)
+    ))
+    frames = np.arange(scene.n_frames)
+    if config.holdout_every and scene.n_frames >= config.holdout_every:
+        held = frames[(frames + 1) % config.holdout_every == 0]
+    else:
+        held = frames[:0]
+    train = np.setdiff1d(frames, held)
+    area = modelled_area(scene, config.view_range_m)
+    budget = int(np.clip(config.gaussians_per_m2 * area * np.sqrt(len(cams))
+                         + config.gaussians_per_agent * (len(nodes) + len(inserted)),
+                         config.min_gaussians, config.max_gaussians))
+    stages = {
+        "fit_nsg": True,
+        "agent_models": bool(needs_360 or inserted),
+        "background_repair": bool(repair),
+    }
+    return ScenePlan(
+        scene_id=scene.scene_id, content_hash=scene.content_hash, agent_nodes=nodes, node_reasons=reasons,
+        background_tracks=tuple(sorted(set(agents) - set(nodes))), needs_360=needs_360,
+        background_repair=repair, inserted=inserted, cameras=cams,
+        train_frames=tuple(int(f) for f in train), heldout_frames=tuple(int(f) for f in held),
+        modelled_area_m2=area, gaussian_budget=budget, stages=stages,
+    )
