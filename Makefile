@@ -25,6 +25,7 @@ $(STAMP): pyproject.toml constraints.txt | system-deps
 	$(VENV)/bin/python -m pip install -q --upgrade pip wheel setuptools
 	$(VENV)/bin/python -m pip install -q -c constraints.txt torch==2.13.0
 	$(VENV)/bin/python -m pip install -q -c constraints.txt -e '.[test]'
+	$(VENV)/bin/python -m pip install -q -c constraints.txt --no-deps nuscenes-devkit==1.2.0
 	@touch $(STAMP)
 
 demo: setup

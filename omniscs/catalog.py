@@ -35,6 +35,9 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("template", pa.string()),
         pa.field("lighting", pa.string()),
         pa.field("seed", pa.int64()),
+        pa.field("source_scene_id", pa.string()),                 # the dataset's own scene / sequence / segment id
+        pa.field("dataroot", pa.string()),                        # the dataset root a recorded scene came from
+        pa.field("location", pa.string()),                        # the dataset's location name, when it has one
         pa.field("path", pa.string(), nullable=False),
         pa.field("content_hash", pa.string(), nullable=False),
         pa.field("n_frames", pa.int32(), nullable=False),

@@ -140,6 +140,83 @@ def world_render(
     console.print(f"wrote {out}")
 
 
+@world_app.command("export")
+def world_export(
+    scenes: list[Path] = typer.Argument(..., help="Scene stores to export (one dataset holds them all)."),
+    fmt: str = typer.Option(..., "--format", help="nuscenes, kitti or waymo-v2."),
+    out: Path = typer.Option(..., help="Dataset root to write (must not exist)."),
+    version: str = typer.Option("v1.0-trainval", help="nuScenes: table version folder."),
+    keyframe_every: Optional[int] = typer.Option(None, help="nuScenes: frames per keyframe (default: 2 Hz)."),
+    camera: str = typer.Option("CAM_FRONT", help="KITTI: the camera written as image_02."),
+    overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
+) -> None:
+    """Write scene stores as a nuScenes v1.0, KITTI tracking or Waymo Open Dataset v2 dataset."""
+    from omniscs.export import WRITERS, export_scenes
+
+    if fmt not in WRITERS:
+        raise OmniscsError(f"unknown --format {fmt!r}; use one of {list(WRITERS)}")
+    options = {"nuscenes": {"version": version, "keyframe_every": keyframe_every}, "kitti": {"camera": camera},
+               "waymo-v2": {}}[fmt]
+    started = time.perf_counter()
+    with _progress() as bar:
+        task = bar.add_task(f"export {fmt}", total=None)
+        export_scenes(scenes, fmt, out, overwrite=overwrite,
+                      progress=lambda d, t: bar.update(task, completed=d, total=t), **options)
+    console.print(f"wrote {len(scenes)} scene(s) as {fmt} to {out} in {time.perf_counter() - started:.1f} s")
+
+
+# ----------------------------------------------------------------------------- ingest
+@app.command("ingest")
+def ingest_dataset_cmd(
+    source: str = typer.Option(..., "--source", help="Dataset format: nuscenes, kitti or waymo-v2."),
+    dataroot: Path = typer.Option(..., help="nuScenes root (holds v1.0-*/), KITTI tracking root, Waymo v2 split folder."),
+    out: Path = typer.Option(..., help="Folder for the scene stores (one sub-folder per scene)."),
+    scenes: Optional[list[str]] = typer.Option(None, "--scenes", help="Scenes / sequences / segments to read "
+                                               "(repeat or comma-separate; default: all)."),
+    version: Optional[str] = typer.Option(None, help="nuScenes table version (default: the only one); KITTI split."),
+    sweeps: bool = typer.Option(False, help="nuScenes: every LiDAR sweep (annotations interpolated), not only keyframes."),
+    cameras: Optional[str] = typer.Option(None, help="Comma-separated cameras to keep (default: all)."),
+    skip_bad_frames: bool = typer.Option(False, "--skip-bad-frames",
+                                         help="Leave unreadable frames out with a warning instead of failing."),
+    overwrite: bool = typer.Option(False, help="Read scenes again even when an up-to-date store exists."),
+) -> None:
+    """Read scenes of a recorded dataset into validated scene stores."""
+    import warnings
+
+    from omniscs.scene import DatasetSource, ingest_dataset
+    from omniscs.scene.sources import FORMATS, SkippedFramesWarning, list_scenes
+
+    if source not in FORMATS:
+        raise OmniscsError(f"unknown --source {source!r}; use one of {list(FORMATS)}")
+    if not dataroot.is_dir():
+        raise OmniscsError(f"--dataroot {dataroot} is not a directory")
+    names = [n for item in (scenes or []) for n in item.split(",") if n] or list_scenes(source, dataroot, version)
+    if not names:
+        raise OmniscsError(f"{dataroot} holds no {source} scene")
+    cams = tuple(c for c in cameras.split(",") if c) if cameras else None
+    rows = []
+    with _progress() as bar:
+        for name in names:
+            src = DatasetSource(source, str(dataroot.resolve()), name, version=version, cameras=cams, sweeps=sweeps,
+                                skip_bad_frames=skip_bad_frames)
+            task = bar.add_task(f"{source} {name}", total=None)
+            started = time.perf_counter()
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", SkippedFramesWarning)
+                result = ingest_dataset(src, out, overwrite=overwrite,
+                                        progress=lambda d, t, task=task: bar.update(task, completed=d, total=t))
+            for w in caught:
+                err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False, soft_wrap=True)
+            from omniscs.scene import load_scene
+
+            scene = load_scene(result.path)
+            seconds = time.perf_counter() - started
+            rows.append({"scene": name, "scene_id": scene.scene_id, "frames": scene.n_frames,
+                         "boxes": len(scene.boxes), "skipped": len(scene.manifest.get("skipped_frames", [])),
+                         "reused": result.reused, "seconds": seconds, "path": str(result.path)})
+    _print_table(rows, title=f"{source} {dataroot}")
+
+
 # ----------------------------------------------------------------------------- scene
 @scene_app.command("info")
 def scene_info(path: Path, as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
@@ -283,6 +360,19 @@ def bench_world(
     console.print((out / "world_render.md").read_text())
     console.print(f"wrote {out / 'world_render.json'}")
     del result
+
+
+@bench_app.command("sources")
+def bench_sources(
+    out: Path = typer.Option(Path("reports"), help="Folder for sources_ingest.json/.md."),
+    frames: int = typer.Option(10), cameras: int = typer.Option(6), repeats: int = typer.Option(3),
+) -> None:
+    """Time reading a 480x270 synthetic log back from nuScenes, KITTI and Waymo v2 (ms per frame)."""
+    from omniscs.scene.sources.bench import run_sources_benchmark
+
+    run_sources_benchmark(out, n_frames=frames, n_cameras=cameras, repeats=repeats)
+    console.print((out / "sources_ingest.md").read_text())
+    console.print(f"wrote {out / 'sources_ingest.json'}")
 
 
 def main() -> None:

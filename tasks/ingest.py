@@ -16,9 +16,12 @@ from omniscs.scene.summary import agent_rows, frame_rows, scene_row
 
 def _ingest_run_name() -> str:
     src = task_run.parameters["source"]
-    if src.get("kind") == "synthetic":
+    kind = src.get("kind")
+    if kind == "synthetic":
         return f"ingest-{src['template']}-{src['lighting']}-s{src['seed']}"
-    return f"ingest-{Path(src.get('path', 'scene')).name}"
+    if kind == "store":
+        return f"ingest-{Path(src['path']).name}"
+    return f"ingest-{kind}-{src.get('scene') or Path(src.get('dataroot', 'scene')).name}"
 
 
 @task(name="ingest", task_run_name=_ingest_run_name)

@@ -79,6 +79,8 @@ def scene_row(scene: Scene, agents: list[dict], reused: bool, ingest_seconds: fl
         "source_json": json.dumps(src, sort_keys=True),
         "template": scene.manifest.get("template"), "lighting": scene.manifest.get("lighting"),
         "seed": scene.manifest.get("seed"),
+        "source_scene_id": scene.manifest.get("source_scene_id"), "dataroot": src.get("dataroot"),
+        "location": scene.manifest.get("location"),
         "path": str(scene.path), "content_hash": scene.content_hash, "n_frames": scene.n_frames,
         "duration_s": float((ts[-1] - ts[0]) * 1e-6), "cameras": scene.camera_names,
         "n_tracks": len(agents), "n_moving": sum(a["moving"] for a in agents),
