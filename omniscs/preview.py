@@ -9,7 +9,7 @@ import numpy as np
 from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform,
                               make_transform, quat_to_rotmat, transform_points)
 from omniscs.scene.store import Scene
-from omniscs.storage import atomic_write_bytes
+from omniscs.storage import atomic_write_bytes, atomic_write_with
 
 #: Rows (time steps) shown in a contact sheet.
 CONTACT_SHEET_ROWS = 4
@@ -139,13 +139,10 @@ def bev_plot(scene: Scene, out_png: Path) -> Path:
                  f"{scene.n_frames} frames (faint box = first frame, solid = last)", fontsize=9)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_png.with_name(f".{out_png.name}.tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(out_png)
-    return out_png
+    try:
+        return atomic_write_with(out_png, lambda buf: fig.savefig(buf, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def write_previews(scene: Scene, out_dir: Path) -> dict[str, Path]:

@@ -11,7 +11,6 @@ import logging
 import os
 import platform
 import statistics
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -19,6 +18,7 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
+from omniscs.storage import atomic_write_text, atomic_write_with
 from omniscs.world.assets import list_asset_ids
 from omniscs.world.render import WorldRenderer
 from omniscs.world.traffic import generate_world
@@ -28,13 +28,6 @@ log = logging.getLogger(__name__)
 #: The speed goal: a 40-frame, 3-camera 480x270 log with LiDAR in under this many seconds (2 CPU cores).
 GOAL_SECONDS = 60.0
 CASTER_REPEATS = 3
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def compare_ray_casters(renderer: WorldRenderer, frame_idx: int = 0) -> dict:
@@ -129,18 +122,11 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
         "goal_s": GOAL_SECONDS,
     }
     result["meets_goal"] = result["median_total_s"] < GOAL_SECONDS
-    _write_atomic(out_dir / "world_render.json", json.dumps(result, indent=2))
-    _write_atomic(out_dir / "world_render.md", _markdown(result))
+    atomic_write_text(out_dir / "world_render.json", json.dumps(result, indent=2))
+    atomic_write_text(out_dir / "world_render.md", _markdown(result))
     _plot(result, out_dir / "world_render.png")
-    _save_png_atomic(lambda tmp: Image.fromarray(preview).save(tmp, format="PNG"), out_dir / "world_render_preview.png")
+    atomic_write_with(out_dir / "world_render_preview.png", lambda buf: Image.fromarray(preview).save(buf, format="PNG"))
     return result
-
-
-def _save_png_atomic(save: Callable[[str], None], path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(fd)
-    save(tmp)
-    os.replace(tmp, path)
 
 
 def _plot(result: dict, path: Path) -> None:
@@ -159,7 +145,7 @@ def _plot(result: dict, path: Path) -> None:
     ax.set_title(f"World render time per frame ({result['width']}x{result['height']})")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    _save_png_atomic(lambda tmp: fig.savefig(tmp, dpi=110), path)
+    atomic_write_with(path, lambda buf: fig.savefig(buf, format="png", dpi=110))
     plt.close(fig)
 
 
