@@ -72,6 +72,7 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
     """Time generating and rendering (all cameras + LiDAR) one log per (template, seed); write JSON + Markdown."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()[0]
     runs = []
     total_steps = len(seeds) * len(templates) * n_frames
     done = 0
@@ -117,6 +118,7 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
         "ray_caster_comparison": casters,
         "asset_count": len(list_asset_ids()),
         "cpu_count": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version(),
+        "load_average_1m_before": load_before, "load_average_1m_after": os.getloadavg()[0],
         "runs": runs,
         "median_total_s": statistics.median(r["total_s"] for r in runs),
         "goal_s": GOAL_SECONDS,
@@ -155,7 +157,9 @@ def _markdown(r: dict) -> str:
         "",
         f"{r['n_frames']} frames x {r['n_cameras']} cameras at {r['width']}x{r['height']} + LiDAR, lighting "
         f"`{r['lighting']}`, ray caster `{r['ray_caster']}`, {r['cpu_count']} CPU cores, "
-        f"{r['asset_count']} assets in the library.",
+        f"{r['asset_count']} assets in the library. Machine load (1-min average) "
+        f"{r['load_average_1m_before']:.1f} before, {r['load_average_1m_after']:.1f} after: other work on a shared "
+        "machine slows the figures.",
         "",
         "| template | seed | agents | generate s | cameras/frame s (median) | LiDAR/frame s (median) | total s |",
         "|---|---|---|---|---|---|---|",
