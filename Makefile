@@ -4,6 +4,9 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
+# OpenMP threads (numba kernels, torch) sleep instead of spinning while they wait: on a shared 2-core
+# machine spinning threads steal the core the other worker needs.
+export OMP_WAIT_POLICY := PASSIVE
 
 .PHONY: setup demo test test-slow bench clean system-deps
 
@@ -39,6 +42,7 @@ test-slow: setup
 
 bench: setup
 	$(VENV)/bin/omniscs bench world
+	$(VENV)/bin/omniscs bench render
 
 clean:
 	rm -rf $(VENV) omniscs-data .pytest_cache

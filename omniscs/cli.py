@@ -375,6 +375,29 @@ def bench_sources(
     console.print(f"wrote {out / 'sources_ingest.json'}")
 
 
+@bench_app.command("render")
+def bench_render(
+    out: Path = typer.Option(Path("reports"), help="Folder for render_bench.json/.md/.png."),
+    resolutions: str = typer.Option("320x180,640x360,1280x720", help="Comma-separated WxH."),
+    counts: str = typer.Option("10000,100000,1000000", help="Comma-separated Gaussian counts."),
+    repeats: int = typer.Option(5, help="Timed repeats per cell (median reported)."),
+    reference_budget_s: float = typer.Option(60.0, help="Skip reference cells expected to take longer."),
+) -> None:
+    """Time the Gaussian rasterizer (forward, forward+backward) per backend; cpu/reference speed-up."""
+    from omniscs.render.bench import run_render_benchmark
+
+    try:
+        sizes = tuple(tuple(int(v) for v in r.lower().split("x")) for r in resolutions.split(","))
+        ns = tuple(int(c) for c in counts.split(","))
+    except ValueError:
+        sizes, ns = (), ()
+    if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes) or not ns or min(ns) < 1:
+        raise OmniscsError("--resolutions is like 640x360,1280x720 and --counts like 10000,100000")
+    run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=repeats, reference_budget_s=reference_budget_s)
+    console.print((out / "render_bench.md").read_text())
+    console.print(f"wrote {out / 'render_bench.json'}")
+
+
 def main() -> None:
     try:
         app()

@@ -16,80 +16,96 @@ from omniscs.render.constants import ALPHA_THRESHOLD, MAX_ALPHA, TILE_SIZE, TRAN
 
 #: Slack on the per-Gaussian cut-off of the Mahalanobis half-distance sigma beyond which alpha is
 #: below ALPHA_THRESHOLD anyway; only saves exp() calls, never removes a visible pixel.
-SIGMA_CUT_SLACK = 1e-6
+SIGMA_CUT_SLACK = 1e-5
 
 #: Extra slack (in sigma) of the test that skips tile rows missing the cut-off ellipse entirely, so
 #: rounding never skips a row holding a pixel that passes the per-pixel sigma test.
 ROW_SPAN_SLACK = 1e-4
 
-#: Columns of a Gaussian record: centre x, y; conic a, b, c; opacity; sigma cut-off; then for the
-#: row test: 2 a (cut-off + ROW_SPAN_SLACK), a c - b^2, 1 / a.
-N_RECORD = 10
+#: Columns of a packed Gaussian record (float32, one 64-byte cache line): centre x, y; conic a, b, c;
+#: opacity; sigma cut-off; for the row test 2 a (cut-off + ROW_SPAN_SLACK) and a c - b^2; the
+#: inclusive pixel box x_lo, x_hi, y_lo, y_hi (integers, exact in float32); 3 unused.
+N_RECORD = 16
+REC_X, REC_Y, REC_A, REC_B, REC_C, REC_OPACITY, REC_CUT, REC_ROW_SCALE, REC_CONIC_DET = range(9)
+REC_X_LO, REC_X_HI, REC_Y_LO, REC_Y_HI = range(9, 13)
 
 #: exp(-sigma) is evaluated as (Taylor polynomial at sigma / 2^EXP_SQUARINGS)^(2^EXP_SQUARINGS): plain
 #: arithmetic that vectorises (libm exp does not), relative error < 1e-7 for sigma up to ln(255).
 EXP_SQUARINGS = 6
 
+#: Colour channels composited inside the transmittance loop (the rest, if any, in a second pass):
+#: enough for RGB, RGB+depth and depth alone.
+FUSED_CHANNELS = 4
+
 #: Gradient slots per intersection before the colour channels: means2d (2), conic (3), opacity (1), |means2d| (2).
 N_GEOMETRY_SLOTS = 8
 
 
-@nb.njit(cache=True, parallel=True)
-def make_records(means2d, conics, opacities, radii):  # [G, 2], [G, 3], [G], [G, 2] -> [G, N_RECORD] float64, [G] bool
-    """Pack what the pixel loops read per Gaussian into one row; flag Gaussians that can be drawn."""
-    n = means2d.shape[0]
-    records = np.empty((n, N_RECORD), dtype=np.float64)
-    drawable = np.empty(n, dtype=np.bool_)
-    for g in nb.prange(n):
-        opacity = np.float64(opacities[g])
-        records[g, 0] = means2d[g, 0]
-        records[g, 1] = means2d[g, 1]
-        records[g, 2] = conics[g, 0]
-        records[g, 3] = conics[g, 1]
-        records[g, 4] = conics[g, 2]
-        records[g, 5] = opacity
-        records[g, 6] = math.log(max(opacity, ALPHA_THRESHOLD) / ALPHA_THRESHOLD) + SIGMA_CUT_SLACK
-        records[g, 7] = 2.0 * records[g, 2] * (records[g, 6] + ROW_SPAN_SLACK)
-        records[g, 8] = records[g, 2] * records[g, 4] - records[g, 3] * records[g, 3]
-        records[g, 9] = 1.0 / records[g, 2] if records[g, 2] > 0.0 else 0.0
-        finite = True
-        for k in range(N_RECORD):
-            finite = finite and math.isfinite(records[g, k])
-        positive = records[g, 2] > 0.0 and records[g, 8] > 0.0
-        drawable[g] = radii[g, 0] > 0 and radii[g, 1] > 0 and finite and positive
-    return records, drawable
+#: Bits per pass of the radix sort of depth keys (2^11 buckets fit in L1).
+RADIX_BITS = 11
 
 
 @nb.njit(cache=True)
-def bin_gaussians(
-    records,       # [C*N, N_RECORD]
-    drawable,      # [C*N] bool
-    radii,         # [C*N, 2] int32
-    depth_order,   # [C, N] int64 per-camera indices sorted by depth (stable), visible ones first
-    n_visible,     # [C] int64
-    width, height, tile,
-):
-    """Assign Gaussians to the tiles their pixel box touches, each tile's list sorted front to back.
+def depth_order(
+    depth_bits,  # [C, N] uint64: IEEE bits of the depths (order-preserving for positive depths)
+    radii,       # [C, N, 2] int32, 0 where culled
+):  # -> order [C, N] int64 (visible first, front to back, ties by index), n_visible [C] int64
+    """Stable LSD radix sort of each camera's visible Gaussians by depth (ties keep index order)."""
+    n_cams, n_gauss = depth_bits.shape
+    order = np.empty((n_cams, n_gauss), dtype=np.int64)
+    n_visible = np.zeros(n_cams, dtype=np.int64)
+    n_buckets = 1 << RADIX_BITS
+    for cam in range(n_cams):
+        ids = np.empty(n_gauss, dtype=np.int64)
+        n = 0
+        for g in range(n_gauss):
+            if radii[cam, g, 0] > 0:
+                ids[n] = g
+                n += 1
+        culled = n
+        for g in range(n_gauss):
+            if radii[cam, g, 0] <= 0:
+                ids[culled] = g
+                culled += 1
+        scratch = np.empty(n, dtype=np.int64)
+        counts = np.empty(n_buckets + 1, dtype=np.int64)
+        for shift in range(0, 64, RADIX_BITS):
+            counts[:] = 0
+            for i in range(n):
+                counts[((depth_bits[cam, ids[i]] >> shift) & (n_buckets - 1)) + 1] += 1
+            if counts.max() == n:
+                continue  # every key has the same digit here: the pass would not move anything
+            for b in range(n_buckets):
+                counts[b + 1] += counts[b]
+            for i in range(n):
+                digit = (depth_bits[cam, ids[i]] >> shift) & (n_buckets - 1)
+                scratch[counts[digit]] = ids[i]
+                counts[digit] += 1
+            ids[:n] = scratch
+        order[cam] = ids
+        n_visible[cam] = n
+    return order, n_visible
 
-    Returns tile_offsets [C*T + 1], isect_gaussians [M] (flat Gaussian c*N + g per intersection),
-    pixel_boxes [C*N, 4] (x_lo, x_hi, y_lo, y_hi inclusive; x_lo > x_hi when empty),
-    gaussian_offsets [C*N + 1] and gaussian_isects [M] (each Gaussian's intersections, tile order).
+
+@nb.njit(cache=True)
+def _pixel_boxes(means2d, conics, radii, width, height, tile):
+    """Inclusive pixel box (x_lo, x_hi, y_lo, y_hi) of every Gaussian and how many tiles it touches.
+
+    0 tiles for culled Gaussians, boxes holding no pixel centre, and screen parameters that are not
+    finite or whose conic is not positive definite (possible after rounding to float32).
     """
-    n_cams, n_gauss = depth_order.shape
-    tiles_x = (width + tile - 1) // tile
-    tiles_y = (height + tile - 1) // tile
-    n_tiles = tiles_x * tiles_y
-    pixel_boxes = np.empty((n_cams * n_gauss, 4), dtype=np.int32)
-    per_gaussian = np.zeros(n_cams * n_gauss + 1, dtype=np.int64)
-    for g in range(n_cams * n_gauss):
-        pixel_boxes[g, 0] = 1
-        pixel_boxes[g, 1] = 0
-        pixel_boxes[g, 2] = 1
-        pixel_boxes[g, 3] = 0
-        if not drawable[g]:
+    n = means2d.shape[0]
+    boxes = np.zeros((n, 4), dtype=np.int32)
+    n_tiles = np.zeros(n, dtype=np.int64)
+    for g in range(n):
+        mx = np.float64(means2d[g, 0])
+        my = np.float64(means2d[g, 1])
+        ca = np.float64(conics[g, 0])
+        cb = np.float64(conics[g, 1])
+        cc = np.float64(conics[g, 2])
+        finite = math.isfinite(mx) and math.isfinite(my) and math.isfinite(ca) and math.isfinite(cb) and math.isfinite(cc)
+        if radii[g, 0] <= 0 or radii[g, 1] <= 0 or not finite or not (ca > 0.0 and ca * cc - cb * cb > 0.0):
             continue
-        mx = records[g, 0]
-        my = records[g, 1]
         # pixel px is inside when |px + 0.5 - mx| <= rx; clip in float before converting to int
         x_lo = max(0.0, math.ceil(min(mx - radii[g, 0] - 0.5, width)))
         x_hi = min(width - 1.0, math.floor(max(mx + radii[g, 0] - 0.5, -1.0)))
@@ -97,41 +113,112 @@ def bin_gaussians(
         y_hi = min(height - 1.0, math.floor(max(my + radii[g, 1] - 0.5, -1.0)))
         if x_lo > x_hi or y_lo > y_hi:
             continue
-        pixel_boxes[g, 0] = np.int32(x_lo)
-        pixel_boxes[g, 1] = np.int32(x_hi)
-        pixel_boxes[g, 2] = np.int32(y_lo)
-        pixel_boxes[g, 3] = np.int32(y_hi)
-        per_gaussian[g + 1] = (pixel_boxes[g, 1] // tile - pixel_boxes[g, 0] // tile + 1) * (
-            pixel_boxes[g, 3] // tile - pixel_boxes[g, 2] // tile + 1)
-    gaussian_offsets = np.cumsum(per_gaussian)
-    n_isects = gaussian_offsets[-1]
+        boxes[g, 0] = np.int32(x_lo)
+        boxes[g, 1] = np.int32(x_hi)
+        boxes[g, 2] = np.int32(y_lo)
+        boxes[g, 3] = np.int32(y_hi)
+        n_tiles[g] = (boxes[g, 1] // tile - boxes[g, 0] // tile + 1) * (boxes[g, 3] // tile - boxes[g, 2] // tile + 1)
+    return boxes, n_tiles
 
-    tile_counts = np.zeros(n_cams * n_tiles + 1, dtype=np.int64)
-    for g in range(n_cams * n_gauss):
-        if per_gaussian[g + 1] == 0:
-            continue
-        base = (g // n_gauss) * n_tiles
-        for ty in range(pixel_boxes[g, 2] // tile, pixel_boxes[g, 3] // tile + 1):
-            for tx in range(pixel_boxes[g, 0] // tile, pixel_boxes[g, 1] // tile + 1):
-                tile_counts[base + ty * tiles_x + tx + 1] += 1
-    tile_offsets = np.cumsum(tile_counts)
 
-    cursor = tile_offsets[:-1].copy()
-    isect_gaussians = np.empty(n_isects, dtype=np.int32)
-    gaussian_isects = np.empty(n_isects, dtype=np.int64)
+@nb.njit(cache=True)
+def _pack(packed_ids, means2d, conics, opacities, colors, boxes):
+    """Rows of the drawn Gaussians in packed order: records (all the pixel loops read) and colours."""
+    n = packed_ids.shape[0]
+    records = np.zeros((n, N_RECORD), dtype=np.float32)
+    packed_colors = np.empty((n, colors.shape[1]), dtype=np.float32)
+    for s in range(n):
+        g = packed_ids[s]
+        ca = np.float64(conics[g, 0])
+        cb = np.float64(conics[g, 1])
+        cc = np.float64(conics[g, 2])
+        opacity = np.float64(opacities[g])
+        cut = math.log(max(opacity, ALPHA_THRESHOLD) / ALPHA_THRESHOLD) + SIGMA_CUT_SLACK
+        records[s, REC_X] = means2d[g, 0]
+        records[s, REC_Y] = means2d[g, 1]
+        records[s, REC_A] = ca
+        records[s, REC_B] = cb
+        records[s, REC_C] = cc
+        records[s, REC_OPACITY] = opacity
+        records[s, REC_CUT] = cut
+        records[s, REC_ROW_SCALE] = 2.0 * ca * (cut + ROW_SPAN_SLACK)
+        records[s, REC_CONIC_DET] = ca * cc - cb * cb
+        records[s, REC_X_LO] = boxes[g, 0]
+        records[s, REC_X_HI] = boxes[g, 1]
+        records[s, REC_Y_LO] = boxes[g, 2]
+        records[s, REC_Y_HI] = boxes[g, 3]
+        for k in range(colors.shape[1]):
+            packed_colors[s, k] = colors[g, k]
+    return records, packed_colors
+
+
+@nb.njit(cache=True)
+def bin_gaussians(
+    means2d,       # [C*N, 2] float32
+    conics,        # [C*N, 3] float32
+    opacities,     # [C*N] float32
+    colors,        # [C*N, D] float32
+    radii,         # [C*N, 2] int32, 0 where culled
+    depth_order,   # [C, N] int64 per-camera indices sorted by depth (stable), visible ones first
+    n_visible,     # [C] int64
+    width, height,
+):
+    """Pack the drawn Gaussians front to back and list, per tile, the ones whose pixel box touches it.
+
+    Packing renumbers Gaussians camera by camera in depth order, so every tile's list is increasing
+    and the pixel loops walk memory forwards. Returns
+    tile_offsets [C*T + 1] and isect_packed [M] (packed index per intersection, each tile's run front to back);
+    packed_ids [V] (flat c*N + g of each packed Gaussian), packed_records [V, N_RECORD], packed_colors [V, D];
+    packed_offsets [V + 1] and packed_isects [M] (each packed Gaussian's intersections, in tile order).
+    """
+    n_cams, n_gauss = depth_order.shape
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
+    n_tiles = tiles_x * tiles_y
+    boxes, tiles_touched = _pixel_boxes(means2d, conics, radii, width, height, TILE_SIZE)
+
+    n_packed = 0
     for cam in range(n_cams):
-        base = cam * n_tiles
+        for rank in range(n_visible[cam]):
+            n_packed += 1 if tiles_touched[cam * n_gauss + depth_order[cam, rank]] > 0 else 0
+    packed_ids = np.empty(n_packed, dtype=np.int64)
+    s = 0
+    for cam in range(n_cams):
         for rank in range(n_visible[cam]):
             g = cam * n_gauss + depth_order[cam, rank]
-            k = gaussian_offsets[g]
-            for ty in range(pixel_boxes[g, 2] // tile, pixel_boxes[g, 3] // tile + 1):
-                for tx in range(pixel_boxes[g, 0] // tile, pixel_boxes[g, 1] // tile + 1):
-                    t = base + ty * tiles_x + tx
-                    isect_gaussians[cursor[t]] = g
-                    gaussian_isects[k] = cursor[t]
-                    cursor[t] += 1
-                    k += 1
-    return tile_offsets, isect_gaussians, pixel_boxes, gaussian_offsets, gaussian_isects
+            if tiles_touched[g] > 0:
+                packed_ids[s] = g
+                s += 1
+    records, packed_colors = _pack(packed_ids, means2d, conics, opacities, colors, boxes)
+
+    # from here on every loop walks the packed arrays in order
+    packed_offsets = np.zeros(n_packed + 1, dtype=np.int64)
+    tile_counts = np.zeros(n_cams * n_tiles + 1, dtype=np.int64)
+    for s in range(n_packed):
+        base = (packed_ids[s] // n_gauss) * n_tiles + 1
+        tx_lo, tx_hi = int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE
+        ty_lo, ty_hi = int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE
+        packed_offsets[s + 1] = packed_offsets[s] + (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1)
+        for ty in range(ty_lo, ty_hi + 1):
+            for tx in range(tx_lo, tx_hi + 1):
+                tile_counts[base + ty * tiles_x + tx] += 1
+    tile_offsets = np.cumsum(tile_counts)
+
+    n_isects = packed_offsets[-1]
+    cursor = tile_offsets[:-1].copy()
+    isect_packed = np.empty(n_isects, dtype=np.int32)
+    packed_isects = np.empty(n_isects, dtype=np.int64)
+    for s in range(n_packed):
+        base = (packed_ids[s] // n_gauss) * n_tiles
+        k = packed_offsets[s]
+        for ty in range(int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE + 1):
+            for tx in range(int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE + 1):
+                t = base + ty * tiles_x + tx
+                isect_packed[cursor[t]] = s
+                packed_isects[k] = cursor[t]
+                cursor[t] += 1
+                k += 1
+    return tile_offsets, isect_packed, packed_ids, records, packed_colors, packed_offsets, packed_isects
 
 
 @nb.njit(cache=True, inline="always")
@@ -157,12 +244,12 @@ def _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row):
     trip count and no branches so that LLVM vectorises it. Forward and backward both call it, so
     they take identical decisions.
     """
-    mx = records[g, 0]
-    ca = records[g, 2]
-    cb_dy = records[g, 3] * dy
-    cc_dy2 = records[g, 4] * dy * dy
-    opacity = records[g, 5]
-    cut = records[g, 6]
+    mx = np.float64(records[g, REC_X])
+    ca = np.float64(records[g, REC_A])
+    cb_dy = records[g, REC_B] * dy
+    cc_dy2 = records[g, REC_C] * dy * dy
+    opacity = np.float64(records[g, REC_OPACITY])
+    cut = np.float64(records[g, REC_CUT])
     for i in range(TILE_SIZE):
         dx = mx - (x0 + i + 0.5)
         sigma = 0.5 * (ca * dx * dx + cc_dy2) + cb_dy * dx
@@ -186,10 +273,12 @@ def _tile_of(job, width, height):
 
 @nb.njit(cache=True, parallel=True)
 def rasterize_forward(
-    tile_offsets, isect_gaussians, pixel_boxes, records,
-    colors,             # [C*N, D] float32
+    tile_offsets, isect_gaussians, records,  # from bin_gaussians: tile_offsets, isect_packed, packed_records
+    colors,             # [V, D] float32 packed colours
+    backgrounds,        # [C, D] float32, seen through the final transmittance
     out_colors,         # [C, H, W, D] float32
-    out_transmittance,  # [C, H, W] float32
+    out_alphas,         # [C, H, W, 1] float32: 1 - final transmittance
+    out_transmittance,  # [C, H, W] float32: final transmittance (kept for the backward pass)
     out_counts,         # [C, H, W] int32: list entries up to and including the last one composited
 ):
     n_cams, height, width, n_channels = out_colors.shape
@@ -200,7 +289,7 @@ def rasterize_forward(
         transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
         active = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)  # 1 until the pixel stops
         counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
-        accumulated = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        accumulated = np.zeros((max(n_channels, FUSED_CHANNELS), TILE_SIZE, TILE_SIZE), dtype=np.float64)
         gaussian_row = np.empty(TILE_SIZE, dtype=np.float64)
         alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
         weight_row = np.empty(TILE_SIZE, dtype=np.float64)
@@ -210,12 +299,18 @@ def rasterize_forward(
         start = tile_offsets[job]
         for p in range(start, tile_offsets[job + 1]):
             g = isect_gaussians[p]
-            first = max(pixel_boxes[g, 0], x0) - x0
-            last = min(pixel_boxes[g, 1], x0 + tw - 1) - x0
-            for py in range(max(pixel_boxes[g, 2], y0), min(pixel_boxes[g, 3], y0 + th - 1) + 1):
+            first = max(int(records[g, REC_X_LO]), x0) - x0
+            last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
+            row_scale = np.float64(records[g, REC_ROW_SCALE])
+            conic_det = np.float64(records[g, REC_CONIC_DET])
+            c0 = np.float64(colors[g, 0]) if n_channels > 0 else 0.0
+            c1 = np.float64(colors[g, 1]) if n_channels > 1 else 0.0
+            c2 = np.float64(colors[g, 2]) if n_channels > 2 else 0.0
+            c3 = np.float64(colors[g, 3]) if n_channels > 3 else 0.0
+            for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
-                dy = records[g, 1] - (py + 0.5)
-                if live_in_row[ly] == 0 or records[g, 7] < dy * dy * records[g, 8]:
+                dy = records[g, REC_Y] - (py + 0.5)
+                if live_in_row[ly] == 0 or row_scale < dy * dy * conic_det:
                     continue  # the row is finished or misses the cut-off ellipse
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
                 stopped = 0
@@ -227,14 +322,19 @@ def rasterize_forward(
                     live = (alpha > 0.0) & (active[ly, i] > 0.0)
                     go = live & (t_after > TRANSMITTANCE_STOP)
                     stop = live & (t_after <= TRANSMITTANCE_STOP)
-                    weight_row[i] = alpha * t_before if go else 0.0
+                    weight = alpha * t_before if go else 0.0
+                    weight_row[i] = weight
+                    accumulated[0, ly, i] += weight * c0
+                    accumulated[1, ly, i] += weight * c1
+                    accumulated[2, ly, i] += weight * c2
+                    accumulated[3, ly, i] += weight * c3
                     transmittance[ly, i] = t_after if go else t_before
                     counts[ly, i] = p - start + 1 if go else counts[ly, i]
                     active[ly, i] = 0.0 if stop else active[ly, i]
                     stopped += 1 if stop else 0
                     composited += 1 if go else 0
                 if composited > 0:
-                    for k in range(n_channels):
+                    for k in range(FUSED_CHANNELS, n_channels):
                         color = np.float64(colors[g, k])
                         for i in range(TILE_SIZE):
                             accumulated[k, ly, i] += weight_row[i] * color
@@ -244,19 +344,21 @@ def rasterize_forward(
                 break
         for ly in range(th):
             for lx in range(tw):
-                out_transmittance[cam, y0 + ly, x0 + lx] = transmittance[ly, lx]
+                t_final = transmittance[ly, lx]
+                out_transmittance[cam, y0 + ly, x0 + lx] = t_final
+                out_alphas[cam, y0 + ly, x0 + lx, 0] = 1.0 - t_final
                 out_counts[cam, y0 + ly, x0 + lx] = counts[ly, lx]
                 for k in range(n_channels):
-                    out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[k, ly, lx]
+                    out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[k, ly, lx] + t_final * backgrounds[cam, k]
 
 
 @nb.njit(cache=True, parallel=True)
 def rasterize_backward(
-    tile_offsets, isect_gaussians, pixel_boxes, records, colors,   # as in rasterize_forward
+    tile_offsets, isect_gaussians, records, colors, backgrounds,  # as in rasterize_forward
     transmittance_final,  # [C, H, W] float32 from the forward pass
     counts,               # [C, H, W] int32 from the forward pass
-    grad_colors,          # [C, H, W, D] float32, dL/d(render colours without background)
-    grad_transmittance,   # [C, H, W] float32, dL/d(final transmittance)
+    grad_colors,          # [C, H, W, D] float32, dL/d(rendered colours)
+    grad_alphas,          # [C, H, W, 1] float32, dL/d(rendered alphas)
     slots,                # [M, N_GEOMETRY_SLOTS + D] float32 out: this intersection's gradient terms
 ):
     """Walk each tile's list back to front, rebuilding transmittance by division (as gsplat).
@@ -278,15 +380,20 @@ def rasterize_backward(
         final = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
         grad_final = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.float64)
         tile_counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
-        grad_out = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        behind = np.zeros((n_channels, TILE_SIZE, TILE_SIZE), dtype=np.float64)  # colour composited behind
+        n_planes = max(n_channels, FUSED_CHANNELS)
+        grad_out = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=np.float64)
+        behind = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=np.float64)  # colour composited behind
         max_count = 0
         row_max_count = np.zeros(TILE_SIZE, dtype=np.int64)  # no pixel of the row composited beyond this
         for ly in range(th):
             for lx in range(tw):
                 final[ly, lx] = transmittance_final[cam, y0 + ly, x0 + lx]
                 transmittance[ly, lx] = final[ly, lx]
-                grad_final[ly, lx] = grad_transmittance[cam, y0 + ly, x0 + lx]
+                # colour = composited + T_final * background and alpha = 1 - T_final
+                grad_t = -np.float64(grad_alphas[cam, y0 + ly, x0 + lx, 0])
+                for k in range(n_channels):
+                    grad_t += backgrounds[cam, k] * grad_colors[cam, y0 + ly, x0 + lx, k]
+                grad_final[ly, lx] = grad_t
                 tile_counts[ly, lx] = counts[cam, y0 + ly, x0 + lx]
                 max_count = max(max_count, counts[cam, y0 + ly, x0 + lx])
                 row_max_count[ly] = max(row_max_count[ly], counts[cam, y0 + ly, x0 + lx])
@@ -298,22 +405,28 @@ def rasterize_backward(
         inv_keep_row = np.empty(TILE_SIZE, dtype=np.float64)
         weight_row = np.empty(TILE_SIZE, dtype=np.float64)
         grad_alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
-        lanes = np.zeros((n_slots, TILE_SIZE), dtype=np.float64)  # back to 0 after each Gaussian
+        lanes = np.zeros((N_GEOMETRY_SLOTS + n_planes, TILE_SIZE), dtype=np.float64)  # back to 0 after each Gaussian
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
             g = isect_gaussians[p]
-            mx = records[g, 0]
-            ca = records[g, 2]
-            cb = records[g, 3]
-            cc = records[g, 4]
-            opacity = records[g, 5]
-            first = max(pixel_boxes[g, 0], x0) - x0
-            last = min(pixel_boxes[g, 1], x0 + tw - 1) - x0
+            mx = np.float64(records[g, REC_X])
+            ca = np.float64(records[g, REC_A])
+            cb = np.float64(records[g, REC_B])
+            cc = np.float64(records[g, REC_C])
+            opacity = np.float64(records[g, REC_OPACITY])
+            row_scale = np.float64(records[g, REC_ROW_SCALE])
+            conic_det = np.float64(records[g, REC_CONIC_DET])
+            first = max(int(records[g, REC_X_LO]), x0) - x0
+            last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
+            c0 = np.float64(colors[g, 0]) if n_channels > 0 else 0.0
+            c1 = np.float64(colors[g, 1]) if n_channels > 1 else 0.0
+            c2 = np.float64(colors[g, 2]) if n_channels > 2 else 0.0
+            c3 = np.float64(colors[g, 3]) if n_channels > 3 else 0.0
             touched = 0
-            for py in range(max(pixel_boxes[g, 2], y0), min(pixel_boxes[g, 3], y0 + th - 1) + 1):
+            for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
-                dy = records[g, 1] - (py + 0.5)
-                if rank >= row_max_count[ly] or records[g, 7] < dy * dy * records[g, 8]:
+                dy = records[g, REC_Y] - (py + 0.5)
+                if rank >= row_max_count[ly] or row_scale < dy * dy * conic_det:
                     continue
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
                 valid_lanes = 0
@@ -325,13 +438,29 @@ def rasterize_backward(
                     transmittance[ly, i] = t_before if valid else transmittance[ly, i]
                     t_before_row[i] = t_before
                     inv_keep_row[i] = inv_keep
-                    weight_row[i] = alpha * t_before if valid else 0.0
-                    grad_alpha_row[i] = -final[ly, i] * inv_keep * grad_final[ly, i] if valid else 0.0
+                    weight = alpha * t_before if valid else 0.0
+                    weight_row[i] = weight
+                    # the first FUSED_CHANNELS colour channels, written out so the loop stays vectorised
+                    g0, g1, g2, g3 = grad_out[0, ly, i], grad_out[1, ly, i], grad_out[2, ly, i], grad_out[3, ly, i]
+                    lanes[N_GEOMETRY_SLOTS, i] += weight * g0
+                    lanes[N_GEOMETRY_SLOTS + 1, i] += weight * g1
+                    lanes[N_GEOMETRY_SLOTS + 2, i] += weight * g2
+                    lanes[N_GEOMETRY_SLOTS + 3, i] += weight * g3
+                    grad_alpha = -final[ly, i] * inv_keep * grad_final[ly, i]
+                    grad_alpha += (c0 * t_before - behind[0, ly, i] * inv_keep) * g0
+                    grad_alpha += (c1 * t_before - behind[1, ly, i] * inv_keep) * g1
+                    grad_alpha += (c2 * t_before - behind[2, ly, i] * inv_keep) * g2
+                    grad_alpha += (c3 * t_before - behind[3, ly, i] * inv_keep) * g3
+                    grad_alpha_row[i] = grad_alpha if valid else 0.0
+                    behind[0, ly, i] += c0 * weight
+                    behind[1, ly, i] += c1 * weight
+                    behind[2, ly, i] += c2 * weight
+                    behind[3, ly, i] += c3 * weight
                     valid_lanes += 1 if valid else 0
                 if valid_lanes == 0:
                     continue
                 touched += valid_lanes
-                for k in range(n_channels):
+                for k in range(FUSED_CHANNELS, n_channels):
                     color = np.float64(colors[g, k])
                     for i in range(TILE_SIZE):
                         g_out = grad_out[k, ly, i]
@@ -368,16 +497,16 @@ def rasterize_backward(
 
 @nb.njit(cache=True, parallel=True)
 def reduce_slots(
-    gaussian_offsets,  # [C*N + 1]
-    gaussian_isects,   # [M]
-    slots,             # [M, S] float32
-    out,               # [C*N, S] float64: per-Gaussian sums, in tile order
+    packed_ids,      # [V] flat Gaussian of each packed one
+    packed_offsets,  # [V + 1]
+    packed_isects,   # [M]
+    slots,           # [M, S] float32
+    out,             # [C*N, S] float64, zeros: per-Gaussian sums in tile order (undrawn ones stay 0)
 ):
     n_slots = slots.shape[1]
-    for g in nb.prange(out.shape[0]):
-        for k in range(n_slots):
-            out[g, k] = 0.0
-        for i in range(gaussian_offsets[g], gaussian_offsets[g + 1]):
-            row = gaussian_isects[i]
+    for s in nb.prange(packed_ids.shape[0]):
+        g = packed_ids[s]
+        for i in range(packed_offsets[s], packed_offsets[s + 1]):
+            row = packed_isects[i]
             for k in range(n_slots):
                 out[g, k] += slots[row, k]

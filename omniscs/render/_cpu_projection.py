@@ -19,7 +19,7 @@ from omniscs.render.projection import MIN_COMPENSATION_RATIO
 @nb.njit(cache=True, inline="always")
 def _unit_quat(quats, n):
     """Normalised quaternion and its norm; the identity (norm 0) when too short to have a direction."""
-    w, x, y, z = np.float64(quats[n, 0]), np.float64(quats[n, 1]), np.float64(quats[n, 2]), np.float64(quats[n, 3])
+    w, x, y, z = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
     norm = math.sqrt(w * w + x * x + y * y + z * z)
     if not norm >= MIN_QUAT_NORM:
         return 1.0, 0.0, 0.0, 0.0, 0.0
@@ -40,11 +40,18 @@ def _rotation(w, x, y, z, R):
 
 
 @nb.njit(cache=True, inline="always")
+def _rotated_scaled(viewmats, c, i, R, k):
+    """Entry (i, k) of W R, W being camera c's rotation (scale it by s_k for W R S)."""
+    return viewmats[c, i, 0] * R[0, k] + viewmats[c, i, 1] * R[1, k] + viewmats[c, i, 2] * R[2, k]
+
+
+@nb.njit(cache=True, inline="always")
 def _camera_frame(means, n, viewmats, Ks, c, width, height, near, far):
     """Camera-frame centre, the in-depth flag, 1/z, and the clamped and unclamped x/z, y/z with their clamp flags."""
-    x = viewmats[c, 0, 0] * means[n, 0] + viewmats[c, 0, 1] * means[n, 1] + viewmats[c, 0, 2] * means[n, 2] + viewmats[c, 0, 3]
-    y = viewmats[c, 1, 0] * means[n, 0] + viewmats[c, 1, 1] * means[n, 1] + viewmats[c, 1, 2] * means[n, 2] + viewmats[c, 1, 3]
-    z = viewmats[c, 2, 0] * means[n, 0] + viewmats[c, 2, 1] * means[n, 1] + viewmats[c, 2, 2] * means[n, 2] + viewmats[c, 2, 3]
+    px, py, pz = means[n, 0], means[n, 1], means[n, 2]
+    x = viewmats[c, 0, 0] * px + viewmats[c, 0, 1] * py + viewmats[c, 0, 2] * pz + viewmats[c, 0, 3]
+    y = viewmats[c, 1, 0] * px + viewmats[c, 1, 1] * py + viewmats[c, 1, 2] * pz + viewmats[c, 1, 3]
+    z = viewmats[c, 2, 0] * px + viewmats[c, 2, 1] * py + viewmats[c, 2, 2] * pz + viewmats[c, 2, 3]
     in_depth = (z >= near) and (z <= far)
     inv_z = 1.0 / z if in_depth else 1.0
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
@@ -63,13 +70,13 @@ def _camera_frame(means, n, viewmats, Ks, c, width, height, near, far):
 
 @nb.njit(cache=True, parallel=True)
 def project_forward(
-    means, quats, scales, opacities,  # [N, 3], [N, 4], [N, 3], [N], float32 or float64
+    means, quats, scales, opacities,  # [N, 3], [N, 4], [N, 3], [N] float64
     viewmats, Ks,                     # [C, 4, 4], [C, 3, 3] float64
     width, height, near, far, eps2d, antialiased,
-    out_means2d,    # [C, N, 2], dtype of means
-    out_conics,     # [C, N, 3]
-    out_depths,     # [C, N]
-    out_opacities,  # [C, N]
+    out_means2d,    # [C, N, 2] float64
+    out_conics,     # [C, N, 3] float64
+    out_depths,     # [C, N] float64
+    out_opacities,  # [C, N] float64
     out_radii,      # [C, N, 2] int32
 ):
     n_cams = viewmats.shape[0]
@@ -86,9 +93,9 @@ def project_forward(
             # A = J W R S, row by row: J = [[fx/z, 0, -fx uc/z], [0, fy/z, -fy vc/z]]
             a00 = a01 = a02 = a10 = a11 = a12 = 0.0
             for k in range(3):
-                b0 = (viewmats[c, 0, 0] * R[0, k] + viewmats[c, 0, 1] * R[1, k] + viewmats[c, 0, 2] * R[2, k]) * scales[n, k]
-                b1 = (viewmats[c, 1, 0] * R[0, k] + viewmats[c, 1, 1] * R[1, k] + viewmats[c, 1, 2] * R[2, k]) * scales[n, k]
-                b2 = (viewmats[c, 2, 0] * R[0, k] + viewmats[c, 2, 1] * R[1, k] + viewmats[c, 2, 2] * R[2, k]) * scales[n, k]
+                b0 = _rotated_scaled(viewmats, c, 0, R, k) * scales[n, k]
+                b1 = _rotated_scaled(viewmats, c, 1, R, k) * scales[n, k]
+                b2 = _rotated_scaled(viewmats, c, 2, R, k) * scales[n, k]
                 row0 = fx * inv_z * b0 - fx * uc * inv_z * b2
                 row1 = fy * inv_z * b1 - fy * vc * inv_z * b2
                 if k == 0:
@@ -135,11 +142,11 @@ def project_backward(
     means, quats, scales, opacities, viewmats, Ks,  # as in project_forward
     width, height, near, far, eps2d, antialiased,
     radii,          # [C, N, 2] int32 from the forward pass
-    v_means2d,      # [C, N, 2] upstream gradients, dtype of means
+    v_means2d,      # [C, N, 2] float64 upstream gradients
     v_conics,       # [C, N, 3]
     v_depths,       # [C, N]
     v_opacities_c,  # [C, N]
-    out_means,      # [N, 3], dtype of means
+    out_means,      # [N, 3] float64
     out_quats,      # [N, 4]
     out_scales,     # [N, 3]
     out_opacities,  # [N]
@@ -161,7 +168,7 @@ def project_backward(
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
             for i in range(3):
                 for k in range(3):
-                    B[i, k] = (viewmats[c, i, 0] * R[0, k] + viewmats[c, i, 1] * R[1, k] + viewmats[c, i, 2] * R[2, k]) * scales[n, k]
+                    B[i, k] = _rotated_scaled(viewmats, c, i, R, k) * scales[n, k]
             j00 = fx * inv_z
             j02 = -fx * uc * inv_z
             j11 = fy * inv_z

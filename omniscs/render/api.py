@@ -46,8 +46,9 @@ def rasterize(
 
     render_mode: "RGB" colours; "D" accumulated depth sum(w_i z_i); "ED" that divided by alpha
     (0 where alpha is 0); "RGB+D"/"RGB+ED" append the depth channel to the colours.
-    backend: "reference" (dense PyTorch oracle, any dtype/device), "cpu" (tiled Numba kernels,
-    float32 inside), "gsplat" (CUDA), "auto" (gsplat for CUDA tensors, else cpu).
+    backend: "reference" (dense PyTorch oracle, any dtype/device, differentiable in everything),
+    "cpu" (Numba kernels: projection in float64, 16x16-tile compositing with float32 storage; no
+    gradient for viewmats/Ks), "gsplat" (CUDA), "auto" (gsplat for CUDA tensors, else cpu).
     rasterize_mode: "classic" adds eps2d to the 2D covariance; "antialiased" also scales opacity by
     sqrt(det(Sigma2d) / det(Sigma2d + eps2d I)) (Mip-Splatting).
     meta: means2d [C, N, 2] (call ``meta["means2d"].retain_grad()`` before backward for its
@@ -58,6 +59,7 @@ def rasterize(
     chosen = _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
                            far_plane, eps2d, sh_degree, backgrounds, render_mode, backend, rasterize_mode, absgrad)
     dtype = means.dtype
+    cameras = (viewmats, Ks)  # the cpu backend projects in float64 from the cameras as given
     viewmats, Ks = viewmats.to(dtype), Ks.to(dtype)
     backgrounds = None if backgrounds is None else backgrounds.to(dtype)
     antialiased = rasterize_mode == "antialiased"
@@ -68,9 +70,12 @@ def rasterize(
             backgrounds=backgrounds, render_mode=render_mode, antialiased=antialiased, absgrad=absgrad,
         )
 
-    project = project_cpu if chosen == "cpu" else project_gaussians
-    screen = project(means, quats, scales, opacities, viewmats, Ks, width, height,
-                     near_plane, far_plane, eps2d, antialiased)
+    if chosen == "cpu":
+        screen, sort_depths = project_cpu(means, quats, scales, opacities, *cameras, width, height,
+                                          near_plane, far_plane, eps2d, antialiased)
+    else:
+        screen = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height,
+                                   near_plane, far_plane, eps2d, antialiased)
     n_cameras = viewmats.shape[0]
     if sh_degree is not None:
         features = colors_from_sh(sh_degree, colors, means, viewmats)
@@ -84,15 +89,15 @@ def rasterize(
     elif render_mode in ("RGB+D", "RGB+ED"):
         features = torch.cat([features, depth_channel], -1)
 
+    if backgrounds is None:
+        backgrounds = features.new_zeros(n_cameras, features.shape[-1])
+    elif render_mode in ("RGB+D", "RGB+ED"):
+        backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cameras, 1)], -1)
     if chosen == "cpu":
-        render_colors, render_alphas = rasterize_cpu(screen, features, width, height, absgrad)
+        render_colors, render_alphas = rasterize_cpu(screen, features, backgrounds, width, height, absgrad,
+                                                     sort_depths)
     else:
-        render_colors, render_alphas = rasterize_reference(screen, features, width, height)
-
-    if backgrounds is not None:
-        if render_mode in ("RGB+D", "RGB+ED"):
-            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(n_cameras, 1)], -1)
-        render_colors = render_colors + (1.0 - render_alphas) * backgrounds[:, None, None, :]
+        render_colors, render_alphas = rasterize_reference(screen, features, backgrounds, width, height)
     if render_mode in ("ED", "RGB+ED"):
         covered = render_alphas > MIN_ALPHA_FOR_EXPECTED_DEPTH
         safe_alphas = torch.where(covered, render_alphas, torch.ones_like(render_alphas))

@@ -11,9 +11,9 @@ import json
 import logging
 import os
 import platform
-import resource
 import statistics
-import tempfile
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -22,6 +22,7 @@ import numba
 import torch
 
 from omniscs.render.api import rasterize
+from omniscs.storage import atomic_write_text, atomic_write_with
 from omniscs.render.scenes import StreetScene, street_scene
 
 log = logging.getLogger(__name__)
@@ -33,23 +34,34 @@ DEFAULT_COUNTS = (10_000, 100_000, 1_000_000)
 TARGET_RESOLUTION, TARGET_COUNT = (640, 360), 100_000
 TARGET_FORWARD_HZ, TARGET_FORWARD_BACKWARD_HZ, TARGET_SPEEDUP = 10.0, 3.0, 20.0
 
-#: Size of the run that calibrates the reference's cost per pixel-Gaussian pair.
-CALIBRATION_RESOLUTION, CALIBRATION_COUNT = (96, 54), 2_000
-
-#: Backward costs this many forwards at most (used only to predict reference times for skipping).
-BACKWARD_COST_FACTOR = 4.0
+#: The run that calibrates the reference's cost per pixel-Gaussian pair (to skip combos over budget)
+#: and gives a speed-up measured on both backends even when every grid combo is too big for the reference.
+CALIBRATION_RESOLUTION, CALIBRATION_COUNT = (160, 90), 3_000
 
 #: Pixel-Gaussian pairs the reference may hold for one fwd+bwd (its checkpoints keep per-chunk state).
 REFERENCE_MAX_PAIRS = 2e10
 
 
-def _median_time(fn: Callable[[], Any], repeats: int) -> float:
-    times = []
+def _median_times(fn: Callable[[], Any], repeats: int) -> tuple[float, float]:
+    """Median wall-clock and median process CPU seconds of ``repeats`` calls.
+
+    CPU time counts every thread: CPU / wall is the number of cores the run actually had.
+    """
+    walls, cpus = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        wall, cpu = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        cpus.append(time.process_time() - cpu)
+        walls.append(time.perf_counter() - wall)
+    return statistics.median(walls), statistics.median(cpus)
+
+
+def _measure(scene: StreetScene, backend: str, repeats: int) -> dict[str, float]:
+    forward_s, forward_cpu_s = _median_times(_forward(scene, backend), repeats)
+    forward_backward_s, forward_backward_cpu_s = _median_times(_forward_backward(scene, backend), repeats)
+    return {"forward_s": forward_s, "forward_backward_s": forward_backward_s, "forward_hz": 1.0 / forward_s,
+            "forward_backward_hz": 1.0 / forward_backward_s, "forward_cpu_s": forward_cpu_s,
+            "forward_backward_cpu_s": forward_backward_cpu_s}
 
 
 def _forward(scene: StreetScene, backend: str) -> Callable[[], Any]:
@@ -70,48 +82,39 @@ def _forward_backward(scene: StreetScene, backend: str) -> Callable[[], Any]:
     return run
 
 
-def _reset_peak_rss() -> str:
-    """Reset the kernel's peak-RSS counter if allowed; say which measure the next reading is."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return "VmHWM after resetting it via /proc/self/clear_refs (peak resident set of this step)"
-    except OSError:
-        return "ru_maxrss increase (process-lifetime peak; 0 when an earlier step peaked higher)"
+#: Run in a fresh interpreter so that memory freed by earlier steps cannot hide the peak. Prints JSON.
+_MEMORY_PROBE = """
+import json, sys, torch
+from pathlib import Path
+from omniscs.render.bench import _forward_backward, _status_bytes
+from omniscs.render.scenes import street_scene
+width, height, count = map(int, sys.argv[1:4])
+_forward_backward(street_scene(1_000, 64, 36), "cpu")()  # load the compiled kernels
+scene = street_scene(count, width, height)
+baseline = _status_bytes("VmRSS")
+_forward_backward(scene, "cpu")()
+print(json.dumps({"baseline_rss_bytes": baseline, "peak_rss_bytes": _status_bytes("VmHWM")}))
+"""
 
 
-def _peak_rss_bytes() -> int:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+def _status_bytes(field: str) -> int:
+    """A memory field of /proc/self/status (VmRSS, VmHWM) in bytes."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise OSError(f"/proc/self/status has no {field}")
 
 
-def _current_rss_bytes() -> int:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
-
-def _measure_peak_memory(scene: StreetScene) -> dict[str, Any]:
-    method = _reset_peak_rss()
-    baseline = _current_rss_bytes() if method.startswith("VmHWM") else _peak_rss_bytes()
-    _forward_backward(scene, "cpu")()
-    peak = _peak_rss_bytes()
-    return {"peak_rss_bytes": peak, "baseline_rss_bytes": baseline, "peak_increase_bytes": max(0, peak - baseline),
-            "method": method}
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", delete=False) as tmp:
-        tmp.write(data)
-    os.replace(tmp.name, path)
+def _measure_peak_memory(width: int, height: int, count: int) -> dict[str, Any]:
+    """Peak resident memory added by one cpu forward+backward, measured in a fresh Python process."""
+    probe = subprocess.run([sys.executable, "-c", _MEMORY_PROBE, str(width), str(height), str(count)],
+                           capture_output=True, text=True, check=True)
+    result = json.loads(probe.stdout.strip().splitlines()[-1])
+    result["peak_increase_bytes"] = max(0, result["peak_rss_bytes"] - result["baseline_rss_bytes"])
+    result["method"] = ("peak resident set (VmHWM) of a fresh process minus its resident set (VmRSS) after "
+                        "building the scene, over one cpu forward+backward; includes the scene's tensors' "
+                        "autograd state, bins and gradients, not the scene itself")
+    return result
 
 
 def run_render_benchmark(
@@ -120,9 +123,10 @@ def run_render_benchmark(
     counts: tuple[int, ...] = DEFAULT_COUNTS,
     backends: tuple[str, ...] = ("cpu", "reference"),
     repeats: int = 5,
-    reference_budget_s: float = 30.0,
+    reference_budget_s: float = 60.0,
+    calibration_size: tuple[tuple[int, int], int] = (CALIBRATION_RESOLUTION, CALIBRATION_COUNT),
 ) -> dict[str, Any]:
-    """Time every (resolution, count, backend); write render_bench.{json,md,png} to out_dir; return the results.
+    """Time every (resolution, count, backend); write render_bench.{json,md,png} and a sample render to out_dir.
 
     Times are medians of ``repeats`` runs after one warm-up run (the reference runs once: it is the
     slow oracle). The reference is skipped, and recorded as skipped, where its predicted time
@@ -136,15 +140,16 @@ def run_render_benchmark(
     _forward_backward(street_scene(1_000, 64, 36), "cpu")()
     first_call_s = time.perf_counter() - start
 
-    reference_cost = None
+    calibration, reference_cost = None, None
     if "reference" in backends:
-        calib = street_scene(CALIBRATION_COUNT, *CALIBRATION_RESOLUTION)
-        pairs = _visible_count(calib) * CALIBRATION_RESOLUTION[0] * CALIBRATION_RESOLUTION[1]
-        _forward(calib, "reference")()
-        reference_cost = {
-            "forward_s_per_pair": _median_time(_forward(calib, "reference"), 1) / max(pairs, 1),
-            "forward_backward_s_per_pair": _median_time(_forward_backward(calib, "reference"), 1) / max(pairs, 1),
-        }
+        (calib_width, calib_height), calib_count = calibration_size
+        scene = street_scene(calib_count, calib_width, calib_height)
+        _forward_backward(street_scene(200, 32, 18), "reference")()  # warm-up
+        pairs = _visible_count(scene) * calib_width * calib_height
+        calibration = {"width": calib_width, "height": calib_height, "count": calib_count, "pairs": pairs,
+                       "reference": _measure(scene, "reference", 1), "cpu": _measure(scene, "cpu", repeats)}
+        reference_cost = {key: calibration["reference"][key] / max(pairs, 1)
+                          for key in ("forward_s", "forward_backward_s")}
 
     rows: list[dict[str, Any]] = []
     memory: dict[str, Any] = {}
@@ -156,42 +161,41 @@ def run_render_benchmark(
                 row = {"width": width, "height": height, "count": count, "visible": visible, "backend": backend}
                 if backend == "reference":
                     pairs = visible * width * height
-                    predicted = pairs * reference_cost["forward_backward_s_per_pair"]
+                    predicted = pairs * reference_cost["forward_backward_s"]
                     if predicted > reference_budget_s or pairs > REFERENCE_MAX_PAIRS:
                         row.update(skipped=True, reason=f"predicted {predicted:.0f} s > budget {reference_budget_s:.0f} s")
                         rows.append(row)
                         log.info("skip reference %dx%d N=%d (predicted %.0f s)", width, height, count, predicted)
                         continue
-                    n_repeats = 1
                 else:
-                    n_repeats = repeats
                     _forward(scene, backend)()  # warm-up
-                forward_s = _median_time(_forward(scene, backend), n_repeats)
-                forward_backward_s = _median_time(_forward_backward(scene, backend), n_repeats)
-                row.update(skipped=False, forward_s=forward_s, forward_backward_s=forward_backward_s,
-                           forward_hz=1.0 / forward_s, forward_backward_hz=1.0 / forward_backward_s)
+                row.update(skipped=False, **_measure(scene, backend, 1 if backend == "reference" else repeats))
                 rows.append(row)
                 log.info("%s %dx%d N=%d: forward %.1f ms, forward+backward %.1f ms", backend, width, height, count,
-                         forward_s * 1e3, forward_backward_s * 1e3)
+                         row["forward_s"] * 1e3, row["forward_backward_s"] * 1e3)
             if count == max(counts) and "cpu" in backends:
-                memory[f"{width}x{height}"] = _measure_peak_memory(scene)
+                memory[f"{width}x{height}"] = _measure_peak_memory(width, height, count)
 
     results = {
         "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
                     "torch_threads": torch.get_num_threads(), "numba_threading_layer": _threading_layer(),
-                    "load_average_before": load_before, "load_average_after": os.getloadavg()},
+                    "load_average_before": load_before, "load_average_after": os.getloadavg(),
+                    "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "(unset: OpenMP threads spin)")},
         "settings": {"repeats": repeats, "reference_repeats": 1, "reference_budget_s": reference_budget_s,
                      "dtype": "float32", "scene": "street_scene (road, facades, cars; scales 0.05-0.5 m)"},
         "first_call_s": first_call_s,
-        "reference_cost": reference_cost,
+        "calibration": calibration,
+        "reference_cost_per_pair": reference_cost,
         "rows": rows,
-        "speedups": _speedups(rows),
+        "speedups": _speedups(rows, calibration),
         "peak_memory_at_max_count": memory,
-        "targets": _targets(rows),
+        "targets": None,
     }
-    _write_atomic(out_dir / "render_bench.json", json.dumps(results, indent=2).encode())
-    _write_atomic(out_dir / "render_bench.md", render_markdown(results).encode())
+    results["targets"] = _targets(rows, results["speedups"])
+    atomic_write_text(out_dir / "render_bench.json", json.dumps(results, indent=2))
+    atomic_write_text(out_dir / "render_bench.md", render_markdown(results))
     _plot(results, out_dir / "render_bench.png")
+    save_sample_render(out_dir / "render_sample.png", *resolutions[0], max(counts))
     return results
 
 
@@ -215,31 +219,33 @@ def _find(rows: list[dict[str, Any]], width: int, height: int, count: int, backe
     return None
 
 
-def _speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """reference time / cpu time wherever both ran in this run."""
-    out = []
+def _speedups(rows: list[dict[str, Any]], calibration: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """reference time / cpu time wherever both ran in this run (the calibration combo first)."""
+    pairs = []
+    if calibration is not None:
+        pairs.append((calibration, calibration["cpu"], calibration["reference"], "calibration"))
     for row in rows:
-        if row["backend"] != "cpu" or row["skipped"]:
-            continue
-        ref = _find(rows, row["width"], row["height"], row["count"], "reference")
-        if ref is not None:
-            out.append({"width": row["width"], "height": row["height"], "count": row["count"],
-                        "forward": ref["forward_s"] / row["forward_s"],
-                        "forward_backward": ref["forward_backward_s"] / row["forward_backward_s"]})
-    return out
+        if row["backend"] == "cpu" and not row["skipped"]:
+            ref = _find(rows, row["width"], row["height"], row["count"], "reference")
+            if ref is not None:
+                pairs.append((row, row, ref, "grid"))
+    return [{"width": where["width"], "height": where["height"], "count": where["count"], "source": source,
+             "forward": ref["forward_s"] / cpu["forward_s"],
+             "forward_backward": ref["forward_backward_s"] / cpu["forward_backward_s"]}
+            for where, cpu, ref, source in pairs]
 
 
-def _targets(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def _targets(rows: list[dict[str, Any]], speedups: list[dict[str, Any]]) -> dict[str, Any]:
     cpu = _find(rows, *TARGET_RESOLUTION, TARGET_COUNT, "cpu")
     if cpu is None:
         return {"measured": False}
-    speedups = _speedups(rows)
-    best = min((s["forward_backward"] for s in speedups), default=None)
+    smallest = min((s["forward_backward"] for s in speedups), default=None)
     return {
         "measured": True, "forward_hz": cpu["forward_hz"], "forward_backward_hz": cpu["forward_backward_hz"],
         "forward_met": cpu["forward_hz"] >= TARGET_FORWARD_HZ,
         "forward_backward_met": cpu["forward_backward_hz"] >= TARGET_FORWARD_BACKWARD_HZ,
-        "smallest_speedup": best, "speedup_met": None if best is None else best >= TARGET_SPEEDUP,
+        "cores_used_forward_backward": cpu["forward_backward_cpu_s"] / cpu["forward_backward_s"],
+        "smallest_speedup": smallest, "speedup_met": None if smallest is None else smallest >= TARGET_SPEEDUP,
     }
 
 
@@ -250,23 +256,29 @@ def render_markdown(results: dict[str, Any]) -> str:
         "# Rasteriser benchmark", "",
         f"Street scene, one camera, float32; medians of {results['settings']['repeats']} runs (reference: 1 run). "
         f"{machine['cpu_count']} CPUs, Numba {machine['numba_threads']} threads ({machine['numba_threading_layer']}), "
-        f"load average before/after: {machine['load_average_before'][0]:.2f} / {machine['load_average_after'][0]:.2f} "
-        "(shared machine: compare within this run).", "",
+        f"load average before/after: {machine['load_average_before'][0]:.2f} / {machine['load_average_after'][0]:.2f}, "
+        f"OMP_WAIT_POLICY {machine['OMP_WAIT_POLICY']}. "
+        "Shared machine: compare within this run; CPU ms counts all threads, so CPU / wall is the number of "
+        "cores the run really had.", "",
         f"First call (Numba compile or cache load): {results['first_call_s']:.1f} s.", "",
-        "| resolution | Gaussians | visible | backend | forward ms | fwd+bwd ms | forward Hz | fwd+bwd Hz |",
-        "|---|---:|---:|---|---:|---:|---:|---:|",
+        "| resolution | Gaussians | visible | backend | forward ms | fwd+bwd ms | forward Hz | fwd+bwd Hz "
+        "| forward CPU ms | fwd+bwd CPU ms |",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
     for row in results["rows"]:
         head = f"| {row['width']}x{row['height']} | {row['count']:,} | {row['visible']:,} | {row['backend']} |"
         if row["skipped"]:
-            lines.append(f"{head} skipped | {row['reason']} | | |")
+            lines.append(f"{head} skipped | {row['reason']} | | | | |")
         else:
             lines.append(f"{head} {row['forward_s'] * 1e3:.1f} | {row['forward_backward_s'] * 1e3:.1f} | "
-                         f"{row['forward_hz']:.1f} | {row['forward_backward_hz']:.1f} |")
+                         f"{row['forward_hz']:.1f} | {row['forward_backward_hz']:.1f} | "
+                         f"{row['forward_cpu_s'] * 1e3:.0f} | {row['forward_backward_cpu_s'] * 1e3:.0f} |")
     if results["speedups"]:
-        lines += ["", "| resolution | Gaussians | cpu speed-up, forward | cpu speed-up, fwd+bwd |", "|---|---:|---:|---:|"]
+        lines += ["", "| measured on | resolution | Gaussians | cpu speed-up, forward | cpu speed-up, fwd+bwd |",
+                  "|---|---|---:|---:|---:|"]
         for s in results["speedups"]:
-            lines.append(f"| {s['width']}x{s['height']} | {s['count']:,} | {s['forward']:.0f}x | {s['forward_backward']:.0f}x |")
+            lines.append(f"| {s['source']} | {s['width']}x{s['height']} | {s['count']:,} | {s['forward']:.0f}x | "
+                         f"{s['forward_backward']:.0f}x |")
     if results["peak_memory_at_max_count"]:
         lines += ["", "| resolution | peak RSS increase, cpu fwd+bwd at max count | method |", "|---|---:|---|"]
         for key, mem in results["peak_memory_at_max_count"].items():
@@ -275,7 +287,8 @@ def render_markdown(results: dict[str, Any]) -> str:
     if targets.get("measured"):
         lines += ["", f"Targets at {TARGET_RESOLUTION[0]}x{TARGET_RESOLUTION[1]}, {TARGET_COUNT:,} Gaussians: "
                   f"forward {targets['forward_hz']:.1f} Hz (target {TARGET_FORWARD_HZ:.0f}), "
-                  f"forward+backward {targets['forward_backward_hz']:.1f} Hz (target {TARGET_FORWARD_BACKWARD_HZ:.0f})"
+                  f"forward+backward {targets['forward_backward_hz']:.1f} Hz (target {TARGET_FORWARD_BACKWARD_HZ:.0f}, "
+                  f"with {targets['cores_used_forward_backward']:.1f} cores in use)"
                   + ("" if targets["smallest_speedup"] is None else
                      f", smallest measured speed-up {targets['smallest_speedup']:.0f}x (target {TARGET_SPEEDUP:.0f}x)") + "."]
     return "\n".join(lines) + "\n"
@@ -305,10 +318,30 @@ def _plot(results: dict[str, Any], path: Path) -> None:
     axes[0].set_ylabel("time per frame (ms)")
     axes[1].legend(fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        atomic_write_with(path, lambda buf: fig.savefig(buf, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+
+
+#: Sky colour behind the sample render (RGB in [0, 1]) and the depth that maps to white in its depth panel.
+SAMPLE_SKY = (0.62, 0.76, 0.95)
+SAMPLE_DEPTH_RANGE_M = 80.0
+
+
+def save_sample_render(path: Path, width: int = 640, height: int = 360, count: int = 100_000) -> Path:
+    """Render the street scene with the cpu backend and save colour above expected depth as one PNG."""
+    import numpy as np
+    from PIL import Image
+
+    scene = street_scene(count, width, height)
+    with torch.no_grad():
+        colors, _, _ = rasterize(**scene.as_kwargs(), render_mode="RGB+ED", backend="cpu",
+                                 backgrounds=torch.tensor([SAMPLE_SKY]))
+    rgb = (colors[0, ..., :3].clamp(0.0, 1.0).numpy() * 255).astype(np.uint8)
+    depth = (np.clip(colors[0, ..., 3].numpy() / SAMPLE_DEPTH_RANGE_M, 0.0, 1.0) * 255).astype(np.uint8)
+    panel = Image.fromarray(np.concatenate([rgb, np.repeat(depth[..., None], 3, -1)], 0))
+    return atomic_write_with(path, lambda buf: panel.save(buf, format="PNG"))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,7 +1,7 @@
 """EWA projection of 3D Gaussians to screen-space conics, in PyTorch for any float dtype.
 
-This is the one home of the projection/covariance math: the reference backend differentiates it
-by autograd, and the CPU backend runs the same code before its tiled rasteriser.
+This is the one home of the projection/covariance math: the reference backend differentiates it by
+autograd, and it defines what the CPU backend's fused kernels (``_cpu_projection.py``) must compute.
 """
 from __future__ import annotations
 

@@ -58,10 +58,11 @@ def composite_chunk(
 
 def rasterize_reference(
     screen: ScreenGaussians,
-    colors: Tensor,  # [C, N, D] per-camera colours/features
+    colors: Tensor,       # [C, N, D] per-camera colours/features
+    backgrounds: Tensor,  # [C, D] seen through the final transmittance
     width: int,
     height: int,
-) -> tuple[Tensor, Tensor]:  # colors [C, H, W, D] (no background), alphas [C, H, W, 1]
+) -> tuple[Tensor, Tensor]:  # colors [C, H, W, D], alphas [C, H, W, 1]
     """Composite the visible Gaussians of every camera, sorted by depth (ties: lower index first)."""
     n_cameras, _, n_channels = colors.shape
     dtype, device = colors.dtype, colors.device
@@ -75,7 +76,7 @@ def rasterize_reference(
         transmittance = torch.ones(n_pixels, dtype=dtype, device=device)
         done = torch.zeros(n_pixels, dtype=torch.bool, device=device)
         accumulated = torch.zeros(n_pixels, n_channels, dtype=dtype, device=device)
-        for start in range(0, ids.numel(), chunk):
+        for start in range(0, max(ids.numel(), 1), chunk):  # one empty chunk keeps outputs in the autograd graph
             sel = ids[start:start + chunk]
             args = (pixels, screen.means2d[cam, sel], screen.conics[cam, sel], screen.opacities[cam, sel],
                     colors[cam, sel], transmittance, done, accumulated)
@@ -83,6 +84,6 @@ def rasterize_reference(
                 transmittance, done, accumulated = checkpoint(composite_chunk, *args, use_reentrant=False)
             else:
                 transmittance, done, accumulated = composite_chunk(*args)
-        images.append(accumulated.reshape(height, width, n_channels))
+        images.append((accumulated + transmittance[:, None] * backgrounds[cam]).reshape(height, width, n_channels))
         alphas.append((1.0 - transmittance).reshape(height, width, 1))
     return torch.stack(images), torch.stack(alphas)
