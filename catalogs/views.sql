@@ -3,3 +3,5 @@ CREATE OR REPLACE VIEW runs AS SELECT * FROM read_parquet('omniscs-data/catalog/
 CREATE OR REPLACE VIEW scenes AS SELECT * FROM read_parquet('omniscs-data/catalog/scenes/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
 CREATE OR REPLACE VIEW agents AS SELECT * FROM read_parquet('omniscs-data/catalog/agents/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
 CREATE OR REPLACE VIEW frames AS SELECT * FROM read_parquet('omniscs-data/catalog/frames/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
+CREATE OR REPLACE VIEW variants AS SELECT * FROM read_parquet('omniscs-data/catalog/variants/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
+CREATE OR REPLACE VIEW models AS SELECT * FROM read_parquet('omniscs-data/catalog/models/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);

@@ -83,6 +83,53 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("n_boxes", pa.int32(), nullable=False),
         pa.field("n_visible_agents", pa.int32()),
     ]),
+    "variants": pa.schema([                                       # behaviour-level SCS variants
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("variant_id", pa.string(), nullable=False),
+        pa.field("kind", pa.string(), nullable=False),            # cut_in | head_on | rear_end | t_bone | none
+        pa.field("adversary", pa.int64(), nullable=False),        # track id
+        pa.field("collision_step", pa.int32()),                   # step of first contact in the variant; null = none
+        pa.field("collision_time_s", pa.float64()),
+        pa.field("success", pa.bool_(), nullable=False),          # ego and adversary boxes overlap (IoU > 0.02)
+        pa.field("plausible", pa.bool_(), nullable=False),        # comfort, no other collision, stays on the road
+        pa.field("reachable", pa.bool_(), nullable=False),        # the adversary could reach the ego path at all
+        pa.field("n_violations", pa.int32(), nullable=False),
+        pa.field("violations", pa.list_(pa.string()), nullable=False),
+        pa.field("loss_adv", pa.float64(), nullable=False),
+        pa.field("loss_beh", pa.float64(), nullable=False),
+        pa.field("loss_app", pa.float64()),                       # null: no renderer (scene graph) was supplied
+        pa.field("loss_restore", pa.float64(), nullable=False),
+        pa.field("loss_plaus", pa.float64(), nullable=False),
+        pa.field("adversary_min_accel_mps2", pa.float64(), nullable=False),
+        pa.field("adversary_max_accel_mps2", pa.float64(), nullable=False),
+        pa.field("adversary_max_lateral_accel_mps2", pa.float64(), nullable=False),
+        pa.field("min_distance_m", pa.float64(), nullable=False),
+        pa.field("planner", pa.string(), nullable=False),         # replay | rule
+        pa.field("iterations", pa.int32(), nullable=False),       # Adam steps of the kept attempt
+        pa.field("attempts", pa.int32(), nullable=False),         # adversaries tried for this variant
+        pa.field("optimisation_seconds", pa.float64(), nullable=False),  # over every attempt
+        pa.field("checkpoint", pa.string(), nullable=False),      # content hash (12 hex) of the traffic model
+        pa.field("variants_path", pa.string(), nullable=False),   # the variants.json holding the trajectories
+        pa.field("bev_path", pa.string()),
+    ]),
+    "models": pa.schema([                                         # fitted scene graphs (fit_nsg task)
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("model_id", pa.string(), nullable=False),        # nsg-<preset>-<hash of scene content + config>
+        pa.field("kind", pa.string(), nullable=False),            # nsg
+        pa.field("preset", pa.string(), nullable=False),          # fast | balanced | accurate
+        pa.field("status", pa.string(), nullable=False),          # fitted | diverged
+        pa.field("checkpoint_path", pa.string()),                 # null when the fit diverged (nothing saved)
+        pa.field("reused", pa.bool_(), nullable=False),           # an identical fit was already on disk
+        pa.field("n_gaussians", pa.int64()),
+        pa.field("n_agent_nodes", pa.int32(), nullable=False),
+        pa.field("agent_nodes", pa.list_(pa.int64()), nullable=False),
+        pa.field("iterations", pa.int32(), nullable=False),
+        pa.field("fit_seconds", pa.float64()),
+        pa.field("train_psnr", pa.float64()),
+        pa.field("heldout_psnr", pa.float64()),                   # every 4th frame, full resolution
+        pa.field("heldout_ssim", pa.float64()),
+        pa.field("error", pa.string()),                           # why the fit diverged
+    ]),
 }
 
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")

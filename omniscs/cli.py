@@ -21,7 +21,9 @@ world_app = typer.Typer(help="Procedural driving worlds (the embedded synthetic 
 scene_app = typer.Typer(help="Inspect scene stores.", no_args_is_help=True)
 catalog_app = typer.Typer(help="Query the Parquet catalog with DuckDB.", no_args_is_help=True)
 bench_app = typer.Typer(help="Benchmarks; results go to reports/.", no_args_is_help=True)
+scs_app = typer.Typer(help="Safety-critical scenario synthesis (behaviour-level variants).", no_args_is_help=True)
 app.add_typer(world_app, name="world")
+app.add_typer(scs_app, name="scs")
 app.add_typer(scene_app, name="scene")
 app.add_typer(catalog_app, name="catalog")
 app.add_typer(bench_app, name="bench")
@@ -345,6 +347,98 @@ def catalog_views(workspace: Optional[Path] = typer.Option(None)) -> None:
     typer.echo(catalog.views_sql(str(catalog.catalog_root(workspace_root(workspace)))), nl=False)
 
 
+# ----------------------------------------------------------------------------- scs
+@scs_app.command("train-behavior")
+def scs_train_behavior(
+    out: Path = typer.Option(..., help="Checkpoint folder to write (must not exist unless --overwrite)."),
+    preset: str = typer.Option("balanced", help="fast (smoke test), balanced (the shipped checkpoint) or accurate."),
+    seed: int = typer.Option(0, help="Seed of training worlds, held-out worlds and initialisation."),
+    worlds: Optional[int] = typer.Option(None, help="Procedural training worlds (default: the preset's)."),
+    steps: Optional[int] = typer.Option(None, help="Optimiser steps (default: the preset's)."),
+    scene: Optional[list[Path]] = typer.Option(None, "--scene", help="Scene stores to add as training data (repeat)."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+    overwrite: bool = typer.Option(False, help="Replace an existing checkpoint at --out."),
+) -> None:
+    """Train the behaviour (traffic) model on procedural traffic (+ scene stores); writes weights, config and
+    training.json (seed, command, held-out ADE/FDE against constant velocity)."""
+    from omniscs.scs.behavior.train import train_model, train_preset
+
+    overrides = {"seed": seed, "torch_threads": threads}
+    if worlds is not None:
+        overrides["n_worlds"] = worlds
+    if steps is not None:
+        overrides["steps"] = steps
+    config = train_preset(preset, **overrides)
+    if out.exists() and not overwrite:
+        raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    for p in scene or []:
+        if not p.is_dir():
+            raise OmniscsError(f"--scene {p} is not a scene-store directory")
+    command = "omniscs " + " ".join(sys.argv[1:]) if sys.argv and "omniscs" in sys.argv[0] else ""
+    with _progress() as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done)
+
+        _, record = train_model(config, out, command=command or f"omniscs scs train-behavior --out {out} "
+                                f"--preset {preset} --seed {seed}", extra_scenes=list(scene or []),
+                                progress=progress, overwrite=overwrite)
+    rows = []
+    for group in ("all", "moving"):
+        m = record["heldout_metrics"][group]
+        for name in ("posterior", "prior_mean", f"prior_min_of_{config.prior_samples}", "constant_velocity"):
+            rows.append({"agents": f"{group} ({m['agents']})", "method": name, "ADE m": m[name]["ade"],
+                         "FDE m": m[name]["fde"]})
+    _print_table(rows, title=f"held-out ADE/FDE over {record['heldout_metrics']['horizon_s']:.1f} s")
+    console.print(f"wrote {out} ({record['seconds']['training']:.0f} s training)")
+
+
+@scs_app.command("behavior")
+def scs_behavior(
+    scene: str = typer.Argument(..., help="A scene store, or syn:TEMPLATE:SEED[:FRAMES] (procedural log, not rendered)."),
+    variants: int = typer.Option(3, "--variants", help="How many variants (distinct adversaries, then time windows)."),
+    out: Path = typer.Option(..., help="Folder for variants.json and one BEV PNG per variant."),
+    checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint folder (default: the shipped one)."),
+    preset: str = typer.Option("balanced", help="fast, balanced or accurate (optimisation steps)."),
+    planner: str = typer.Option("replay", help="Ego plan: replay (the logged future) or rule (reacts, brakes)."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+) -> None:
+    """Behaviour-level SCS: perturb agents' latents so one of them collides with the ego plan, plausibly."""
+    from omniscs.scs.behavior import PlannerConfig, adversarial_preset, load_traffic, write_scene_variants
+    from omniscs.scs.behavior.planner import check_planner
+
+    if variants < 1:
+        raise OmniscsError(f"--variants must be at least 1; got {variants}")
+    from omniscs.scs.behavior.adversarial import now_and_horizon
+    from omniscs.scs.behavior.checkpoint import load_checkpoint
+
+    config = adversarial_preset(preset, planner=PlannerConfig(kind=check_planner(planner)), torch_threads=threads)
+    traffic = load_traffic(scene)
+    now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
+    with _progress() as bar:
+        task = bar.add_task(f"variants of {traffic.scene_id}", total=variants)
+        result = write_scene_variants(traffic, out, variants, checkpoint, config, reuse=False,
+                                      progress=lambda d, t: bar.update(task, completed=d))
+    if not result.rows:
+        raise OmniscsError(f"scene {traffic.scene_id} has no vehicle besides the ego at the now step; "
+                           "no behaviour variant can be made")
+    _print_table([{"variant": r["variant_id"], "kind": r["kind"], "hit": r["success"], "plausible": r["plausible"],
+                   "t (s)": r["collision_time_s"], "L_beh": r["loss_beh"], "L_restore": r["loss_restore"],
+                   "s": r["optimisation_seconds"]} for r in result.rows], title=str(result.variants_json))
+    if all(r["loss_app"] is None for r in result.rows):
+        from omniscs.scs.behavior.appearance import NOT_AVAILABLE
+
+        console.print(f"L_app: {NOT_AVAILABLE}")
+    for r in result.rows:
+        for v in json.loads(result.variants_json.read_text()):
+            if v["variant_id"] == r["variant_id"] and v["violations"]:
+                console.print(f"{r['variant_id']}: " + "; ".join(v["violations"][:4]))
+    console.print(f"wrote {result.variants_json} and {len(result.bev_pngs)} BEV picture(s)")
+
+
 # ----------------------------------------------------------------------------- benchmarks
 @bench_app.command("world")
 def bench_world(
@@ -373,6 +467,186 @@ def bench_sources(
     run_sources_benchmark(out, n_frames=frames, n_cameras=cameras, repeats=repeats)
     console.print((out / "sources_ingest.md").read_text())
     console.print(f"wrote {out / 'sources_ingest.json'}")
+
+
+@bench_app.command("behavior")
+def bench_behavior(
+    out: Path = typer.Option(Path("reports"), help="Folder for behavior_bench.json/.md/.png."),
+    scenes_per_template: int = typer.Option(5, help="Procedural scenes per road template."),
+    variants: int = typer.Option(2, help="Variants per scene."),
+    preset: str = typer.Option("balanced", help="Adversarial preset: fast, balanced or accurate."),
+    checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint (default: the shipped one)."),
+    rule_planner: bool = typer.Option(True, help="Also run against the reacting rule-based planner."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+) -> None:
+    """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
+    plausibility penalty (and L_app, once the scene graph exists), plus the traffic model's ADE/FDE."""
+    from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
+    from omniscs.scs.behavior.adversarial import adversarial_preset
+
+    adversarial_preset(preset)
+    config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
+                         rule_planner=rule_planner, torch_threads=threads)
+    with _progress() as bar:
+        task = bar.add_task("behaviour variants", total=None)
+        run_behavior_benchmark(out, config, checkpoint, progress=lambda d, t: bar.update(task, completed=d, total=t))
+    console.print((out / "behavior_bench.md").read_text())
+    console.print(f"wrote {out / 'behavior_bench.json'}")
+
+
+# ----------------------------------------------------------------------------- scene graph
+def _fit_progress() -> Progress:
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TextColumn("loss {task.fields[loss]:.4f}  PSNR {task.fields[psnr]:.2f} dB"), TimeElapsedColumn(),
+                    TimeRemainingColumn(), console=err_console, transient=False)
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    try:
+        seeds = tuple(int(s) for s in text.split(",") if s.strip())
+    except ValueError:
+        raise OmniscsError(f"--seeds must be comma-separated integers, e.g. 0,1,2; got {text!r}") from None
+    if not seeds:
+        raise OmniscsError("--seeds needs at least one seed")
+    return seeds
+
+
+@app.command("fit")
+def fit_cmd(
+    scene_path: Path = typer.Argument(..., help="A scene store (see omniscs world make / ingest)."),
+    out: Path = typer.Option(..., help="Checkpoint folder to write (must not exist unless --overwrite)."),
+    preset: str = typer.Option("balanced", help="fast, balanced or accurate."),
+    iterations: Optional[int] = typer.Option(None, help="Override the preset's optimiser steps."),
+    edit: Optional[str] = typer.Option(None, help="Edits the graph must support (their tracks become nodes): JSON or @file."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+    overwrite: bool = typer.Option(False, help="Replace an existing checkpoint at --out."),
+) -> None:
+    """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
+    from omniscs.nsg import fit_preset, fit_scene
+    from omniscs.plan import make_plan
+    from omniscs.scene import load_scene
+
+    if not scene_path.is_dir():
+        raise OmniscsError(f"{scene_path} is not a scene-store directory")
+    overrides = {"torch_threads": threads}
+    if iterations is not None:
+        if iterations < 1:
+            raise OmniscsError(f"--iterations must be at least 1; got {iterations}")
+        overrides["iterations"] = iterations
+    config = fit_preset(preset, **overrides)
+    if out.exists() and not overwrite:
+        raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    scene = load_scene(scene_path)
+    plan = make_plan(scene, _read_edits(edit), config.plan)
+    console.print(f"plan: {plan.summary()}")
+    with _fit_progress() as bar:
+        task = bar.add_task(f"fit {scene.scene_id} ({preset})", total=config.iterations, loss=float("nan"),
+                            psnr=float("nan"))
+        result = fit_scene(scene, config, plan, checkpoint_dir=out, overwrite=overwrite,
+                           progress=lambda d, t, loss, p: bar.update(task, completed=d, loss=loss, psnr=p))
+    m = result.metrics
+    _print_table([{"Gaussians": m["n_gaussians"], "agent nodes": m["n_agent_nodes"], "fit s": m["fit_seconds"],
+                   "train PSNR": m["train_psnr"], "held-out PSNR": m["heldout_psnr"], "held-out SSIM": m["heldout_ssim"],
+                   "held-out views": m["heldout_views"]}], title=f"{scene.scene_id} ({preset})")
+    console.print(f"wrote {out} (plan.json, graph.json, gaussians.safetensors, metrics.json)")
+
+
+@app.command("render")
+def render_cmd(
+    checkpoint: Path = typer.Argument(..., help="A scene-graph checkpoint folder (omniscs fit --out)."),
+    out: Path = typer.Option(..., help="PNG to write."),
+    camera: str = typer.Option("CAM_FRONT"), frame: int = typer.Option(0),
+    edit: Optional[str] = typer.Option(None, help="Edit list as JSON, or @file.json (see README)."),
+    ego_pose: Optional[str] = typer.Option(None, help="Render from another ego pose: 'x,y,z,yaw' (world frame, m, rad)."),
+    depth: bool = typer.Option(False, help="Append the expected depth beside the image."),
+) -> None:
+    """Render a fitted (optionally edited) scene graph from a logged camera, at a logged or any ego pose."""
+    import numpy as np
+
+    from omniscs.geometry import pose_from_xyz_yaw
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.edit import apply_graph_edits
+    from omniscs.storage import atomic_write_with
+
+    graph = load_checkpoint(checkpoint)
+    edits = _read_edits(edit)
+    if edits:
+        graph = apply_graph_edits(graph, edits)
+    world_from_ego = None
+    if ego_pose is not None:
+        try:
+            values = [float(v) for v in ego_pose.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 4 or not np.all(np.isfinite(values)):
+            raise OmniscsError(f"--ego-pose must be four numbers x,y,z,yaw; got {ego_pose!r}")
+        world_from_ego = pose_from_xyz_yaw(*values)
+    result = graph.render(graph.view(camera, frame, world_from_ego))
+    image = (result.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    if depth:
+        d = result.depth.numpy()
+        scale = float(np.percentile(d[d > 0], 95)) if np.any(d > 0) else 1.0
+        grey = (np.clip(d / scale, 0, 1) * 255).astype(np.uint8)
+        image = np.concatenate([image, np.repeat(grey[..., None], 3, -1)], 1)
+    if out.suffix.lower() != ".png":
+        raise OmniscsError(f"--out must end in .png; got {out}")
+    from PIL import Image
+
+    atomic_write_with(out, lambda buf: Image.fromarray(image).save(buf, format="PNG"))
+    console.print(f"wrote {out} ({graph.scene_id}, {camera}, frame {frame}, {len(edits)} edit(s))")
+
+
+@bench_app.command("fit")
+def bench_fit(
+    out: Path = typer.Option(Path("reports"), help="Folder for fit_bench.json/.md/.png."),
+    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
+    presets: str = typer.Option("fast,balanced,accurate", help="Comma-separated presets."),
+    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
+) -> None:
+    """Fit the same scenes with each preset: wall time, Gaussians and held-out PSNR/SSIM; a time-vs-PSNR plot."""
+    from omniscs.nsg.bench import BenchScenes, run_fit_benchmark
+    from omniscs.nsg.config import PRESETS
+
+    chosen = tuple(p.strip() for p in presets.split(",") if p.strip())
+    unknown = [p for p in chosen if p not in PRESETS]
+    if unknown or not chosen:
+        raise OmniscsError(f"unknown preset(s) {unknown}; use some of {list(PRESETS)}")
+    scenes = BenchScenes(_seeds(seeds), template, "day", frames, cameras, width, height)
+    with _progress() as bar:
+        task = bar.add_task("bench fit", total=None)
+        run_fit_benchmark(out, scenes, chosen, workspace,
+                          progress=lambda msg: bar.update(task, description=msg))
+    console.print((out / "fit_bench.md").read_text())
+    console.print(f"wrote {out / 'fit_bench.json'} and {out / 'fit_bench.png'}")
+
+
+@bench_app.command("edits")
+def bench_edits(
+    out: Path = typer.Option(Path("reports"), help="Folder for edits_bench.json/.md/.png."),
+    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
+    preset: str = typer.Option("balanced", help="Fit preset of the scene graphs."),
+    agents: int = typer.Option(2, help="Edited agents per scene (the most visible ones)."),
+    views: int = typer.Option(4, help="Evaluated views per agent and edit."),
+    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
+) -> None:
+    """Edit fidelity against ground truth: translate 2.0/3.5 m, rotate 90/180/270°; PSNR/SSIM full and masked."""
+    from omniscs.nsg.bench import BenchScenes, run_edit_benchmark
+    from omniscs.nsg.config import fit_preset
+
+    fit_preset(preset)
+    if agents < 1 or views < 1:
+        raise OmniscsError("--agents and --views must be at least 1")
+    scenes = BenchScenes(_seeds(seeds), template, "day", frames, cameras, width, height)
+    with _progress() as bar:
+        task = bar.add_task("bench edits", total=None)
+        run_edit_benchmark(out, scenes, preset, agents, views, workspace=workspace,
+                           progress=lambda msg: bar.update(task, description=msg))
+    console.print((out / "edits_bench.md").read_text())
+    console.print(f"wrote {out / 'edits_bench.json'} and {out / 'edits_bench.png'}")
 
 
 @bench_app.command("render")

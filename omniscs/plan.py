@@ -119,8 +119,12 @@ def modelled_area(scene: Scene, view_range_m: float) -> float:
 
 
 def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
-              cameras: list[str] | None = None) -> ScenePlan:
-    """Decide what to model for ``scene`` given the edits the requested variants will apply."""
+              cameras: list[str] | None = None, behavior_variants: int = 0) -> ScenePlan:
+    """Decide what to model for ``scene`` given the edits the requested variants will apply and how many
+    behaviour-level variants are requested (their stage runs only when that is > 0)."""
+    if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, (int, np.integer)) \
+            or behavior_variants < 0:
+        raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
     edits = list(edits or [])
     agents = {a["track_id"]: a for a in agent_rows(scene)}
     inserted = tuple(sorted(int(e.track_id) for e in edits if isinstance(e, Insert)))
@@ -164,6 +168,7 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         "fit_nsg": True,
         "agent_models": bool(needs_360 or inserted),
         "background_repair": bool(repair),
+        "behavior_variants": behavior_variants > 0,
     }
     return ScenePlan(
         scene_id=scene.scene_id, content_hash=scene.content_hash, agent_nodes=nodes, node_reasons=reasons,

@@ -1,0 +1,194 @@
+"""The scene graph as a value (background, agent and sky nodes, per-camera exposure) and how it is rendered."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Mapping
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omniscs.errors import OmniscsError
+from omniscs.gaussians import GaussianParams, activate, colors_from_sh
+from omniscs.geometry import invert_transform, transform_points
+from omniscs.nsg.agent import AgentNode
+from omniscs.nsg.compose import place_gaussians
+from omniscs.nsg.observations import View
+from omniscs.nsg.sky import SkyParams, sky_colors
+from omniscs.render import rasterize
+from omniscs.scene.store import CameraRecord
+
+#: Key of the background node in per-node bookkeeping (slices, optimisers, checkpoints).
+BACKGROUND = "background"
+
+
+def agent_key(track_id: int) -> str:
+    return f"agent.{int(track_id)}"
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Rasterizer settings a graph is fitted and rendered with (stored in its checkpoint)."""
+
+    near_plane: float = 0.2
+    """Gaussians closer to the camera than this (metres) are culled; driving cameras see nothing nearer."""
+    far_plane: float = 1e4
+    """Gaussians further than this (metres) are culled."""
+    eps2d: float = 0.3
+    """Screen-space dilation added to every 2D covariance (pixels²), as in 3DGS."""
+    rasterize_mode: str = "classic"
+    """'classic' or 'antialiased' (Mip-Splatting opacity compensation)."""
+    backend: str = "auto"
+    """Rasterizer backend: 'auto' (gsplat on CUDA, else the CPU kernels), 'cpu', 'reference' or 'gsplat'."""
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """One rendered view."""
+
+    rgb: Tensor     # [H, W, 3] after sky and exposure
+    depth: Tensor   # [H, W] expected depth (metres along the camera axis; 0 where nothing covers)
+    alpha: Tensor   # [H, W] Gaussian coverage (1 - what the sky shows)
+    meta: dict[str, Any]          # the rasterizer's meta (means2d [1, N, 2] for densification, radii, ...)
+    node_slices: dict[str, slice]  # which of the N rasterised Gaussians belong to which node
+
+
+@dataclass(frozen=True)
+class SceneGraph:
+    """A fitted scene graph: never changed in place; edits return a new graph sharing unchanged tensors."""
+
+    scene_id: str
+    content_hash: str
+    background: GaussianParams         # world frame
+    agents: tuple[AgentNode, ...]      # sorted by track id
+    sky: SkyParams
+    exposure: Mapping[str, Tensor]     # camera -> [3, 4] affine colour correction [A | b]
+    cameras: tuple[CameraRecord, ...]  # the logged rig (rendering can use any other camera too)
+    world_from_ego: np.ndarray         # [F, 4, 4] float64 logged ego poses
+    sh_degree: int
+    settings: RenderSettings = field(default_factory=RenderSettings)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "exposure", MappingProxyType(dict(self.exposure)))
+        object.__setattr__(self, "agents", tuple(sorted(self.agents, key=lambda a: a.track_id)))
+        self.world_from_ego.flags.writeable = False
+        ids = [a.track_id for a in self.agents]
+        if len(set(ids)) != len(ids):
+            raise OmniscsError(f"scene graph has duplicate agent track ids {sorted(ids)}")
+
+    # -- lookup ------------------------------------------------------------------------------
+    @property
+    def n_frames(self) -> int:
+        return self.world_from_ego.shape[0]
+
+    @property
+    def agent_ids(self) -> tuple[int, ...]:
+        return tuple(a.track_id for a in self.agents)
+
+    def agent(self, track_id: int) -> AgentNode:
+        for a in self.agents:
+            if a.track_id == int(track_id):
+                return a
+        raise OmniscsError(f"track {track_id} is not an agent node of this scene graph (nodes: {list(self.agent_ids)}); "
+                           "tracks left in the background cannot be edited: re-fit with the edit in the plan")
+
+    @property
+    def n_gaussians(self) -> int:
+        return len(self.background) + sum(len(a.gaussians) for a in self.agents)
+
+    def camera(self, name: str) -> CameraRecord:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise OmniscsError(f"unknown camera {name!r}; this scene graph has {[c.name for c in self.cameras]}")
+
+    def replace(self, **changes) -> "SceneGraph":
+        return dataclasses.replace(self, **changes)
+
+    def check_frame(self, frame_idx: int) -> int:
+        if not 0 <= int(frame_idx) < self.n_frames:
+            raise OmniscsError(f"frame {frame_idx} is out of range; the scene graph has frames 0..{self.n_frames - 1}")
+        return int(frame_idx)
+
+    def view(self, camera: str, frame_idx: int, world_from_ego: np.ndarray | None = None) -> View:
+        """A logged camera at frame ``frame_idx`` (agents posed as in that frame), optionally on another ego pose."""
+        rec = self.camera(camera)
+        f = self.check_frame(frame_idx)
+        ego = self.world_from_ego[f] if world_from_ego is None else np.asarray(world_from_ego, dtype=np.float64)
+        if ego.shape != (4, 4) or not np.all(np.isfinite(ego)):
+            raise OmniscsError("world_from_ego must be a finite 4x4 rigid transform")
+        return View(f, ego @ rec.ego_from_camera, rec.K.copy(), rec.width, rec.height, camera)
+
+    @torch.no_grad()
+    def render(self, view: View) -> RenderOutput:
+        """Render without gradients (for inspection, evaluation and edited variants)."""
+        return render_view(self, view)
+
+
+def pixel_directions(view: View) -> Tensor:  # [H, W, 3] float32 unit, world frame
+    """Viewing direction through every pixel centre."""
+    u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
+    K = view.K
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d = d @ view.world_from_camera[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return torch.from_numpy(d.astype(np.float32))
+
+
+def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False) -> RenderOutput:
+    """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
+    the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
+
+    ``sh_degree`` caps the SH bands used (progressive SH while fitting); ``absgrad`` asks the rasterizer
+    for per-pixel absolute screen gradients (densification).
+    """
+    degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
+    f = graph.check_frame(view.frame_idx)
+    camera_centre = view.world_from_camera[:3, 3]
+    nodes: list[tuple[str, np.ndarray | None, GaussianParams]] = [(BACKGROUND, None, graph.background)]
+    nodes += [(agent_key(a.track_id), a.world_from_agent[f], a.gaussians) for a in graph.agents if a.present[f]]
+    parts, slices, start = [], {}, 0
+    for key, world_from_node, params in nodes:
+        if len(params) == 0:
+            continue
+        local = activate(params)
+        centre = camera_centre if world_from_node is None else \
+            transform_points(invert_transform(world_from_node), camera_centre[None])[0]
+        dirs = local.means - torch.from_numpy(centre).to(local.means.dtype)
+        colours = colors_from_sh(local.sh, dirs[None], degree)[0]
+        placed = local if world_from_node is None else place_gaussians(local, world_from_node)
+        parts.append((placed, colours))
+        slices[key] = slice(start, start + len(local))
+        start += len(local)
+
+    dirs = pixel_directions(view)
+    sky = sky_colors(graph.sky, dirs)
+    if start == 0:
+        zeros = torch.zeros(view.height, view.width)
+        rgb, depth, alpha, meta = sky, zeros, zeros, {}
+    else:
+        means = torch.cat([p.means for p, _ in parts])
+        quats = torch.cat([p.quats for p, _ in parts])
+        scales = torch.cat([p.scales for p, _ in parts])
+        opacities = torch.cat([p.opacities for p, _ in parts])
+        colours = torch.cat([c for _, c in parts])
+        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(means.dtype)[None]
+        K = torch.from_numpy(view.K).to(means.dtype)[None]
+        s = graph.settings
+        out, alphas, meta = rasterize(means, quats, scales, opacities, colours, viewmat, K, view.width, view.height,
+                                      near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
+                                      render_mode="RGB+ED", backend=s.backend, rasterize_mode=s.rasterize_mode,
+                                      absgrad=absgrad)
+        alpha = alphas[0, ..., 0]
+        rgb = out[0, ..., :3] + (1.0 - alpha)[..., None] * sky
+        depth = out[0, ..., 3]
+    affine = graph.exposure.get(view.camera) if view.camera is not None else None
+    if affine is not None:
+        rgb = rgb @ affine[:, :3].T + affine[:, 3]
+    return RenderOutput(rgb, depth, alpha, meta, slices)
+
+
+def identity_exposure() -> Tensor:  # [3, 4]
+    return torch.cat([torch.eye(3), torch.zeros(3, 1)], 1)

@@ -1,0 +1,199 @@
+"""Densify / prune / opacity-reset of Gaussians (3DGS adaptive density control), one strategy for every node type.
+
+Modelled on gsplat's ``DefaultStrategy``: screen-space gradients of the means are averaged per Gaussian
+over the views that saw it; small Gaussians with large gradients are cloned, large ones split in two;
+transparent (and, after the first opacity reset, oversized) ones are pruned; opacities are reset
+periodically. A budget from the scene plan caps the count. Kerbl et al. 2023, "3D Gaussian Splatting
+for Real-Time Radiance Field Rendering", Sec. 5.2.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from omniscs.gaussians import PARAM_NAMES, GaussianParams, activate
+
+#: Adam moment buffers that follow their parameter rows when Gaussians are added or removed.
+ADAM_BUFFERS = ("exp_avg", "exp_avg_sq")
+
+
+@dataclass(frozen=True)
+class DensifyStrategy:
+    """When and how Gaussians are added and removed; scales are relative to the node's ``scene_scale``."""
+
+    prune_opa: float = 0.005
+    """Gaussians with opacity below this are pruned."""
+    grow_grad2d: float = 0.0002
+    """Average screen-space gradient of the mean (normalised by image size) above which a Gaussian grows."""
+    grow_scale3d: float = 0.01
+    """Growing Gaussians no larger than this (x scene_scale) are cloned; larger ones are split."""
+    prune_scale3d: float = 0.1
+    """After the first opacity reset, Gaussians larger than this (x scene_scale) are pruned."""
+    refine_start_iter: int = 500
+    """First iteration at which Gaussians are grown or pruned."""
+    refine_stop_iter: int = 15_000
+    """No growing or pruning from this iteration on."""
+    refine_every: int = 100
+    """Grow and prune every this many iterations."""
+    reset_every: int = 3_000
+    """Every this many iterations opacities are clamped to 2 x prune_opa (0 = never)."""
+    split_scale_divisor: float = 1.6
+    """A split Gaussian's two children have its scales divided by this."""
+    absgrad: bool = False
+    """Use the sum of per-pixel absolute gradients (AbsGS) instead of the summed gradient."""
+
+    def is_refine_step(self, step: int) -> bool:
+        return self.refine_start_iter <= step < self.refine_stop_iter and step % self.refine_every == 0 and step > 0
+
+    def is_reset_step(self, step: int) -> bool:
+        return self.reset_every > 0 and step > 0 and step % self.reset_every == 0 and step < self.refine_stop_iter
+
+
+class OptimisedGaussians:
+    """A node's raw parameters as leaf tensors, one Adam per parameter (so rows can be added and removed),
+    and the gradient statistics the strategy accumulates between refinements."""
+
+    def __init__(self, params: GaussianParams, learning_rates: dict[str, float]) -> None:
+        self.params: dict[str, Tensor] = {k: v.detach().clone().requires_grad_(True)
+                                          for k, v in params.as_dict().items()}
+        self.optimizers = {k: torch.optim.Adam([self.params[k]], lr=learning_rates[k], eps=1e-15)
+                           for k in PARAM_NAMES}
+        self.grad2d = torch.zeros(len(params))
+        self.count = torch.zeros(len(params))
+
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    def current(self) -> GaussianParams:
+        """The live parameters (gradients flow into them)."""
+        return GaussianParams.from_dict(self.params)
+
+    def frozen(self) -> GaussianParams:
+        return GaussianParams.from_dict({k: v.detach().clone() for k, v in self.params.items()})
+
+    def step(self) -> None:
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+
+    def set_lr(self, name: str, lr: float) -> None:
+        for group in self.optimizers[name].param_groups:
+            group["lr"] = lr
+
+    def is_finite(self) -> bool:
+        return all(bool(torch.isfinite(v).all()) for v in self.params.values())
+
+    # -- row surgery: parameters and Adam moments change together --------------------------
+    def keep_and_append(self, keep: Tensor, new_rows: dict[str, Tensor] | None = None) -> None:
+        """Keep the rows where ``keep`` [N] is True, then append ``new_rows`` (zero Adam moments)."""
+        n_new = 0 if new_rows is None else next(iter(new_rows.values())).shape[0]
+        for name in PARAM_NAMES:
+            old = self.params[name]
+            data = old.detach()[keep]
+            if n_new:
+                data = torch.cat([data, new_rows[name].to(data.dtype)])
+            fresh = data.clone().requires_grad_(True)
+            opt = self.optimizers[name]
+            state = opt.state.pop(old, None)
+            opt.param_groups[0]["params"] = [fresh]
+            if state is not None:
+                for buf in ADAM_BUFFERS:
+                    if buf in state:
+                        moved = state[buf][keep]
+                        if n_new:
+                            moved = torch.cat([moved, moved.new_zeros((n_new,) + moved.shape[1:])])
+                        state[buf] = moved
+                opt.state[fresh] = state
+            self.params[name] = fresh
+        self.grad2d = torch.cat([self.grad2d[keep], torch.zeros(n_new)])
+        self.count = torch.cat([self.count[keep], torch.zeros(n_new)])
+
+    def reset_moments(self, name: str) -> None:
+        state = self.optimizers[name].state.get(self.params[name])
+        if state:
+            for buf in ADAM_BUFFERS:
+                if buf in state:
+                    state[buf].zero_()
+
+
+def accumulate_gradients(strategy: DensifyStrategy, node: OptimisedGaussians,
+                         grad2d: Tensor,  # [N, 2] this node's rows of d loss / d means2d (or absgrad)
+                         radii: Tensor,   # [N, 2] or [N] screen radii; 0 = culled
+                         width: int, height: int) -> None:
+    """Add this view's normalised screen-space gradient norms to the Gaussians it saw."""
+    visible = (radii.reshape(radii.shape[0], -1) > 0).any(-1)
+    if not bool(visible.any()):
+        return
+    scaled = grad2d.detach().clone()
+    scaled[:, 0] *= 0.5 * width
+    scaled[:, 1] *= 0.5 * height
+    norms = torch.nan_to_num(scaled.norm(dim=-1), nan=0.0, posinf=0.0)
+    node.grad2d[visible] += norms[visible]
+    node.count[visible] += 1
+
+
+def refine(strategy: DensifyStrategy, node: OptimisedGaussians, step: int, scene_scale: float, budget: int,
+           generator: torch.Generator) -> dict[str, int]:
+    """Grow (clone/split, within ``budget``) then prune; resets the gradient statistics. Returns counts."""
+    with torch.no_grad():
+        g = activate(node.current())
+        max_scale = g.scales.max(-1).values
+        avg = node.grad2d / node.count.clamp_min(1.0)
+        high = avg > strategy.grow_grad2d
+        small = max_scale <= strategy.grow_scale3d * scene_scale
+        room = max(0, budget - len(node))
+        candidates = torch.nonzero(high).squeeze(1)
+        # each clone and each split adds one Gaussian; keep the strongest gradients that fit the budget
+        if len(candidates) > room:
+            order = torch.argsort(avg[candidates], descending=True)
+            candidates = candidates[order[:room]]
+        chosen = torch.zeros(len(node), dtype=torch.bool)
+        chosen[candidates] = True
+        clone = chosen & small
+        split = chosen & ~small
+        new_rows = _clone_rows(node, clone)
+        split_rows = _split_rows(node, g, split, strategy.split_scale_divisor, generator)
+        rows = {k: torch.cat([new_rows[k], split_rows[k]]) for k in PARAM_NAMES}
+        node.keep_and_append(~split, rows)
+
+        g = activate(node.current())
+        prune = (g.opacities < strategy.prune_opa) | ~torch.isfinite(g.means).all(-1)
+        if step > strategy.reset_every > 0:
+            prune |= g.scales.max(-1).values > strategy.prune_scale3d * scene_scale
+        if bool(prune.any()):
+            node.keep_and_append(~prune)
+        node.grad2d.zero_()
+        node.count.zero_()
+    return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum())}
+
+
+def reset_opacities(strategy: DensifyStrategy, node: OptimisedGaussians) -> None:
+    """Clamp opacities to at most 2 x prune_opa, so the ones the images do not need fade and get pruned."""
+    with torch.no_grad():
+        ceiling = torch.logit(torch.tensor(2.0 * strategy.prune_opa))
+        node.params["opacity_logits"].clamp_(max=float(ceiling))
+    node.reset_moments("opacity_logits")
+
+
+def _clone_rows(node: OptimisedGaussians, mask: Tensor) -> dict[str, Tensor]:
+    return {k: node.params[k].detach()[mask] for k in PARAM_NAMES}
+
+
+def _split_rows(node: OptimisedGaussians, g, mask: Tensor, divisor: float,
+                generator: torch.Generator) -> dict[str, Tensor]:
+    """Two children per split Gaussian, drawn from it, with scales / ``divisor``."""
+    raw = {k: node.params[k].detach()[mask] for k in PARAM_NAMES}
+    scales, quats = g.scales[mask], g.quats[mask]
+    n = scales.shape[0]
+    offsets = torch.randn(2, n, 3, generator=generator) * scales[None]
+    w, x, y, z = quats.unbind(-1)
+    R = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(n, 3, 3)
+    means = raw["means"][None] + torch.einsum("nij,cnj->cni", R, offsets)
+    out = {k: torch.cat([v, v]) for k, v in raw.items()}
+    out["means"] = means.reshape(2 * n, 3)
+    out["log_scales"] = torch.log(scales / divisor).repeat(2, 1)
+    return out

@@ -1,0 +1,279 @@
+"""Fitting a scene graph to a driving log: L1 + SSIM + LiDAR depth, per-camera exposure, Adam, densification."""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from kornia.losses import ssim_loss
+from torch import Tensor
+
+from omniscs.edits import Edit
+from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import save_checkpoint
+from omniscs.nsg.config import FitConfig
+from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, render_view
+from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_graph, node_budgets
+from omniscs.nsg.metrics import psnr, ssim
+from omniscs.nsg.observations import Observations, View
+from omniscs.nsg.sky import SkyParams
+from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities
+from omniscs.plan import ScenePlan, make_plan
+from omniscs.scene.store import Scene
+
+log = logging.getLogger(__name__)
+
+#: Smoothing of the loss for the divergence test and of the PSNR shown while fitting.
+LOSS_EMA = 0.9
+
+#: A progress callback: (iteration, total iterations, smoothed loss, smoothed training PSNR in dB).
+Progress = Callable[[int, int, float, float], None]
+
+
+class FitDiverged(OmniscsError):
+    """The fit blew up (non-finite or exploding loss or parameters); nothing was saved as a result."""
+
+    def __init__(self, step: int, reason: str) -> None:
+        super().__init__(f"scene-graph fit diverged at iteration {step}: {reason}; lower the learning rates "
+                         "or use another preset")
+        self.step = step
+        self.reason = reason
+
+
+@dataclass
+class DivergenceMonitor:
+    """Flags a non-finite loss at once, and a smoothed loss above ``max_ratio`` x its best after warm-up."""
+
+    max_ratio: float
+    warmup: int
+    ema: float | None = None
+    best: float = math.inf
+    seen: int = 0
+
+    def update(self, loss: float) -> str | None:
+        if not math.isfinite(loss):
+            return f"loss is {loss}"
+        self.seen += 1
+        self.ema = loss if self.ema is None else LOSS_EMA * self.ema + (1 - LOSS_EMA) * loss
+        self.best = min(self.best, self.ema)
+        if self.seen >= self.warmup and self.ema > self.max_ratio * self.best:
+            return f"smoothed loss {self.ema:.4g} exceeds {self.max_ratio:g} x its best {self.best:.4g}"
+        return None
+
+    def restart(self) -> None:
+        """Forget the history: after an opacity reset the loss jumps on purpose."""
+        self.ema, self.best, self.seen = None, math.inf, 0
+
+
+@dataclass(frozen=True)
+class FitResult:
+    graph: SceneGraph
+    plan: ScenePlan
+    config: FitConfig
+    metrics: dict
+    history: list[dict] = field(default_factory=list)
+
+
+def photometric_loss(rendered: Tensor, target: Tensor,  # [H, W, 3]
+                     config: FitConfig) -> Tensor:
+    l1 = (rendered - target).abs().mean()
+    if config.loss.ssim_weight == 0:
+        return l1
+    a, b = rendered.permute(2, 0, 1)[None].contiguous(), target.permute(2, 0, 1)[None].contiguous()
+    window = min(config.loss.ssim_window, 2 * (min(target.shape[:2]) // 2) - 1)
+    dssim = 2.0 * ssim_loss(a, b, max(window, 1))  # kornia returns (1 - SSIM) / 2
+    return (1 - config.loss.ssim_weight) * l1 + config.loss.ssim_weight * dssim
+
+
+def lidar_depth_loss(depth: Tensor, alpha: Tensor,  # [h, w] expected depth and coverage
+                     uv: np.ndarray, z: np.ndarray,  # [M, 2] full-resolution pixels, [M] LiDAR depths
+                     factor: int, min_alpha: float) -> Tensor:
+    """Mean relative error |D - z| / z of the expected depth at the LiDAR returns' pixels that are covered."""
+    if len(z) == 0:
+        return depth.sum() * 0.0
+    h, w = depth.shape
+    px = torch.from_numpy(np.clip((uv[:, 0] / factor).astype(np.int64), 0, w - 1))
+    py = torch.from_numpy(np.clip((uv[:, 1] / factor).astype(np.int64), 0, h - 1))
+    target = torch.from_numpy(z.astype(np.float32))
+    d, a = depth[py, px], alpha[py, px].detach()
+    covered = a > min_alpha
+    if not bool(covered.any()):
+        return depth.sum() * 0.0
+    return ((d[covered] - target[covered]).abs() / target[covered]).mean()
+
+
+def evaluate_graph(graph: SceneGraph, obs: Observations, frames, cameras=None) -> dict:
+    """Full-resolution PSNR and SSIM of ``graph`` against the logged images of ``frames`` x ``cameras``."""
+    cameras = tuple(cameras or [c.name for c in graph.cameras])
+    rows = []
+    for f in frames:
+        for cam in cameras:
+            out = graph.render(obs.view(cam, f))
+            target = obs.image(cam, f)
+            rows.append({"frame": int(f), "camera": cam, "psnr": psnr(out.rgb, target), "ssim": ssim(out.rgb, target)})
+    if not rows:
+        return {"psnr": float("nan"), "ssim": float("nan"), "n_views": 0, "views": []}
+    return {"psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": float(np.mean([r["ssim"] for r in rows])),
+            "n_views": len(rows), "views": rows}
+
+
+class _Trainer:
+    """Live parameters of every node, their optimisers and the training loop's bookkeeping."""
+
+    def __init__(self, scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> None:
+        self.scene, self.plan, self.config, self.obs = scene, plan, config, obs
+        self.template = initial_graph(scene, plan, config, obs)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        budgets = node_budgets(plan, config)
+        self.nodes: dict[str, OptimisedGaussians] = {}
+        self.scene_scale: dict[str, float] = {}
+        self.budget: dict[str, int] = {}
+        self.base_means_lr: dict[str, float] = {}
+        bg_scale = background_scene_scale(scene, plan.cameras)
+        self._add_node(BACKGROUND, self.template.background, bg_scale, budgets.background)
+        for a in self.template.agents:
+            self._add_node(agent_key(a.track_id), a.gaussians, agent_scene_scale(a.size), budgets.per_agent)
+        self.sky = self.template.sky.texture.clone().requires_grad_(True)
+        self.exposure = {c: t.clone().requires_grad_(True) for c, t in self.template.exposure.items()}
+        self.aux_optimizer = torch.optim.Adam(
+            [{"params": [self.sky], "lr": config.lr.sky},
+             {"params": list(self.exposure.values()), "lr": config.lr.exposure}], eps=1e-15)
+
+    def _add_node(self, key: str, params, scene_scale: float, budget: int) -> None:
+        lr = self.config.lr
+        rates = {"means": lr.means * scene_scale, "quats": lr.quats, "log_scales": lr.log_scales,
+                 "opacity_logits": lr.opacity_logits, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
+        self.nodes[key] = OptimisedGaussians(params, rates)
+        self.scene_scale[key] = scene_scale
+        self.budget[key] = max(budget, len(params))
+        self.base_means_lr[key] = rates["means"]
+
+    def graph(self, frozen: bool = False) -> SceneGraph:
+        get = (lambda n: n.frozen()) if frozen else (lambda n: n.current())
+        agents = tuple(dataclasses.replace(a, gaussians=get(self.nodes[agent_key(a.track_id)]))
+                       for a in self.template.agents)
+        sky = self.sky.detach().clone() if frozen else self.sky
+        exposure = {c: (t.detach().clone() if frozen else t) for c, t in self.exposure.items()}
+        return self.template.replace(background=get(self.nodes[BACKGROUND]), agents=agents,
+                                     sky=SkyParams(sky), exposure=exposure)
+
+    def finite(self) -> bool:
+        return all(n.is_finite() for n in self.nodes.values()) and bool(torch.isfinite(self.sky).all()) and \
+            all(bool(torch.isfinite(t).all()) for t in self.exposure.values())
+
+    def step(self, step: int, view: View, target: Tensor, factor: int) -> tuple[float, float]:
+        cfg = self.config
+        active_sh = min(cfg.sh_degree, step // max(1, cfg.sh_degree_interval))
+        out = render_view(self.graph(), view, sh_degree=active_sh, absgrad=cfg.strategy.absgrad)
+        means2d = out.meta.get("means2d")
+        if means2d is not None and means2d.requires_grad:
+            means2d.retain_grad()
+        loss = photometric_loss(out.rgb, target, cfg)
+        if cfg.loss.depth_weight > 0:
+            uv, z = self.obs.lidar_depth_targets(view.camera, view.frame_idx)
+            loss = loss + cfg.loss.depth_weight * lidar_depth_loss(out.depth, out.alpha, uv, z, factor,
+                                                                   cfg.loss.depth_min_alpha)
+        loss_value = float(loss.detach())
+        if not math.isfinite(loss_value):
+            return loss_value, float("nan")
+        loss.backward()
+        refining = step < cfg.strategy.refine_stop_iter
+        if refining and means2d is not None and means2d.grad is not None:
+            grads = means2d.absgrad if cfg.strategy.absgrad else means2d.grad
+            for key, sl in out.node_slices.items():
+                accumulate_gradients(cfg.strategy, self.nodes[key], grads[0, sl], out.meta["radii"][0, sl],
+                                     view.width, view.height)
+        progress = step / max(1, cfg.iterations - 1)
+        decay = cfg.lr.means_final_ratio ** progress
+        for key, node in self.nodes.items():
+            node.set_lr("means", self.base_means_lr[key] * decay)
+            node.step()
+        self.aux_optimizer.step()
+        self.aux_optimizer.zero_grad(set_to_none=True)
+        if cfg.strategy.is_refine_step(step):
+            for key, node in self.nodes.items():
+                refine(cfg.strategy, node, step, self.scene_scale[key], self.budget[key], self.generator)
+        if cfg.strategy.is_reset_step(step):
+            for node in self.nodes.values():
+                reset_opacities(cfg.strategy, node)
+        return loss_value, psnr(out.rgb.detach(), target)
+
+
+def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan | None = None, edits: list[Edit] | None = None,
+              progress: Progress | None = None, evaluate: bool = True, checkpoint_dir: str | Path | None = None,
+              overwrite: bool = False) -> FitResult:
+    """Fit a scene graph to ``scene``: nodes from ``plan`` (made from ``edits`` and ``config.plan`` when not
+    given), trained on its training frames, evaluated on its held-out frames, saved to ``checkpoint_dir``
+    when given. Raises FitDiverged (and saves nothing) when the fit blows up."""
+    plan = plan or make_plan(scene, edits, config.plan)
+    if plan.content_hash != scene.content_hash:
+        raise OmniscsError(f"plan is for scene content {plan.content_hash[:12]}, not {scene.scene_id} "
+                           f"({scene.content_hash[:12]}); re-plan")
+    if not plan.train_frames:
+        raise OmniscsError(f"scene {scene.scene_id} has no training frames (it has {scene.n_frames} frame(s)); "
+                           "set holdout_every=0 or use a longer log")
+    if checkpoint_dir is not None and Path(checkpoint_dir).exists() and not overwrite:
+        raise OmniscsError(f"{checkpoint_dir} already exists; choose another checkpoint folder or overwrite it")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.torch_threads)
+    try:
+        result = _fit(scene, plan, config, progress, evaluate)
+    finally:
+        torch.set_num_threads(threads)
+    if checkpoint_dir is not None:
+        save_checkpoint(result.graph, checkpoint_dir, plan, config.to_dict(), {"status": "fitted", **result.metrics},
+                        overwrite=overwrite)
+    return result
+
+
+def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | None, evaluate: bool) -> FitResult:
+    started = time.perf_counter()
+    obs = Observations(scene, plan.cameras)
+    trainer = _Trainer(scene, plan, config, obs)
+    n_init = trainer.template.n_gaussians
+    init_seconds = time.perf_counter() - started
+    monitor = DivergenceMonitor(config.max_loss_ratio, config.divergence_warmup)
+    rng = np.random.default_rng(config.seed)
+    views = [(c, f) for f in plan.train_frames for c in plan.cameras]
+    order: list[int] = []
+    history: list[dict] = []
+    psnr_ema = loss_ema = None
+    for step in range(config.iterations):
+        if not order:
+            order = list(rng.permutation(len(views)))
+        cam, f = views[order.pop()]
+        factor = config.downscale_at(step)
+        view = obs.view(cam, f).downscaled(factor)
+        loss, train_psnr = trainer.step(step, view, obs.image(cam, f, factor), factor)
+        reason = monitor.update(loss)
+        if reason is None and not trainer.finite():
+            reason = "parameters became NaN or infinite"
+        if reason is not None:
+            log.warning("fit of %s diverged at iteration %d: %s", scene.scene_id, step, reason)
+            raise FitDiverged(step, reason)
+        if config.strategy.is_reset_step(step):
+            monitor.restart()
+        psnr_ema = train_psnr if psnr_ema is None else LOSS_EMA * psnr_ema + (1 - LOSS_EMA) * train_psnr
+        loss_ema = loss if loss_ema is None else LOSS_EMA * loss_ema + (1 - LOSS_EMA) * loss
+        if step % 50 == 0 or step == config.iterations - 1:
+            history.append({"iteration": step, "loss": loss_ema, "train_psnr": psnr_ema, "factor": factor,
+                            "n_gaussians": sum(len(n) for n in trainer.nodes.values()),
+                            "seconds": time.perf_counter() - started})
+        if progress is not None:
+            progress(step + 1, config.iterations, float(loss_ema), float(psnr_ema))
+    graph = trainer.graph(frozen=True)
+    train_seconds = time.perf_counter() - started
+    metrics = {"iterations": config.iterations, "fit_seconds": train_seconds, "init_seconds": init_seconds,
+               "n_gaussians_init": n_init, "n_gaussians": graph.n_gaussians,
+               "n_agent_nodes": len(graph.agents), "final_loss": loss_ema, "train_psnr": psnr_ema}
+    if evaluate:
+        held = evaluate_graph(graph, obs, plan.heldout_frames, plan.cameras)
+        metrics.update({"heldout_psnr": held["psnr"], "heldout_ssim": held["ssim"], "heldout_views": held["n_views"],
+                        "eval_seconds": time.perf_counter() - started - train_seconds})
+    return FitResult(graph, plan, config, metrics, history)

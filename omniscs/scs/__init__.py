@@ -1,0 +1,1 @@
+"""Safety-critical scenario synthesis: behaviour-level variants (``omniscs.scs.behavior``)."""

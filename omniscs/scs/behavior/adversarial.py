@@ -1,0 +1,768 @@
+"""Adversarial optimisation in latent space: L_adv = L_beh + L_app + L_restore, success, plausibility, 1-to-N.
+
+The traffic model first reproduces the log (posterior latents, refined by fitting them to the logged future);
+then, per variant, every agent's latent is optimised so that the chosen adversary reaches the planner's
+trajectory (L_beh, a log-sum-exp softmax over agents and steps), the rendered scene keeps its look (L_app,
+only when a differentiable renderer is supplied) and the latents stay near where they started (L_restore).
+A documented plausibility penalty (comfort, collisions with others, leaving the road) is added by default;
+set its weights to 0 for the paper's three terms alone.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omniscs.errors import OmniscsError
+from omniscs.geometry import wrap_angle
+from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
+from omniscs.scs.behavior.checkpoint import set_threads
+from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
+from omniscs.scs.behavior.features import SceneSample, build_sample, collate
+from omniscs.scs.behavior.model import ComfortLimits, Decoded, TrafficModel
+from omniscs.scs.behavior.planner import PlannerConfig, check_planner, rule_based_plan
+from omniscs.scs.behavior.tracks import TrafficScene
+
+log = logging.getLogger(__name__)
+
+#: Kinds of collision a variant is labelled with (``none`` when no collision was reached).
+COLLISION_KINDS = ("cut_in", "head_on", "rear_end", "t_bone", "none")
+#: Tracks of these categories never become adversaries (they cannot drive on their own).
+NON_ADVERSARY_CATEGORIES = frozenset({"trailer"})
+#: Small constant inside square roots so distances are differentiable at 0.
+DIST_EPS = 1e-6
+#: The collision penalty watches pairs that come within this much of touching during the horizon (metres).
+NEAR_PAIR_MARGIN_M = 6.0
+
+
+@dataclass(frozen=True)
+class ComfortBounds:
+    """What a plausible trajectory stays within (the issue's comfort bounds)."""
+
+    max_lateral_accel: float = 4.9
+    """|lateral acceleration| bound, m/s²."""
+    max_accel: float = 2.4
+    """Forward acceleration bound, m/s²."""
+    max_decel: float = 4.05
+    """Braking bound (positive number), m/s²."""
+    max_yaw_rate: float = 1.0
+    """|yaw rate| bound, rad/s."""
+
+
+@dataclass(frozen=True)
+class AdversarialConfig:
+    """Latent optimisation of behaviour variants (see PRESETS for the speed/quality trade-off)."""
+
+    iterations: int = 150
+    """Largest number of Adam steps per variant (it stops earlier once successful and plausible)."""
+    lr: float = 0.05
+    """Adam learning rate on the latents."""
+    fit_iterations: int = 80
+    """Adam steps fitting the latents to the logged future before any variant (reconstruction)."""
+    fit_lr: float = 0.05
+    """Learning rate of that fit."""
+    fit_posterior_weight: float = 0.01
+    """Pull toward the posterior mean during the fit (keeps agents with no logged future sensible)."""
+    beh_weight: float = 1.0
+    """Weight of L_beh."""
+    restore_weight: float = 0.005
+    """Weight of L_restore = sum ||z - z_init||² over non-ego agents."""
+    app_weight: float = 1.0
+    """Weight of L_app (used only when an AppearanceTerm is supplied)."""
+    comfort_decoding: bool = True
+    """Decode with accelerations and yaw rates saturated just inside the comfort bounds, so every agent's
+    trajectory is comfortable by construction (the latent fit to the log uses the same decoder)."""
+    comfort_decoding_margin: float = 0.97
+    """Fraction of each comfort bound that comfort decoding saturates at."""
+    standstill_gradient: float = 0.3
+    """Surrogate gradient through the stop at v = 0 (values unchanged), so standing vehicles can be moved."""
+    comfort_weight: float = 1.0
+    """Plausibility penalty: weight of squared comfort-bound excess (m²/s⁴, rad²/s²). 0 = off."""
+    collision_weight: float = 10.0
+    """Plausibility penalty: weight of squared disc overlap with anyone but the ego-adversary pair. 0 = off."""
+    offroad_weight: float = 10.0
+    """Plausibility penalty: weight of squared distance off the drivable area. 0 = off."""
+    penalty_margin: float = 0.9
+    """Comfort penalties start at this fraction of each bound, so results stay inside the bounds."""
+    clearance_m: float = 0.3
+    """Discs of different agents are pushed apart until this gap remains."""
+    collision_iou: float = 0.02
+    """Boxes overlap (a collision) when their footprint IoU exceeds this."""
+    comfort: ComfortBounds = field(default_factory=ComfortBounds)
+    """The plausibility bounds."""
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    """The ego's planned trajectory: replay or rule-based."""
+    replan_every: int = 10
+    """Rule planner: re-plan against the current agent trajectories every this many steps."""
+    check_every: int = 5
+    """Evaluate success and plausibility every this many steps."""
+    stop_on_success: bool = True
+    """Stop a variant at the first check that is successful and plausible."""
+    now_step: int | None = None
+    """Step whose past conditions the model (default: history_steps - 1, the earliest with a full history)."""
+    min_future_steps: int = 10
+    """Shortest horizon after the now step that a log must offer, steps."""
+    reach_accel_long: float = 2.4
+    """Reachability: extra forward acceleration an adversary may use, m/s² (braking uses comfort.max_decel)."""
+    moving_speed: float = 0.5
+    """Candidates at least this fast (m/s) at the now step are tried as adversaries before standing ones."""
+    cut_in_offset_m: float = 1.75
+    """A same-direction collision is a cut-in when the adversary started at least this far to the side."""
+    attempts_per_variant: int = 3
+    """A variant whose adversary fails (no collision, or implausible) retries with the next reachable
+    candidates, up to this many adversaries in all; the best attempt is kept and all attempts are timed."""
+    time_windows: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.0, 0.55), (0.45, 1.0))
+    """Fractions of the horizon L_beh looks at; variants beyond the number of adversaries use the next window."""
+    torch_threads: int = 1
+    """torch CPU threads (1: the development machines have 2 shared cores)."""
+
+    @property
+    def uses_plausibility_penalty(self) -> bool:
+        return bool(self.comfort_weight or self.collision_weight or self.offroad_weight)
+
+
+#: Named presets: ``fast`` (tests, quick looks), ``balanced`` (default), ``accurate`` (more steps).
+PRESETS: dict[str, AdversarialConfig] = {
+    "fast": AdversarialConfig(iterations=60, fit_iterations=40, lr=0.08, check_every=4),
+    "balanced": AdversarialConfig(),
+    "accurate": AdversarialConfig(iterations=400, fit_iterations=200, lr=0.03, check_every=10),
+}
+
+
+def adversarial_preset(name: str, **overrides) -> AdversarialConfig:
+    if name not in PRESETS:
+        raise OmniscsError(f"unknown preset {name!r}; use one of {list(PRESETS)}")
+    return replace(PRESETS[name], **overrides)
+
+
+# ----------------------------------------------------------------------------- losses
+def behaviour_loss(agent_xy: Tensor,  # [N, T, 2] agent box centres
+                   plan_xy: Tensor,   # [T, 2] planner's box centre
+                   mask: Tensor,      # [N, T] bool: which agents and steps take part
+                   ) -> tuple[Tensor, Tensor]:  # L_beh (scalar), weights delta [N, T]
+    """L_beh = sum_{i,t} delta_t^i ||T_t^i - T_t^plan||², delta = softmax over (i, t) of -||T_t^i - T_t^plan||.
+
+    The softmax is taken in log space (log-sum-exp), so agents hundreds of metres or kilometres away give
+    weights of exactly 0, never 0/0; with no participating entry the loss is 0.
+    """
+    d2 = ((agent_xy - plan_xy[None]) ** 2).sum(-1)
+    if not bool(mask.any()):
+        return d2.sum() * 0.0, torch.zeros_like(d2)
+    d = torch.sqrt(d2 + DIST_EPS)
+    logits = torch.where(mask, -d, torch.full_like(d, -float("inf")))
+    # exp(logit - max) / sum(...): the log-sum-exp shift, normalised after the shift so that the weights sum
+    # to 1 to float precision even when every distance is ~1e6 m (subtracting the full log-sum-exp would not)
+    delta = torch.softmax(logits.reshape(-1), dim=0).reshape(d.shape)
+    delta = torch.where(mask, delta, torch.zeros_like(d))
+    return (delta * d2).sum(), delta
+
+
+def restore_loss(z: Tensor, z_init: Tensor, mask: Tensor) -> Tensor:  # [N, Z], [N, Z], [N] bool -> scalar
+    """L_restore = sum over masked agents of ||z - z_init||²."""
+    return (((z - z_init) ** 2).sum(-1) * mask).sum()
+
+
+def disc_centres(xyyaw: Tensor,  # [A, T, 3]
+                 sizes: Tensor,  # [A, 2] length, width
+                 ) -> tuple[Tensor, Tensor]:  # centres [A, 3, T, 2], radii [A]
+    """Three discs of radius width/2 along each box's length (front, middle, back): a smooth stand-in for
+    the box in the collision penalty."""
+    length, width = sizes[:, 0], sizes[:, 1]
+    reach = (0.5 * length - 0.5 * width).clamp_min(0.0)
+    offsets = torch.stack([-reach, torch.zeros_like(reach), reach], 1)  # [A, 3]
+    heading = torch.stack([torch.cos(xyyaw[..., 2]), torch.sin(xyyaw[..., 2])], -1)  # [A, T, 2]
+    centres = xyyaw[:, None, :, :2] + offsets[:, :, None, None] * heading[:, None]
+    return centres, 0.5 * width
+
+
+# ----------------------------------------------------------------------------- results
+@dataclass
+class Evaluation:
+    """Success and plausibility of one set of trajectories."""
+
+    success: bool
+    collision_step: int | None  # index into the horizon (0 = first future step)
+    iou: np.ndarray  # [T] ego-adversary footprint IoU
+    min_distance_m: float
+    violations: list[str]
+    adversary_accel: tuple[float, float]  # (most negative, largest) longitudinal, m/s²
+    adversary_max_lateral: float
+    adversary_max_yaw_rate: float
+    agents_accel: tuple[float, float]  # over every decoded non-ego agent
+    agents_max_lateral: float
+
+    @property
+    def plausible(self) -> bool:
+        return not self.violations
+
+
+@dataclass
+class VariantResult:
+    """One behaviour variant: trajectories of everyone (world frame, steps 0..now+horizon), adversary, outcome."""
+
+    variant_id: str
+    scene_id: str
+    kind: str
+    adversary: int
+    window: tuple[int, int]  # horizon steps L_beh looked at
+    reachable: bool
+    evaluation: Evaluation
+    losses: dict[str, float | None]
+    iterations: int
+    seconds: float
+    dt: float
+    now_step: int
+    steps: np.ndarray  # [S] step indices
+    timestamps_us: np.ndarray  # [S]
+    source_frames: np.ndarray | None  # [S] scene frames, None when resampled
+    ego: np.ndarray  # [S, 3] planned ego (box centre) x, y, yaw
+    agents: dict[int, np.ndarray]  # track -> [S, 3], NaN rows where absent
+    original_ego: np.ndarray  # [S, 3] logged
+    original_agents: dict[int, np.ndarray]  # logged, NaN where absent
+    sizes: dict[int, tuple[float, float]]
+    ego_size: tuple[float, float]
+    ego_centre_ahead_m: float
+    planner: str
+    collision_point: np.ndarray | None  # [2] world xy of the first contact (mean of the two centres)
+    attempts: int = 1  # adversaries tried for this variant (see AdversarialConfig.attempts_per_variant)
+
+    @property
+    def success(self) -> bool:
+        return self.evaluation.success
+
+    @property
+    def plausible(self) -> bool:
+        return self.evaluation.plausible
+
+    @property
+    def collision_step(self) -> int | None:  # index into ``steps``
+        c = self.evaluation.collision_step
+        return None if c is None else self.now_step + 1 + c
+
+
+# ----------------------------------------------------------------------------- the problem
+def now_and_horizon(traffic: TrafficScene, model_config, config: AdversarialConfig) -> tuple[int, int]:
+    """The now step (the model's past ends there) and the horizon after it; a log too short is a user error."""
+    s = traffic.n_steps
+    now = model_config.history_steps - 1 if config.now_step is None else int(config.now_step)
+    now = min(now, s - 1 - config.min_future_steps)
+    if now < 0 or s - 1 - now < config.min_future_steps:
+        raise OmniscsError(f"scene {traffic.scene_id} is {s} steps ({s * traffic.dt:.1f} s) long; behaviour "
+                           f"variants need at least {config.min_future_steps + 1} steps "
+                           f"({(config.min_future_steps + 1) * traffic.dt:.1f} s)")
+    return now, min(model_config.future_steps, s - 1 - now)
+
+
+class BehaviorProblem:
+    """One scene prepared for adversarial optimisation: model context, fitted latents, planner, candidates."""
+
+    def __init__(self, traffic: TrafficScene, model: TrafficModel, config: AdversarialConfig = AdversarialConfig(),
+                 appearance: AppearanceTerm | None = None) -> None:
+        check_planner(config.planner.kind)
+        mc = model.config
+        if abs(traffic.dt - mc.dt) > 1e-3 * mc.dt:
+            raise OmniscsError(f"scene {traffic.scene_id} has {traffic.dt:.3f} s steps but the model expects "
+                               f"{mc.dt:.3f} s; load it with traffic_from_scene(scene, dt={mc.dt})")
+        self.traffic, self.model, self.config, self.appearance = traffic, model, config, appearance
+        self.now, self.horizon = now_and_horizon(traffic, mc, config)
+        now = self.now
+        self.sample: SceneSample = build_sample(traffic, now, mc.history_steps, self.horizon, mc.crop)
+        self.batch = collate([self.sample])
+        with torch.no_grad():
+            self.context, self.edges, self.edge_mask = model.encode_past(self.batch)
+            self.z_post, _ = model.posterior(self.context, self.batch, self.edges, self.edge_mask)
+        self.n_nodes = self.sample.n_nodes
+        self.node_sizes = self.sample.sizes  # [N, 2]
+        self.frame = self.sample.frame
+        self.node_tracks = self.sample.track_index  # [N], -1 = ego
+        node_set = set(int(i) for i in self.node_tracks[1:])
+        window = slice(now + 1, now + 1 + self.horizon)
+        # Tracks that are not nodes replay their log (static objects, pedestrians, agents that appear later).
+        self.replay_tracks = [i for i in range(traffic.n_tracks)
+                              if i not in node_set and traffic.present[i, window].any()]
+        rxy, ryaw = self.frame.to_scene(traffic.xy[self.replay_tracks, window], traffic.yaw[self.replay_tracks, window])
+        self.replay_xyyaw = np.concatenate([rxy, ryaw[..., None]], -1).reshape(len(self.replay_tracks), self.horizon, 3)
+        self.replay_present = traffic.present[self.replay_tracks, window].reshape(len(self.replay_tracks), self.horizon)
+        self.replay_sizes = traffic.sizes[self.replay_tracks, :2].reshape(-1, 2)
+        exy, eyaw = self.frame.to_scene(traffic.ego_xy[window], traffic.ego_yaw[window])
+        self.logged_plan = np.concatenate([exy, eyaw[:, None]], -1)  # [T, 3] scene frame
+        self.ego_size = (traffic.ego_box.length, traffic.ego_box.width)
+        state0 = self.sample.state0.numpy().astype(np.float64)
+        self.onroad_now = traffic.map.is_drivable(self.frame.to_world_np(state0[:, :3])[:, :2])  # [N]
+        self.z_fit, self.fit_ade = self._fit_latents()
+        with torch.no_grad():
+            self.fitted = self.decode(self.z_fit)
+        self._log_overlaps = self._logged_overlaps()
+
+    # -- model ----------------------------------------------------------------------------------------
+    @property
+    def comfort_limits(self) -> ComfortLimits | None:
+        """Decoding limits just inside the comfort bounds (None when comfort decoding is off)."""
+        cfg = self.config
+        if not cfg.comfort_decoding:
+            return None
+        cb, m = cfg.comfort, cfg.comfort_decoding_margin
+        return ComfortLimits(m * cb.max_accel, m * cb.max_decel, m * cb.max_lateral_accel, m * cb.max_yaw_rate)
+
+    def decode(self, z: Tensor) -> Decoded:  # z [N, Z] -> states [N, T, 5] (scene frame)
+        dec = self.model.decode(self.context, z[None], self.batch, self.edges, self.edge_mask, self.horizon,
+                                comfort=self.comfort_limits, standstill_gradient=self.config.standstill_gradient)
+        return Decoded(dec.states[0], dec.longitudinal_accel[0], dec.lateral_accel[0])
+
+    def _fit_latents(self) -> tuple[Tensor, float]:
+        """Latents whose decoded trajectories reproduce the logged future (posterior mean, then refined)."""
+        cfg = self.config
+        target = self.batch.future[0]  # [N, T, 3]
+        mask = self.batch.future_mask[0]
+        z_post = self.z_post[0]
+        z = z_post.clone().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=cfg.fit_lr)
+        count = mask.sum().clamp_min(1)
+        for _ in range(cfg.fit_iterations):
+            states = self.decode(z).states
+            err = torch.sqrt(((states[..., :2] - target[..., :2]) ** 2).sum(-1) + DIST_EPS)
+            huber = torch.where(err < 1.0, 0.5 * err * err, err - 0.5)
+            yaw = 1.0 - torch.cos(states[..., 2] - target[..., 2])
+            loss = ((huber + yaw) * mask).sum() / count + cfg.fit_posterior_weight * ((z - z_post) ** 2).sum()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        z = z.detach()
+        with torch.no_grad():
+            states = self.decode(z).states
+            err = torch.sqrt(((states[..., :2] - target[..., :2]) ** 2).sum(-1))
+            non_ego = mask.clone()
+            non_ego[0] = False
+            ade = float((err * non_ego).sum() / non_ego.sum().clamp_min(1)) if bool(non_ego.any()) else 0.0
+        return z, ade
+
+    # -- planner --------------------------------------------------------------------------------------
+    def plan(self, node_states: np.ndarray) -> np.ndarray:  # [N, T, 5] scene frame -> [T, 3] ego plan
+        if self.config.planner.kind == "replay":
+            return self.logged_plan
+        others = np.concatenate([node_states[1:, :, :3], self.replay_xyyaw], 0)
+        present = np.concatenate([np.ones((self.n_nodes - 1, self.horizon), bool), self.replay_present], 0)
+        sizes = np.concatenate([self.node_sizes[1:].numpy().astype(np.float64), self.replay_sizes], 0)
+        ego_state = self.sample.state0[0].numpy().astype(np.float64)
+        path = np.vstack([ego_state[None, :2], self.logged_plan[:, :2]])
+        logged_speeds = np.linalg.norm(np.diff(path, axis=0), axis=1) / self.traffic.dt
+        desired = float(max(logged_speeds.max(initial=0.0), ego_state[3]))
+        if desired < 0.1:  # the ego stands still in the log: the planner keeps it there
+            return np.repeat(np.array([[ego_state[0], ego_state[1], ego_state[2]]]), self.horizon, 0)
+        return rule_based_plan(path, float(ego_state[3]), others, present, sizes, self.ego_size, self.horizon,
+                               self.traffic.dt, self.config.planner, desired_speed=desired)
+
+    # -- candidates -----------------------------------------------------------------------------------
+    def candidates(self) -> list[tuple[int, bool, float]]:
+        """(node, reachable, closest approach m) for every non-ego node that may be an adversary: reachable
+        moving ones first, then reachable standing ones (they must pull out), then the rest; each group by how
+        close its fitted trajectory comes to the ego plan."""
+        plan = self.plan(self.fitted.states.numpy().astype(np.float64))
+        state0 = self.sample.state0.numpy().astype(np.float64)
+        fitted_all = self.fitted.states.numpy().astype(np.float64)
+        out = []
+        for k in range(1, self.n_nodes):
+            track = int(self.node_tracks[k])
+            if self.traffic.categories[track] in NON_ADVERSARY_CATEGORIES:
+                continue
+            fitted = fitted_all[k]
+            closest = float(np.linalg.norm(fitted[:, :2] - plan[:, :2], axis=1).min())
+            out.append((k, self.reachable(k, plan), closest, state0[k, 3] >= self.config.moving_speed))
+        out.sort(key=lambda c: (not c[1], not c[3], c[2]))
+        return [c[:3] for c in out]
+
+    def reachable(self, node: int, plan: np.ndarray) -> bool:
+        """Whether ``node`` could touch the ego plan within comfort bounds: around its fitted trajectory, at
+        time t it can be 0.5 * a * t² further or (braking, never reversing) shorter along its path, and offset
+        sideways by at most min(0.5 * a_lat * t², 0.5 * curvature_max * s²) after travelling s metres (a standing
+        car must roll before it can steer); the boxes touch when the ego's extent, seen along and across the
+        adversary's heading, meets the adversary's half length or half width."""
+        cb = self.config.comfort
+        tau = np.arange(1, self.horizon + 1) * self.traffic.dt
+        fitted = self.fitted.states[node].numpy().astype(np.float64)  # [T, 5]
+        state0 = self.sample.state0[node].numpy().astype(np.float64)
+        travelled = np.cumsum(np.linalg.norm(np.diff(np.vstack([state0[None, :2], fitted[:, :2]]), axis=0),
+                                             axis=1))
+        longer = 0.5 * self.config.reach_accel_long * tau ** 2
+        shorter = np.minimum(0.5 * cb.max_decel * tau ** 2, travelled)
+        s_max = travelled + longer
+        side = np.minimum(0.5 * cb.max_lateral_accel * tau ** 2,
+                          0.5 * self.model.config.limits.max_curvature * s_max ** 2)
+        c, s = np.cos(fitted[:, 2]), np.sin(fitted[:, 2])
+        d = plan[:, :2] - fitted[:, :2]
+        along, across = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        length, width = self.node_sizes[node].numpy().astype(np.float64)
+        rel = plan[:, 2] - fitted[:, 2]  # the ego's extent seen along / across the adversary
+        reach_along = 0.5 * (length + np.abs(np.cos(rel)) * self.ego_size[0] + np.abs(np.sin(rel)) * self.ego_size[1])
+        reach_across = 0.5 * (width + np.abs(np.sin(rel)) * self.ego_size[0] + np.abs(np.cos(rel)) * self.ego_size[1])
+        ok = (along <= longer + reach_along) & (along >= -shorter - reach_along) & (np.abs(across) <= side + reach_across)
+        return bool(ok.any())
+
+    # -- evaluation -----------------------------------------------------------------------------------
+    def node_present(self, adversary: int | None = None) -> np.ndarray:  # -> [N, T] bool
+        """Where decoded nodes exist: the ego and the adversary always; other agents while their log has them
+        (an agent that leaves the log, e.g. at the end of the road, leaves the variant too)."""
+        present = self.batch.future_mask[0].numpy().copy()
+        present[0] = True
+        if adversary is not None:
+            present[adversary] = True
+        return present
+
+    def _objects(self, node_states: np.ndarray, plan: np.ndarray, adversary: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """Everyone in the horizon: ego (0), decoded non-ego nodes, replayed tracks. xyyaw [A, T, 3],
+        present [A, T], sizes [A, 2], and a track id per object (-1 = ego)."""
+        xyyaw = np.concatenate([plan[None], node_states[1:, :, :3], self.replay_xyyaw], 0)
+        present = np.concatenate([self.node_present(adversary), self.replay_present], 0)
+        sizes = np.concatenate([np.array([self.ego_size]), self.node_sizes[1:].numpy().astype(np.float64),
+                                self.replay_sizes], 0)
+        ids = [-1] + [int(self.traffic.track_ids[t]) for t in self.node_tracks[1:]] + \
+              [int(self.traffic.track_ids[t]) for t in self.replay_tracks]
+        return xyyaw, present, sizes, ids
+
+    def _logged_overlaps(self) -> np.ndarray:  # [A, A, T] bool: pairs that already overlap in the log
+        logged = np.zeros((self.n_nodes, self.horizon, 5))
+        future = self.batch.future[0].numpy().astype(np.float64)
+        logged[:, :, :3] = future
+        xyyaw, present, sizes, _ = self._objects(logged, self.logged_plan)
+        known = present.copy()
+        known[: self.n_nodes] = self.batch.future_mask[0].numpy()
+        known[0] = True
+        fp = footprints(xyyaw[..., :2], xyyaw[..., 2], sizes[:, 0, None], sizes[:, 1, None])  # [A, T, 4, 2]
+        over = overlapping(fp[:, None], fp[None, :])  # [A, A, T]
+        return over & known[:, None] & known[None, :]
+
+    def evaluate(self, states: np.ndarray,  # [N, T, 5] decoded (scene frame)
+                 lon: np.ndarray, lat: np.ndarray,  # [N, T]
+                 plan: np.ndarray,  # [T, 3]
+                 adversary: int) -> Evaluation:
+        cfg, cb = self.config, self.config.comfort
+        xyyaw, present, sizes, ids = self._objects(states, plan, adversary)
+        fp = footprints(xyyaw[..., :2], xyyaw[..., 2], sizes[:, 0, None], sizes[:, 1, None])  # [A, T, 4, 2]
+        adv_obj = adversary  # node k >= 1 is object k
+        iou = box_iou(fp[0], fp[adv_obj])
+        hits = np.flatnonzero(iou > cfg.collision_iou)
+        collision = int(hits[0]) if len(hits) else None
+        violations: list[str] = []
+        # comfort of every decoded non-ego agent
+        for k in range(1, self.n_nodes):
+            track, on = ids[k], present[k]
+            if not on.any():
+                continue
+            checks = ((lon[k, on].max(), cb.max_accel, "longitudinal acceleration"),
+                      (-lon[k, on].min(), cb.max_decel, "braking"),
+                      (np.abs(lat[k, on]).max(), cb.max_lateral_accel, "lateral acceleration"),
+                      (np.abs(states[k, on, 4]).max(), cb.max_yaw_rate, "yaw rate"))
+            for value, bound, what in checks:
+                if value > bound + 1e-6:
+                    unit = "rad/s" if what == "yaw rate" else "m/s²"
+                    violations.append(f"track {track} {what} {value:.2f} > {bound:.2f} {unit}")
+        # collisions other than ego-adversary that the log does not have (boxes near each other first)
+        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
+        centre_d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1)  # [A, A, T]
+        close = (centre_d <= (reach[:, None] + reach[None, :])[..., None]) & present[:, None] & present[None, :]
+        close &= np.triu(np.ones(close.shape[:2], bool), 1)[..., None] & ~self._log_overlaps
+        a_idx, b_idx, t_idx = np.nonzero(close)
+        hit = overlapping(fp[a_idx, t_idx], fp[b_idx, t_idx]) if len(a_idx) else np.zeros(0, bool)
+        reported = set()
+        for a, b, t in zip(a_idx[hit], b_idx[hit], t_idx[hit]):
+            if (a, b) in reported or {a, b} == {0, adv_obj} or (a >= self.n_nodes and b >= self.n_nodes):
+                continue
+            if box_iou(fp[a, t], fp[b, t]) > cfg.collision_iou:
+                reported.add((a, b))
+                who = "ego" if a == 0 else f"track {ids[a]}"
+                violations.append(f"collision of {who} and track {ids[b]} at horizon step {t}")
+        # leaving the drivable area
+        world = self.frame.to_world_np(states[..., :3])
+        for k in range(1, self.n_nodes):
+            if not self.onroad_now[k]:
+                continue
+            xy = world[k, :, :2]
+            off = np.flatnonzero(~self.traffic.map.is_drivable(xy) & self.traffic.map.covers(xy) & present[k])
+            if len(off):
+                violations.append(f"track {ids[k]} leaves the drivable area at horizon step {int(off[0])}")
+        decoded = slice(1, self.n_nodes)
+        lon_seen = np.where(present[decoded], lon[decoded], 0.0)
+        lat_seen = np.where(present[decoded], lat[decoded], 0.0)
+        return Evaluation(
+            success=collision is not None, collision_step=collision, iou=iou,
+            min_distance_m=float(np.linalg.norm(xyyaw[0, :, :2] - xyyaw[adv_obj, :, :2], axis=1).min()),
+            violations=violations,
+            adversary_accel=(float(lon[adversary].min()), float(lon[adversary].max())),
+            adversary_max_lateral=float(np.abs(lat[adversary]).max()),
+            adversary_max_yaw_rate=float(np.abs(states[adversary, :, 4]).max()),
+            agents_accel=(float(lon_seen.min(initial=0.0)), float(lon_seen.max(initial=0.0))),
+            agents_max_lateral=float(np.abs(lat_seen).max(initial=0.0)),
+        )
+
+    # -- penalty --------------------------------------------------------------------------------------
+    def _near_pairs(self, xyyaw: np.ndarray,  # [A, T, 3] everyone (ego, decoded nodes, replayed tracks)
+                    sizes: np.ndarray,        # [A, 2]
+                    adversary: int) -> tuple[np.ndarray, np.ndarray]:  # object indices a < b, [P] each
+        """Pairs whose collision the penalty watches: close enough to touch soon (NEAR_PAIR_MARGIN_M), at least
+        one of them decoded, and not the ego-adversary pair that the optimisation wants to collide."""
+        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
+        d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1).min(-1)  # [A, A]
+        near = d < reach[:, None] + reach[None, :] + NEAR_PAIR_MARGIN_M
+        near &= np.triu(np.ones_like(near), 1)
+        near[self.n_nodes:, self.n_nodes:] = False  # replayed tracks cannot move
+        near[0, adversary] = False
+        return np.nonzero(near)
+
+    def plausibility_penalty(self, dec: Decoded, plan: Tensor, adversary: int) -> dict[str, Tensor]:
+        """Differentiable stand-ins for the plausibility checks (comfort, collisions, off-road), unweighted."""
+        cfg, cb, m = self.config, self.config.comfort, self.config.penalty_margin
+        relu = torch.nn.functional.relu
+        node_present = self.node_present(adversary)
+        seen = torch.from_numpy(node_present[1:]).to(dec.states.dtype)
+        lon, lat, w = dec.longitudinal_accel[1:], dec.lateral_accel[1:], dec.states[1:, :, 4]
+        comfort = ((relu(lon - m * cb.max_accel) ** 2 + relu(-lon - m * cb.max_decel) ** 2
+                    + relu(lat.abs() - m * cb.max_lateral_accel) ** 2 + relu(w.abs() - m * cb.max_yaw_rate) ** 2)
+                   * seen).sum()
+        zero = comfort * 0.0
+        offroad = zero
+        if cfg.offroad_weight:
+            world = self.frame.to_world(dec.states[1:, :, :3])
+            outside = self.traffic.map.outside_distance(world[..., :2])  # [N-1, T]
+            onroad = torch.from_numpy(self.onroad_now[1:]).to(outside.dtype)
+            offroad = ((relu(outside) ** 2) * onroad[:, None] * seen).sum()
+        collision = zero
+        if cfg.collision_weight:
+            replay = torch.from_numpy(self.replay_xyyaw).to(torch.float32)
+            xyyaw = torch.cat([plan[None], dec.states[1:, :, :3], replay], 0)  # [A, T, 3]
+            sizes = torch.cat([torch.tensor([self.ego_size], dtype=torch.float32), self.node_sizes[1:],
+                               torch.from_numpy(self.replay_sizes).to(torch.float32)], 0)
+            present = np.concatenate([node_present, self.replay_present], 0)
+            centres, radii = disc_centres(xyyaw, sizes)  # [A, 3, T, 2], [A]
+            a_idx, b_idx = self._near_pairs(xyyaw.detach().numpy(), sizes.numpy(), adversary)
+            if len(a_idx):
+                diff = centres[a_idx][:, :, None] - centres[b_idx][:, None, :]  # [P, 3, 3, T, 2]
+                dist = torch.sqrt((diff ** 2).sum(-1) + DIST_EPS)
+                need = (radii[a_idx] + radii[b_idx] + cfg.clearance_m)[:, None, None, None]
+                overlap = (relu(need - dist) ** 2).sum((1, 2))  # [P, T]
+                valid = present[a_idx] & present[b_idx] & ~self._log_overlaps[a_idx, b_idx]
+                collision = (overlap * torch.from_numpy(valid)).sum()
+        return {"comfort": comfort, "collision": collision, "offroad": offroad}
+
+    # -- optimisation ---------------------------------------------------------------------------------
+    def world_trajectories(self, states: Tensor) -> AgentTrajectories:
+        """Non-ego node trajectories in the world frame, for a renderer (differentiable)."""
+        steps = np.arange(self.now + 1, self.now + 1 + self.horizon)
+        return AgentTrajectories(
+            track_ids=[int(self.traffic.track_ids[t]) for t in self.node_tracks[1:]],
+            poses=self.frame.to_world(states[1:, :, :3]), steps=steps,
+            timestamps_us=self.traffic.timestamps_us[steps])
+
+    def optimise(self, adversary: int, window: tuple[int, int], variant_id: str, reachable: bool,
+                 on_step: Callable[[int], None] | None = None) -> VariantResult:
+        """Optimise all latents so that node ``adversary`` meets the ego plan within horizon steps ``window``."""
+        cfg = self.config
+        started = time.perf_counter()
+        z_init = self.z_fit
+        z = z_init.clone().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=cfg.lr)
+        beh_mask = torch.zeros(self.n_nodes, self.horizon, dtype=torch.bool)
+        beh_mask[adversary, window[0]:window[1]] = True
+        restore_mask = torch.ones(self.n_nodes)
+        restore_mask[0] = 0.0  # the ego's latent stays: its trajectory is the planner's
+        plan_np = self.plan(self.fitted.states.numpy().astype(np.float64))
+        best: tuple | None = None
+        it = 0
+        for it in range(cfg.iterations + 1):
+            final = it == cfg.iterations
+            dec = self.decode(z)
+            plan = torch.from_numpy(plan_np).to(torch.float32)
+            l_beh, _ = behaviour_loss(dec.states[..., :2], plan[:, :2], beh_mask)
+            l_restore = restore_loss(z, z_init, restore_mask)
+            pen = self.plausibility_penalty(dec, plan, adversary) if cfg.uses_plausibility_penalty else {}
+            l_plaus = (cfg.comfort_weight * pen["comfort"] + cfg.collision_weight * pen["collision"]
+                       + cfg.offroad_weight * pen["offroad"]) if pen else l_beh * 0.0
+            l_app = self.appearance(self.world_trajectories(dec.states)) if self.appearance is not None else None
+            total = cfg.beh_weight * l_beh + cfg.restore_weight * l_restore + l_plaus
+            if l_app is not None:
+                total = total + cfg.app_weight * l_app
+            if it % cfg.check_every == 0 or final:
+                states_np = dec.states.detach().numpy().astype(np.float64)
+                eval_plan = self.plan(states_np)
+                ev = self.evaluate(states_np, dec.longitudinal_accel.detach().numpy(),
+                                   dec.lateral_accel.detach().numpy(), eval_plan, adversary)
+                losses = {"L_adv": float(total.detach()), "L_beh": float(l_beh.detach()),
+                          "L_app": None if l_app is None else float(l_app.detach()),
+                          "L_restore": float(l_restore.detach()), "L_plaus": float(l_plaus.detach())}
+                score = (ev.success and ev.plausible, ev.success, -len(ev.violations), -ev.min_distance_m)
+                if best is None or score > best[0]:
+                    best = (score, states_np, eval_plan, ev, losses, it)
+                if cfg.stop_on_success and ev.success and ev.plausible:
+                    break
+            if final:
+                break
+            opt.zero_grad()
+            total.backward()
+            z.grad[0] = 0.0
+            opt.step()
+            if cfg.planner.kind == "rule" and it % cfg.replan_every == 0:
+                plan_np = self.plan(dec.states.detach().numpy().astype(np.float64))
+            if on_step:
+                on_step(it)
+        _, states_np, plan_np, ev, losses, best_it = best
+        return self._result(variant_id, adversary, window, reachable, states_np, plan_np, ev, losses, best_it,
+                            time.perf_counter() - started)
+
+    # -- results --------------------------------------------------------------------------------------
+    def classify(self, states: np.ndarray, plan: np.ndarray, adversary: int, collision: int | None) -> str:
+        """cut_in, head_on, rear_end or t_bone from the geometry at the first contact; none without one."""
+        if collision is None:
+            return "none"
+        t = collision
+        rel_yaw = float(wrap_angle(states[adversary, t, 2] - plan[t, 2]))
+        if abs(rel_yaw) > 0.75 * np.pi:
+            return "head_on"
+        if abs(rel_yaw) > 0.25 * np.pi:
+            return "t_bone"
+        state0 = self.sample.state0.numpy().astype(np.float64)
+        ego0, adv0 = state0[0], state0[adversary]
+        c, s = np.cos(ego0[2]), np.sin(ego0[2])
+        d = adv0[:2] - ego0[:2]
+        lateral0 = -s * d[0] + c * d[1]
+        return "cut_in" if abs(lateral0) >= self.config.cut_in_offset_m else "rear_end"
+
+    def _result(self, variant_id, adversary, window, reachable, states, plan, ev, losses, iterations,
+                seconds) -> VariantResult:
+        traffic = self.traffic
+        last = self.now + self.horizon
+        steps = np.arange(0, last + 1)
+        nan = np.full((len(steps), 3), np.nan)
+
+        def logged(i: int) -> np.ndarray:
+            out = nan.copy()
+            p = traffic.present[i, steps]
+            out[p, :2] = traffic.xy[i, steps[p]]
+            out[p, 2] = traffic.yaw[i, steps[p]]
+            return out
+
+        original_agents = {int(traffic.track_ids[i]): logged(i) for i in range(traffic.n_tracks)
+                           if traffic.present[i, steps].any()}
+        agents = {k: v.copy() for k, v in original_agents.items()}
+        world_states = self.frame.to_world_np(states[..., :3])  # [N, T, 3]
+        present = self.node_present(adversary)
+        for k in range(1, self.n_nodes):
+            tid = int(traffic.track_ids[self.node_tracks[k]])
+            agents[tid][self.now + 1:] = np.where(present[k][:, None], world_states[k], np.nan)
+        original_ego = np.concatenate([traffic.ego_xy[steps], traffic.ego_yaw[steps, None]], -1)
+        ego = original_ego.copy()
+        ego[self.now + 1:] = self.frame.to_world_np(plan)
+        adv_track = int(traffic.track_ids[self.node_tracks[adversary]])
+        point = None
+        if ev.collision_step is not None:
+            t = self.now + 1 + ev.collision_step
+            point = 0.5 * (ego[t, :2] + agents[adv_track][t, :2])
+        sizes = {int(traffic.track_ids[i]): (float(traffic.sizes[i, 0]), float(traffic.sizes[i, 1]))
+                 for i in range(traffic.n_tracks) if int(traffic.track_ids[i]) in agents}
+        return VariantResult(
+            variant_id=variant_id, scene_id=traffic.scene_id,
+            kind=self.classify(states, plan, adversary, ev.collision_step), adversary=adv_track,
+            window=(int(window[0]), int(window[1])), reachable=reachable, evaluation=ev, losses=losses,
+            iterations=int(iterations), seconds=float(seconds), dt=float(traffic.dt), now_step=self.now,
+            steps=steps, timestamps_us=traffic.timestamps_us[steps],
+            source_frames=None if traffic.source_frames is None else traffic.source_frames[steps],
+            ego=ego, agents=agents, original_ego=original_ego, original_agents=original_agents, sizes=sizes,
+            ego_size=self.ego_size, ego_centre_ahead_m=float(traffic.ego_box.centre_ahead_m),
+            planner=self.config.planner.kind, collision_point=point,
+        )
+
+
+def variant_schedule(candidates: list[tuple[int, bool, float]], n_variants: int, horizon: int,
+                     windows: tuple[tuple[float, float], ...]) -> list[tuple[int, tuple[int, int], bool]]:
+    """(adversary node, horizon window, reachable) for each of ``n_variants``: reachable adversaries in
+    turn (all adversaries when none is reachable), then again with the next time window."""
+    reachable = [c for c in candidates if c[1]]
+    pool = reachable or candidates
+    out = []
+    for k in range(n_variants):
+        node, ok, _ = pool[k % len(pool)]
+        lo, hi = windows[(k // len(pool)) % len(windows)]
+        start, end = int(round(lo * horizon)), max(int(round(hi * horizon)), int(round(lo * horizon)) + 1)
+        out.append((node, (start, min(end, horizon)), ok))
+    return out
+
+
+def _outcome(v: VariantResult) -> tuple:
+    ev = v.evaluation
+    return (ev.success and ev.plausible, ev.success, -len(ev.violations), -ev.min_distance_m)
+
+
+def optimise_with_fallback(problem: BehaviorProblem, candidates: list[tuple[int, bool, float]], node: int,
+                           window: tuple[int, int], reachable: bool, index: int,
+                           used: set[tuple[int, tuple[int, int]]] | None = None) -> VariantResult:
+    """Optimise variant ``index`` with adversary ``node``; while it fails, try the next reachable candidates
+    (up to ``attempts_per_variant`` adversaries) that no earlier variant used with this window, so variants stay
+    distinct. Keeps the best outcome; its time covers every attempt; records its (adversary, window) in ``used``."""
+    used = set() if used is None else used
+    others = [(c[0], c[1]) for c in candidates if c[1] and c[0] != node and (c[0], tuple(window)) not in used]
+    tries = [(node, reachable)] + others[: max(0, problem.config.attempts_per_variant - 1)]
+    best, seconds = None, 0.0
+    for attempt, (n, ok) in enumerate(tries, start=1):
+        track = int(problem.traffic.track_ids[problem.node_tracks[n]])
+        result = problem.optimise(n, window, f"v{index:02d}-track{track}", ok)
+        seconds += result.seconds
+        if best is None or _outcome(result) > _outcome(best):
+            best = result
+        best.attempts = attempt
+        if result.success and result.plausible:
+            break
+    best.seconds = seconds
+    adversary_node = int(np.flatnonzero(problem.traffic.track_ids[problem.node_tracks[1:]] == best.adversary)[0]) + 1
+    used.add((adversary_node, tuple(window)))
+    return best
+
+
+def distinct_variants(problem: BehaviorProblem, candidates: list[tuple[int, bool, float]], n_variants: int,
+                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
+    """Up to ``n_variants`` variants, no two with the same (adversary, time window): the schedule's pairs in
+    order, skipping pairs an earlier variant (or its fallback) already used. Fewer come back when the scene
+    has fewer distinct pairs."""
+    pool = [c for c in candidates if c[1]] or candidates
+    windows = problem.config.time_windows
+    queue = variant_schedule(candidates, len(pool) * len(windows), problem.horizon, windows)
+    results: list[VariantResult] = []
+    used: set[tuple[int, tuple[int, int]]] = set()
+    while len(results) < n_variants:
+        queue = [q for q in queue if (q[0], tuple(q[1])) not in used]
+        if not queue:
+            log.warning("scene %s: only %d distinct (adversary, window) variants", problem.traffic.scene_id,
+                        len(results))
+            break
+        node, window, reachable = queue.pop(0)
+        results.append(optimise_with_fallback(problem, candidates, node, window, reachable, len(results), used))
+        if progress:
+            progress(len(results), n_variants)
+    return results
+
+
+def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: int,
+                      config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
+                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
+    """``n_variants`` behaviour variants of one scene (different adversaries, then different time windows).
+
+    Returns an empty list when no vehicle other than the ego is present at the now step.
+    """
+    if n_variants < 1:
+        raise OmniscsError(f"the number of variants must be at least 1; got {n_variants}")
+    previous = set_threads(config.torch_threads)
+    try:
+        problem = BehaviorProblem(traffic, model, config, appearance)
+        candidates = problem.candidates()
+        if not candidates:
+            log.warning("scene %s: no vehicle besides the ego at step %d; no behaviour variant", traffic.scene_id,
+                        problem.now)
+            return []
+        log.info("scene %s: %d candidate adversaries (%d reachable); latent fit ADE %.2f m", traffic.scene_id,
+                 len(candidates), sum(c[1] for c in candidates), problem.fit_ade)
+        return distinct_variants(problem, candidates, n_variants, progress)
+    finally:
+        set_threads(previous)

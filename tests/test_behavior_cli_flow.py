@@ -1,0 +1,126 @@
+"""Behaviour variants end to end: the CLI's variants.json format, user errors, the plan flag, the flow task and
+catalog rows, and the benchmark report's honesty about L_app."""
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from omniscs import catalog
+from omniscs.cli import app
+from omniscs.errors import OmniscsError
+from omniscs.plan import make_plan
+from omniscs.scene import load_scene
+from omniscs.scs.behavior.appearance import NOT_AVAILABLE
+from omniscs.scs.behavior.bench import configurations, markdown
+from omniscs.scs.behavior.adversarial import adversarial_preset
+from tests.conftest import write_tiny_scene
+
+ISSUE_KEYS = {"variant_id", "dt", "ego", "agents", "sizes", "adversary", "collision_step", "success", "plausible",
+              "losses"}
+
+
+def test_scs_behavior_writes_variants_json_in_the_issue_format_and_a_picture_each(tmp_path):
+    out = tmp_path / "v"
+    result = CliRunner().invoke(app, ["scs", "behavior", "syn:t_junction:5", "--variants", "2", "--out", str(out),
+                                      "--preset", "fast"])
+    assert result.exit_code == 0, result.output
+    variants = json.loads((out / "variants.json").read_text())
+    assert len(variants) == 2
+    for v in variants:
+        assert ISSUE_KEYS <= set(v)
+        assert v["dt"] == pytest.approx(0.1) and len(v["ego"]) == 40
+        assert all(len(p) == 3 for p in v["ego"])
+        assert str(v["adversary"]) in v["agents"] and "ego" in v["sizes"]
+        assert set(v["agents"]) <= set(v["sizes"]) | {"ego"}
+        assert all(len(traj) == 40 for traj in v["agents"].values())
+        assert set(v["losses"]) == {"L_adv", "L_beh", "L_app", "L_restore", "L_plaus"} and v["losses"]["L_app"] is None
+        assert v["collision_step"] is None or 10 <= v["collision_step"] < 40
+        assert v["success"] == (v["collision_step"] is not None)
+        assert (out / f"{v['variant_id']}.png").stat().st_size > 20_000
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *args],
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["syn:roundabout:1", "--variants", "1"], "unknown template"),
+    (["syn:straight:1", "--variants", "0"], "--variants must be at least 1"),
+    (["syn:straight:1:8", "--variants", "1"], "behaviour variants need at least"),
+    (["syn:straight:1", "--planner", "magic"], "unknown planner"),
+    (["syn:straight:1", "--checkpoint", "/nonexistent"], "train-behavior"),
+])
+def test_scs_behavior_user_errors_are_domain_errors_that_write_nothing(tmp_path, args, message):
+    result = CliRunner().invoke(app, ["scs", "behavior", *args, "--out", str(tmp_path / "o")])
+    assert isinstance(result.exception, OmniscsError) and message in str(result.exception)
+    assert not (tmp_path / "o").exists()
+
+
+def test_scs_behavior_user_error_exits_2_with_one_line_and_no_traceback(tmp_path):
+    proc = _cli("scs", "behavior", "syn:straight:1:8", "--out", str(tmp_path / "o"))
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "behaviour variants need at least 11 steps" in proc.stderr and proc.stderr.strip().count("\n") == 0
+
+
+def test_the_plan_runs_the_behaviour_stage_only_when_variants_are_requested(tiny_scene):
+    scene = load_scene(tiny_scene)
+    assert not make_plan(scene).stages["behavior_variants"]
+    assert make_plan(scene, behavior_variants=3).stages["behavior_variants"]
+    with pytest.raises(OmniscsError, match="non-negative"):
+        make_plan(scene, behavior_variants=-1)
+
+
+def test_generate_dataset_makes_and_catalogues_behaviour_variants(prefect_harness, tmp_path):
+    from flows.generate import generate_dataset
+
+    store = write_tiny_scene(tmp_path / "in" / "road", n_frames=30, n_tracks=3, scene_id="road", with_lidar=False)
+    ws = tmp_path / "ws"
+    result = generate_dataset([str(store)], workspace=str(ws), run_id="beh", previews=False, behavior_variants=2,
+                              behavior_preset="fast")
+    (made,) = result["behavior_variants"]
+    assert made["n_variants"] == 2 and (ws / "variants" / "road" / "variants.json").is_file()
+    root = catalog.catalog_root(ws)
+    rows = catalog.query(root, "SELECT scene_id, variant_id, kind, adversary, success, plausible, loss_app, "
+                               "run_id FROM variants ORDER BY variant_id").to_pylist()
+    assert [r["scene_id"] for r in rows] == ["road", "road"] and all(r["run_id"] == "beh" for r in rows)
+    assert all(r["loss_app"] is None and r["adversary"] in (0, 1, 2) for r in rows)
+    assert catalog.query(root, "SELECT count(*) n FROM scenes").to_pylist() == [{"n": 1}]
+
+
+def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_path):
+    from flows.generate import generate_dataset
+
+    with pytest.raises(OmniscsError, match="non-negative"):
+        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2)
+
+
+def test_benchmark_reports_l_app_as_not_available_until_the_scene_graph_exists():
+    configs = configurations(adversarial_preset("fast"), rule_planner=False)
+    assert [c is None for c in configs.values()] == [False, False, False, True]
+    result = {"scenes": [{"reachable": True}], "bench": {"variants_per_scene": 1, "preset": "fast"},
+              "checkpoint_hash": "abc", "summary": {
+                  name: ({"status": NOT_AVAILABLE, "appearance_drift_psnr_db": NOT_AVAILABLE} if cfg is None else {
+                      "scene_success_rate_any_variant": 1.0, "scene_success_rate_first_variant": 1.0,
+                      "variant_success_rate": 1.0, "successful_variants": 1, "variants": 1,
+                      "violation_rate_successful": 0.0, "violation_rate_all": 0.0,
+                      "adversary_abs_long_accel_mean": 1.0, "adversary_abs_long_accel_max": 2.0,
+                      "adversary_lateral_accel_mean": 1.0, "adversary_lateral_accel_max": 2.0,
+                      "seconds_per_variant_median": 1.0, "appearance_drift_psnr_db": NOT_AVAILABLE,
+                      "kinds": {"cut_in": 1}})
+                  for name, cfg in configs.items()}}
+    text = markdown(result)
+    assert f"| L_beh + L_app + L_restore (+ penalty) | {NOT_AVAILABLE} |" in text
+    assert text.count(NOT_AVAILABLE) == 5  # and the appearance-drift column of every runnable row
+
+
+@pytest.mark.slow
+def test_benchmark_runs_on_a_small_scene_set(tmp_path):
+    from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
+
+    result = run_behavior_benchmark(tmp_path, BenchConfig(scenes_per_template=1, variants_per_scene=1,
+                                                          preset="fast", rule_planner=False))
+    assert (tmp_path / "behavior_bench.md").is_file() and (tmp_path / "behavior_bench.png").is_file()
+    assert result["summary"]["L_beh + L_app + L_restore (+ penalty)"]["status"] == NOT_AVAILABLE
