@@ -276,3 +276,11 @@ def test_world_without_agents_renders_only_background(world):
     assert np.all(np.isfinite(out.depth))
     _, tracks = empty.lidar_scan(0, return_track_ids=True)
     assert np.all(tracks == -1)
+
+
+@pytest.mark.parametrize("seed", [136, 100443, 100507])
+def test_parked_truck_template_places_its_large_object_even_when_the_first_kerbside_spots_collide(seed):
+    world = generate_world("straight_parked_truck", seed, n_frames=40, width=W, height=H)
+    big = [a for a in world.agents if a.category in ("truck", "trailer") and a.size[0] > 6
+           and np.ptp(a.poses[:, :3, 3], axis=0).max() < 0.1]
+    assert len(big) == 1

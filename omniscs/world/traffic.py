@@ -21,7 +21,8 @@ log = logging.getLogger(__name__)
 # the lighting variants of a (template, seed) are pixel-aligned re-renders of one scene.
 #
 # Large static object: ``straight_parked_truck`` always parks a box truck or container trailer in the
-# kerbside slot 10-22 m ahead and right of the ego (it hides the background behind it); every other
+# kerbside slots 10-22 m ahead of the ego (up to 40 m when nearer placements collide; it hides the
+# background behind it); every other
 # template gets one with probability LARGE_OBJECT_CHANCE when it has a kerbside parking lane.
 
 LIGHTINGS: tuple[str, ...] = ("day", "dusk", "night", "fog")
@@ -46,6 +47,7 @@ COLLISION_MARGIN = 0.6  # metres added to every footprint when checking overlaps
 SPAWN_TRIES = 40
 LARGE_OBJECT_CHANCE = 0.35
 LARGE_OBJECT_AHEAD = (10.0, 22.0)  # world x range of the first kerbside slot the large object takes
+LARGE_OBJECT_AHEAD_FALLBACK = (10.0, 40.0)  # tried last, when no placement in LARGE_OBJECT_AHEAD is free
 CONSTRUCTION_CHANCE = 0.3
 DEBRIS_CHANCE = 0.35
 PARKED_OCCUPANCY = (0.35, 0.7)  # range of the fraction of visible kerbside slots that are taken
@@ -223,40 +225,45 @@ class _TrafficBuilder:
             if self.try_accept(cand):
                 self.used_slots.add(i)
 
-    def slot_run(self, length: float, x_range: tuple[float, float], side: int) -> list[int] | None:
-        """Indices of consecutive free kerbside slots on ``side`` that hold ``length`` metres, starting in x_range."""
+    def slot_runs(self, length: float, x_range: tuple[float, float], side: int) -> list[list[int]]:
+        """Every run of consecutive free kerbside slots on ``side`` that holds ``length`` metres and starts in
+        x_range, in a seeded random order."""
         slots = self.layout.parking_slots
         idx = [i for i, sl in enumerate(slots) if sl.side == side]
         starts = [j for j, i in enumerate(idx) if x_range[0] <= slots[i].x <= x_range[1]]
         self.rng.shuffle(starts)
+        need = int(np.ceil(length / 6.5))
+        runs = []
         for j in starts:
-            need = int(np.ceil(length / 6.5))
             run = idx[j:j + need]
             if len(run) < need or any(r in self.used_slots for r in run):
                 continue
             if abs(slots[run[-1]].x - slots[run[0]].x) > 6.5 * (need - 1) + 1e-6:
                 continue  # the run is broken by a junction
-            return run
-        return None
+            runs.append(run)
+        return runs
 
     def large_static_object(self, required: bool) -> bool:
         if not required and self.rng.uniform() > LARGE_OBJECT_CHANCE:
             return False
         kinds = {"box_truck": 1, "trailer": 1}
-        aid = self.pick_asset(kinds)
-        size = build_asset(aid).size
-        for side, x_range in ((-1, LARGE_OBJECT_AHEAD), (1, LARGE_OBJECT_AHEAD)):
-            run = self.slot_run(size[0], x_range, side)
-            if run is None:
-                continue
-            slots = [self.layout.parking_slots[i] for i in run]
-            x = 0.5 * (slots[0].x + slots[-1].x)
-            cand = self.static(aid, x, slots[0].y, slots[0].yaw)
-            if self.try_accept(cand):
-                # Keep the slot on the ego's side of it free, so nothing parked hides the object itself.
-                near_end = min(run, key=lambda i: abs(self.layout.parking_slots[i].x))
-                self.used_slots.update(run + [near_end - 1, near_end + 1])
-                return True
+        first = self.pick_asset(kinds)
+        # The drawn asset first; if no kerbside run takes it (every placement collides), the other kind,
+        # drawn only then so that worlds which never need it keep their random stream.
+        for attempt in range(3):
+            aid = first if attempt == 0 else self.pick_asset({k: 1 for k in kinds if not first.startswith(k)})
+            size = build_asset(aid).size
+            x_range = LARGE_OBJECT_AHEAD if attempt < 2 else LARGE_OBJECT_AHEAD_FALLBACK
+            for side in (-1, 1):
+                for run in self.slot_runs(size[0], x_range, side):
+                    slots = [self.layout.parking_slots[i] for i in run]
+                    x = 0.5 * (slots[0].x + slots[-1].x)
+                    cand = self.static(aid, x, slots[0].y, slots[0].yaw)
+                    if self.try_accept(cand):
+                        # Keep the slot on the ego's side of it free, so nothing parked hides the object itself.
+                        near_end = min(run, key=lambda i: abs(self.layout.parking_slots[i].x))
+                        self.used_slots.update(run + [near_end - 1, near_end + 1])
+                        return True
         if required:
             raise OmniscsError(f"internal: no kerbside room for the large static object in {self.template!r}")
         return False
@@ -267,7 +274,8 @@ class _TrafficBuilder:
         side = int(self.rng.choice([-1, 1]))
         plant = self.pick_asset({"excavator": 1, "wheel_loader": 1})
         size = build_asset(plant).size
-        run = self.slot_run(size[0] + 4.0, (40.0, 90.0), side)
+        runs = self.slot_runs(size[0] + 4.0, (40.0, 90.0), side)
+        run = runs[0] if runs else None
         if run is None:
             return
         slots = [self.layout.parking_slots[i] for i in run]
