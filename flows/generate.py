@@ -46,7 +46,8 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ``behavior_variants`` > 0 makes that many behaviour-level SCS variants per scene (``variants`` table;
     ``behavior_checkpoint`` defaults to the shipped traffic model, ``behavior_preset`` is fast, balanced or
     accurate). ``fit_preset`` (fast, balanced or accurate) fits each scene's Gaussian scene graph after
-    ingest (``models`` table; checkpoints under ``models/<scene_id>/``). Returns the run id, workspace, the
+    ingest (``models`` table; checkpoints under ``models/<scene_id>/``); with both, every vehicle is a node
+    and the behaviour optimisation adds L_app rendered by that graph. Returns the run id, workspace, the
     scene ids and paths, the variant files and the fitted models.
     """
     if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, int) or behavior_variants < 0:
@@ -71,13 +72,15 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
         models = []
         if fit_preset is not None:
             models = fit_nsg.map(ingested, workspace=unmapped(ws), run_id=unmapped(run_id),
-                                 preset=unmapped(fit_preset))
+                                 preset=unmapped(fit_preset), behavior_variants=unmapped(behavior_variants))
         behaviour = []
         if behavior_variants > 0:
+            # after fit-nsg when there is one: its scene graph renders L_app
             behaviour = behavior_variants_task.map(ingested, workspace=unmapped(ws), run_id=unmapped(run_id),
                                                    n_variants=unmapped(behavior_variants),
                                                    checkpoint=unmapped(behavior_checkpoint),
-                                                   preset=unmapped(behavior_preset))
+                                                   preset=unmapped(behavior_preset),
+                                                   model=models if fit_preset is not None else unmapped(None))
         scene_ids = catalog_scene.map(ingested, preview_dirs, run_id=unmapped(run_id), workspace=unmapped(ws),
                                       wait_for=list(behaviour) + list(models) or None)
         scene_ids = scene_ids.result()

@@ -405,6 +405,10 @@ def scs_behavior(
     preset: str = typer.Option("balanced", help="fast, balanced or accurate (optimisation steps)."),
     planner: str = typer.Option("replay", help="Ego plan: replay (the logged future) or rule (reacts, brakes)."),
     threads: int = typer.Option(1, help="torch CPU threads."),
+    nsg: Optional[Path] = typer.Option(None, help="The scene's fitted scene graph (omniscs fit --behavior-variants "
+                                                  "N): adds L_app, rendered by it."),
+    app_frames: int = typer.Option(3, help="L_app: horizon steps rendered per optimisation step."),
+    app_downscale: int = typer.Option(4, help="L_app: render at 1/N of the camera resolution."),
 ) -> None:
     """Behaviour-level SCS: perturb agents' latents so one of them collides with the ego plan, plausibly."""
     from omniscs.scs.behavior import PlannerConfig, adversarial_preset, load_traffic, write_scene_variants
@@ -418,20 +422,28 @@ def scs_behavior(
     config = adversarial_preset(preset, planner=PlannerConfig(kind=check_planner(planner)), torch_threads=threads)
     traffic = load_traffic(scene)
     now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
+    appearance = None
+    if nsg is not None:
+        from omniscs.scene import load_scene
+        from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, appearance_from_checkpoint
+
+        if scene.startswith("syn:"):
+            raise OmniscsError("--nsg needs a rendered scene store (a syn: log has no images to fit a graph to)")
+        appearance = appearance_from_checkpoint(nsg, load_scene(Path(scene)), traffic, checkpoint, config,
+                                                AppearanceRenderConfig(frames=app_frames, downscale=app_downscale))
     with _progress() as bar:
         task = bar.add_task(f"variants of {traffic.scene_id}", total=variants)
-        result = write_scene_variants(traffic, out, variants, checkpoint, config, reuse=False,
+        result = write_scene_variants(traffic, out, variants, checkpoint, config, appearance, reuse=False,
                                       progress=lambda d, t: bar.update(task, completed=d))
     if not result.rows:
         raise OmniscsError(f"scene {traffic.scene_id} has no vehicle besides the ego at the now step; "
                            "no behaviour variant can be made")
     _print_table([{"variant": r["variant_id"], "kind": r["kind"], "hit": r["success"], "plausible": r["plausible"],
-                   "t (s)": r["collision_time_s"], "L_beh": r["loss_beh"], "L_restore": r["loss_restore"],
+                   "t (s)": r["collision_time_s"], "L_beh": r["loss_beh"], "L_app": r["loss_app"],
+                   "L_restore": r["loss_restore"],
                    "s": r["optimisation_seconds"]} for r in result.rows], title=str(result.variants_json))
-    if all(r["loss_app"] is None for r in result.rows):
-        from omniscs.scs.behavior.appearance import NOT_AVAILABLE
-
-        console.print(f"L_app: {NOT_AVAILABLE}")
+    if appearance is None:
+        console.print("L_app: off (give --nsg with the scene's fitted scene graph to add it)")
     for r in result.rows:
         for v in json.loads(result.variants_json.read_text()):
             if v["variant_id"] == r["variant_id"] and v["violations"]:
@@ -478,18 +490,23 @@ def bench_behavior(
     checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint (default: the shipped one)."),
     rule_planner: bool = typer.Option(True, help="Also run against the reacting rule-based planner."),
     threads: int = typer.Option(1, help="torch CPU threads."),
+    appearance_scenes: int = typer.Option(4, help="Rendered scenes fitted with a scene graph for the with/without "
+                                                  "L_app comparison (0 skips it)."),
+    workspace: Optional[Path] = typer.Option(None, help="Where those scenes and scene graphs go (and are reused)."),
 ) -> None:
     """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
-    plausibility penalty (and L_app, once the scene graph exists), plus the traffic model's ADE/FDE."""
+    plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
     from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
     from omniscs.scs.behavior.adversarial import adversarial_preset
 
     adversarial_preset(preset)
     config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
-                         rule_planner=rule_planner, torch_threads=threads)
+                         rule_planner=rule_planner, torch_threads=threads,
+                         appearance_scenes=max(0, appearance_scenes))
     with _progress() as bar:
         task = bar.add_task("behaviour variants", total=None)
-        run_behavior_benchmark(out, config, checkpoint, progress=lambda d, t: bar.update(task, completed=d, total=t))
+        run_behavior_benchmark(out, config, checkpoint, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                               workspace=workspace)
     console.print((out / "behavior_bench.md").read_text())
     console.print(f"wrote {out / 'behavior_bench.json'}")
 
@@ -520,6 +537,8 @@ def fit_cmd(
     edit: Optional[str] = typer.Option(None, help="Edits the graph must support (their tracks become nodes): JSON or @file."),
     threads: int = typer.Option(1, help="torch CPU threads."),
     overwrite: bool = typer.Option(False, help="Replace an existing checkpoint at --out."),
+    behavior_variants: int = typer.Option(0, help="Behaviour variants will be made with this graph (L_app): "
+                                                  "every vehicle becomes a node."),
 ) -> None:
     """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
     from omniscs.nsg import fit_preset, fit_scene
@@ -537,7 +556,7 @@ def fit_cmd(
     if out.exists() and not overwrite:
         raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
     scene = load_scene(scene_path)
-    plan = make_plan(scene, _read_edits(edit), config.plan)
+    plan = make_plan(scene, _read_edits(edit), config.plan, behavior_variants=behavior_variants)
     console.print(f"plan: {plan.summary()}")
     with _fit_progress() as bar:
         task = bar.add_task(f"fit {scene.scene_id} ({preset})", total=config.iterations, loss=float("nan"),

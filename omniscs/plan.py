@@ -16,6 +16,7 @@ from omniscs.edits import Edit, Insert, Remove, ReplaceModel, Rotate, SetTraject
 from omniscs.errors import OmniscsError
 from omniscs.scene.store import Scene
 from omniscs.scene.summary import MOVING_PATH_LENGTH_M, agent_rows
+from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 PLAN_VERSION = 1
 
@@ -53,7 +54,8 @@ class ScenePlan:
     agent_nodes: tuple[int, ...]
     """Track ids modelled as agent nodes (own Gaussians in the agent frame + per-frame pose)."""
     node_reasons: dict[int, str]
-    """Why each node exists: 'moving', 'edited', or 'moving+edited'."""
+    """Why each node exists: 'moving', 'edited', 'behavior' (a vehicle that behaviour variants may move), or
+    several joined by '+'."""
     background_tracks: tuple[int, ...]
     """Static, unedited tracks: left in the background Gaussians."""
     needs_360: tuple[int, ...]
@@ -121,7 +123,8 @@ def modelled_area(scene: Scene, view_range_m: float) -> float:
 def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
               cameras: list[str] | None = None, behavior_variants: int = 0) -> ScenePlan:
     """Decide what to model for ``scene`` given the edits the requested variants will apply and how many
-    behaviour-level variants are requested (their stage runs only when that is > 0)."""
+    behaviour-level variants are requested (their stage runs only when that is > 0, and then every vehicle
+    becomes an agent node, since the adversarial optimisation may move any of them)."""
     if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, (int, np.integer)) \
             or behavior_variants < 0:
         raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
@@ -143,8 +146,11 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
     for tid, a in agents.items():
         moving = a["path_length_m"] > config.moving_path_length_m
         edited = tid in by_track
-        if moving or edited:
-            reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited)) if on)
+        # behaviour variants may move any vehicle (L_app renders them where they move): each needs a node
+        behaviour = behavior_variants > 0 and a["category"] in VEHICLE_CATEGORIES
+        if moving or edited or behaviour:
+            reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited), ("behavior", behaviour))
+                                    if on)
     nodes = tuple(sorted(reasons))
     needs_360 = tuple(sorted(t for t, es in by_track.items()
                              if any(_turns_far(e, config.rotation_needing_360_deg) for e in es)))

@@ -14,8 +14,9 @@ PROGRESS_STEP_PCT = 5.0
 
 
 @task(name="fit-nsg", task_run_name="fit-nsg-{ingested[scene_id]}")
-def fit_nsg(ingested: dict, workspace: str, run_id: str, preset: str) -> dict:
-    """Checkpoint under ``<workspace>/models/<scene_id>/`` and one row in the ``models`` table."""
+def fit_nsg(ingested: dict, workspace: str, run_id: str, preset: str, behavior_variants: int = 0) -> dict:
+    """Checkpoint under ``<workspace>/models/<scene_id>/`` and one row in the ``models`` table; with behaviour
+    variants requested, every vehicle is a node (the variants move them in the render)."""
     artifact = create_progress_artifact(0.0, description=f"fit scene graph of {ingested['scene_id']} ({preset})")
     last = [0.0]
 
@@ -25,7 +26,8 @@ def fit_nsg(ingested: dict, workspace: str, run_id: str, preset: str) -> dict:
             update_progress_artifact(artifact, pct)
             last[0] = pct
 
-    row = fit_into_workspace(ingested["path"], Path(workspace), preset, progress=progress)
+    row = fit_into_workspace(ingested["path"], Path(workspace), preset, progress=progress,
+                             behavior_variants=behavior_variants)
     update_progress_artifact(artifact, 100.0)
     catalog.write_rows(catalog.catalog_root(Path(workspace)), "models", run_id, [row],
                        writer=f"nsg-{ingested['scene_id']}")

@@ -12,7 +12,6 @@ from omniscs.cli import app
 from omniscs.errors import OmniscsError
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
-from omniscs.scs.behavior.appearance import NOT_AVAILABLE
 from omniscs.scs.behavior.bench import configurations, markdown
 from omniscs.scs.behavior.adversarial import adversarial_preset
 from tests.conftest import write_tiny_scene
@@ -97,23 +96,32 @@ def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_
         generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2)
 
 
-def test_benchmark_reports_l_app_as_not_available_until_the_scene_graph_exists():
+def _summary_row(**extra) -> dict:
+    return {"scene_success_rate_any_variant": 1.0, "scene_success_rate_first_variant": 1.0,
+            "variant_success_rate": 1.0, "successful_variants": 1, "variants": 1,
+            "violation_rate_successful": 0.0, "violation_rate_all": 0.0,
+            "adversary_abs_long_accel_mean": 1.0, "adversary_abs_long_accel_max": 2.0,
+            "adversary_lateral_accel_mean": 1.0, "adversary_lateral_accel_max": 2.0,
+            "seconds_per_variant_median": 1.0, "kinds": {"cut_in": 1}, **extra}
+
+
+def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
+    from omniscs.scs.behavior.bench import APPEARANCE_CONFIGS
+
     configs = configurations(adversarial_preset("fast"), rule_planner=False)
-    assert [c is None for c in configs.values()] == [False, False, False, True]
+    assert len(configs) == 3
+    study = {"scenes": [{"reachable": True}], "fits": [{"status": "fitted", "heldout_psnr": 27.5}],
+             "fit_preset": "fast", "render": {"frames": 3, "downscale": 4},
+             "summary": {APPEARANCE_CONFIGS[0]: _summary_row(appearance_drift_psnr_db_mean=21.25,
+                                                             appearance_drift_measured_variants=2),
+                         APPEARANCE_CONFIGS[1]: _summary_row(appearance_drift_psnr_db_mean=23.5,
+                                                             appearance_drift_measured_variants=2)}}
     result = {"scenes": [{"reachable": True}], "bench": {"variants_per_scene": 1, "preset": "fast"},
-              "checkpoint_hash": "abc", "summary": {
-                  name: ({"status": NOT_AVAILABLE, "appearance_drift_psnr_db": NOT_AVAILABLE} if cfg is None else {
-                      "scene_success_rate_any_variant": 1.0, "scene_success_rate_first_variant": 1.0,
-                      "variant_success_rate": 1.0, "successful_variants": 1, "variants": 1,
-                      "violation_rate_successful": 0.0, "violation_rate_all": 0.0,
-                      "adversary_abs_long_accel_mean": 1.0, "adversary_abs_long_accel_max": 2.0,
-                      "adversary_lateral_accel_mean": 1.0, "adversary_lateral_accel_max": 2.0,
-                      "seconds_per_variant_median": 1.0, "appearance_drift_psnr_db": NOT_AVAILABLE,
-                      "kinds": {"cut_in": 1}})
-                  for name, cfg in configs.items()}}
+              "checkpoint_hash": "abc", "summary": {name: _summary_row() for name in configs}, "appearance": study}
     text = markdown(result)
-    assert f"| L_beh + L_app + L_restore (+ penalty) | {NOT_AVAILABLE} |" in text
-    assert text.count(NOT_AVAILABLE) == 5  # and the appearance-drift column of every runnable row
+    assert "| default + L_app | 100% | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
+    assert "held-out PSNR 27.5 dB" in text
+    assert "Not run" in markdown({**result, "appearance": None})
 
 
 @pytest.mark.slow
@@ -121,6 +129,8 @@ def test_benchmark_runs_on_a_small_scene_set(tmp_path):
     from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
 
     result = run_behavior_benchmark(tmp_path, BenchConfig(scenes_per_template=1, variants_per_scene=1,
-                                                          preset="fast", rule_planner=False))
+                                                          preset="fast", rule_planner=False, appearance_scenes=1),
+                                    workspace=tmp_path / "ws")
     assert (tmp_path / "behavior_bench.md").is_file() and (tmp_path / "behavior_bench.png").is_file()
-    assert result["summary"]["L_beh + L_app + L_restore (+ penalty)"]["status"] == NOT_AVAILABLE
+    with_app = result["appearance"]["rows"]["default + L_app"]
+    assert with_app and all(r["losses"]["L_app"] is not None for r in with_app)

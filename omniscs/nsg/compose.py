@@ -1,12 +1,32 @@
 """Eq. 1 of the paper, the one place a node's Gaussians are carried into the world: G_A = T_A ⊗ G_A-loc."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from omniscs.gaussians import Gaussians
 from omniscs.geometry import rotmat_to_quat
+from omniscs.render.projection import rotmats_from_quats
+
+
+@dataclass(frozen=True)
+class NodePose:
+    """A node's world pose as tensors, for poses that must carry gradients (behaviour-level optimisation
+    moves agents and renders them): rotation as a quaternion, translation in metres."""
+
+    quat: Tensor         # [4] (w, x, y, z), any non-zero norm
+    translation: Tensor  # [3]
+
+    @classmethod
+    def from_xy_yaw(cls, x: Tensor, y: Tensor, yaw: Tensor, z: float) -> "NodePose":
+        """An upright pose on the ground plane (yaw about +z), differentiable in ``x``, ``y`` and ``yaw``."""
+        half = 0.5 * yaw
+        zero = torch.zeros_like(half)
+        quat = torch.stack([torch.cos(half), zero, zero, torch.sin(half)])
+        return cls(quat, torch.stack([x, y, torch.full_like(x, float(z))]))
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:  # [..., 4] x [..., 4] -> [..., 4]
@@ -20,15 +40,21 @@ def quat_multiply(a: Tensor, b: Tensor) -> Tensor:  # [..., 4] x [..., 4] -> [..
 
 
 def place_gaussians(local: Gaussians,
-                    world_from_node: np.ndarray,  # [4, 4] float64 rigid
+                    world_from_node: np.ndarray | NodePose,  # [4, 4] float64 rigid, or a differentiable pose
                     ) -> Gaussians:
     """``T ⊗ G = (R μ + t, Rot(R, q), s, c, α)``: means and orientations move; scales, colours and
     opacities do not (SH colours stay in the node frame; the renderer evaluates them there)."""
-    T = np.asarray(world_from_node, dtype=np.float64)
     dtype = local.means.dtype
-    R = torch.from_numpy(T[:3, :3].copy()).to(dtype)
-    t = torch.from_numpy(T[:3, 3].copy()).to(dtype)
-    q_R = torch.from_numpy(rotmat_to_quat(T[:3, :3])).to(dtype)
+    if isinstance(world_from_node, NodePose):
+        q_R = world_from_node.quat.to(dtype)
+        q_R = q_R / q_R.norm().clamp_min(1e-12)
+        R = rotmats_from_quats(q_R[None])[0]
+        t = world_from_node.translation.to(dtype)
+    else:
+        T = np.asarray(world_from_node, dtype=np.float64)
+        R = torch.from_numpy(T[:3, :3].copy()).to(dtype)
+        t = torch.from_numpy(T[:3, 3].copy()).to(dtype)
+        q_R = torch.from_numpy(rotmat_to_quat(T[:3, :3])).to(dtype)
     means = local.means @ R.T + t
     quats = quat_multiply(q_R.expand_as(local.quats), local.quats)
     return Gaussians(means, quats, local.scales, local.opacities, local.sh)

@@ -14,10 +14,11 @@ from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, activate, colors_from_sh
 from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
-from omniscs.nsg.compose import place_gaussians
+from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
 from omniscs.nsg.sky import SkyParams, sky_colors
 from omniscs.render import rasterize
+from omniscs.render.projection import rotmats_from_quats
 from omniscs.scene.store import CameraRecord
 
 #: Key of the background node in per-node bookkeeping (slices, optimisers, checkpoints).
@@ -137,26 +138,31 @@ def pixel_directions(view: View) -> Tensor:  # [H, W, 3] float32 unit, world fra
     return torch.from_numpy(d.astype(np.float32))
 
 
-def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False) -> RenderOutput:
+def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False,
+                agent_poses: Mapping[int, NodePose] | None = None) -> RenderOutput:
     """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
     the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
 
     ``sh_degree`` caps the SH bands used (progressive SH while fitting); ``absgrad`` asks the rasterizer
-    for per-pixel absolute screen gradients (densification).
+    for per-pixel absolute screen gradients (densification); ``agent_poses`` places the named agent nodes
+    (track id -> pose) instead of their logged pose in this frame, with gradients flowing into the poses.
     """
+    agent_poses = dict(agent_poses or {})
+    unknown = sorted(set(agent_poses) - set(graph.agent_ids))
+    if unknown:
+        raise OmniscsError(f"agent_poses names track(s) {unknown} that are not agent nodes of this graph")
     degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
     f = graph.check_frame(view.frame_idx)
     camera_centre = view.world_from_camera[:3, 3]
-    nodes: list[tuple[str, np.ndarray | None, GaussianParams]] = [(BACKGROUND, None, graph.background)]
-    nodes += [(agent_key(a.track_id), a.world_from_agent[f], a.gaussians) for a in graph.agents if a.present[f]]
+    nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams]] = [(BACKGROUND, None, graph.background)]
+    nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians)
+              for a in graph.agents if a.present[f]]
     parts, slices, start = [], {}, 0
     for key, world_from_node, params in nodes:
         if len(params) == 0:
             continue
         local = activate(params)
-        centre = camera_centre if world_from_node is None else \
-            transform_points(invert_transform(world_from_node), camera_centre[None])[0]
-        dirs = local.means - torch.from_numpy(centre).to(local.means.dtype)
+        dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.dtype)
         colours = colors_from_sh(local.sh, dirs[None], degree)[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)
         parts.append((placed, colours))
@@ -188,6 +194,18 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     if affine is not None:
         rgb = rgb @ affine[:, :3].T + affine[:, 3]
     return RenderOutput(rgb, depth, alpha, meta, slices)
+
+
+def _centre_in_node(camera_centre: np.ndarray, world_from_node: np.ndarray | NodePose | None) -> Tensor:  # [3]
+    """The camera centre in a node's frame (where its view-dependent colours are evaluated)."""
+    if world_from_node is None:
+        return torch.from_numpy(camera_centre)
+    if isinstance(world_from_node, NodePose):
+        q = world_from_node.quat / world_from_node.quat.norm().clamp_min(1e-12)
+        R = rotmats_from_quats(q[None])[0]
+        c = torch.from_numpy(camera_centre).to(R.dtype)
+        return (c - world_from_node.translation.to(R.dtype)) @ R
+    return torch.from_numpy(transform_points(invert_transform(world_from_node), camera_centre[None])[0])
 
 
 def identity_exposure() -> Tensor:  # [3, 4]

@@ -16,23 +16,29 @@ from omniscs.storage import content_hash
 MODELS_DIR = "models"
 
 
-def model_id(scene_content_hash: str, preset: str, config: dict, edits: list[dict]) -> str:
-    """Names a fit by what decides it: scene content, configuration, the edits in the plan, checkpoint version."""
-    return f"nsg-{preset}-{content_hash(scene_content_hash, config, edits, CHECKPOINT_VERSION)[:12]}"
+def model_id(scene_content_hash: str, preset: str, config: dict, edits: list[dict],
+             agent_nodes: tuple[int, ...] = ()) -> str:
+    """Names a fit by what decides it: scene content, configuration, the edits and nodes of the plan,
+    checkpoint version."""
+    key = content_hash(scene_content_hash, config, edits, list(agent_nodes), CHECKPOINT_VERSION)
+    return f"nsg-{preset}-{key[:12]}"
 
 
 def fit_into_workspace(scene_path: str | Path, workspace: str | Path, preset: str,
-                       edits: list[Edit] | None = None, progress: Progress | None = None) -> dict:
+                       edits: list[Edit] | None = None, progress: Progress | None = None,
+                       behavior_variants: int = 0) -> dict:
     """Fit (or reuse) the scene graph of one scene store; returns its ``models`` catalog row.
 
     A diverged fit is reported in the row (status 'diverged', no checkpoint) rather than raised, so the
-    rest of a flow run goes on; nothing of it is left on disk.
+    rest of a flow run goes on; nothing of it is left on disk. ``behavior_variants`` > 0 plans every vehicle
+    as a node (behaviour-level variants move them in the render).
     """
     scene = load_scene(scene_path)
     config = fit_preset(preset)
     edits = list(edits or [])
-    plan = make_plan(scene, edits, config.plan)
-    ident = model_id(scene.content_hash, preset, config.to_dict(), [edit_to_dict(e) for e in edits])
+    plan = make_plan(scene, edits, config.plan, behavior_variants=behavior_variants)
+    ident = model_id(scene.content_hash, preset, config.to_dict(), [edit_to_dict(e) for e in edits],
+                     plan.agent_nodes)
     out = Path(workspace) / MODELS_DIR / scene.scene_id / ident
     row = {"scene_id": scene.scene_id, "model_id": ident, "kind": "nsg", "preset": preset,
            "n_agent_nodes": len(plan.agent_nodes), "agent_nodes": list(plan.agent_nodes),

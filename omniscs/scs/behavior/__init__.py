@@ -2,7 +2,7 @@
 kinematic bicycle decoding) and adversarial latent optimisation with L_adv = L_beh + L_app + L_restore."""
 from omniscs.scs.behavior.adversarial import (PRESETS, AdversarialConfig, BehaviorProblem, ComfortBounds,
                                               VariantResult, adversarial_preset, behaviour_loss, generate_variants)
-from omniscs.scs.behavior.appearance import (NOT_AVAILABLE, AgentTrajectories, AppearanceTerm, FeatureNet,
+from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNet,
                                              FeatureNetConfig, build_feature_net, masked_psnr, variant_ground_truth)
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
 from omniscs.scs.behavior.kinematics import KinematicLimits, rollout
@@ -14,7 +14,7 @@ from omniscs.scs.behavior.variants import load_traffic, variant_spec, write_scen
 
 __all__ = [
     "PRESETS", "AdversarialConfig", "BehaviorProblem", "ComfortBounds", "VariantResult", "adversarial_preset",
-    "behaviour_loss", "generate_variants", "NOT_AVAILABLE", "AgentTrajectories", "AppearanceTerm", "FeatureNet",
+    "behaviour_loss", "generate_variants", "AgentTrajectories", "AppearanceTerm", "FeatureNet",
     "FeatureNetConfig", "build_feature_net", "masked_psnr", "variant_ground_truth", "DEFAULT_CHECKPOINT",
     "load_checkpoint", "save_checkpoint", "KinematicLimits", "rollout", "ModelConfig", "TrafficModel",
     "PlannerConfig", "EgoBox", "TrafficScene", "traffic_from_scene", "traffic_from_world", "TrainConfig",

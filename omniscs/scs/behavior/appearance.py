@@ -1,7 +1,7 @@
 """The appearance-fidelity term L_app = sum_t || F(Re(NSG_perturbed))_t - F(Re(NSG))_t ||^2 and its feature net F.
 
 ``AppearanceTerm`` takes any differentiable renderer ``render(trajectories) -> images [T, 3, H, W]`` (the
-Gaussian scene graph's, once it exists) and the images of the unperturbed scene. The feature net defaults to
+Gaussian scene graph's: ``scene_render.GraphTrajectoryRenderer``) and the images of the unperturbed scene. The feature net defaults to
 a *fixed, seeded random-init* CNN: no pretrained ImageNet weights exist here, a random multi-scale filter
 bank of this kind still responds to edges, colour and texture placement (the "random-weight features as a
 perceptual metric" observation), it needs no file and no training data, and it cannot bake the look of the
@@ -25,9 +25,6 @@ from torch import Tensor, nn
 from omniscs.errors import OmniscsError
 
 FEATURE_NET_KINDS = ("random", "state_dict", "export", "torchscript")
-
-#: What the benchmark and reports say while no scene-graph renderer exists to feed L_app.
-NOT_AVAILABLE = "not available: needs the scene graph (issue 3)"
 
 
 @dataclass(frozen=True)
@@ -195,7 +192,6 @@ def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
     """Ground truth for a variant of a procedural log: the world with every agent on its variant trajectory
     (SetTrajectory edits; heights kept from the log), re-rendered, and the adversary's instance mask."""
     from omniscs.edits import SetTrajectory
-    from omniscs.geometry import pose_from_xyz_yaw
     from omniscs.world import WorldRenderer, apply_edits
 
     if variant.get("source_frames") is None:
@@ -214,15 +210,8 @@ def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
                 waypoints[step] = (pose[0], pose[1], z, pose[2])
         edits.append(SetTrajectory(int(key), tuple(waypoints)))
     edited = apply_edits(world, edits)
-    if variant.get("ego") is not None:  # a reacting planner moves the ego too; its origin is behind the box centre
-        ego_poses = edited.ego_poses.copy()
-        ahead = float(variant.get("ego_centre_ahead_of_origin_m", 0.0))
-        for step, pose in zip(variant["source_frames"], variant["ego"]):
-            if 0 <= step < n:
-                x, y, yaw = pose
-                ego_poses[step] = pose_from_xyz_yaw(x - ahead * np.cos(yaw), y - ahead * np.sin(yaw),
-                                                    float(ego_poses[step, 2, 3]), yaw)
-        edited = edited.replace(ego_poses=ego_poses)
+    if variant.get("ego") is not None:  # a reacting planner moves the ego too
+        edited = edited.replace(ego_poses=variant_ego_poses(variant, edited.ego_poses))
     renderer = WorldRenderer(edited)
     rgb, masks = [], []
     for f in frames:
@@ -230,3 +219,17 @@ def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
         rgb.append(r.rgb.astype(np.float64) / 255.0)
         masks.append(r.instance == int(variant["adversary"]))
     return np.stack(rgb), np.stack(masks)
+
+
+def variant_ego_poses(variant: dict, logged: np.ndarray) -> np.ndarray:  # [F, 4, 4] -> [F, 4, 4]
+    """The ego's poses under a variant's plan (the box centre lies ahead of the ego origin; heights logged)."""
+    from omniscs.geometry import pose_from_xyz_yaw
+
+    poses = np.array(logged, dtype=np.float64, copy=True)
+    ahead = float(variant.get("ego_centre_ahead_of_origin_m", 0.0))
+    for step, pose in zip(variant["source_frames"], variant["ego"]):
+        if 0 <= step < len(poses):
+            x, y, yaw = pose
+            poses[step] = pose_from_xyz_yaw(x - ahead * np.cos(yaw), y - ahead * np.sin(yaw),
+                                            float(poses[step, 2, 3]), yaw)
+    return poses

@@ -15,7 +15,7 @@ import numpy as np
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial import (AdversarialConfig, BehaviorProblem, adversarial_preset,
                                               distinct_variants)
-from omniscs.scs.behavior.appearance import NOT_AVAILABLE
+from omniscs.scs.behavior.appearance import masked_psnr, variant_ground_truth
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint, set_threads
 from omniscs.scs.behavior.planner import PlannerConfig
 from omniscs.scs.behavior.tracks import traffic_from_world
@@ -45,19 +45,25 @@ class BenchConfig:
     """Also run the default losses against the reacting rule-based planner."""
     torch_threads: int = 1
     """torch CPU threads."""
+    appearance_scenes: int = 4
+    """Scenes (the first seed of each template, in turn) rendered at 480x270 with one camera and fitted with a
+    scene graph, on which the default losses run without and with L_app; 0 skips that comparison."""
+    appearance_fit_preset: str = "fast"
+    """Scene-graph preset of those fits (every vehicle a node)."""
+    appearance_drift_frames: int = 4
+    """Horizon frames per variant at which the appearance drift is measured (spread evenly)."""
 
 
-def configurations(base: AdversarialConfig, rule_planner: bool) -> dict[str, AdversarialConfig | None]:
-    """The compared loss set-ups; None marks one that cannot run yet (L_app needs the scene graph)."""
+def configurations(base: AdversarialConfig, rule_planner: bool) -> dict[str, AdversarialConfig]:
+    """The compared loss set-ups on the procedural logs (L_app needs rendered logs: ``appearance_study``)."""
     no_penalty = replace(base, comfort_weight=0.0, collision_weight=0.0, offroad_weight=0.0)
-    out: dict[str, AdversarialConfig | None] = {
+    out: dict[str, AdversarialConfig] = {
         "L_beh + L_restore (paper terms without L_app)": replace(no_penalty, comfort_decoding=False),
         "+ comfort decoding": no_penalty,
         "+ comfort decoding + plausibility penalty (default)": base,
     }
     if rule_planner:
         out["default, rule-based planner"] = replace(base, planner=PlannerConfig(kind="rule"))
-    out["L_beh + L_app + L_restore (+ penalty)"] = None
     return out
 
 
@@ -109,13 +115,13 @@ def _summary(rows: list[dict], scenes: list[dict]) -> dict:
         "attempts_mean": float(np.mean([r["attempts"] for r in rows])),
         "kinds": kinds,
         "violation_kinds": _violation_counts(rows),
-        "appearance_drift_psnr_db": NOT_AVAILABLE,
     }
 
 
 def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), checkpoint: Path | None = None,
-                           progress: Callable[[int, int], None] | None = None) -> dict:
-    """Run every configuration on every benchmark scene; write behavior_bench.{json,md,png} under ``out_dir``."""
+                           progress: Callable[[int, int], None] | None = None, workspace: Path | None = None) -> dict:
+    """Run every configuration on every benchmark scene, then the L_app comparison on rendered scenes (their
+    scene stores and scene graphs go to ``workspace`` and are reused); write behavior_bench.{json,md,png}."""
     from omniscs.world import generate_world
 
     previous = set_threads(config.torch_threads)
@@ -124,7 +130,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         model = load_checkpoint(ckpt)
         base = adversarial_preset(config.preset)
         configs = configurations(base, config.rule_planner)
-        runnable = {k: c for k, c in configs.items() if c is not None}
+        runnable = configs
         templates = TRAIN_TEMPLATES
         jobs = [(t, BENCH_SEED_OFFSET + k) for t in templates for k in range(config.scenes_per_template)]
         rows: dict[str, list[dict]] = {k: [] for k in runnable}
@@ -171,9 +177,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
                     if progress:
                         progress(done, total)
         summary = {name: _summary(rows[name], scenes) for name in runnable}
-        for name, cfg in configs.items():
-            if cfg is None:
-                summary[name] = {"status": NOT_AVAILABLE, "appearance_drift_psnr_db": NOT_AVAILABLE}
+        appearance = appearance_study(model, base, config, workspace) if config.appearance_scenes else None
         training = json.loads((ckpt / "training.json").read_text()) if (ckpt / "training.json").is_file() else {}
         result = {
             "bench": asdict(config), "checkpoint": str(ckpt), "checkpoint_hash": checkpoint_hash(ckpt)[:12],
@@ -182,6 +186,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
             "traffic_model_heldout": training.get("heldout_metrics"),
             "traffic_model_heldout_manoeuvres": training.get("heldout_manoeuvre_metrics"),
             "latent_fit_ade_m_mean": float(np.mean([s["latent_fit_ade_m"] for s in scenes])) if scenes else None,
+            "appearance": appearance,
         }
         out_dir = Path(out_dir)
         atomic_write_json(out_dir / "behavior_bench.json", result)
@@ -192,6 +197,113 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         return result
     finally:
         set_threads(previous)
+
+
+#: The two set-ups of the L_app comparison (both from the default configuration, on the same scenes).
+APPEARANCE_CONFIGS = ("default (L_beh + L_restore + penalty)", "default + L_app")
+
+
+def appearance_study(model, base: AdversarialConfig, config: BenchConfig, workspace: Path | None = None,
+                     progress: Callable[[str], None] | None = None) -> dict:
+    """The default losses without and with L_app on rendered logs with fitted scene graphs: success,
+    plausibility, time per variant, and the appearance drift (masked PSNR of the scene graph's render of each
+    variant against the procedural world re-rendered with the same trajectories, adversary pixels only)."""
+    from omniscs.nsg.checkpoint import load_checkpoint as load_graph
+    from omniscs.nsg.store import fit_into_workspace
+    from omniscs.scene import SyntheticSource, ingest, load_scene
+    from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, render_variant, scene_graph_appearance
+    from omniscs.scs.behavior.tracks import traffic_from_scene
+    from omniscs.scs.behavior.variants import variant_spec
+    from omniscs.storage import workspace_root
+
+    ws = workspace_root(workspace)
+    render = AppearanceRenderConfig()
+    jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], BENCH_SEED_OFFSET + k // len(TRAIN_TEMPLATES))
+            for k in range(config.appearance_scenes)]
+    rows: dict[str, list[dict]] = {name: [] for name in APPEARANCE_CONFIGS}
+    scenes, fits = [], []
+    for template, seed in jobs:
+        if progress:
+            progress(f"L_app comparison: {template} seed {seed}")
+        try:
+            stored = ingest(SyntheticSource(template, seed, "day", config.n_frames, 1, 480, 270), ws)
+        except OmniscsError as exc:
+            log.warning("L_app comparison skips %s seed %d: %s", template, seed, exc)
+            continue
+        scene = load_scene(stored.path)
+        fit = fit_into_workspace(stored.path, ws, config.appearance_fit_preset,
+                                 behavior_variants=config.variants_per_scene)
+        fits.append({k: fit.get(k) for k in ("scene_id", "model_id", "status", "n_gaussians", "fit_seconds",
+                                              "heldout_psnr", "n_agent_nodes", "reused")})
+        if fit["status"] != "fitted":
+            continue
+        graph = load_graph(fit["checkpoint_path"], scene)
+        camera = graph.cameras[0].name
+        traffic = traffic_from_scene(scene)
+        problem = BehaviorProblem(traffic, model, base)
+        cands = problem.candidates()
+        scenes.append({"scene_id": traffic.scene_id, "template": template, "seed": seed, "candidates": len(cands),
+                       "reachable": any(c[1] for c in cands), "camera": camera})
+        if not cands:
+            continue
+        term = scene_graph_appearance(graph, traffic, model, base, render)
+        for name, appearance in zip(APPEARANCE_CONFIGS, (None, term)):
+            problem.appearance = appearance
+            for k, v in enumerate(distinct_variants(problem, cands, config.variants_per_scene)):
+                spec = variant_spec(v)
+                horizon = spec["source_frames"][v.now_step + 1:]
+                pick = np.unique(np.round(np.linspace(0, len(horizon) - 1, config.appearance_drift_frames)))
+                frames = [int(horizon[int(i)]) for i in pick]
+                truth, mask = variant_ground_truth(scene.world, spec, camera, frames)
+                rendered = render_variant(graph, spec, camera, frames)
+                ev = v.evaluation
+                rows[name].append({"scene_id": traffic.scene_id, "variant": k, "adversary": v.adversary,
+                                   "success": ev.success, "plausible": ev.plausible, "kind": v.kind,
+                                   "violations": ev.violations, "adversary_accel": list(ev.adversary_accel),
+                                   "adversary_max_lateral": ev.adversary_max_lateral,
+                                   "min_distance_m": ev.min_distance_m, "seconds": v.seconds,
+                                   "iterations": v.iterations, "attempts": v.attempts, "losses": v.losses,
+                                   "drift_frames": frames, "adversary_pixels": int(mask.sum()),
+                                   "drift_psnr_db": masked_psnr(rendered, truth, mask)})
+    summary = {}
+    for name in APPEARANCE_CONFIGS:
+        s = _summary(rows[name], scenes)
+        drift = [r["drift_psnr_db"] for r in rows[name] if r["drift_psnr_db"] is not None]
+        s["appearance_drift_psnr_db_mean"] = float(np.mean(drift)) if drift else None
+        s["appearance_drift_measured_variants"] = len(drift)
+        summary[name] = s
+    return {"scenes": scenes, "fits": fits, "rows": rows, "summary": summary,
+            "fit_preset": config.appearance_fit_preset, "render": json.loads(json.dumps(asdict(render), default=str))}
+
+
+def appearance_markdown(study: dict | None) -> list[str]:
+    """The L_app table of behavior_bench.md."""
+    if not study:
+        return ["## What L_app buys", "", "Not run (appearance_scenes = 0).", ""]
+    fits = [f for f in study["fits"] if f["status"] == "fitted"]
+    r = study["render"]
+    lines = ["## What L_app buys (rendered logs, fitted scene graphs)", "",
+             f"{len(study['scenes'])} procedural logs rendered at 480x270 with one camera, each fitted with the "
+             f"`{study['fit_preset']}` scene-graph preset, every vehicle a node (held-out PSNR "
+             + ", ".join(f"{f['heldout_psnr']:.1f}" for f in fits) + " dB). L_app renders "
+             f"{r['frames']} horizon frames at 1/{r['downscale']} resolution per optimisation step and compares "
+             "them with the unperturbed graph's renders in a fixed random-init CNN's features. Appearance drift: "
+             "PSNR of the graph's full-resolution render of each variant against the procedural world re-rendered "
+             "with the same trajectories, over the adversary's ground-truth pixels (higher = the perturbed scene "
+             "still looks right), at horizon frames where the adversary is seen.", "",
+             "| configuration | scene success (any variant) | variant success | violations among successes | "
+             "s per variant (median) | appearance drift, adversary PSNR dB (mean) | variants with drift measured |",
+             "|---|---|---|---|---|---|---|"]
+    for name in APPEARANCE_CONFIGS:
+        s = study["summary"][name]
+        if not s or "variants" not in s:
+            lines.append(f"| {name} | no variants | | | | | |")
+            continue
+        lines.append(f"| {name} | {_fmt(s['scene_success_rate_any_variant'], True)} | "
+                     f"{_fmt(s['variant_success_rate'], True)} ({s['successful_variants']}/{s['variants']}) | "
+                     f"{_fmt(s['violation_rate_successful'], True)} | {_fmt(s['seconds_per_variant_median'])} | "
+                     f"{_fmt(s['appearance_drift_psnr_db_mean'])} | {s['appearance_drift_measured_variants']} |")
+    return lines + [""]
 
 
 def _order(result: dict) -> list[str]:
@@ -221,24 +333,21 @@ def markdown(result: dict) -> str:
              "its time covers all attempts. Times: 1 torch thread on a shared 2-core machine.", "",
              "| configuration | scene success (any variant) | scene success (first variant) | variant success | "
              "violations among successes | violations, all variants | adversary abs(long. accel) mean / max m/s² | "
-             "adversary lateral accel mean / max m/s² | s per variant (median) | appearance drift (PSNR, adversary) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "adversary lateral accel mean / max m/s² | s per variant (median) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name in _order(result):
         s = result["summary"][name]
-        if "status" in s:
-            lines.append(f"| {name} | {s['status']} | | | | | | | | {s['appearance_drift_psnr_db']} |")
-            continue
         lines.append(
             f"| {name} | {_fmt(s['scene_success_rate_any_variant'], True)} | "
             f"{_fmt(s['scene_success_rate_first_variant'], True)} | {_fmt(s['variant_success_rate'], True)} "
             f"({s['successful_variants']}/{s['variants']}) | {_fmt(s['violation_rate_successful'], True)} | "
             f"{_fmt(s['violation_rate_all'], True)} | {_fmt(s['adversary_abs_long_accel_mean'])} / "
             f"{_fmt(s['adversary_abs_long_accel_max'])} | {_fmt(s['adversary_lateral_accel_mean'])} / "
-            f"{_fmt(s['adversary_lateral_accel_max'])} | {_fmt(s['seconds_per_variant_median'])} | "
-            f"{s['appearance_drift_psnr_db']} |")
+            f"{_fmt(s['adversary_lateral_accel_max'])} | {_fmt(s['seconds_per_variant_median'])} |")
     lines += ["", "Collision kinds among successful variants: " + "; ".join(
         f"{name}: {result['summary'][name].get('kinds')}" for name in _order(result)
         if "kinds" in result["summary"][name]), ""]
+    lines += appearance_markdown(result.get("appearance"))
     heldout = result.get("traffic_model_heldout")
     if heldout:
         lines += [f"## Traffic model on held-out procedural scenes ({heldout['horizon_s']:.1f} s horizon)", "",
@@ -269,7 +378,7 @@ def _plot(result: dict, out_png: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [n for n in _order(result) if "status" not in result["summary"][n]]
+    names = list(_order(result))
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), dpi=110)
     x = np.arange(len(names))
     succ = [result["summary"][n]["scene_success_rate_any_variant"] or 0.0 for n in names]
@@ -290,7 +399,7 @@ def _plot(result: dict, out_png: Path) -> Path:
     axes[1].set_xticks(x + 1, labels, fontsize=7)
     axes[1].set_ylabel("seconds per variant (1 thread)")
     axes[1].set_title("optimisation time per variant", fontsize=9)
-    fig.suptitle("behaviour-level SCS; with L_app: " + NOT_AVAILABLE, fontsize=9)
+    fig.suptitle("behaviour-level SCS on procedural logs (L_app comparison: see behavior_bench.md)", fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

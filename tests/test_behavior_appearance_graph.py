@@ -1,0 +1,161 @@
+"""L_app rendered by the Gaussian scene graph: differentiable agent poses, the plan for behaviour variants,
+gradients that reach the trajectories, and finite values at the extremes."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs.errors import OmniscsError
+from omniscs.gaussians import activate
+from omniscs.geometry import pose_from_xyz_yaw
+from omniscs.nsg.compose import NodePose, place_gaussians
+from omniscs.nsg.graph import render_view
+from omniscs.nsg.train import fit_scene
+from omniscs.plan import make_plan
+from omniscs.scene import load_scene
+from omniscs.scs.behavior import adversarial_preset, generate_variants, traffic_from_scene
+from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.scene_render import (AppearanceRenderConfig, GraphTrajectoryRenderer,
+                                                scene_graph_appearance)
+
+#: A car in the next lane ahead of the ego and an oncoming one: both can reach the ego path.
+AGENTS = ({"x": 14.0, "y": 3.3, "speed": 5.0, "asset": "sedan-0003"},
+          {"x": 30.0, "y": 6.6, "speed": -6.0, "asset": "sedan-0011"},
+          {"x": 20.0, "y": -4.0, "speed": 0.0, "asset": "sedan-0020"})
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """A 40-frame thumbnail log (the behaviour model needs 1 s of history and 1 s of future) and its graph."""
+    world = nsg_world(AGENTS, n_frames=40, width=64, height=36)
+    scene = load_scene(write_nsg_scene(tmp_path_factory.mktemp("lapp") / "scene", world))
+    config = tiny_fit_config(30)
+    plan = make_plan(scene, [], config.plan, behavior_variants=2)
+    return scene, plan, fit_scene(scene, config, plan).graph
+
+
+def test_plan_for_behaviour_variants_makes_every_vehicle_a_node(fitted):
+    scene, plan, graph = fitted
+    assert plan.agent_nodes == (1, 2, 3)
+    assert plan.node_reasons[3] == "behavior"  # parked: a node only because variants may move it
+    assert plan.node_reasons[1] == "moving+behavior"
+    assert make_plan(scene, [], tiny_fit_config(30).plan).agent_nodes == (1, 2)  # no variants: parked car stays
+    assert graph.agent_ids == (1, 2, 3)
+
+
+def test_node_pose_places_gaussians_exactly_like_the_matrix():
+    g = torch.Generator().manual_seed(0)
+    from omniscs.gaussians import params_from_values
+    local = activate(params_from_values(torch.randn(50, 3, generator=g, dtype=torch.float64),
+                                        torch.rand(50, 3, generator=g, dtype=torch.float64) * 0.3 + 0.01,
+                                        torch.full((50,), 0.5, dtype=torch.float64),
+                                        torch.rand(50, 3, generator=g, dtype=torch.float64), 1))
+    for yaw in (0.0, 0.7, math.pi, -2.5):
+        T = pose_from_xyz_yaw(3.0, -2.0, 0.8, yaw)
+        by_matrix = place_gaussians(local, T)
+        pose = NodePose.from_xy_yaw(torch.tensor(3.0, dtype=torch.float64), torch.tensor(-2.0, dtype=torch.float64),
+                                    torch.tensor(yaw, dtype=torch.float64), 0.8)
+        by_pose = place_gaussians(local, pose)
+        assert torch.allclose(by_pose.means, by_matrix.means, atol=1e-12)
+        # same rotation up to the sign of the quaternion
+        dots = (by_pose.quats * by_matrix.quats).sum(-1) / (by_pose.quats.norm(dim=-1) * by_matrix.quats.norm(dim=-1))
+        assert torch.allclose(dots.abs(), torch.ones_like(dots), atol=1e-12)
+
+
+def test_rendering_logged_poses_as_node_poses_changes_nothing(fitted):
+    _, _, graph = fitted
+    f = 20
+    view = graph.view(graph.cameras[0].name, f)
+    poses = {}
+    for a in graph.agents:
+        T = a.world_from_agent[f]
+        yaw = math.atan2(T[1, 0], T[0, 0])
+        poses[a.track_id] = NodePose.from_xy_yaw(torch.tensor(T[0, 3]), torch.tensor(T[1, 3]), torch.tensor(yaw),
+                                                 T[2, 3])
+    with torch.no_grad():
+        plain = render_view(graph, view).rgb
+        posed = render_view(graph, view, agent_poses=poses).rgb
+    assert torch.allclose(plain, posed, atol=1e-5)
+    with pytest.raises(OmniscsError, match="not agent nodes"):
+        render_view(graph, view, agent_poses={99: poses[1]})
+
+
+def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
+    scene, _, graph = fitted
+    traffic = traffic_from_scene(scene)
+    model = load_checkpoint()
+    config = adversarial_preset("fast")
+    term = scene_graph_appearance(graph, traffic, model, config, AppearanceRenderConfig(downscale=1, frames=3))
+    steps = np.arange(10, 40)
+    ids = [int(t) for t in traffic.track_ids]
+    poses = torch.from_numpy(np.stack([np.concatenate([traffic.xy[i, steps], traffic.yaw[i, steps, None]], -1)
+                                       for i in range(len(ids))])).to(torch.float32)
+    poses[0, :, 1] += shift
+    poses[0, :, 0] += far
+    poses.requires_grad_(True)
+    from omniscs.scs.behavior.appearance import AgentTrajectories
+    return term, AgentTrajectories(ids, poses, steps, traffic.timestamps_us[steps]), poses
+
+
+def test_l_app_is_small_on_the_log_and_grows_and_has_gradients_when_an_agent_moves(fitted):
+    term, logged, _ = _trajectories(fitted)
+    at_log = float(term(logged).detach())
+    term, moved, poses = _trajectories(fitted, shift=-2.0)
+    value = term(moved)
+    value.backward()
+    assert math.isfinite(float(value.detach())) and float(value.detach()) > at_log + 1e-3
+    grad = poses.grad
+    assert torch.isfinite(grad).all()
+    assert grad[0].abs().sum() > 0  # the moved car's trajectory receives a gradient
+
+
+def test_l_app_stays_finite_for_an_agent_ten_kilometres_away(fitted):
+    term, far, poses = _trajectories(fitted, far=10_000.0)
+    value = term(far)
+    value.backward()
+    assert math.isfinite(float(value))
+    assert torch.isfinite(poses.grad).all()
+
+
+def test_variants_with_l_app_record_it_and_stay_finite(fitted):
+    scene, _, graph = fitted
+    traffic = traffic_from_scene(scene)
+    model = load_checkpoint()
+    config = adversarial_preset("fast")
+    term = scene_graph_appearance(graph, traffic, model, config)
+    (variant,) = generate_variants(traffic, model, 1, config, term)
+    assert variant.losses["L_app"] is not None and math.isfinite(variant.losses["L_app"])
+    assert all(math.isfinite(v) for v in variant.losses.values() if v is not None)
+
+
+def test_renderer_refuses_resampled_logs_and_foreign_graphs(fitted):
+    scene, _, graph = fitted
+    with pytest.raises(OmniscsError, match="resampled"):
+        GraphTrajectoryRenderer(graph, None, np.arange(10, 20))
+    traffic = traffic_from_scene(scene)
+    import dataclasses
+    other = dataclasses.replace(traffic, scene_id="another-scene")
+    with pytest.raises(OmniscsError, match="does not belong"):
+        scene_graph_appearance(graph, other, load_checkpoint())
+
+
+def test_flow_feeds_the_fitted_graph_to_the_behaviour_task(prefect_harness, tmp_path, monkeypatch):
+    from flows.generate import generate_dataset
+    from omniscs import catalog
+    from omniscs.nsg.config import PRESETS
+
+    monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(10))
+    store = write_nsg_scene(tmp_path / "scene", nsg_world(AGENTS, n_frames=40, width=64, height=36))
+    ws = tmp_path / "ws"
+    out = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
+                           behavior_variants=1, behavior_preset="fast", run_id="r1")
+    assert out["models"][0]["status"] == "fitted"
+    assert out["behavior_variants"][0]["appearance_term"] is True
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT loss_app FROM variants").to_pylist()
+    assert rows and all(r["loss_app"] is not None for r in rows)
+    models = catalog.query(catalog.catalog_root(ws), "SELECT agent_nodes FROM models").to_pylist()
+    assert models[0]["agent_nodes"] == [1, 2, 3]  # the parked car too: variants may move it
