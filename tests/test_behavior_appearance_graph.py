@@ -32,10 +32,11 @@ AGENTS = ({"x": 14.0, "y": 3.3, "speed": 5.0, "asset": "sedan-0003"},
 def fitted(tmp_path_factory):
     """A 40-frame thumbnail log (the behaviour model needs 1 s of history and 1 s of future) and its graph."""
     world = nsg_world(AGENTS, n_frames=40, width=64, height=36)
-    scene = load_scene(write_nsg_scene(tmp_path_factory.mktemp("lapp") / "scene", world))
+    root = tmp_path_factory.mktemp("lapp")
+    scene = load_scene(write_nsg_scene(root / "scene", world))
     config = tiny_fit_config(30)
     plan = make_plan(scene, [], config.plan, behavior_variants=2)
-    return scene, plan, fit_scene(scene, config, plan).graph
+    return scene, plan, fit_scene(scene, config, plan, checkpoint_dir=root / "nsg").graph
 
 
 def test_plan_for_behaviour_variants_makes_every_vehicle_a_node(fitted):
@@ -159,3 +160,22 @@ def test_flow_feeds_the_fitted_graph_to_the_behaviour_task(prefect_harness, tmp_
     assert rows and all(r["loss_app"] is not None for r in rows)
     models = catalog.query(catalog.catalog_root(ws), "SELECT agent_nodes FROM models").to_pylist()
     assert models[0]["agent_nodes"] == [1, 2, 3]  # the parked car too: variants may move it
+
+
+def test_scs_behavior_with_nsg_reports_l_app(fitted, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from omniscs.cli import app
+
+    scene, _, _ = fitted
+    out = tmp_path / "beh"
+    result = CliRunner().invoke(app, ["scs", "behavior", str(scene.path), "--variants", "1", "--preset", "fast",
+                                      "--nsg", str(scene.path.parent / "nsg"), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    (variant,) = json.loads((out / "variants.json").read_text())
+    assert variant["losses"]["L_app"] is not None and math.isfinite(variant["losses"]["L_app"])
+    refused = CliRunner().invoke(app, ["scs", "behavior", "syn:straight:0", "--variants", "1", "--nsg",
+                                       str(scene.path.parent / "nsg"), "--out", str(tmp_path / "x")])
+    assert refused.exit_code != 0 and not (tmp_path / "x").exists()
