@@ -1,12 +1,15 @@
 """Adversarial latent optimisation: collisions are found plausibly, numerical extremes stay finite, plausibility
 checks catch what they must, and L_app joins the loss only when a renderer exists."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
-from omniscs.scs.behavior.adversarial import (BehaviorProblem, adversarial_preset, generate_variants,
+from omniscs.scs.behavior.adversarial import (BehaviorProblem, adversarial_preset, box_gap, generate_variants,
                                               variant_schedule)
+from omniscs.scs.behavior.collision import footprints, overlapping
 from omniscs.scs.behavior.appearance import AppearanceTerm
 from omniscs.scs.behavior.checkpoint import load_checkpoint
 from omniscs.scs.behavior.planner import PlannerConfig, rule_based_plan
@@ -119,3 +122,55 @@ def test_l_app_enters_the_loss_only_when_a_renderer_is_supplied(model):
     assert result.losses["L_app"] is not None and np.isfinite(result.losses["L_app"])
     assert seen and all(seen)  # the renderer received differentiable trajectories every step
     assert appearance(plain.world_trajectories(plain.fitted.states)).item() == pytest.approx(0.0, abs=1e-8)
+
+
+def test_a_parked_car_pulls_out_into_the_ego_only_with_the_warm_start(model):
+    traffic = traffic_from_world(straight_world([{"x": 18.0, "y": 3.3, "speed": 0.0}]))
+    (stays,) = generate_variants(traffic, model, 1, replace(FAST, restarts=0))
+    assert not stays.success  # from the log its braking controls saturate: L_beh cannot make it move
+    (v,) = generate_variants(traffic, model, 1, FAST)
+    assert v.success and v.plausible, v.evaluation.violations
+    assert v.kind == "cut_in" and v.adversary == 1
+
+
+def test_warm_starts_are_deterministic_for_a_fixed_seed_and_differ_between_restarts(model):
+    traffic = traffic_from_world(straight_world([{"x": 18.0, "y": 3.3, "speed": 0.0},
+                                                 {"x": 30.0, "y": 6.6, "yaw": np.pi, "speed": 8.0}]))
+    problem = BehaviorProblem(traffic, model, FAST)
+    window = (0, problem.horizon)
+    first = problem.warm_start(1, window, restart=0)
+    assert torch.equal(first, problem.warm_start(1, window, restart=0))
+    assert not torch.equal(first, problem.warm_start(1, window, restart=1))
+    assert torch.equal(first[2:], problem.z_fit[2:]) and torch.equal(first[0], problem.z_fit[0])  # only node 1 moves
+    problem.config = replace(FAST, seed=1)
+    assert not torch.equal(first, problem.warm_start(1, window, restart=0))
+    problem.config = FAST
+    a, b = (problem.optimise(1, window, "v", True, z_start=first) for _ in range(2))
+    assert np.array_equal(a.agents[1], b.agents[1], equal_nan=True) and a.iterations == b.iterations
+
+
+def test_the_interception_search_finds_a_comfortable_path_of_a_parked_car_into_the_ego(model):
+    traffic = traffic_from_world(straight_world([{"x": 18.0, "y": 3.3, "speed": 0.0}]))
+    problem = BehaviorProblem(traffic, model, FAST)
+    states, gap = problem.intercept(1, (0, problem.horizon), problem.logged_plan, torch.Generator().manual_seed(0))
+    assert gap < 0.0 and states[-1, 3] > 1.0  # it pulls out and its box overlaps the ego's
+    lon, lat = np.diff(np.r_[0.0, states[:, 3].numpy()]) / traffic.dt, (states[:, 3] * states[:, 4]).numpy()
+    cb = FAST.comfort
+    assert lon.max() <= cb.max_accel and lon.min() >= -cb.max_decel and np.abs(lat).max() <= cb.max_lateral_accel
+
+
+def test_box_gap_is_negative_exactly_when_the_boxes_overlap_and_finite_far_away():
+    rng = np.random.default_rng(0)
+    n = 400
+    plan = np.stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-np.pi, np.pi, n)], -1)
+    agent = np.stack([rng.uniform(-6, 6, n), rng.uniform(-6, 6, n), rng.uniform(-np.pi, np.pi, n)], -1)
+    gap = box_gap(torch.from_numpy(agent)[None], (4.5, 1.9), torch.from_numpy(plan), (4.8, 2.0))[0].numpy()
+    overlap = overlapping(footprints(agent[:, :2], agent[:, 2], 4.5, 1.9),
+                          footprints(plan[:, :2], plan[:, 2], 4.8, 2.0))
+    margin = np.abs(gap) > 1e-6  # exactly touching counts either way
+    assert overlap.any() and (~overlap).any()
+    assert np.array_equal((gap < 0)[margin], overlap[margin])
+    agent_10km = torch.tensor([[[1e4, 0.0, np.pi / 2]]], dtype=torch.float32, requires_grad=True)
+    far = box_gap(agent_10km, (4.5, 1.9), torch.zeros(1, 3), (4.8, 2.0))
+    far.sum().backward()
+    assert far.item() == pytest.approx(1e4 - 2.4 - 0.95, rel=1e-5) and torch.isfinite(agent_10km.grad).all()

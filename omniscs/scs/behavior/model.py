@@ -222,14 +222,30 @@ class TrafficModel(nn.Module):
         lateral-acceleration and yaw-rate limits, so every decoded trajectory is comfortable by construction
         (used for adversarial synthesis; training and ADE/FDE use the physical limits only).
         ``standstill_gradient``: see ``kinematics.rollout`` (adversarial optimisation only)."""
-        cfg = self.config
-        horizon = cfg.future_steps if horizon is None else int(horizon)
+        knots = self.control_knots(context, z, edges, edge_mask)
+        return self.roll_knots(knots, batch.state0, horizon, comfort, standstill_gradient)
+
+    def control_knots(self, context: Tensor,    # [B, N, D]
+                      z: Tensor,                # [B, N, Z]
+                      edges: Tensor, edge_mask: Tensor,
+                      ) -> Tensor:              # [B, N, control_knots, 2] raw (unbounded) accel, yaw accel
+        """The decoder's raw control knots before bounding and interpolation."""
         h = self.decoder_in(torch.cat([context, z], -1))
         for block in self.decoder_graph:
             h = block(h, edges, edge_mask)
         b, n = z.shape[:2]
-        knots = (self.control_head(h) + self.latent_controls(z)).reshape(b * n, cfg.control_knots, 2).transpose(1, 2)
-        raw = nn.functional.interpolate(knots, size=cfg.future_steps, mode="linear", align_corners=True)
+        return (self.control_head(h) + self.latent_controls(z)).reshape(b, n, self.config.control_knots, 2)
+
+    def roll_knots(self, knots: Tensor,   # [B, N, control_knots, 2] raw, as control_knots returns
+                   state0: Tensor,        # [B, N, 5] x, y, yaw, v, yaw_rate at the now step
+                   horizon: int | None = None, comfort: ComfortLimits | None = None,
+                   standstill_gradient: float = 0.0) -> Decoded:
+        """Raw knots -> interpolated, bounded controls -> bicycle rollout (see ``decode`` for the options)."""
+        cfg = self.config
+        horizon = cfg.future_steps if horizon is None else int(horizon)
+        b, n = knots.shape[:2]
+        flat = knots.reshape(b * n, cfg.control_knots, 2).transpose(1, 2)
+        raw = nn.functional.interpolate(flat, size=cfg.future_steps, mode="linear", align_corners=True)
         raw = raw.transpose(1, 2).reshape(b, n, cfg.future_steps, 2)[:, :, :horizon]
         controls = bound_controls(raw, cfg.limits)
         limits = cfg.limits
@@ -238,8 +254,8 @@ class TrafficModel(nn.Module):
             controls = torch.stack([accel, controls[..., 1]], -1)
             limits = replace(limits, max_lateral_accel=min(limits.max_lateral_accel, comfort.max_lateral_accel),
                              max_yaw_rate=min(limits.max_yaw_rate, comfort.max_yaw_rate))
-        states = rollout(batch.state0, controls, cfg.dt, limits, standstill_gradient)
-        lon, lat = accelerations(batch.state0, states, cfg.dt)
+        states = rollout(state0, controls, cfg.dt, limits, standstill_gradient)
+        lon, lat = accelerations(state0, states, cfg.dt)
         return Decoded(states, lon, lat)
 
     # -- training ---------------------------------------------------------------------------------------
