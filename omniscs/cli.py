@@ -493,16 +493,28 @@ def bench_behavior(
     appearance_scenes: int = typer.Option(4, help="Rendered scenes fitted with a scene graph for the with/without "
                                                   "L_app comparison (0 skips it)."),
     workspace: Optional[Path] = typer.Option(None, help="Where those scenes and scene graphs go (and are reused)."),
+    app_weights: str = typer.Option("1,30", help="Comma-separated L_app weights compared."),
+    only_appearance: bool = typer.Option(False, help="Rerun only the L_app comparison in an existing report in --out."),
 ) -> None:
     """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
     plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
-    from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
+    from omniscs.scs.behavior.bench import BenchConfig, rerun_appearance_study, run_behavior_benchmark
     from omniscs.scs.behavior.adversarial import adversarial_preset
 
     adversarial_preset(preset)
+    try:
+        weights = tuple(float(w) for w in app_weights.split(","))
+    except ValueError:
+        weights = ()
+    if not weights or min(weights) <= 0:
+        raise OmniscsError(f"--app-weights takes positive numbers like 1,30; got {app_weights!r}")
     config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
                          rule_planner=rule_planner, torch_threads=threads,
-                         appearance_scenes=max(0, appearance_scenes))
+                         appearance_scenes=max(0, appearance_scenes), app_weights=weights)
+    if only_appearance:
+        rerun_appearance_study(out, config, checkpoint, workspace)
+        console.print((out / "behavior_bench.md").read_text())
+        return
     with _progress() as bar:
         task = bar.add_task("behaviour variants", total=None)
         run_behavior_benchmark(out, config, checkpoint, progress=lambda d, t: bar.update(task, completed=d, total=t),

@@ -106,20 +106,19 @@ def _summary_row(**extra) -> dict:
 
 
 def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
-    from omniscs.scs.behavior.bench import APPEARANCE_CONFIGS
+    from omniscs.scs.behavior.bench import appearance_configs
 
     configs = configurations(adversarial_preset("fast"), rule_planner=False)
     assert len(configs) == 3
     study = {"scenes": [{"reachable": True}], "fits": [{"status": "fitted", "heldout_psnr": 27.5}],
              "fit_preset": "fast", "render": {"frames": 3, "downscale": 4},
-             "summary": {APPEARANCE_CONFIGS[0]: _summary_row(appearance_drift_psnr_db_mean=21.25,
-                                                             appearance_drift_measured_variants=2),
-                         APPEARANCE_CONFIGS[1]: _summary_row(appearance_drift_psnr_db_mean=23.5,
-                                                             appearance_drift_measured_variants=2)}}
+             "summary": {name: _summary_row(appearance_drift_psnr_db_mean=21.25 if w is None else 23.5,
+                                            appearance_drift_measured_variants=2)
+                         for name, w in appearance_configs((1.0,))}}
     result = {"scenes": [{"reachable": True}], "bench": {"variants_per_scene": 1, "preset": "fast"},
               "checkpoint_hash": "abc", "summary": {name: _summary_row() for name in configs}, "appearance": study}
     text = markdown(result)
-    assert "| default + L_app | 100% | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
+    assert "| default + L_app (weight 1) | 100% | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
     assert "held-out PSNR 27.5 dB" in text
     assert "Not run" in markdown({**result, "appearance": None})
 
@@ -129,8 +128,9 @@ def test_benchmark_runs_on_a_small_scene_set(tmp_path):
     from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
 
     result = run_behavior_benchmark(tmp_path, BenchConfig(scenes_per_template=1, variants_per_scene=1,
-                                                          preset="fast", rule_planner=False, appearance_scenes=1),
+                                                          preset="fast", rule_planner=False, appearance_scenes=1,
+                                                          app_weights=(1.0,)),
                                     workspace=tmp_path / "ws")
     assert (tmp_path / "behavior_bench.md").is_file() and (tmp_path / "behavior_bench.png").is_file()
-    with_app = result["appearance"]["rows"]["default + L_app"]
+    with_app = result["appearance"]["rows"]["default + L_app (weight 1)"]
     assert with_app and all(r["losses"]["L_app"] is not None for r in with_app)

@@ -52,6 +52,8 @@ class BenchConfig:
     """Scene-graph preset of those fits (every vehicle a node)."""
     appearance_drift_frames: int = 4
     """Horizon frames per variant at which the appearance drift is measured (spread evenly)."""
+    app_weights: tuple[float, ...] = (1.0, 30.0)
+    """Weights of L_app compared (AdversarialConfig.app_weight); at 1 it is about 1 % of L_beh here."""
 
 
 def configurations(base: AdversarialConfig, rule_planner: bool) -> dict[str, AdversarialConfig]:
@@ -199,8 +201,13 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         set_threads(previous)
 
 
-#: The two set-ups of the L_app comparison (both from the default configuration, on the same scenes).
-APPEARANCE_CONFIGS = ("default (L_beh + L_restore + penalty)", "default + L_app")
+#: The L_app comparison's baseline: the default configuration without L_app, on the same scenes.
+NO_APP = "default (L_beh + L_restore + penalty)"
+
+
+def appearance_configs(weights: tuple[float, ...]) -> list[tuple[str, float | None]]:
+    """(name, L_app weight or None) of the L_app comparison's set-ups, baseline first."""
+    return [(NO_APP, None)] + [(f"default + L_app (weight {w:g})", float(w)) for w in weights]
 
 
 def appearance_study(model, base: AdversarialConfig, config: BenchConfig, workspace: Path | None = None,
@@ -220,7 +227,8 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
     render = AppearanceRenderConfig()
     jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], BENCH_SEED_OFFSET + k // len(TRAIN_TEMPLATES))
             for k in range(config.appearance_scenes)]
-    rows: dict[str, list[dict]] = {name: [] for name in APPEARANCE_CONFIGS}
+    setups = appearance_configs(config.app_weights)
+    rows: dict[str, list[dict]] = {name: [] for name, _ in setups}
     scenes, fits = [], []
     for template, seed in jobs:
         if progress:
@@ -247,8 +255,9 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
         if not cands:
             continue
         term = scene_graph_appearance(graph, traffic, model, base, render)
-        for name, appearance in zip(APPEARANCE_CONFIGS, (None, term)):
-            problem.appearance = appearance
+        for name, weight in setups:
+            problem.appearance = None if weight is None else term
+            problem.config = base if weight is None else replace(base, app_weight=weight)
             for k, v in enumerate(distinct_variants(problem, cands, config.variants_per_scene)):
                 spec = variant_spec(v)
                 horizon = spec["source_frames"][v.now_step + 1:]
@@ -266,7 +275,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
                                    "drift_frames": frames, "adversary_pixels": int(mask.sum()),
                                    "drift_psnr_db": masked_psnr(rendered, truth, mask)})
     summary = {}
-    for name in APPEARANCE_CONFIGS:
+    for name, _ in setups:
         s = _summary(rows[name], scenes)
         drift = [r["drift_psnr_db"] for r in rows[name] if r["drift_psnr_db"] is not None]
         s["appearance_drift_psnr_db_mean"] = float(np.mean(drift)) if drift else None
@@ -294,7 +303,7 @@ def appearance_markdown(study: dict | None) -> list[str]:
              "| configuration | scene success (any variant) | variant success | violations among successes | "
              "s per variant (median) | appearance drift, adversary PSNR dB (mean) | variants with drift measured |",
              "|---|---|---|---|---|---|---|"]
-    for name in APPEARANCE_CONFIGS:
+    for name in study["summary"]:
         s = study["summary"][name]
         if not s or "variants" not in s:
             lines.append(f"| {name} | no variants | | | | | |")
@@ -304,6 +313,32 @@ def appearance_markdown(study: dict | None) -> list[str]:
                      f"{_fmt(s['violation_rate_successful'], True)} | {_fmt(s['seconds_per_variant_median'])} | "
                      f"{_fmt(s['appearance_drift_psnr_db_mean'])} | {s['appearance_drift_measured_variants']} |")
     return lines + [""]
+
+
+def rerun_appearance_study(out_dir: Path, config: BenchConfig = BenchConfig(), checkpoint: Path | None = None,
+                           workspace: Path | None = None) -> dict:
+    """Run only the L_app comparison again and replace it in an existing ``out_dir/behavior_bench.json`` (and its
+    Markdown and plot), leaving the procedural-log tables as they were measured."""
+    out_dir = Path(out_dir)
+    path = out_dir / "behavior_bench.json"
+    if not path.is_file():
+        raise OmniscsError(f"{path} does not exist; run the whole benchmark first")
+    result = json.loads(path.read_text())
+    previous = set_threads(config.torch_threads)
+    try:
+        ckpt = Path(checkpoint) if checkpoint else DEFAULT_CHECKPOINT
+        if checkpoint_hash(ckpt)[:12] != result.get("checkpoint_hash"):
+            raise OmniscsError(f"{path} was measured with checkpoint {result.get('checkpoint_hash')}; the L_app "
+                               "comparison must use the same one")
+        result["appearance"] = appearance_study(load_checkpoint(ckpt), adversarial_preset(result["bench"]["preset"]),
+                                                config, workspace)
+        result["bench"]["app_weights"] = list(config.app_weights)
+    finally:
+        set_threads(previous)
+    atomic_write_json(path, result)
+    atomic_write_text(out_dir / "behavior_bench.md", markdown(result))
+    _plot(result, out_dir / "behavior_bench.png")
+    return result
 
 
 def _order(result: dict) -> list[str]:
