@@ -28,6 +28,12 @@ class NodePose:
         quat = torch.stack([torch.cos(half), zero, zero, torch.sin(half)])
         return cls(quat, torch.stack([x, y, torch.full_like(x, float(z))]))
 
+    def unit_quat(self) -> Tensor:  # [4]
+        return self.quat / self.quat.norm().clamp_min(1e-12)
+
+    def rotmat(self) -> Tensor:  # [3, 3] world_from_node rotation
+        return rotmats_from_quats(self.quat[None])[0]
+
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:  # [..., 4] x [..., 4] -> [..., 4]
     """Hamilton product a ⊗ b (rotate by b, then by a), (w, x, y, z)."""
@@ -46,9 +52,8 @@ def place_gaussians(local: Gaussians,
     opacities do not (SH colours stay in the node frame; the renderer evaluates them there)."""
     dtype = local.means.dtype
     if isinstance(world_from_node, NodePose):
-        q_R = world_from_node.quat.to(dtype)
-        q_R = q_R / q_R.norm().clamp_min(1e-12)
-        R = rotmats_from_quats(q_R[None])[0]
+        q_R = world_from_node.unit_quat().to(dtype)
+        R = world_from_node.rotmat().to(dtype)
         t = world_from_node.translation.to(dtype)
     else:
         T = np.asarray(world_from_node, dtype=np.float64)

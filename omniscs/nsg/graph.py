@@ -18,7 +18,6 @@ from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
 from omniscs.nsg.sky import SkyParams, sky_colors
 from omniscs.render import rasterize
-from omniscs.render.projection import rotmats_from_quats
 from omniscs.scene.store import CameraRecord
 
 #: Key of the background node in per-node bookkeeping (slices, optimisers, checkpoints).
@@ -201,8 +200,7 @@ def _centre_in_node(camera_centre: np.ndarray, world_from_node: np.ndarray | Nod
     if world_from_node is None:
         return torch.from_numpy(camera_centre)
     if isinstance(world_from_node, NodePose):
-        q = world_from_node.quat / world_from_node.quat.norm().clamp_min(1e-12)
-        R = rotmats_from_quats(q[None])[0]
+        R = world_from_node.rotmat()
         c = torch.from_numpy(camera_centre).to(R.dtype)
         return (c - world_from_node.translation.to(R.dtype)) @ R
     return torch.from_numpy(transform_points(invert_transform(world_from_node), camera_centre[None])[0])

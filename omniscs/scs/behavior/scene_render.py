@@ -45,6 +45,17 @@ class AppearanceRenderConfig:
     """The feature net F (fixed random init unless a user's local weights are named)."""
 
 
+def placed_agents(graph: SceneGraph, frame: int, xy_yaw: dict[int, Tensor]) -> dict[int, NodePose]:
+    """Upright poses (heights as logged) for the tracks of ``xy_yaw`` ({track id: [3] x, y, yaw}) that are agent
+    nodes present in ``frame``; the others are left out (background tracks cannot move in the render)."""
+    out = {}
+    for tid, pose in xy_yaw.items():
+        if tid in graph.agent_ids and graph.agent(tid).present[frame]:
+            x, y, yaw = pose.unbind(-1)
+            out[tid] = NodePose.from_xy_yaw(x, y, yaw, float(graph.agent(tid).world_from_agent[frame, 2, 3]))
+    return out
+
+
 class GraphTrajectoryRenderer:
     """``render(trajectories) -> [T', 3, H, W]`` for the steps it was built for (a Renderer of L_app)."""
 
@@ -68,20 +79,11 @@ class GraphTrajectoryRenderer:
         if np.any(self.frames < 0) or np.any(self.frames >= graph.n_frames):
             raise OmniscsError(f"frames {self.frames.tolist()} are outside the scene graph's {graph.n_frames} frames")
         self.views = [graph.view(self.camera, int(f)).downscaled(config.downscale) for f in self.frames]
-        self.node_ids = set(graph.agent_ids)
 
     def poses(self, trajectories: AgentTrajectories, position: int, frame: int) -> dict[int, NodePose]:
         """Differentiable poses of the agent nodes present in ``frame``; heights as logged."""
-        out = {}
-        for i, tid in enumerate(trajectories.track_ids):
-            if tid not in self.node_ids:
-                continue
-            node = self.graph.agent(tid)
-            if not node.present[frame]:
-                continue
-            x, y, yaw = trajectories.poses[i, position].unbind(-1)
-            out[tid] = NodePose.from_xy_yaw(x, y, yaw, float(node.world_from_agent[frame, 2, 3]))
-        return out
+        return placed_agents(self.graph, frame, {tid: trajectories.poses[i, position]
+                                                 for i, tid in enumerate(trajectories.track_ids)})
 
     def __call__(self, trajectories: AgentTrajectories) -> Tensor:  # [T', 3, H, W] in [0, 1]
         images = []
@@ -132,14 +134,9 @@ def render_variant(graph: SceneGraph, variant: dict, camera: str, frames: list[i
     images = []
     for f in frames:
         f = graph.check_frame(f)
-        poses = {}
         k = step_of.get(f)
-        for key, traj in variant["agents"].items():
-            tid = int(key)
-            if k is None or tid not in graph.agent_ids or traj[k] is None or not graph.agent(tid).present[f]:
-                continue
-            x, y, yaw = (torch.tensor(float(v), dtype=torch.float64) for v in traj[k])
-            poses[tid] = NodePose.from_xy_yaw(x, y, yaw, float(graph.agent(tid).world_from_agent[f, 2, 3]))
-        out = render_view(graph, graph.view(camera, f, world_from_ego=ego[f]), agent_poses=poses)
+        xy_yaw = {} if k is None else {int(key): torch.tensor(traj[k], dtype=torch.float64)
+                                       for key, traj in variant["agents"].items() if traj[k] is not None}
+        out = render_view(graph, graph.view(camera, f, world_from_ego=ego[f]), agent_poses=placed_agents(graph, f, xy_yaw))
         images.append(out.rgb.clamp(0.0, 1.0).numpy().astype(np.float64))
     return np.stack(images)
