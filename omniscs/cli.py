@@ -495,10 +495,14 @@ def bench_behavior(
     workspace: Optional[Path] = typer.Option(None, help="Where those scenes and scene graphs go (and are reused)."),
     app_weights: str = typer.Option("1,30", help="Comma-separated L_app weights compared."),
     only_appearance: bool = typer.Option(False, help="Rerun only the L_app comparison in an existing report in --out."),
+    seed_offset: int = typer.Option(2000, help="First scene seed: 2000 is the fixed set, any other a fresh one."),
+    only_default: bool = typer.Option(False, help="Run only the default configuration on the procedural logs."),
+    search_starts: int = typer.Option(192, help="Feasibility search: random starts per candidate adversary."),
 ) -> None:
     """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
     plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
     from omniscs.scs.behavior.bench import BenchConfig, rerun_appearance_study, run_behavior_benchmark
+    from omniscs.scs.behavior.feasibility import FeasibilityConfig
     from omniscs.scs.behavior.adversarial import adversarial_preset
 
     adversarial_preset(preset)
@@ -506,11 +510,15 @@ def bench_behavior(
         weights = tuple(float(w) for w in app_weights.split(","))
     except ValueError:
         weights = ()
+    if search_starts < 1:
+        raise OmniscsError(f"--search-starts must be at least 1; got {search_starts}")
     if not weights or min(weights) <= 0:
         raise OmniscsError(f"--app-weights takes positive numbers like 1,30; got {app_weights!r}")
     config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
                          rule_planner=rule_planner, torch_threads=threads,
-                         appearance_scenes=max(0, appearance_scenes), app_weights=weights)
+                         appearance_scenes=max(0, appearance_scenes), app_weights=weights,
+                         seed_offset=seed_offset, only_default=only_default,
+                         feasibility=FeasibilityConfig(starts=search_starts))
     if only_appearance:
         rerun_appearance_study(out, config, checkpoint, workspace)
         console.print((out / "behavior_bench.md").read_text())

@@ -98,6 +98,7 @@ def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_
 
 def _summary_row(**extra) -> dict:
     return {"scene_success_rate_any_variant": 1.0, "scene_success_rate_first_variant": 1.0,
+            "scene_success_rate_feasible": 1.0, "feasible_scenes": 1, "reachable_scenes": 1,
             "variant_success_rate": 1.0, "successful_variants": 1, "variants": 1,
             "violation_rate_successful": 0.0, "violation_rate_all": 0.0,
             "adversary_abs_long_accel_mean": 1.0, "adversary_abs_long_accel_max": 2.0,
@@ -118,7 +119,7 @@ def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
     result = {"scenes": [{"reachable": True}], "bench": {"variants_per_scene": 1, "preset": "fast"},
               "checkpoint_hash": "abc", "summary": {name: _summary_row() for name in configs}, "appearance": study}
     text = markdown(result)
-    assert "| default + L_app (weight 1) | 100% | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
+    assert "| default + L_app (weight 1) | 100% (of 1) | 100% (of 1) | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
     assert "held-out PSNR 27.5 dB" in text
     assert "Not run" in markdown({**result, "appearance": None})
 

@@ -17,6 +17,7 @@ from omniscs.scs.behavior.adversarial import (AdversarialConfig, BehaviorProblem
                                               distinct_variants)
 from omniscs.scs.behavior.appearance import masked_psnr, variant_ground_truth
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint, set_threads
+from omniscs.scs.behavior.feasibility import FeasibilityConfig, search_scene
 from omniscs.scs.behavior.planner import PlannerConfig
 from omniscs.scs.behavior.tracks import traffic_from_world
 from omniscs.scs.behavior.train import TRAIN_TEMPLATES
@@ -37,6 +38,12 @@ class BenchConfig:
     """Procedural scenes per road template (seeds BENCH_SEED_OFFSET + k)."""
     variants_per_scene: int = 2
     """Variants per scene (distinct adversaries first)."""
+    seed_offset: int = BENCH_SEED_OFFSET
+    """First seed of the scene set (the fixed set starts at BENCH_SEED_OFFSET; another offset is a fresh set)."""
+    only_default: bool = False
+    """Run only the default configuration on the procedural logs."""
+    feasibility: FeasibilityConfig = FeasibilityConfig()
+    """The search that decides which scenes some agent can reach (omniscs.scs.behavior.feasibility)."""
     n_frames: int = 40
     """Frames per scene (4 s at 10 Hz: 1 s history, 3 s horizon)."""
     preset: str = "balanced"
@@ -56,13 +63,19 @@ class BenchConfig:
     """Weights of L_app compared (AdversarialConfig.app_weight); at 1 it is about 1 % of L_beh here."""
 
 
-def configurations(base: AdversarialConfig, rule_planner: bool) -> dict[str, AdversarialConfig]:
+DEFAULT = "+ comfort decoding + plausibility penalty (default)"
+
+
+def configurations(base: AdversarialConfig, rule_planner: bool, only_default: bool = False
+                   ) -> dict[str, AdversarialConfig]:
     """The compared loss set-ups on the procedural logs (L_app needs rendered logs: ``appearance_study``)."""
+    if only_default:
+        return {DEFAULT: base}
     no_penalty = replace(base, comfort_weight=0.0, collision_weight=0.0, offroad_weight=0.0)
     out: dict[str, AdversarialConfig] = {
         "L_beh + L_restore (paper terms without L_app)": replace(no_penalty, comfort_decoding=False),
         "+ comfort decoding": no_penalty,
-        "+ comfort decoding + plausibility penalty (default)": base,
+        DEFAULT: base,
     }
     if rule_planner:
         out["default, rule-based planner"] = replace(base, planner=PlannerConfig(kind="rule"))
@@ -86,13 +99,43 @@ def _violation_counts(rows: list[dict]) -> dict[str, int]:
     return counts
 
 
+def scene_reachability(problem: BehaviorProblem, cands: list, search: FeasibilityConfig) -> dict:
+    """Both answers to "can some agent reach the ego path": the envelope test (BehaviorProblem.reachable) and the
+    feasibility search (stops at the first feasible candidate; envelope-reachable candidates are searched first)."""
+    started = time.perf_counter()
+    reaches = search_scene(problem, search, stop_at_first=True)
+    found = next((r for r in reaches if r.feasible), None)
+    return {"reachable": any(c[1] for c in cands), "reachable_agents": sum(c[1] for c in cands),
+            "feasible_search": found is not None,
+            "feasible_track": None if found is None else int(problem.traffic.track_ids[found.track]),
+            "feasible_best_iou": max((r.best_iou for r in reaches), default=0.0),
+            "searched_candidates": sum(r.searched for r in reaches),
+            "feasibility_seconds": time.perf_counter() - started}
+
+
+def mark_feasible(scenes: list[dict], rows: dict[str, list[dict]], replay_configs: list[str]) -> None:
+    """``feasible``: the search found a trajectory, or some replay-planner configuration made a successful, plausible
+    variant (proof the search missed one; counted as ``search_missed``). Same denominator for every configuration."""
+    for s in scenes:
+        proven = any(r["success"] and r["plausible"] for name in replay_configs for r in rows.get(name, [])
+                     if r["scene_id"] == s["scene_id"])
+        s["feasible"] = bool(s["feasible_search"] or proven)
+        s["search_missed"] = bool(proven and not s["feasible_search"])
+
+
+def _scene_rates(rows: list[dict], scenes: list[dict], key: str) -> tuple[list[bool], list[bool]]:
+    ids = [s["scene_id"] for s in scenes if s.get(key)]
+    return ([any(r["success"] for r in rows if r["scene_id"] == sid) for sid in ids],
+            [next((r["success"] for r in rows if r["scene_id"] == sid), False) for sid in ids])
+
+
 def _summary(rows: list[dict], scenes: list[dict]) -> dict:
     if not rows:
         return {}
     succ = [r for r in rows if r["success"]]
     reach_scenes = [s["scene_id"] for s in scenes if s["reachable"]]
-    scene_success = [any(r["success"] for r in rows if r["scene_id"] == sid) for sid in reach_scenes]
-    scene_first = [next((r["success"] for r in rows if r["scene_id"] == sid), False) for sid in reach_scenes]
+    scene_success, scene_first = _scene_rates(rows, scenes, "reachable")
+    feas_success, feas_first = _scene_rates(rows, scenes, "feasible")
     lon = np.array([max(-r["adversary_accel"][0], r["adversary_accel"][1]) for r in succ]) if succ else np.zeros(0)
     lat = np.array([r["adversary_max_lateral"] for r in succ]) if succ else np.zeros(0)
     sec = np.array([r["seconds"] for r in rows])
@@ -105,6 +148,11 @@ def _summary(rows: list[dict], scenes: list[dict]) -> dict:
         "reachable_scenes": len(reach_scenes),
         "scene_success_rate_any_variant": float(np.mean(scene_success)) if scene_success else None,
         "scene_success_rate_first_variant": float(np.mean(scene_first)) if scene_first else None,
+        "feasible_scenes": len(feas_success),
+        "scene_success_rate_feasible": float(np.mean(feas_success)) if feas_success else None,
+        "scene_success_rate_feasible_first_variant": float(np.mean(feas_first)) if feas_first else None,
+        "failed_feasible_scenes": [s["scene_id"] for s, ok in
+                                   zip([s for s in scenes if s.get("feasible")], feas_success) if not ok],
         "violation_rate_successful": (float(np.mean([not r["plausible"] for r in succ])) if succ else None),
         "violation_rate_all": float(np.mean([not r["plausible"] for r in rows])),
         "successful_and_plausible_rate": float(np.mean([r["success"] and r["plausible"] for r in rows])),
@@ -131,10 +179,10 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         ckpt = Path(checkpoint) if checkpoint else DEFAULT_CHECKPOINT
         model = load_checkpoint(ckpt)
         base = adversarial_preset(config.preset)
-        configs = configurations(base, config.rule_planner)
+        configs = configurations(base, config.rule_planner, config.only_default)
         runnable = configs
         templates = TRAIN_TEMPLATES
-        jobs = [(t, BENCH_SEED_OFFSET + k) for t in templates for k in range(config.scenes_per_template)]
+        jobs = [(t, config.seed_offset + k) for t in templates for k in range(config.scenes_per_template)]
         rows: dict[str, list[dict]] = {k: [] for k in runnable}
         scenes: list[dict] = []
         total = len(jobs) * len(runnable) * config.variants_per_scene
@@ -154,7 +202,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
             cands = problem.candidates()
             scenes.append({"scene_id": traffic.scene_id, "template": template, "seed": seed,
                            "nodes": problem.n_nodes, "candidates": len(cands),
-                           "reachable": any(c[1] for c in cands), "reachable_agents": sum(c[1] for c in cands),
+                           **scene_reachability(problem, cands, config.feasibility),
                            "latent_fit_ade_m": problem.fit_ade, "setup_seconds": setup_s})
             for name, cfg in runnable.items():
                 problem.config = cfg
@@ -178,6 +226,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
                     done += 1
                     if progress:
                         progress(done, total)
+        mark_feasible(scenes, rows, [n for n, c in runnable.items() if c.planner.kind == "replay"])
         summary = {name: _summary(rows[name], scenes) for name in runnable}
         appearance = appearance_study(model, base, config, workspace) if config.appearance_scenes else None
         training = json.loads((ckpt / "training.json").read_text()) if (ckpt / "training.json").is_file() else {}
@@ -225,7 +274,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
 
     ws = workspace_root(workspace)
     render = AppearanceRenderConfig()
-    jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], BENCH_SEED_OFFSET + k // len(TRAIN_TEMPLATES))
+    jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], config.seed_offset + k // len(TRAIN_TEMPLATES))
             for k in range(config.appearance_scenes)]
     setups = appearance_configs(config.app_weights)
     rows: dict[str, list[dict]] = {name: [] for name, _ in setups}
@@ -251,7 +300,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
         problem = BehaviorProblem(traffic, model, base)
         cands = problem.candidates()
         scenes.append({"scene_id": traffic.scene_id, "template": template, "seed": seed, "candidates": len(cands),
-                       "reachable": any(c[1] for c in cands), "camera": camera})
+                       **scene_reachability(problem, cands, config.feasibility), "camera": camera})
         if not cands:
             continue
         term = scene_graph_appearance(graph, traffic, model, base, render)
@@ -274,6 +323,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
                                    "iterations": v.iterations, "attempts": v.attempts, "losses": v.losses,
                                    "drift_frames": frames, "adversary_pixels": int(mask.sum()),
                                    "drift_psnr_db": masked_psnr(rendered, truth, mask)})
+    mark_feasible(scenes, rows, [name for name, _ in setups])
     summary = {}
     for name, _ in setups:
         s = _summary(rows[name], scenes)
@@ -300,15 +350,17 @@ def appearance_markdown(study: dict | None) -> list[str]:
              "PSNR of the graph's full-resolution render of each variant against the procedural world re-rendered "
              "with the same trajectories, over the adversary's ground-truth pixels (higher = the perturbed scene "
              "still looks right), at horizon frames where the adversary is seen.", "",
-             "| configuration | scene success (any variant) | variant success | violations among successes | "
+             "| configuration | scene success, feasible scenes | scene success, envelope-reachable scenes | "
+             "variant success | violations among successes | "
              "s per variant (median) | appearance drift, adversary PSNR dB (mean) | variants with drift measured |",
-             "|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|"]
     for name in study["summary"]:
         s = study["summary"][name]
         if not s or "variants" not in s:
-            lines.append(f"| {name} | no variants | | | | | |")
+            lines.append(f"| {name} | no variants | | | | | | |")
             continue
-        lines.append(f"| {name} | {_fmt(s['scene_success_rate_any_variant'], True)} | "
+        lines.append(f"| {name} | {_rate(s, 'scene_success_rate_feasible', 'feasible_scenes')} | "
+                     f"{_rate(s, 'scene_success_rate_any_variant', 'reachable_scenes')} | "
                      f"{_fmt(s['variant_success_rate'], True)} ({s['successful_variants']}/{s['variants']}) | "
                      f"{_fmt(s['violation_rate_successful'], True)} | {_fmt(s['seconds_per_variant_median'])} | "
                      f"{_fmt(s['appearance_drift_psnr_db_mean'])} | {s['appearance_drift_measured_variants']} |")
@@ -354,14 +406,45 @@ def _fmt(x, pct: bool = False) -> str:
     return f"{100 * x:.0f}%" if pct else f"{x:.2f}"
 
 
+def _rate(s: dict, key: str, count: str) -> str:
+    """'94% (of 16)': a scene success rate with its denominator."""
+    if s.get(key) is None and s.get(count) is None:
+        return "n/a"
+    return f"{_fmt(s.get(key), True)} (of {s.get(count, 0)})"
+
+
+def _reach_paragraph(scenes: list[dict], search: dict | None) -> str:
+    if not scenes or "feasible" not in scenes[0]:  # a report measured before the feasibility search existed
+        return (f"{sum(s['reachable'] for s in scenes)} scene(s) have an agent that can reach the ego path by the "
+                "envelope test; success rates are over those scenes.")
+    n_env = sum(s["reachable"] for s in scenes)
+    n_feas = sum(s["feasible"] for s in scenes)
+    missed = [s["scene_id"] for s in scenes if s.get("search_missed")]
+    env_only = [s["scene_id"] for s in scenes if s["reachable"] and not s["feasible"]]
+    feas_only = [s["scene_id"] for s in scenes if s["feasible"] and not s["reachable"]]
+    cfg = search or {}
+    return (f"Which scenes count: {n_feas} scene(s) are **feasible**: the feasibility search "
+            f"(omniscs.scs.behavior.feasibility; {cfg.get('starts', '?')} random starts x up to "
+            f"{cfg.get('steps', '?')} Adam steps over free per-step controls of each candidate, rolled through the "
+            "bicycle model with the comfort bounds as hard limits, ignoring other agents and the road, so an upper "
+            "bound on any method) found a trajectory whose footprint overlaps the ego's with IoU > 0.02, or a "
+            "configuration made a successful, plausible variant there"
+            + (f" (the search missed {len(missed)}: {', '.join(missed)})" if missed else " (the search missed none)")
+            + f". {n_env} scene(s) are **envelope-reachable** (BehaviorProblem.reachable: +2.4 / -4.05 m/s² along "
+            "the fitted path, sideways at most min(4.9 t²/2, 0.2 s²/2), boxes touching), the looser test used "
+            "before the search existed."
+            + (f" Envelope-reachable but not feasible: {', '.join(env_only)}." if env_only else "")
+            + (f" Feasible but not envelope-reachable: {', '.join(feas_only)}." if feas_only else ""))
+
+
 def markdown(result: dict) -> str:
     scenes = result["scenes"]
+    offset = result["bench"].get("seed_offset", BENCH_SEED_OFFSET)
     lines = ["# Behaviour-level SCS benchmark", "",
-             f"{len(scenes)} procedural scenes ({', '.join(TRAIN_TEMPLATES)}; seeds from {BENCH_SEED_OFFSET}), "
+             f"{len(scenes)} procedural scenes ({', '.join(TRAIN_TEMPLATES)}; seeds from {offset}), "
              f"{result['bench']['variants_per_scene']} variant(s) each, preset `{result['bench']['preset']}`, "
-             f"checkpoint `{result['checkpoint_hash']}`. {sum(s['reachable'] for s in scenes)} scene(s) have an agent "
-             "that can reach the ego path within comfort bounds (BehaviorProblem.reachable: +2.4 / -4.05 m/s² "
-             "along its path, sideways at most min(4.9 t²/2, 0.2 s²/2)); success rates are over those scenes. "
+             f"checkpoint `{result['checkpoint_hash']}`. "
+             + _reach_paragraph(scenes, result["bench"].get("feasibility")) + " "
              "Success: ego and adversary footprints overlap (IoU > 0.02) at some step; plausible: comfort bounds "
              "(lateral 4.9, +2.4/-4.05 m/s², yaw rate 1 rad/s) for every decoded agent, no collision other than "
              "ego-adversary, nobody leaves the drivable area. Each variant may try up to 3 reachable adversaries; an "
@@ -369,19 +452,29 @@ def markdown(result: dict) -> str:
              "comfortable interception path found by a search over its control knots), and standing ones start "
              "from it; its time covers all attempts and warm starts. Times: 1 torch thread on a shared 2-core "
              "machine.", "",
-             "| configuration | scene success (any variant) | scene success (first variant) | variant success | "
+             "| configuration | scene success, feasible scenes (any variant) | scene success, envelope-reachable "
+             "scenes (any variant) | scene success, feasible (first variant) | variant success | "
              "violations among successes | violations, all variants | adversary abs(long. accel) mean / max m/s² | "
              "adversary lateral accel mean / max m/s² | s per variant (median) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name in _order(result):
         s = result["summary"][name]
         lines.append(
-            f"| {name} | {_fmt(s['scene_success_rate_any_variant'], True)} | "
-            f"{_fmt(s['scene_success_rate_first_variant'], True)} | {_fmt(s['variant_success_rate'], True)} "
+            f"| {name} | {_rate(s, 'scene_success_rate_feasible', 'feasible_scenes')} | "
+            f"{_rate(s, 'scene_success_rate_any_variant', 'reachable_scenes')} | "
+            f"{_fmt(s.get('scene_success_rate_feasible_first_variant'), True)} | "
+            f"{_fmt(s['variant_success_rate'], True)} "
             f"({s['successful_variants']}/{s['variants']}) | {_fmt(s['violation_rate_successful'], True)} | "
             f"{_fmt(s['violation_rate_all'], True)} | {_fmt(s['adversary_abs_long_accel_mean'])} / "
             f"{_fmt(s['adversary_abs_long_accel_max'])} | {_fmt(s['adversary_lateral_accel_mean'])} / "
             f"{_fmt(s['adversary_lateral_accel_max'])} | {_fmt(s['seconds_per_variant_median'])} |")
+    failed = {name: result["summary"][name].get("failed_feasible_scenes") for name in _order(result)}
+    if any(failed.values()):
+        lines += ["", "Feasible scenes a configuration failed: " + "; ".join(
+            f"{name}: {', '.join(v)}" for name, v in failed.items() if v) + "."]
+    if scenes and "feasibility_seconds" in scenes[0]:
+        lines += ["", f"Feasibility search time per scene: median "
+                  f"{np.median([s['feasibility_seconds'] for s in scenes]):.1f} s (not part of the times above)."]
     lines += ["", "Collision kinds among successful variants: " + "; ".join(
         f"{name}: {result['summary'][name].get('kinds')}" for name in _order(result)
         if "kinds" in result["summary"][name]), ""]
@@ -419,10 +512,10 @@ def _plot(result: dict, out_png: Path) -> Path:
     names = list(_order(result))
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), dpi=110)
     x = np.arange(len(names))
-    succ = [result["summary"][n]["scene_success_rate_any_variant"] or 0.0 for n in names]
+    succ = [result["summary"][n].get("scene_success_rate_feasible") or 0.0 for n in names]
     vsucc = [result["summary"][n]["variant_success_rate"] for n in names]
     viol = [result["summary"][n]["violation_rate_successful"] or 0.0 for n in names]
-    axes[0].bar(x - 0.27, succ, 0.27, label="scene success (any variant)")
+    axes[0].bar(x - 0.27, succ, 0.27, label="scene success, feasible scenes (any variant)")
     axes[0].bar(x, vsucc, 0.27, label="variant success")
     axes[0].bar(x + 0.27, viol, 0.27, label="violations among successes")
     axes[0].axhline(0.9, color="green", ls="--", lw=0.8)
