@@ -174,3 +174,31 @@ def test_box_gap_is_negative_exactly_when_the_boxes_overlap_and_finite_far_away(
     far = box_gap(agent_10km, (4.5, 1.9), torch.zeros(1, 3), (4.8, 2.0))
     far.sum().backward()
     assert far.item() == pytest.approx(1e4 - 2.4 - 0.95, rel=1e-5) and torch.isfinite(agent_10km.grad).all()
+
+
+def test_agents_whose_reconstruction_collides_replay_their_log_and_are_never_adversaries(model):
+    # In this procedural intersection two cars turn past each other 3.7 m apart, tighter than the comfort yaw rate
+    # (1 rad/s): comfort decoding runs both wide and their reconstructions overlap, which the log never does.
+    from omniscs.world import generate_world
+
+    traffic = traffic_from_world(generate_world("intersection", 2100, n_frames=40, n_cameras=1, width=64, height=36))
+    base = adversarial_preset("balanced")
+    unpinned = BehaviorProblem(traffic, model, replace(base, pin_colliding_reconstructions=False))
+    fit = unpinned.fitted
+    ev = unpinned.evaluate(fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(),
+                           unpinned.logged_plan, 1)
+    assert any(v.startswith("collision of track 10 and track 11") for v in ev.violations)
+
+    p = BehaviorProblem(traffic, model, base)
+    pinned = [int(traffic.track_ids[p.node_tracks[k]]) for k in np.flatnonzero(p.pinned)]
+    assert pinned == [10, 11]
+    fit = p.fitted
+    ev = p.evaluate(fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(), p.logged_plan, 1)
+    assert not any(v.startswith("collision") for v in ev.violations), ev.violations
+    mask = p.batch.future_mask[0].numpy()
+    for k in np.flatnonzero(p.pinned):  # exactly the log, whatever the latents
+        assert np.allclose(fit.states[k, mask[k], :3].numpy(), p.batch.future[0, k, mask[k]].numpy(), atol=1e-5)
+        moved = p.decode(p.z_fit + 1.0).states
+        assert torch.equal(moved[k], fit.states[k])
+    assert not set(np.flatnonzero(p.pinned)) & {c[0] for c in p.candidates()}
+    assert torch.isfinite(fit.states).all()

@@ -72,6 +72,12 @@ class AdversarialConfig:
     """Learning rate of that fit."""
     fit_posterior_weight: float = 0.01
     """Pull toward the posterior mean during the fit (keeps agents with no logged future sensible)."""
+    pin_colliding_reconstructions: bool = True
+    """Agents whose reconstruction (the latents fitted to the log, before any variant) collides with another
+    non-ego agent where the log does not replay their log instead, and are never adversaries: where comfort decoding
+    cannot follow a logged manoeuvre (a turn tighter than the comfort yaw rate) the reconstruction runs wide into a
+    neighbour the log passes cleanly, and every variant of the scene would start implausible. A collision penalty in
+    the fit does not fix it (tried: the overlap stays while the fit error doubles)."""
     beh_weight: float = 1.0
     """Weight of L_beh."""
     restore_weight: float = 0.005
@@ -366,11 +372,20 @@ class BehaviorProblem:
         self.ego_size = (traffic.ego_box.length, traffic.ego_box.width)
         state0 = self.sample.state0.numpy().astype(np.float64)
         self.onroad_now = traffic.map.is_drivable(self.frame.to_world_np(state0[:, :3])[:, :2])  # [N]
+        self._log_overlaps = self._logged_overlaps()
+        self.pinned = np.zeros(self.n_nodes, dtype=bool)  # nodes that replay their log (see pin_colliding_...)
+        self._pinned_states: Tensor | None = None
         self.z_fit, self.fit_ade = self._fit_latents()
         with torch.no_grad():
             self.fitted = self.decode(self.z_fit)
             self.fitted_knots = model.control_knots(self.context, self.z_fit[None], self.edges, self.edge_mask)[0]
-        self._log_overlaps = self._logged_overlaps()
+        if config.pin_colliding_reconstructions:
+            pinned = self._colliding_reconstructions()
+            if pinned.any():
+                self.pinned = pinned
+                self._pinned_states = self._logged_states()
+                with torch.no_grad():
+                    self.fitted = self.decode(self.z_fit)
 
     # -- model ----------------------------------------------------------------------------------------
     @property
@@ -385,7 +400,42 @@ class BehaviorProblem:
     def decode(self, z: Tensor) -> Decoded:  # z [N, Z] -> states [N, T, 5] (scene frame)
         dec = self.model.decode(self.context, z[None], self.batch, self.edges, self.edge_mask, self.horizon,
                                 comfort=self.comfort_limits, standstill_gradient=self.config.standstill_gradient)
-        return Decoded(dec.states[0], dec.longitudinal_accel[0], dec.lateral_accel[0])
+        states, lon, lat = dec.states[0], dec.longitudinal_accel[0], dec.lateral_accel[0]
+        if self._pinned_states is not None:  # pinned nodes replay their log (no gradient, no accelerations)
+            pin = torch.from_numpy(self.pinned)[:, None]
+            states = torch.where(pin[..., None], self._pinned_states.to(states.dtype), states)
+            lon = torch.where(pin, torch.zeros_like(lon), lon)
+            lat = torch.where(pin, torch.zeros_like(lat), lat)
+        return Decoded(states, lon, lat)
+
+    def _logged_states(self) -> Tensor:  # [N, T, 5]: the log where present, the reconstruction elsewhere
+        """Logged future states (speed and yaw rate by finite differences) of the nodes, for pinning."""
+        states = self.fitted.states.detach().clone()
+        future, mask = self.batch.future[0].to(states.dtype), self.batch.future_mask[0]
+        prev = torch.cat([self.sample.state0[:, None, :3].to(states.dtype), future[:, :-1]], 1)
+        dt = self.traffic.dt
+        speed = torch.linalg.norm(future[..., :2] - prev[..., :2], dim=-1) / dt
+        yaw_rate = torch.atan2(torch.sin(future[..., 2] - prev[..., 2]), torch.cos(future[..., 2] - prev[..., 2])) / dt
+        logged = torch.cat([future, speed[..., None], yaw_rate[..., None]], -1)
+        return torch.where(mask[..., None], logged, states)
+
+    def _colliding_reconstructions(self) -> np.ndarray:  # [N] bool
+        """Non-ego nodes whose fitted reconstruction overlaps (IoU > collision_iou) another non-ego agent at a step
+        where the log has them apart. Overlaps with the ego are left alone: such an agent is a natural adversary."""
+        states = self.fitted.states.numpy().astype(np.float64)
+        xyyaw, present, sizes, _ = self._objects(states, self.logged_plan)
+        fp = footprints(xyyaw[..., :2], xyyaw[..., 2], sizes[:, 0, None], sizes[:, 1, None])  # [A, T, 4, 2]
+        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
+        centre_d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1)  # [A, A, T]
+        close = (centre_d <= (reach[:, None] + reach[None, :])[..., None]) & present[:, None] & present[None, :]
+        close &= np.triu(np.ones(close.shape[:2], bool), 1)[..., None] & ~self._log_overlaps
+        close[0] = False
+        pinned = np.zeros(self.n_nodes, dtype=bool)
+        for a, b, t in zip(*np.nonzero(close)):
+            decoded = [k for k in (a, b) if k < self.n_nodes]
+            if decoded and not pinned[decoded].all() and box_iou(fp[a, t], fp[b, t]) > self.config.collision_iou:
+                pinned[decoded] = True
+        return pinned
 
     def _fit_latents(self) -> tuple[Tensor, float]:
         """Latents whose decoded trajectories reproduce the logged future (posterior mean, then refined)."""
@@ -531,7 +581,7 @@ class BehaviorProblem:
         out = []
         for k in range(1, self.n_nodes):
             track = int(self.node_tracks[k])
-            if self.traffic.categories[track] in NON_ADVERSARY_CATEGORIES:
+            if self.traffic.categories[track] in NON_ADVERSARY_CATEGORIES or self.pinned[k]:
                 continue
             fitted = fitted_all[k]
             closest = float(np.linalg.norm(fitted[:, :2] - plan[:, :2], axis=1).min())
@@ -615,7 +665,7 @@ class BehaviorProblem:
         # comfort of every decoded non-ego agent
         for k in range(1, self.n_nodes):
             track, on = ids[k], present[k]
-            if not on.any():
+            if not on.any() or self.pinned[k]:  # pinned nodes replay the log, like tracks that are not nodes
                 continue
             checks = ((lon[k, on].max(), cb.max_accel, "longitudinal acceleration"),
                       (-lon[k, on].min(), cb.max_decel, "braking"),
@@ -643,7 +693,7 @@ class BehaviorProblem:
         # leaving the drivable area
         world = self.frame.to_world_np(states[..., :3])
         for k in range(1, self.n_nodes):
-            if not self.onroad_now[k]:
+            if not self.onroad_now[k] or self.pinned[k]:
                 continue
             xy = world[k, :, :2]
             off = np.flatnonzero(~self.traffic.map.is_drivable(xy) & self.traffic.map.covers(xy) & present[k])
@@ -682,7 +732,7 @@ class BehaviorProblem:
         cfg, cb, m = self.config, self.config.comfort, self.config.penalty_margin
         relu = torch.nn.functional.relu
         node_present = self.node_present(adversary)
-        seen = torch.from_numpy(node_present[1:]).to(dec.states.dtype)
+        seen = torch.from_numpy(node_present[1:] & ~self.pinned[1:, None]).to(dec.states.dtype)
         lon, lat, w = dec.longitudinal_accel[1:], dec.lateral_accel[1:], dec.states[1:, :, 4]
         comfort = ((relu(lon - m * cb.max_accel) ** 2 + relu(-lon - m * cb.max_decel) ** 2
                     + relu(lat.abs() - m * cb.max_lateral_accel) ** 2 + relu(w.abs() - m * cb.max_yaw_rate) ** 2)
@@ -694,20 +744,25 @@ class BehaviorProblem:
             outside = self.traffic.map.outside_distance(world[..., :2])  # [N-1, T]
             onroad = torch.from_numpy(self.onroad_now[1:]).to(outside.dtype)
             offroad = ((relu(outside) ** 2) * onroad[:, None] * seen).sum()
-        collision = zero
-        if cfg.collision_weight:
-            replay = torch.from_numpy(self.replay_xyyaw).to(torch.float32)
-            xyyaw = torch.cat([plan[None], dec.states[1:, :, :3], replay], 0)  # [A, T, 3]
-            sizes = torch.cat([torch.tensor([self.ego_size], dtype=torch.float32), self.node_sizes[1:],
-                               torch.from_numpy(self.replay_sizes).to(torch.float32)], 0)
-            present = np.concatenate([node_present, self.replay_present], 0)
-            centres, radii = disc_centres(xyyaw, sizes)  # [A, 3, T, 2], [A]
-            a_idx, b_idx = self._near_pairs(xyyaw.detach().numpy(), sizes.numpy(), adversary)
-            if len(a_idx):
-                overlap = disc_overlap(centres[a_idx], radii[a_idx], centres[b_idx], radii[b_idx], cfg.clearance_m)
-                valid = present[a_idx] & present[b_idx] & ~self._log_overlaps[a_idx, b_idx]
-                collision = (overlap * torch.from_numpy(valid)).sum()
+        collision = self.collision_penalty(dec, plan, adversary) if cfg.collision_weight else zero
         return {"comfort": comfort, "collision": collision, "offroad": offroad}
+
+    def collision_penalty(self, dec: Decoded, plan: Tensor, adversary: int) -> Tensor:
+        """Squared disc overlap (clearance_m apart) of pairs near each other, at least one decoded, except the
+        ego-adversary pair and pairs that overlap in the log."""
+        node_present = self.node_present(adversary)
+        replay = torch.from_numpy(self.replay_xyyaw).to(torch.float32)
+        xyyaw = torch.cat([plan[None], dec.states[1:, :, :3], replay], 0)  # [A, T, 3]
+        sizes = torch.cat([torch.tensor([self.ego_size], dtype=torch.float32), self.node_sizes[1:],
+                           torch.from_numpy(self.replay_sizes).to(torch.float32)], 0)
+        present = np.concatenate([node_present, self.replay_present], 0)
+        centres, radii = disc_centres(xyyaw, sizes)  # [A, 3, T, 2], [A]
+        a_idx, b_idx = self._near_pairs(xyyaw.detach().numpy(), sizes.numpy(), adversary)
+        if not len(a_idx):
+            return dec.states.sum() * 0.0
+        overlap = disc_overlap(centres[a_idx], radii[a_idx], centres[b_idx], radii[b_idx], self.config.clearance_m)
+        valid = present[a_idx] & present[b_idx] & ~self._log_overlaps[a_idx, b_idx]
+        return (overlap * torch.from_numpy(valid)).sum()
 
     # -- optimisation ---------------------------------------------------------------------------------
     def world_trajectories(self, states: Tensor) -> AgentTrajectories:
