@@ -107,6 +107,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("planner", pa.string(), nullable=False),         # replay | rule
         pa.field("iterations", pa.int32(), nullable=False),       # Adam steps of the kept attempt
         pa.field("attempts", pa.int32(), nullable=False),         # adversaries tried for this variant
+        pa.field("source", pa.string()),                          # latent | knots (the interception path itself)
         pa.field("optimisation_seconds", pa.float64(), nullable=False),  # over every attempt
         pa.field("checkpoint", pa.string(), nullable=False),      # content hash (12 hex) of the traffic model
         pa.field("variants_path", pa.string(), nullable=False),   # the variants.json holding the trajectories

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from omniscs.scs.behavior.adversarial import (BehaviorProblem, adversarial_preset, box_gap, generate_variants,
-                                              variant_schedule)
+from omniscs.scs.behavior.adversarial import (BehaviorProblem, adversarial_preset, box_gap, distinct_variants,
+                                              generate_variants, variant_schedule)
 from omniscs.scs.behavior.collision import footprints, overlapping
 from omniscs.scs.behavior.appearance import AppearanceTerm
 from omniscs.scs.behavior.checkpoint import load_checkpoint
@@ -202,3 +202,24 @@ def test_agents_whose_reconstruction_collides_replay_their_log_and_are_never_adv
         assert torch.equal(moved[k], fit.states[k])
     assert not set(np.flatnonzero(p.pinned)) & {c[0] for c in p.candidates()}
     assert torch.isfinite(fit.states).all()
+
+
+def test_the_knot_fallback_keeps_a_plausible_interception_the_latent_cannot_express(model):
+    # A left turn across this procedural intersection into the ego: the interception search over the decoder's
+    # control knots finds it, comfortably and on the road; the latent refitted to it and optimised does not.
+    from omniscs.world import generate_world
+
+    traffic = traffic_from_world(generate_world("intersection", 2200, n_frames=40, n_cameras=1, width=64, height=36))
+    base = adversarial_preset("balanced")
+    p = BehaviorProblem(traffic, model, replace(base, knot_fallback=False))
+    (latent,) = distinct_variants(p, p.candidates(), 1)
+    assert latent.source == "latent" and not latent.success
+    p.config = base
+    (v,) = distinct_variants(p, p.candidates(), 1)
+    assert v.source == "knots" and v.success and v.plausible and v.adversary == latent.adversary
+    spec = json.loads(json.dumps(variant_spec(v)))
+    assert spec["source"] == "knots" and spec["losses"]["L_restore"] == 0.0
+    cb = base.comfort
+    assert -cb.max_decel <= spec["adversary_accel_mps2"][0] and spec["adversary_accel_mps2"][1] <= cb.max_accel
+    assert spec["adversary_max_lateral_accel_mps2"] <= cb.max_lateral_accel
+    assert all(np.isfinite(x) for x in v.losses.values() if x is not None)

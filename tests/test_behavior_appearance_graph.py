@@ -85,6 +85,29 @@ def test_rendering_logged_poses_as_node_poses_changes_nothing(fitted):
         render_view(graph, view, agent_poses={99: poses[1]})
 
 
+def test_a_static_layer_renders_the_same_image_and_gradients_with_fewer_gaussians(fitted):
+    from omniscs.nsg.graph import static_layer
+
+    _, _, graph = fitted
+    for f, downscale in ((20, 1), (35, 2)):
+        view = graph.view(graph.cameras[0].name, f).downscaled(downscale)
+        layer = static_layer(graph, view)
+        assert 0 < len(layer.means) < layer.kept_of == len(graph.background)  # culled, not emptied
+        outs = []
+        for static in (None, layer):
+            T = graph.agent(1).world_from_agent[f]
+            x = torch.tensor(T[0, 3] + 0.7, requires_grad=True)
+            pose = NodePose.from_xy_yaw(x, torch.tensor(T[1, 3]), torch.tensor(math.atan2(T[1, 0], T[0, 0])), T[2, 3])
+            out = render_view(graph, view, agent_poses={1: pose}, static=static)
+            out.rgb.sum().backward()
+            outs.append((out.rgb.detach(), float(x.grad)))
+        assert torch.allclose(outs[0][0], outs[1][0], atol=1e-5)
+        assert outs[0][1] != 0.0 and outs[1][1] == pytest.approx(outs[0][1], rel=1e-4, abs=1e-5)
+    other = graph.view(graph.cameras[0].name, 21).downscaled(2)
+    with pytest.raises(OmniscsError, match="static layer was made for frame 35"):
+        render_view(graph, other, static=layer)
+
+
 def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)

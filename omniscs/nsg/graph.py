@@ -137,26 +137,80 @@ def pixel_directions(view: View) -> Tensor:  # [H, W, 3] float32 unit, world fra
     return torch.from_numpy(d.astype(np.float32))
 
 
+@dataclass(frozen=True)
+class StaticLayer:
+    """The background node prepared once for one view: activated, coloured for that camera, and cut down to the
+    Gaussians the rasterizer keeps in that view (the others never reach a pixel of it). Rendering the view again
+    with moved agents (L_app, every optimisation step) then skips activating, colouring and projecting them."""
+
+    frame_idx: int
+    world_from_camera: np.ndarray  # [4, 4] the view it was made for
+    K: np.ndarray                  # [3, 3]
+    size: tuple[int, int]          # width, height
+    means: Tensor                  # [M, 3] world frame, detached
+    quats: Tensor                  # [M, 4]
+    scales: Tensor                 # [M, 3]
+    opacities: Tensor              # [M]
+    colours: Tensor                # [M, 3]
+    kept_of: int                   # background Gaussians before culling
+
+    def matches(self, view: View) -> bool:
+        return (self.frame_idx == view.frame_idx and self.size == (view.width, view.height)
+                and np.array_equal(self.world_from_camera, view.world_from_camera) and np.array_equal(self.K, view.K))
+
+
+@torch.no_grad()
+def static_layer(graph: SceneGraph, view: View, sh_degree: int | None = None) -> StaticLayer:
+    """The background of ``graph`` for ``view`` (see StaticLayer): one projection decides what stays."""
+    degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
+    local = activate(graph.background.detached())
+    centre = torch.from_numpy(view.world_from_camera[:3, 3]).to(local.means.dtype)
+    colours = colors_from_sh(local.sh, (local.means - centre)[None], degree)[0]
+    keep = torch.zeros(len(local), dtype=torch.bool)
+    if len(local):
+        s = graph.settings
+        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(local.means.dtype)[None]
+        K = torch.from_numpy(view.K).to(local.means.dtype)[None]
+        _, _, meta = rasterize(local.means, local.quats, local.scales, local.opacities, colours, viewmat, K,
+                               view.width, view.height, near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
+                               render_mode="RGB", backend=s.backend, rasterize_mode=s.rasterize_mode)
+        keep = (meta["radii"][0] > 0).reshape(len(local), -1).any(-1).cpu()
+    return StaticLayer(int(view.frame_idx), np.array(view.world_from_camera, dtype=np.float64), np.array(view.K),
+                       (int(view.width), int(view.height)), local.means[keep].contiguous(), local.quats[keep].contiguous(),
+                       local.scales[keep].contiguous(), local.opacities[keep].contiguous(), colours[keep].contiguous(),
+                       len(local))
+
+
 def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False,
-                agent_poses: Mapping[int, NodePose] | None = None) -> RenderOutput:
+                agent_poses: Mapping[int, NodePose] | None = None, static: StaticLayer | None = None) -> RenderOutput:
     """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
     the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
 
     ``sh_degree`` caps the SH bands used (progressive SH while fitting); ``absgrad`` asks the rasterizer
     for per-pixel absolute screen gradients (densification); ``agent_poses`` places the named agent nodes
-    (track id -> pose) instead of their logged pose in this frame, with gradients flowing into the poses.
+    (track id -> pose) instead of their logged pose in this frame, with gradients flowing into the poses;
+    ``static`` is the background already prepared for this view (``static_layer``; same image, less work).
     """
     agent_poses = dict(agent_poses or {})
+    if static is not None and not static.matches(view):
+        raise OmniscsError(f"static layer was made for frame {static.frame_idx} at {static.size[0]}x{static.size[1]}, "
+                           f"not for this view (frame {view.frame_idx}, {view.width}x{view.height}, or another pose)")
     unknown = sorted(set(agent_poses) - set(graph.agent_ids))
     if unknown:
         raise OmniscsError(f"agent_poses names track(s) {unknown} that are not agent nodes of this graph")
     degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
     f = graph.check_frame(view.frame_idx)
     camera_centre = view.world_from_camera[:3, 3]
-    nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams]] = [(BACKGROUND, None, graph.background)]
+    nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams]] = []
+    if static is None:
+        nodes.append((BACKGROUND, None, graph.background))
     nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians)
               for a in graph.agents if a.present[f]]
     parts, slices, start = [], {}, 0
+    if static is not None and len(static.means):
+        parts.append((static, static.colours))
+        slices[BACKGROUND] = slice(0, len(static.means))
+        start = len(static.means)
     for key, world_from_node, params in nodes:
         if len(params) == 0:
             continue

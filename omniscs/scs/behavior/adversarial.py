@@ -26,6 +26,7 @@ from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
 from omniscs.scs.behavior.checkpoint import set_threads
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
+from omniscs.scs.behavior.kinematics import accelerations
 from omniscs.scs.behavior.model import ComfortLimits, Decoded, TrafficModel
 from omniscs.scs.behavior.planner import PlannerConfig, check_planner, rule_based_plan
 from omniscs.scs.behavior.tracks import TrafficScene
@@ -129,6 +130,12 @@ class AdversarialConfig:
     restarts: int = 1
     """An adversary that finds no collision is optimised again this many times before the next candidate is tried,
     each time from a warm start: its latent refitted to an interception path (BehaviorProblem.intercept). 0 = off."""
+    knot_fallback: bool = True
+    """When every latent optimisation of an adversary (fitted start and warm starts) fails, take its interception
+    path itself (the decoder's control knots found by ``BehaviorProblem.intercept``, through the same comfort
+    bounds and bicycle rollout, everyone else on their reconstruction) if that is a successful, plausible
+    variant. The traffic model's latent cannot express every comfortable manoeuvre (tight turns across an
+    intersection, mostly); such variants are marked ``source: "knots"``. False: latent variants only."""
     warm_start_standing: bool = True
     """Standing candidates (slower than moving_speed) begin with the warm start instead of the fitted latents:
     from the log their braking controls saturate, so L_beh has almost no gradient and they stay parked."""
@@ -308,6 +315,7 @@ class VariantResult:
     planner: str
     collision_point: np.ndarray | None  # [2] world xy of the first contact (mean of the two centres)
     attempts: int = 1  # adversaries tried for this variant (see AdversarialConfig.attempts_per_variant)
+    source: str = "latent"  # "latent": optimised latents; "knots": the interception path (knot_fallback)
 
     @property
     def success(self) -> bool:
@@ -373,6 +381,7 @@ class BehaviorProblem:
         state0 = self.sample.state0.numpy().astype(np.float64)
         self.onroad_now = traffic.map.is_drivable(self.frame.to_world_np(state0[:, :3])[:, :2])  # [N]
         self._log_overlaps = self._logged_overlaps()
+        self._intercepts: dict[tuple, tuple[Tensor, float]] = {}
         self.pinned = np.zeros(self.n_nodes, dtype=bool)  # nodes that replay their log (see pin_colliding_...)
         self._pinned_states: Tensor | None = None
         self.z_fit, self.fit_ade = self._fit_latents()
@@ -530,14 +539,55 @@ class BehaviorProblem:
         best = int(torch.argmin(objective.detach()))
         return states[best].detach(), float(gap[best].min().detach())
 
+    def interception_path(self, node: int, window: tuple[int, int], restart: int) -> tuple[Tensor, float]:
+        """``intercept`` against the plan for the fitted trajectories, with random starts from a generator seeded
+        by (seed, node, window, restart); cached per configuration (warm starts and the knot fallback share it)."""
+        cfg = self.config
+        key = (cfg, node, tuple(window), restart)
+        if key not in self._intercepts:
+            seed = np.random.SeedSequence([cfg.seed, node, window[0], window[1], restart]).generate_state(1)[0]
+            plan = self.plan(self.fitted.states.numpy().astype(np.float64))
+            states, gap = self.intercept(node, window, plan, torch.Generator().manual_seed(int(seed)))
+            self._intercepts[key] = (states.detach(), gap)
+        return self._intercepts[key]
+
+    def knot_variant(self, node: int, window: tuple[int, int], restart: int, variant_id: str,
+                     reachable: bool) -> VariantResult:
+        """The variant in which ``node`` follows its interception path (restart ``restart``) and every other
+        agent its reconstruction: evaluated, and its losses measured, exactly as an optimised variant."""
+        cfg = self.config
+        started = time.perf_counter()
+        path, _ = self.interception_path(node, window, restart)
+        states = self.fitted.states.detach().clone()
+        lon, lat = self.fitted.longitudinal_accel.detach().clone(), self.fitted.lateral_accel.detach().clone()
+        states[node] = path.to(states.dtype)
+        lon[node], lat[node] = accelerations(self.sample.state0[node].to(states.dtype), states[node], self.traffic.dt)
+        states_np = states.numpy().astype(np.float64)
+        plan_np = self.plan(states_np)
+        ev = self.evaluate(states_np, lon.numpy(), lat.numpy(), plan_np, node)
+        plan = torch.from_numpy(plan_np).to(torch.float32)
+        beh_mask = torch.zeros(self.n_nodes, self.horizon, dtype=torch.bool)
+        beh_mask[node, window[0]:window[1]] = True
+        with torch.no_grad():
+            l_beh = float(behaviour_loss(states[..., :2], plan[:, :2], beh_mask)[0])
+            pen = self.plausibility_penalty(Decoded(states, lon, lat), plan, node) \
+                if cfg.uses_plausibility_penalty else {}
+            l_plaus = float(cfg.comfort_weight * pen["comfort"] + cfg.collision_weight * pen["collision"]
+                            + cfg.offroad_weight * pen["offroad"]) if pen else 0.0
+            l_app = None if self.appearance is None else float(self.appearance(self.world_trajectories(states)))
+        total = cfg.beh_weight * l_beh + l_plaus + (0.0 if l_app is None else cfg.app_weight * l_app)
+        losses = {"L_adv": total, "L_beh": l_beh, "L_app": l_app, "L_restore": 0.0, "L_plaus": l_plaus}
+        result = self._result(variant_id, node, window, reachable, states_np, plan_np, ev, losses, 0,
+                              time.perf_counter() - started)
+        result.source = "knots"
+        return result
+
     def warm_start(self, node: int, window: tuple[int, int], restart: int) -> Tensor:  # -> [N, Z]
         """The fitted latents with ``node``'s latent refitted to an interception path (``intercept``, against the
         plan for the fitted trajectories). The random starts of restart ``restart`` come from a generator seeded by
         (seed, node, window, restart)."""
         cfg = self.config
-        seed = np.random.SeedSequence([cfg.seed, node, window[0], window[1], restart]).generate_state(1)[0]
-        plan = self.plan(self.fitted.states.numpy().astype(np.float64))
-        target, _ = self.intercept(node, window, plan, torch.Generator().manual_seed(int(seed)))
+        target, _ = self.interception_path(node, window, restart)
         mask = torch.zeros(self.n_nodes, self.horizon, dtype=torch.bool)
         mask[node] = True
         full_target = torch.zeros(self.n_nodes, self.horizon, 3)
@@ -942,6 +992,13 @@ def optimise_with_fallback(problem: BehaviorProblem, candidates: list[tuple[int,
             best.attempts = attempt
             if result.success:
                 break
+        if cfg.knot_fallback and not (best.success and best.plausible) and cfg.restarts > 0:
+            began = time.perf_counter()
+            fallback = problem.knot_variant(n, window, 0, f"v{index:02d}-track{track}", ok)
+            seconds += time.perf_counter() - began
+            if fallback.success and fallback.plausible:
+                best = fallback
+                best.attempts = attempt
         if best.success and best.plausible:
             break
     best.seconds = seconds

@@ -163,6 +163,7 @@ def _summary(rows: list[dict], scenes: list[dict]) -> dict:
         "seconds_per_variant_median": float(np.median(sec)), "seconds_per_variant_mean": float(sec.mean()),
         "iterations_median": float(np.median([r["iterations"] for r in rows])),
         "attempts_mean": float(np.mean([r["attempts"] for r in rows])),
+        "knot_variants": sum(r.get("source") == "knots" for r in rows),
         "kinds": kinds,
         "violation_kinds": _violation_counts(rows),
     }
@@ -220,7 +221,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
                                        "adversary_max_lateral": ev.adversary_max_lateral,
                                        "min_distance_m": ev.min_distance_m, "seconds": v.seconds,
                                        "iterations": v.iterations, "attempts": v.attempts,
-                                       "losses": v.losses})
+                                       "source": v.source, "losses": v.losses})
                     if example is None and name.endswith("(default)") and ev.success and ev.plausible:
                         example = (v, traffic)
                     done += 1
@@ -320,7 +321,8 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
                                    "violations": ev.violations, "adversary_accel": list(ev.adversary_accel),
                                    "adversary_max_lateral": ev.adversary_max_lateral,
                                    "min_distance_m": ev.min_distance_m, "seconds": v.seconds,
-                                   "iterations": v.iterations, "attempts": v.attempts, "losses": v.losses,
+                                   "iterations": v.iterations, "attempts": v.attempts, "source": v.source,
+                                   "losses": v.losses,
                                    "drift_frames": frames, "adversary_pixels": int(mask.sum()),
                                    "drift_psnr_db": masked_psnr(rendered, truth, mask)})
     mark_feasible(scenes, rows, [name for name, _ in setups])
@@ -426,7 +428,8 @@ def _reach_paragraph(scenes: list[dict], search: dict | None) -> str:
     return (f"Which scenes count: {n_feas} scene(s) are **feasible**: the feasibility search "
             f"(omniscs.scs.behavior.feasibility; {cfg.get('starts', '?')} random starts x up to "
             f"{cfg.get('steps', '?')} Adam steps over free per-step controls of each candidate, rolled through the "
-            "bicycle model with the comfort bounds as hard limits, ignoring other agents and the road, so an upper "
+            "bicycle model with the comfort bounds as hard limits, staying on the drivable area"
+            + ("" if cfg.get("road", True) else " (off: road ignored)") + ", ignoring other agents, so an upper "
             "bound on any method) found a trajectory whose footprint overlaps the ego's with IoU > 0.02, or a "
             "configuration made a successful, plausible variant there"
             + (f" (the search missed {len(missed)}: {', '.join(missed)})" if missed else " (the search missed none)")
@@ -475,6 +478,11 @@ def markdown(result: dict) -> str:
     if scenes and "feasibility_seconds" in scenes[0]:
         lines += ["", f"Feasibility search time per scene: median "
                   f"{np.median([s['feasibility_seconds'] for s in scenes]):.1f} s (not part of the times above)."]
+    knots = {name: result["summary"][name].get("knot_variants") for name in _order(result)}
+    if any(knots.values()):
+        lines += ["", "Variants whose adversary follows its interception path (knot fallback: the latent "
+                  "optimisation failed, the control-knot path is successful and plausible): " + "; ".join(
+                      f"{name}: {k}" for name, k in knots.items() if k) + "."]
     lines += ["", "Collision kinds among successful variants: " + "; ".join(
         f"{name}: {result['summary'][name].get('kinds')}" for name in _order(result)
         if "kinds" in result["summary"][name]), ""]

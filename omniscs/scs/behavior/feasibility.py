@@ -8,10 +8,11 @@ a car one lane over whose envelope touches the ego may still have no comfortable
 This module answers the question directly. For each candidate it optimises per-step controls (acceleration, yaw
 acceleration; one free pair per step, no traffic model, no latent) from many random starts, rolled through the same
 bicycle model with the plausibility bounds as hard limits (longitudinal +2.4 / -4.05 m/s², lateral 4.9 m/s², yaw
-rate 1 rad/s), toward overlapping the ego's box, and measures the result with the exact footprint IoU. It ignores
-other agents and the drivable area, so "feasible" is necessary for a plausible success, not sufficient: it bounds
-what any adversarial method could achieve. A search can miss a trajectory that exists; the benchmark therefore also
-counts a scene as feasible wherever a method produced a successful, plausible variant (``scene_feasible``).
+rate 1 rad/s), toward overlapping the ego's box, and measures the result with the exact footprint IoU. An agent
+that starts on the drivable area must stay on it (the plausibility check's own test, on every step); other agents
+are ignored. So "feasible" is necessary for a plausible success, not sufficient: it bounds what any adversarial
+method could achieve. A search can miss a trajectory that exists; the benchmark therefore also counts a scene as
+feasible wherever a method produced a successful, plausible variant (``scene_feasible``).
 
 Candidates whose reach ball (speed·t + ½·a_max·t² plus both boxes' half diagonals) never meets the ego's path are
 ruled out without a search: that test is exact, not heuristic.
@@ -46,6 +47,10 @@ class FeasibilityConfig:
     """Standard deviations of the random raw controls; the starts are split evenly between them."""
     depth_m: float = 1.5
     """Penetration rewarded up to this depth, metres (deeper overlap is more IoU; beyond it nothing more)."""
+    offroad_weight: float = 10.0
+    """Weight of the squared distance off the drivable area in the search's loss (agents that start on it)."""
+    road: bool = True
+    """Require agents that start on the drivable area to stay on it; False ignores the road (a looser bound)."""
     check_every: int = 50
     """Measure IoU every this many steps and stop once a start exceeds the threshold."""
     seed: int = 0
@@ -60,7 +65,7 @@ class Reach:
     track: int  # index into the scene's tracks
     feasible: bool
     best_iou: float
-    best_gap_m: float  # smallest separating-axis gap reached (negative: penetration depth)
+    best_gap_m: float  # smallest separating-axis gap reached by a trajectory that stays on the road (negative: depth)
     searched: bool  # False when ruled out by the reach ball
     steps: int
     states: np.ndarray | None  # [T, 5] the best trajectory (scene frame), None when not searched
@@ -119,6 +124,8 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
     if out_of_reach(state0, size, plan, problem.ego_size, problem.traffic.dt, cb.max_accel, lim.max_speed):
         return Reach(node, track, False, 0.0, float("inf"), False, 0, None)
 
+    on_road = bool(config.road and problem.onroad_now[node])
+    road_map, frame = problem.traffic.map, problem.frame
     gen = torch.Generator().manual_seed(config.seed)
     groups = np.array_split(np.arange(config.starts), len(config.init_std))
     raw0 = torch.zeros(config.starts, problem.horizon, 2)
@@ -135,14 +142,24 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
         c = torch.stack([soft_clip_accel(c[..., 0], cb.max_accel, cb.max_decel), c[..., 1]], -1)
         return rollout(state0_t.expand(r.shape[0], 5), c, problem.traffic.dt, lim, cfg.standstill_gradient)
 
+    def offroad(states: torch.Tensor) -> torch.Tensor:  # [S, T] metres off the drivable area
+        return road_map.outside_distance(frame.to_world(states[..., :3])[..., :2])
+
+    def stays_on_road(states: np.ndarray) -> np.ndarray:  # [S, T, 5] -> [S] bool, as BehaviorProblem.evaluate tests
+        if not on_road:
+            return np.ones(len(states), dtype=bool)
+        xy = frame.to_world_np(states[..., :3])[..., :2].reshape(-1, 2)
+        off = (~road_map.is_drivable(xy) & road_map.covers(xy)).reshape(states.shape[:2])
+        return ~off.any(-1)
+
     def measure(states: torch.Tensor, gap: torch.Tensor) -> None:
         nonlocal best_iou, best_gap, best_states
-        g = gap.detach()
+        st = states.detach().numpy().astype(np.float64)
+        g = torch.where(torch.from_numpy(stays_on_road(st))[:, None], gap.detach(), torch.full_like(gap, float("inf")))
         best_gap = min(best_gap, float(g.min()))
-        hits = torch.nonzero(g < 0).numpy()  # only overlapping (start, step) pairs need the exact IoU
+        hits = torch.nonzero(g < 0).numpy()  # only overlapping (start, step) pairs on the road need the exact IoU
         if len(hits) == 0:
             return
-        st = states.detach().numpy().astype(np.float64)
         fa = footprints(st[hits[:, 0], hits[:, 1], :2], st[hits[:, 0], hits[:, 1], 2], size[0], size[1])
         iou = box_iou(fe[hits[:, 1]], fa)
         k = int(np.argmax(iou))
@@ -153,6 +170,8 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
         states = roll(raw)
         gap = box_gap(states[..., :3], size, plan_t, problem.ego_size).clamp_min(-config.depth_m)  # [S, T]
         loss = (-SOFTMIN_M * torch.logsumexp(-gap / SOFTMIN_M, -1)).sum()
+        if on_road:
+            loss = loss + config.offroad_weight * (torch.relu(offroad(states)) ** 2).sum()
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -7,8 +7,10 @@ differentiable rasterizer, so gradients reach the trajectories and from there th
 scene's plan left in the background cannot move in the render (they are part of the background Gaussians);
 ``make_plan(..., behavior_variants=N)`` makes every vehicle a node so that this does not happen.
 
-Cost control (every optimisation step renders): a few steps spread over the horizon, one camera, and a
-downscaled image (``AppearanceRenderConfig``; the benchmark reports the time per variant it costs).
+Cost control (every optimisation step renders): a few steps spread over the horizon, one camera, a downscaled
+image (``AppearanceRenderConfig``; the benchmark reports the time per variant it costs), and the background
+prepared once per rendered view (``nsg.graph.static_layer``: activated, coloured and culled to what the view
+shows), so each step only places, colours and projects the agent nodes on top of it.
 """
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from torch import Tensor
 
 from omniscs.errors import OmniscsError
 from omniscs.nsg.compose import NodePose
-from omniscs.nsg.graph import SceneGraph, render_view
+from omniscs.nsg.graph import SceneGraph, render_view, static_layer
 from omniscs.scs.behavior.adversarial import AdversarialConfig, now_and_horizon
 from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNetConfig, build_feature_net,
                                             variant_ego_poses)
@@ -79,6 +81,8 @@ class GraphTrajectoryRenderer:
         if np.any(self.frames < 0) or np.any(self.frames >= graph.n_frames):
             raise OmniscsError(f"frames {self.frames.tolist()} are outside the scene graph's {graph.n_frames} frames")
         self.views = [graph.view(self.camera, int(f)).downscaled(config.downscale) for f in self.frames]
+        # the background never moves: activate, colour and cull it once per view (same images, less work per step)
+        self.static = [static_layer(self.graph, v) for v in self.views]
 
     def poses(self, trajectories: AgentTrajectories, position: int, frame: int) -> dict[int, NodePose]:
         """Differentiable poses of the agent nodes present in ``frame``; heights as logged."""
@@ -87,14 +91,16 @@ class GraphTrajectoryRenderer:
 
     def __call__(self, trajectories: AgentTrajectories) -> Tensor:  # [T', 3, H, W] in [0, 1]
         images = []
-        for position, frame, view in zip(self.positions, self.frames, self.views):
-            out = render_view(self.graph, view, agent_poses=self.poses(trajectories, int(position), int(frame)))
+        for position, frame, view, static in zip(self.positions, self.frames, self.views, self.static):
+            out = render_view(self.graph, view, agent_poses=self.poses(trajectories, int(position), int(frame)),
+                              static=static)
             images.append(out.rgb.clamp(0.0, 1.0).permute(2, 0, 1))
         return torch.stack(images)
 
     @torch.no_grad()
     def logged(self) -> Tensor:  # [T', 3, H, W]: the unperturbed graph (every agent on its logged pose)
-        return torch.stack([render_view(self.graph, v).rgb.clamp(0.0, 1.0).permute(2, 0, 1) for v in self.views])
+        return torch.stack([render_view(self.graph, v, static=s).rgb.clamp(0.0, 1.0).permute(2, 0, 1)
+                            for v, s in zip(self.views, self.static)])
 
 
 def scene_graph_appearance(graph: SceneGraph, traffic: TrafficScene, model: TrafficModel,
