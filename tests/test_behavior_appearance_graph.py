@@ -108,6 +108,40 @@ def test_a_static_layer_renders_the_same_image_and_gradients_with_fewer_gaussian
         render_view(graph, other, static=layer)
 
 
+def test_agent_culling_leaves_the_image_unchanged_and_drops_agents_that_cannot_show(fitted):
+    from omniscs.nsg.graph import agent_may_show
+    from omniscs.nsg.observations import View
+
+    _, _, graph = fitted
+    view = graph.view(graph.cameras[0].name, 20).downscaled(2)
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    cam = View(0, np.eye(4), K, 100, 80)  # looking down +z
+    assert agent_may_show(cam, [0, 0, 10], 1.0, 0.2)
+    assert not agent_may_show(cam, [0, 0, -5], 1.0, 0.2)              # behind the camera
+    assert agent_may_show(cam, [0, 0, -0.5], 1.0, 0.2)                # straddles the near plane
+    assert not agent_may_show(cam, [40, 0, 10], 1.0, 0.2)             # far to the right (x/z = 4 > 1.0 with margin)
+    assert agent_may_show(cam, [40, 0, 10], 30.0, 0.2)                # unless it is that large
+    renderer = GraphTrajectoryRenderer(graph, np.arange(40), np.arange(10, 40),
+                                       AppearanceRenderConfig(frames=3, downscale=2))
+    g = torch.Generator().manual_seed(5)
+    for trial in range(6):
+        poses = {}
+        for a in graph.agents:
+            T = a.world_from_agent[20]
+            dx, dy = (torch.randn(2, generator=g) * 6.0).tolist()
+            if trial == 5 and a.track_id == 1:
+                dx = -10_000.0  # ten kilometres behind
+            poses[a.track_id] = NodePose.from_xy_yaw(torch.tensor(T[0, 3] + dx), torch.tensor(T[1, 3] + dy),
+                                                     torch.tensor(float(torch.rand(1, generator=g)) * 6.0), T[2, 3])
+        shown = renderer.showing(view, poses)
+        with torch.no_grad():
+            full = render_view(graph, view, agent_poses=poses).rgb
+            culled = render_view(graph, view, agent_poses=poses, only_agents=shown).rgb
+        assert torch.allclose(full, culled, atol=1e-6)
+        if trial == 5:
+            assert 1 not in shown and len(shown) == len(graph.agents) - 1
+
+
 def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any, Collection, Mapping
 
 import numpy as np
 import torch
@@ -181,15 +181,44 @@ def static_layer(graph: SceneGraph, view: View, sh_degree: int | None = None) ->
                        len(local))
 
 
+def node_radius(params: GaussianParams) -> float:
+    """Radius about the node's origin that holds every Gaussian out to 3 sigma of its largest axis (metres)."""
+    if len(params) == 0:
+        return 0.0
+    g = activate(params.detached())
+    return float((g.means.norm(dim=-1) + 3.0 * g.scales.max(dim=-1).values).max())
+
+
+def agent_may_show(view: View, centre_world: np.ndarray, radius: float, near_plane: float,
+                   margin: float = 0.5) -> bool:
+    """False only when a sphere (centre, radius) lies wholly behind the near plane or outside one side of the view
+    frustum widened by ``margin`` of the image size on every side (the slack covers the rasterizer's linearised
+    splat extent near the image border): nothing in it can reach a pixel of ``view``."""
+    cam_from_world = invert_transform(view.world_from_camera)
+    x, y, z = cam_from_world[:3, :3] @ np.asarray(centre_world, dtype=np.float64) + cam_from_world[:3, 3]
+    if z + radius < near_plane:
+        return False
+    K = view.K
+    mu, mv = margin * view.width, margin * view.height
+    for coord, lo, hi, f, c in ((x, -mu, view.width + mu, K[0, 0], K[0, 2]), (y, -mv, view.height + mv, K[1, 1], K[1, 2])):
+        a_lo, a_hi = (lo - c) / f, (hi - c) / f  # coord / z must lie in [a_lo, a_hi]
+        if (coord - a_lo * z) / np.hypot(1.0, a_lo) < -radius or (a_hi * z - coord) / np.hypot(1.0, a_hi) < -radius:
+            return False
+    return True
+
+
 def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False,
-                agent_poses: Mapping[int, NodePose] | None = None, static: StaticLayer | None = None) -> RenderOutput:
+                agent_poses: Mapping[int, NodePose] | None = None, static: StaticLayer | None = None,
+                only_agents: Collection[int] | None = None) -> RenderOutput:
     """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
     the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
 
     ``sh_degree`` caps the SH bands used (progressive SH while fitting); ``absgrad`` asks the rasterizer
     for per-pixel absolute screen gradients (densification); ``agent_poses`` places the named agent nodes
     (track id -> pose) instead of their logged pose in this frame, with gradients flowing into the poses;
-    ``static`` is the background already prepared for this view (``static_layer``; same image, less work).
+    ``static`` is the background already prepared for this view (``static_layer``; same image, less work);
+    ``only_agents`` renders just those agent nodes (the caller has shown the others cannot reach the image:
+    ``agent_may_show``).
     """
     agent_poses = dict(agent_poses or {})
     if static is not None and not static.matches(view):
@@ -204,8 +233,9 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams]] = []
     if static is None:
         nodes.append((BACKGROUND, None, graph.background))
+    keep = None if only_agents is None else set(int(t) for t in only_agents)
     nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians)
-              for a in graph.agents if a.present[f]]
+              for a in graph.agents if a.present[f] and (keep is None or a.track_id in keep)]
     parts, slices, start = [], {}, 0
     if static is not None and len(static.means):
         parts.append((static, static.colours))

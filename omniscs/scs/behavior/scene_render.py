@@ -10,7 +10,8 @@ scene's plan left in the background cannot move in the render (they are part of 
 Cost control (every optimisation step renders): a few steps spread over the horizon, one camera, a downscaled
 image (``AppearanceRenderConfig``; the benchmark reports the time per variant it costs), and the background
 prepared once per rendered view (``nsg.graph.static_layer``: activated, coloured and culled to what the view
-shows), so each step only places, colours and projects the agent nodes on top of it.
+shows), so each step only places, colours and projects the agent nodes on top of it, and only those whose
+bounding sphere where they are placed may reach the image (``nsg.graph.agent_may_show``).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from torch import Tensor
 
 from omniscs.errors import OmniscsError
 from omniscs.nsg.compose import NodePose
-from omniscs.nsg.graph import SceneGraph, render_view, static_layer
+from omniscs.nsg.graph import SceneGraph, agent_may_show, node_radius, render_view, static_layer
 from omniscs.scs.behavior.adversarial import AdversarialConfig, now_and_horizon
 from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNetConfig, build_feature_net,
                                             variant_ego_poses)
@@ -83,6 +84,8 @@ class GraphTrajectoryRenderer:
         self.views = [graph.view(self.camera, int(f)).downscaled(config.downscale) for f in self.frames]
         # the background never moves: activate, colour and cull it once per view (same images, less work per step)
         self.static = [static_layer(self.graph, v) for v in self.views]
+        # and agent nodes whose bounding sphere, where they are placed, misses the view are left out of that step
+        self.radii = {a.track_id: node_radius(a.gaussians) for a in self.graph.agents}
 
     def poses(self, trajectories: AgentTrajectories, position: int, frame: int) -> dict[int, NodePose]:
         """Differentiable poses of the agent nodes present in ``frame``; heights as logged."""
@@ -92,10 +95,25 @@ class GraphTrajectoryRenderer:
     def __call__(self, trajectories: AgentTrajectories) -> Tensor:  # [T', 3, H, W] in [0, 1]
         images = []
         for position, frame, view, static in zip(self.positions, self.frames, self.views, self.static):
-            out = render_view(self.graph, view, agent_poses=self.poses(trajectories, int(position), int(frame)),
-                              static=static)
+            poses = self.poses(trajectories, int(position), int(frame))
+            out = render_view(self.graph, view, agent_poses=poses, static=static,
+                              only_agents=self.showing(view, poses))
             images.append(out.rgb.clamp(0.0, 1.0).permute(2, 0, 1))
         return torch.stack(images)
+
+    def showing(self, view, poses: dict[int, NodePose]) -> list[int]:
+        """Agent nodes present in the view's frame whose bounding sphere, at their pose, may reach the image."""
+        near = self.graph.settings.near_plane
+        out = []
+        for a in self.graph.agents:
+            if not a.present[view.frame_idx]:
+                continue
+            pose = poses.get(a.track_id)
+            centre = (a.world_from_agent[view.frame_idx, :3, 3] if pose is None
+                      else pose.translation.detach().to(torch.float64).numpy())
+            if agent_may_show(view, centre, self.radii[a.track_id], near):
+                out.append(a.track_id)
+        return out
 
     @torch.no_grad()
     def logged(self) -> Tensor:  # [T', 3, H, W]: the unperturbed graph (every agent on its logged pose)
