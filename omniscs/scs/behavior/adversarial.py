@@ -434,13 +434,10 @@ class BehaviorProblem:
         states = self.fitted.states.numpy().astype(np.float64)
         xyyaw, present, sizes, _ = self._objects(states, self.logged_plan)
         fp = footprints(xyyaw[..., :2], xyyaw[..., 2], sizes[:, 0, None], sizes[:, 1, None])  # [A, T, 4, 2]
-        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
-        centre_d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1)  # [A, A, T]
-        close = (centre_d <= (reach[:, None] + reach[None, :])[..., None]) & present[:, None] & present[None, :]
-        close &= np.triu(np.ones(close.shape[:2], bool), 1)[..., None] & ~self._log_overlaps
-        close[0] = False
         pinned = np.zeros(self.n_nodes, dtype=bool)
-        for a, b, t in zip(*np.nonzero(close)):
+        for a, b, t in zip(*self._touching(xyyaw, present, sizes)):
+            if a == 0:
+                continue
             decoded = [k for k in (a, b) if k < self.n_nodes]
             if decoded and not pinned[decoded].all() and box_iou(fp[a, t], fp[b, t]) > self.config.collision_iou:
                 pinned[decoded] = True
@@ -572,8 +569,7 @@ class BehaviorProblem:
             l_beh = float(behaviour_loss(states[..., :2], plan[:, :2], beh_mask)[0])
             pen = self.plausibility_penalty(Decoded(states, lon, lat), plan, node) \
                 if cfg.uses_plausibility_penalty else {}
-            l_plaus = float(cfg.comfort_weight * pen["comfort"] + cfg.collision_weight * pen["collision"]
-                            + cfg.offroad_weight * pen["offroad"]) if pen else 0.0
+            l_plaus = float(self.weighted_penalty(pen)) if pen else 0.0
             l_app = None if self.appearance is None else float(self.appearance(self.world_trajectories(states)))
         total = cfg.beh_weight * l_beh + l_plaus + (0.0 if l_app is None else cfg.app_weight * l_app)
         losses = {"L_adv": total, "L_beh": l_beh, "L_app": l_app, "L_restore": 0.0, "L_plaus": l_plaus}
@@ -688,6 +684,16 @@ class BehaviorProblem:
               [int(self.traffic.track_ids[t]) for t in self.replay_tracks]
         return xyyaw, present, sizes, ids
 
+    def _touching(self, xyyaw: np.ndarray, present: np.ndarray, sizes: np.ndarray  # from _objects
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # object a < object b, step t
+        """(a, b, t) where two present objects' centres are close enough for their boxes to touch (within the sum
+        of their half diagonals) and the log does not already have them overlapping."""
+        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
+        centre_d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1)  # [A, A, T]
+        close = (centre_d <= (reach[:, None] + reach[None, :])[..., None]) & present[:, None] & present[None, :]
+        close &= np.triu(np.ones(close.shape[:2], bool), 1)[..., None] & ~self._log_overlaps
+        return np.nonzero(close)
+
     def _logged_overlaps(self) -> np.ndarray:  # [A, A, T] bool: pairs that already overlap in the log
         logged = np.zeros((self.n_nodes, self.horizon, 5))
         future = self.batch.future[0].numpy().astype(np.float64)
@@ -726,11 +732,7 @@ class BehaviorProblem:
                     unit = "rad/s" if what == "yaw rate" else "m/s²"
                     violations.append(f"track {track} {what} {value:.2f} > {bound:.2f} {unit}")
         # collisions other than ego-adversary that the log does not have (boxes near each other first)
-        reach = 0.5 * np.hypot(sizes[:, 0], sizes[:, 1])
-        centre_d = np.linalg.norm(xyyaw[:, None, :, :2] - xyyaw[None, :, :, :2], axis=-1)  # [A, A, T]
-        close = (centre_d <= (reach[:, None] + reach[None, :])[..., None]) & present[:, None] & present[None, :]
-        close &= np.triu(np.ones(close.shape[:2], bool), 1)[..., None] & ~self._log_overlaps
-        a_idx, b_idx, t_idx = np.nonzero(close)
+        a_idx, b_idx, t_idx = self._touching(xyyaw, present, sizes)
         hit = overlapping(fp[a_idx, t_idx], fp[b_idx, t_idx]) if len(a_idx) else np.zeros(0, bool)
         reported = set()
         for a, b, t in zip(a_idx[hit], b_idx[hit], t_idx[hit]):
@@ -797,6 +799,12 @@ class BehaviorProblem:
         collision = self.collision_penalty(dec, plan, adversary) if cfg.collision_weight else zero
         return {"comfort": comfort, "collision": collision, "offroad": offroad}
 
+    def weighted_penalty(self, pen: dict[str, Tensor]) -> Tensor:
+        """L_plaus: the plausibility penalty's terms with their configured weights."""
+        cfg = self.config
+        return cfg.comfort_weight * pen["comfort"] + cfg.collision_weight * pen["collision"] \
+            + cfg.offroad_weight * pen["offroad"]
+
     def collision_penalty(self, dec: Decoded, plan: Tensor, adversary: int) -> Tensor:
         """Squared disc overlap (clearance_m apart) of pairs near each other, at least one decoded, except the
         ego-adversary pair and pairs that overlap in the log."""
@@ -847,8 +855,7 @@ class BehaviorProblem:
             l_beh, _ = behaviour_loss(dec.states[..., :2], plan[:, :2], beh_mask)
             l_restore = restore_loss(z, z_init, restore_mask)
             pen = self.plausibility_penalty(dec, plan, adversary) if cfg.uses_plausibility_penalty else {}
-            l_plaus = (cfg.comfort_weight * pen["comfort"] + cfg.collision_weight * pen["collision"]
-                       + cfg.offroad_weight * pen["offroad"]) if pen else l_beh * 0.0
+            l_plaus = self.weighted_penalty(pen) if pen else l_beh * 0.0
             l_app = self.appearance(self.world_trajectories(dec.states)) if self.appearance is not None else None
             total = cfg.beh_weight * l_beh + cfg.restore_weight * l_restore + l_plaus
             if l_app is not None:
