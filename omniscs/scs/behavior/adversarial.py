@@ -41,7 +41,7 @@ NON_ADVERSARY_CATEGORIES = frozenset({"trailer"})
 DIST_EPS = 1e-6
 #: The collision penalty watches pairs that come within this much of touching during the horizon (metres).
 NEAR_PAIR_MARGIN_M = 6.0
-#: Temperature of the soft minimum over time of the box gap in the interception search (metres).
+#: Temperature of the soft minimum over time of the box gap in the interception and feasibility searches (metres).
 INTERCEPT_SOFTMIN_M = 0.3
 
 

@@ -12,7 +12,7 @@ rate 1 rad/s), toward overlapping the ego's box, and measures the result with th
 that starts on the drivable area must stay on it (the plausibility check's own test, on every step); other agents
 are ignored. So "feasible" is necessary for a plausible success, not sufficient: it bounds what any adversarial
 method could achieve. A search can miss a trajectory that exists; the benchmark therefore also counts a scene as
-feasible wherever a method produced a successful, plausible variant (``scene_feasible``).
+feasible wherever a method produced a successful, plausible variant (``bench.mark_feasible``).
 
 Candidates whose reach ball (speed·t + ½·a_max·t² plus both boxes' half diagonals) never meets the ego's path are
 ruled out without a search: that test is exact, not heuristic.
@@ -25,13 +25,9 @@ import numpy as np
 import torch
 
 from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.adversarial import box_gap
+from omniscs.scs.behavior.adversarial import INTERCEPT_SOFTMIN_M, box_gap
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.kinematics import bound_controls, rollout, soft_clip_accel
-
-#: Temperature of the soft minimum over time of the box gap (metres).
-SOFTMIN_M = 0.3
-
 
 @dataclass(frozen=True)
 class FeasibilityConfig:
@@ -69,11 +65,6 @@ class Reach:
     searched: bool  # False when ruled out by the reach ball
     steps: int
     states: np.ndarray | None  # [T, 5] the best trajectory (scene frame), None when not searched
-
-    def to_json(self) -> dict:
-        return {"node": self.node, "track": self.track, "feasible": self.feasible,
-                "best_iou": round(self.best_iou, 4), "best_gap_m": round(self.best_gap_m, 3),
-                "searched": self.searched, "steps": self.steps}
 
 
 def comfort_kinematics(problem):
@@ -169,7 +160,7 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
     for step in range(1, config.steps + 1):
         states = roll(raw)
         gap = box_gap(states[..., :3], size, plan_t, problem.ego_size).clamp_min(-config.depth_m)  # [S, T]
-        loss = (-SOFTMIN_M * torch.logsumexp(-gap / SOFTMIN_M, -1)).sum()
+        loss = (-INTERCEPT_SOFTMIN_M * torch.logsumexp(-gap / INTERCEPT_SOFTMIN_M, -1)).sum()
         if on_road:
             loss = loss + config.offroad_weight * (torch.relu(offroad(states)) ** 2).sum()
         opt.zero_grad()
@@ -202,9 +193,3 @@ def search_scene(problem, config: FeasibilityConfig = FeasibilityConfig(), stop_
         if stop_at_first and out[-1].feasible:
             break
     return out
-
-
-def scene_feasible(reaches: list[Reach], method_found_plausible_success: bool = False) -> bool:
-    """Some agent can reach the ego path: the search found a trajectory, or a method already produced a
-    successful, plausible one (which proves it, whatever the search missed)."""
-    return method_found_plausible_success or any(r.feasible for r in reaches)
