@@ -1,26 +1,23 @@
-"""The ``generate_dataset`` flow: scenes in, catalogued scene stores (and, later, SCS variants) out.
+"""The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
-Pipeline per scene: ingest → preview → fit NSG (when a preset is given) → behaviour variants (when asked
-for) → catalog. Later stages (agents, background, appearance variants, export) slot in before catalog.
+Per scene (DESIGN.md): ingest → plan → preview → fit NSG → behaviour variants → catalog. Stages the scene's
+plan does not need are skipped; stages not built yet (agents, background, render + annotate, export) slot in
+between. A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
 """
 from __future__ import annotations
 
-import json
 import time
 import uuid
 from datetime import datetime, timezone
 
-from prefect import flow, unmapped
+from prefect import flow, get_run_logger, task, unmapped
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.errors import OmniscsError
-from omniscs.nsg.config import PRESETS as FIT_PRESETS
+from omniscs.pipeline.records import SceneRequest
 from omniscs.scene import parse_source
-from omniscs.scs.behavior import PRESETS as BEHAVIOR_PRESETS
 from omniscs.storage import workspace_root
-from tasks.behavior import behavior_variants as behavior_variants_task
-from tasks.ingest import catalog_run, catalog_scene, ingest_scene, preview_scene
-from tasks.nsg import fit_nsg
+from tasks import stages as t
 
 #: Scenes processed at once; the machines this runs on have 2 cores.
 MAX_PARALLEL_SCENES = 2
@@ -34,65 +31,78 @@ def _now_us() -> int:
     return int(time.time() * 1e6)
 
 
-@flow(name="generate_dataset", task_runner=ThreadPoolTaskRunner(max_workers=MAX_PARALLEL_SCENES),
-      log_prints=False)
+@flow(name="scene-pipeline", flow_run_name="scene-{label}", log_prints=False)
+def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: str, run_id: str) -> dict:
+    """Every stage of one scene, in pipeline order; returns what the scene's stages produced."""
+    scene = t.ingest(source, workspace, label)
+    plan = t.plan(scene, request, workspace)
+    stages = plan.info["stages"]
+    records = [scene, plan]
+    if request.previews:
+        records.append(t.preview(scene, workspace))
+    model = t.fit(scene, plan, request, workspace) if stages["fit_nsg"] else None
+    if model is not None:
+        records.append(model)
+    if stages["behavior_variants"]:
+        records.append(t.behavior(scene, plan, model, request, workspace))
+    t.catalog_scene(run_id, workspace, scene.scene_id, records)
+    return {"scene_id": scene.scene_id, "path": scene.path, "reused": scene.reused,
+            "stages": {r.stage: r.to_dict() for r in records}}
+
+
+@task(name="scene", task_run_name="scene-{label}")
+def scene_run(source: dict, label: str, request: SceneRequest, workspace: str, run_id: str) -> dict:
+    """The sub-flow of one scene, as a task so that the run's task runner runs scenes side by side; a failed
+    scene is reported in the result instead of stopping the others."""
+    try:
+        return scene_pipeline(source, label, request, workspace, run_id)
+    except Exception as exc:  # the scene failed; the run goes on and records it
+        get_run_logger().exception("scene %s failed", label)
+        return {"label": label, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
+
+
+@flow(name="generate_dataset", task_runner=ThreadPoolTaskRunner(max_workers=MAX_PARALLEL_SCENES), log_prints=False)
 def generate_dataset(sources: list[str], workspace: str | None = None, run_id: str | None = None,
                      n_frames: int = 40, n_cameras: int = 3, width: int = 480, height: int = 270,
-                     previews: bool = True, behavior_variants: int = 0,
-                     behavior_checkpoint: str | None = None, behavior_preset: str = "balanced",
-                     fit_preset: str | None = None) -> dict:
-    """Ingest every source (``syn:TEMPLATE:SEED[:LIGHTING]`` or a scene-store path) and catalogue it.
+                     previews: bool = True, fit_preset: str | None = None, behavior_variants: int = 0,
+                     behavior_preset: str = "balanced", behavior_checkpoint: str | None = None,
+                     edits: list[dict] | None = None, device: str = "cpu") -> dict:
+    """Run the scene pipeline on every source and catalogue the run.
 
+    Sources: ``syn:TEMPLATE:SEED[:LIGHTING]`` (procedural log of ``n_frames`` frames, ``n_cameras`` cameras at
+    ``width`` x ``height``), ``FORMAT:DATAROOT[:SCENE]`` (nuscenes, kitti, waymo-v2) or a scene-store path.
+    ``fit_preset`` (fast, balanced, accurate) fits each scene's Gaussian scene graph (``models`` table);
     ``behavior_variants`` > 0 makes that many behaviour-level SCS variants per scene (``variants`` table;
     ``behavior_checkpoint`` defaults to the shipped traffic model, ``behavior_preset`` is fast, balanced or
-    accurate). ``fit_preset`` (fast, balanced or accurate) fits each scene's Gaussian scene graph after
-    ingest (``models`` table; checkpoints under ``models/<scene_id>/``); with both, every vehicle is a node
-    and the behaviour optimisation adds L_app rendered by that graph. Returns the run id, workspace, the
-    scene ids and paths, the variant files and the fitted models.
+    accurate), with L_app rendered by the scene graph when one is fitted. ``edits`` (edit dicts, see README)
+    are the edits the variants will apply: the plan makes their tracks nodes. Each scene's plan is in the
+    ``plans`` table. Returns the run id, workspace, and per scene its id, path and stage records; scenes that
+    failed are listed under ``failed``, and the run then ends failed after the others finished.
     """
-    if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, int) or behavior_variants < 0:
-        raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
-    if behavior_variants and behavior_preset not in BEHAVIOR_PRESETS:
-        raise OmniscsError(f"unknown behavior_preset {behavior_preset!r}; use one of {list(BEHAVIOR_PRESETS)}")
-    if fit_preset is not None and fit_preset not in FIT_PRESETS:
-        raise OmniscsError(f"unknown fit_preset {fit_preset!r}; use one of {list(FIT_PRESETS)} or None")
+    request = SceneRequest(fit_preset=fit_preset, behavior_variants=behavior_variants,
+                           behavior_preset=behavior_preset, behavior_checkpoint=behavior_checkpoint,
+                           edits=tuple(edits or ()), previews=previews, device=device)
+    request.parsed_edits()  # a malformed edit fails before any scene starts
     ws = str(workspace_root(workspace))
     run_id = run_id or new_run_id()
     started = _now_us()
     config = {"sources": list(sources), "n_frames": n_frames, "n_cameras": n_cameras, "width": width,
-              "height": height, "previews": previews, "behavior_variants": behavior_variants,
-              "behavior_checkpoint": behavior_checkpoint, "behavior_preset": behavior_preset,
-              "fit_preset": fit_preset}
+              "height": height, **request.to_dict()}
     specs = [parse_source(s, n_frames=n_frames, n_cameras=n_cameras, width=width, height=height).to_dict()
              for s in sources]
     try:
-        ingested = ingest_scene.map(specs, workspace=unmapped(ws))
-        preview_dirs = (preview_scene.map(ingested, workspace=unmapped(ws)) if previews
-                        else [None] * len(specs))
-        models = []
-        if fit_preset is not None:
-            models = fit_nsg.map(ingested, workspace=unmapped(ws), run_id=unmapped(run_id),
-                                 preset=unmapped(fit_preset), behavior_variants=unmapped(behavior_variants))
-        behaviour = []
-        if behavior_variants > 0:
-            # after fit-nsg when there is one: its scene graph renders L_app
-            behaviour = behavior_variants_task.map(ingested, workspace=unmapped(ws), run_id=unmapped(run_id),
-                                                   n_variants=unmapped(behavior_variants),
-                                                   checkpoint=unmapped(behavior_checkpoint),
-                                                   preset=unmapped(behavior_preset),
-                                                   model=models if fit_preset is not None else unmapped(None))
-        scene_ids = catalog_scene.map(ingested, preview_dirs, run_id=unmapped(run_id), workspace=unmapped(ws),
-                                      wait_for=list(behaviour) + list(models) or None)
-        scene_ids = scene_ids.result()
-        behaviour = behaviour.result() if behavior_variants > 0 else []
-        models = models.result() if fit_preset is not None else []
-        ingested = ingested.result()
+        futures = scene_run.map(specs, list(sources), request=unmapped(request), workspace=unmapped(ws),
+                                run_id=unmapped(run_id))
+        results = [f.result() for f in futures]
     except Exception as exc:
-        catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), len(specs),
-                    json.dumps(config), error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        t.catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), len(specs), config,
+                      error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise
-    catalog_run(run_id, ws, "generate_dataset", "completed", started, _now_us(), len(specs), json.dumps(config))
-    return {"run_id": run_id, "workspace": ws,
-            "scenes": [{"scene_id": i["scene_id"], "path": i["path"], "reused": i["reused"]} for i in ingested],
-            "previews": [p.result() if hasattr(p, "result") else p for p in preview_dirs],
-            "behavior_variants": behaviour, "models": models}
+    failed = [r for r in results if "error" in r]
+    done = [r for r in results if "error" not in r]
+    error = "; ".join(f"{r['label']}: {r['error']}" for r in failed) or None
+    t.catalog_run(run_id, ws, "generate_dataset", "failed" if failed else "completed", started, _now_us(),
+                  len(specs), config, error=error)
+    if failed:
+        raise OmniscsError(f"{len(failed)} of {len(specs)} scene(s) failed in run {run_id}: {error}")
+    return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed}

@@ -113,7 +113,27 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("variants_path", pa.string(), nullable=False),   # the variants.json holding the trajectories
         pa.field("bev_path", pa.string()),
     ]),
-    "models": pa.schema([                                         # fitted scene graphs (fit_nsg task)
+    "plans": pa.schema([                                          # what each scene needs modelled (plan stage)
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("plan_id", pa.string(), nullable=False),         # 12 hex of the plan stage's key
+        pa.field("content_hash", pa.string(), nullable=False),    # the scene store it was made for
+        pa.field("agent_nodes", pa.list_(pa.int64()), nullable=False),
+        pa.field("n_agent_nodes", pa.int32(), nullable=False),
+        pa.field("node_reasons_json", pa.string(), nullable=False),  # track id -> moving | edited | behavior (+)
+        pa.field("n_background_tracks", pa.int32(), nullable=False),
+        pa.field("needs_360", pa.list_(pa.int64()), nullable=False),
+        pa.field("background_repair", pa.list_(pa.int64()), nullable=False),
+        pa.field("inserted", pa.list_(pa.int64()), nullable=False),
+        pa.field("cameras", pa.list_(pa.string()), nullable=False),
+        pa.field("n_train_frames", pa.int32(), nullable=False),
+        pa.field("n_heldout_frames", pa.int32(), nullable=False),
+        pa.field("modelled_area_m2", pa.float64(), nullable=False),
+        pa.field("gaussian_budget", pa.int64(), nullable=False),
+        pa.field("stages", pa.list_(pa.string()), nullable=False),  # the stages this scene runs
+        pa.field("plan_path", pa.string(), nullable=False),
+        pa.field("reused", pa.bool_(), nullable=False),
+    ]),
+    "models": pa.schema([                                         # fitted scene graphs (fit stage)
         pa.field("scene_id", pa.string(), nullable=False),
         pa.field("model_id", pa.string(), nullable=False),        # nsg-<preset>-<hash of scene content + config>
         pa.field("kind", pa.string(), nullable=False),            # nsg

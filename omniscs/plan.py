@@ -121,10 +121,11 @@ def modelled_area(scene: Scene, view_range_m: float) -> float:
 
 
 def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
-              cameras: list[str] | None = None, behavior_variants: int = 0) -> ScenePlan:
-    """Decide what to model for ``scene`` given the edits the requested variants will apply and how many
+              cameras: list[str] | None = None, behavior_variants: int = 0, fit_nsg: bool = True) -> ScenePlan:
+    """Decide what to model for ``scene`` given the edits the requested variants will apply, how many
     behaviour-level variants are requested (their stage runs only when that is > 0, and then every vehicle
-    becomes an agent node, since the adversarial optimisation may move any of them)."""
+    becomes an agent node, since the adversarial optimisation may move any of them) and whether a scene graph
+    is fitted at all (``fit_nsg``; without one, no later stage that models the scene runs)."""
     if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, (int, np.integer)) \
             or behavior_variants < 0:
         raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
@@ -171,9 +172,9 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
                          + config.gaussians_per_agent * (len(nodes) + len(inserted)),
                          config.min_gaussians, config.max_gaussians))
     stages = {
-        "fit_nsg": True,
-        "agent_models": bool(needs_360 or inserted),
-        "background_repair": bool(repair),
+        "fit_nsg": bool(fit_nsg),
+        "agent_models": bool(fit_nsg and (needs_360 or inserted)),
+        "background_repair": bool(fit_nsg and repair),
         "behavior_variants": behavior_variants > 0,
     }
     return ScenePlan(

@@ -1,6 +1,7 @@
 """Behaviour variants end to end: the CLI's variants.json format, user errors, the plan flag, the flow task and
 catalog rows, and the benchmark report's honesty about L_app."""
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -79,14 +80,18 @@ def test_generate_dataset_makes_and_catalogues_behaviour_variants(prefect_harnes
     ws = tmp_path / "ws"
     result = generate_dataset([str(store)], workspace=str(ws), run_id="beh", previews=False, behavior_variants=2,
                               behavior_preset="fast")
-    (made,) = result["behavior_variants"]
-    assert made["n_variants"] == 2 and (ws / "variants" / "road" / "variants.json").is_file()
+    made = result["scenes"][0]["stages"]["behavior"]
+    assert made["info"]["n_variants"] == 2 and Path(made["path"]).is_file()
+    assert Path(made["path"]).parent.parent == ws / "variants" / "road"
+    again = generate_dataset([str(store)], workspace=str(ws), run_id="beh2", previews=False, behavior_variants=2,
+                             behavior_preset="fast")
+    assert again["scenes"][0]["stages"]["behavior"]["reused"]
     root = catalog.catalog_root(ws)
     rows = catalog.query(root, "SELECT scene_id, variant_id, kind, adversary, success, plausible, loss_app, "
                                "run_id FROM variants ORDER BY variant_id").to_pylist()
-    assert [r["scene_id"] for r in rows] == ["road", "road"] and all(r["run_id"] == "beh" for r in rows)
+    assert [r["scene_id"] for r in rows if r["run_id"] == "beh"] == ["road", "road"]
     assert all(r["loss_app"] is None and r["adversary"] in (0, 1, 2) for r in rows)
-    assert catalog.query(root, "SELECT count(*) n FROM scenes").to_pylist() == [{"n": 1}]
+    assert catalog.query(root, "SELECT count(*) n FROM scenes").to_pylist() == [{"n": 2}]  # one per run
 
 
 def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_path):

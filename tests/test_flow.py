@@ -1,4 +1,6 @@
 """The generate_dataset flow: ingests scenes, writes previews and one catalog file per task, records the run."""
+from pathlib import Path
+
 import pytest
 
 from omniscs import catalog
@@ -26,10 +28,10 @@ def test_generate_dataset_catalogues_every_scene_and_the_run(prefect_harness, tm
     assert catalog.query(root, "SELECT count(*) n FROM frames").to_pylist() == [{"n": 10}]
     runs = catalog.query(root, "SELECT status, n_scenes FROM runs").to_pylist()
     assert runs == [{"status": "completed", "n_scenes": 2}]
-    # one file per task and table: two scene tasks wrote two files in each scene table
+    # one file per scene and table: two scenes wrote two files in each scene table
     assert len(list((root / "agents" / "run_id=run-1").glob("*.parquet"))) == 2
-    for p in result["previews"]:
-        assert (ws / "previews").exists() and (p and __import__("pathlib").Path(p, "bev.png").stat().st_size > 0)
+    for s in result["scenes"]:
+        assert Path(s["stages"]["preview"]["path"], "bev.png").stat().st_size > 0
 
 
 def test_rerun_appends_a_new_partition_and_never_edits_the_first(prefect_harness, tmp_path, two_stores):

@@ -11,11 +11,12 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from omniscs import catalog
+from omniscs.bench.fit import BenchScenes, edits_markdown, fit_markdown
 from omniscs.cli import app
-from omniscs.nsg.bench import BenchScenes, edits_markdown, fit_markdown
-from omniscs.nsg.config import PRESETS
-from omniscs.nsg.store import fit_into_workspace
-from omniscs.nsg.config import LearningRates
+from omniscs.nsg.config import PRESETS, LearningRates
+from omniscs.pipeline.stages import fit_stage
+from omniscs.plan import make_plan
+from omniscs.scene import load_scene
 from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 
 
@@ -56,8 +57,9 @@ def test_flow_fits_each_scene_once_and_catalogues_the_model(prefect_harness, sto
     ws = tmp_path / "ws"
     first = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r1")
     second = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r2")
-    assert first["models"][0]["status"] == "fitted" and not first["models"][0]["reused"]
-    assert second["models"][0]["reused"] and second["models"][0]["checkpoint_path"] == first["models"][0]["checkpoint_path"]
+    fit1, fit2 = (r["scenes"][0]["stages"]["fit"] for r in (first, second))
+    assert fit1["info"]["status"] == "fitted" and not fit1["reused"]
+    assert fit2["reused"] and fit2["path"] == fit1["path"]
     rows = catalog.query(catalog.catalog_root(ws), "SELECT * FROM models ORDER BY run_id").to_pylist()
     assert [r["run_id"] for r in rows] == ["r1", "r2"] and rows[0]["agent_nodes"] == [1, 2]
     assert rows[0]["heldout_psnr"] > 10 and rows[0]["preset"] == "fast"
@@ -66,7 +68,8 @@ def test_flow_fits_each_scene_once_and_catalogues_the_model(prefect_harness, sto
 
 def test_a_diverged_fit_is_catalogued_as_such_and_leaves_no_checkpoint(store, tmp_path, monkeypatch):
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(20, lr=LearningRates(sh_dc=1e30), divergence_warmup=5))
-    row = fit_into_workspace(store, tmp_path, "fast")
+    plan = make_plan(load_scene(store), config=PRESETS["fast"].plan)
+    (row,) = fit_stage(store, plan, "fast", tmp_path).rows["models"]
     assert row["status"] == "diverged" and row["checkpoint_path"] is None and "diverged" in row["error"]
     catalog.validated_table("models", [row])
     assert not any((tmp_path / "models").rglob("graph.json"))
@@ -91,7 +94,7 @@ def test_benchmark_reports_label_reduced_sizes_and_hold_every_number():
 
 @pytest.mark.slow
 def test_both_benchmarks_run_end_to_end_at_thumbnail_size(tmp_path):
-    from omniscs.nsg.bench import run_edit_benchmark, run_fit_benchmark
+    from omniscs.bench.fit import run_edit_benchmark, run_fit_benchmark
 
     scenes = BenchScenes(seeds=(0,), n_frames=8, n_cameras=2, width=96, height=54)
     tiny = {"iterations": 30, "resolution_schedule": ((0.0, 1),)}

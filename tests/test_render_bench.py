@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 
 from omniscs.render import rasterize
-from omniscs.render.bench import run_render_benchmark
+from omniscs.bench.render import run_render_benchmark
 from omniscs.render.scenes import street_scene
 
 

@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -12,7 +13,8 @@ from omniscs import catalog
 from omniscs.cli import app
 from omniscs.errors import OmniscsError
 from omniscs.export import export_scenes
-from omniscs.scene import DatasetSource, StoreSource, ingest, load_scene, parse_source, source_from_dict
+from omniscs.pipeline.stages import ingest_stage
+from omniscs.scene import DatasetSource, StoreSource, load_scene, parse_source, source_from_dict
 from omniscs.scene.summary import agent_rows, scene_row
 from tests.conftest import write_tiny_scene
 from tests.dataset_fixtures import leftovers
@@ -48,20 +50,20 @@ def test_text_sources_name_a_format_a_dataroot_and_optionally_a_scene(kitti_root
 
 def test_ingest_reuses_an_up_to_date_store_and_rereads_when_the_dataset_changes(kitti_root, tmp_path):
     source = parse_source(f"kitti:{kitti_root}")
-    first = ingest(source, tmp_path / "ws")
-    second = ingest(source, tmp_path / "ws")
+    first = ingest_stage(source, tmp_path / "ws")
+    second = ingest_stage(source, tmp_path / "ws")
     assert (first.reused, second.reused) == (False, True) and first.path == second.path
-    assert first.path.parent == tmp_path / "ws" / "scenes" and first.scene_id.startswith("kitti-0000-")
+    assert Path(first.path).parent == tmp_path / "ws" / "scenes" and first.scene_id.startswith("kitti-0000-")
     n_boxes = len(load_scene(first.path).boxes)
     labels = kitti_root / "training" / "label_02" / "0000.txt"
     lines = labels.read_text().splitlines()
     labels.write_text("\n".join(lines[:-1]) + "\n")  # one label fewer
-    third = ingest(source, tmp_path / "ws")
+    third = ingest_stage(source, tmp_path / "ws")
     assert not third.reused and third.path == first.path and len(load_scene(third.path).boxes) == n_boxes - 1
 
 
 def test_catalog_scene_rows_record_the_dataset_its_scene_id_and_location(nuscenes_root, tmp_path):
-    result = ingest(parse_source(f"nuscenes:{nuscenes_root}"), tmp_path / "ws")
+    result = ingest_stage(parse_source(f"nuscenes:{nuscenes_root}"), tmp_path / "ws")
     scene = load_scene(result.path)
     row = scene_row(scene, agent_rows(scene), reused=False, ingest_seconds=0.1)
     assert row["source_kind"] == "nuscenes" and row["source_scene_id"] == "scene-0001"
@@ -73,8 +75,8 @@ def test_a_dataroot_with_several_scenes_needs_a_scene_name(tmp_path):
     stores = [write_tiny_scene(tmp_path / n, scene_id=n) for n in ("a", "b")]
     root = export_scenes(stores, "kitti", tmp_path / "kitti")
     with pytest.raises(OmniscsError, match="holds 2 scenes; name one, e.g. kitti:.*:0000"):
-        ingest(parse_source(f"kitti:{root}"), tmp_path / "ws")
-    assert ingest(parse_source(f"kitti:{root}:0001"), tmp_path / "ws").scene_id.startswith("kitti-0001-")
+        ingest_stage(parse_source(f"kitti:{root}"), tmp_path / "ws")
+    assert ingest_stage(parse_source(f"kitti:{root}:0001"), tmp_path / "ws").scene_id.startswith("kitti-0001-")
 
 
 def test_generate_dataset_accepts_dataset_sources(prefect_harness, kitti_root, tmp_path):

@@ -6,7 +6,8 @@ import pytest
 
 from omniscs.geometry import (box_corners_from_pose, invert_transform, make_transform, project, quat_to_rotmat,
                               transform_points, unproject)
-from omniscs.scene import SyntheticSource, ingest, load_scene, write_synthetic_scene
+from omniscs.pipeline.stages import ingest_stage
+from omniscs.scene import SyntheticSource, load_scene, write_synthetic_scene
 
 SOURCE = SyntheticSource(template="straight_parked_truck", seed=3, n_frames=6, n_cameras=3, width=160, height=90)
 
@@ -128,9 +129,9 @@ def test_boxes_follow_the_world_agents_and_move_with_their_recorded_poses(scene)
 
 def test_ingest_reuses_an_identical_synthetic_scene_and_renders_a_new_one(tmp_path):
     small = SyntheticSource(template="straight", seed=1, n_frames=2, n_cameras=1, width=48, height=27)
-    first = ingest(small, tmp_path)
-    again = ingest(small, tmp_path)
-    other = ingest(SyntheticSource(template="straight", seed=2, n_frames=2, n_cameras=1, width=48, height=27), tmp_path)
+    first = ingest_stage(small, tmp_path)
+    again = ingest_stage(small, tmp_path)
+    other = ingest_stage(SyntheticSource(template="straight", seed=2, n_frames=2, n_cameras=1, width=48, height=27), tmp_path)
     assert not first.reused and again.reused and again.path == first.path
     assert other.scene_id != first.scene_id and not other.reused
     assert len(list((tmp_path / "scenes").iterdir())) == 2

@@ -255,7 +255,7 @@ def test_sun_casts_shadows_on_the_road():
 def test_benchmark_writes_json_markdown_and_plots(tmp_path):
     import json
 
-    from omniscs.world.bench import run_world_benchmark
+    from omniscs.bench.world import run_world_benchmark
 
     calls = []
     result = run_world_benchmark(tmp_path, seeds=(0,), n_frames=2, n_cameras=1, width=W, height=H,

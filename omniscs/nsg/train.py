@@ -7,7 +7,6 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -25,6 +24,7 @@ from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
 from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities
 from omniscs.plan import ScenePlan, make_plan
+from omniscs.progress import Progress
 from omniscs.scene.store import Scene
 
 log = logging.getLogger(__name__)
@@ -33,7 +33,6 @@ log = logging.getLogger(__name__)
 LOSS_EMA = 0.9
 
 #: A progress callback: (iteration, total iterations, smoothed loss, smoothed training PSNR in dB).
-Progress = Callable[[int, int, float, float], None]
 
 
 class FitDiverged(OmniscsError):
@@ -266,7 +265,7 @@ def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | 
                             "n_gaussians": sum(len(n) for n in trainer.nodes.values()),
                             "seconds": time.perf_counter() - started})
         if progress is not None:
-            progress(step + 1, config.iterations, float(loss_ema), float(psnr_ema))
+            progress(step + 1, config.iterations, f"loss {loss_ema:.4f}  PSNR {psnr_ema:.2f} dB")
     graph = trainer.graph(frozen=True)
     train_seconds = time.perf_counter() - started
     metrics = {"iterations": config.iterations, "fit_seconds": train_seconds, "init_seconds": init_seconds,

@@ -5,9 +5,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Union
 
-from omniscs.errors import OmniscsError, ValidationError
+from omniscs.errors import OmniscsError
 from omniscs.scene.sources.common import FORMATS, DatasetSource
-from omniscs.scene.store import load_scene
 from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene
 
 
@@ -22,14 +21,6 @@ class StoreSource:
 
 
 Source = Union[SyntheticSource, StoreSource, DatasetSource]
-
-
-@dataclass(frozen=True)
-class IngestResult:
-    scene_id: str
-    path: Path
-    reused: bool
-    """True when an identical scene store already existed and was reused instead of re-rendered."""
 
 
 def parse_source(text: str, **synthetic_defaults) -> Source:
@@ -83,35 +74,22 @@ def source_from_dict(d: dict) -> Source:
     raise OmniscsError(f"unknown source kind {kind!r}; use 'synthetic', 'store' or one of {list(FORMATS)}")
 
 
-def scenes_dir(workspace: Path) -> Path:
-    return Path(workspace) / "scenes"
-
-
-def ingest(source: Source, workspace: Path, overwrite: bool = False,
-           progress: Callable[[int, int], None] | None = None) -> IngestResult:
-    """Validate or generate one scene store. Synthetic scenes already present with the same source are reused."""
-    if isinstance(source, StoreSource):
-        scene = load_scene(source.path)
-        return IngestResult(scene.scene_id, scene.path, reused=True)
+def write_source_scene(source: Source, out: Path, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Render (synthetic) or read (recorded dataset) one source into the scene store ``out``, replacing what is
+    there; returns ``out``. Whether an earlier store can be reused is the ingest stage's decision."""
     if isinstance(source, DatasetSource):
-        return ingest_dataset(source, scenes_dir(workspace), overwrite=overwrite, progress=progress)
-    if not isinstance(source, SyntheticSource):
-        raise OmniscsError(f"cannot ingest {source!r}")
-    _check_synthetic(source)
-    out = scenes_dir(workspace) / source.scene_id()
-    if out.exists() and not overwrite:
-        try:
-            scene = load_scene(out)
-            if scene.source == source.to_dict():
-                return IngestResult(scene.scene_id, out, reused=True)
-        except ValidationError:
-            pass  # a damaged earlier result is regenerated below
-        overwrite = True
-    write_synthetic_scene(source, out, overwrite=overwrite, progress=progress)
-    return IngestResult(source.scene_id(), out, reused=False)
+        from omniscs.scene.sources import read_dataset_scene
+
+        read_dataset_scene(source, out, overwrite=True, progress=progress)
+    elif isinstance(source, SyntheticSource):
+        check_synthetic(source)
+        write_synthetic_scene(source, out, overwrite=True, progress=progress)
+    else:
+        raise OmniscsError(f"cannot write a scene store from {source!r}")
+    return Path(out)
 
 
-def _check_synthetic(source: SyntheticSource) -> None:
+def check_synthetic(source: SyntheticSource) -> None:
     from omniscs.world import LIGHTINGS, TEMPLATES
 
     if source.template not in TEMPLATES:
@@ -122,24 +100,3 @@ def _check_synthetic(source: SyntheticSource) -> None:
         raise OmniscsError(f"n_cameras must be 1..6; got {source.n_cameras}")
     if source.n_frames < 1 or source.width < 8 or source.height < 8:
         raise OmniscsError("need at least 1 frame and images of at least 8x8 pixels")
-
-
-def ingest_dataset(source: DatasetSource, out_root: Path, overwrite: bool = False,
-                   progress: Callable[[int, int], None] | None = None) -> IngestResult:
-    """Read one dataset scene into ``out_root/<scene_id>``; a store already there from the same source and
-    unchanged dataset files is reused."""
-    from omniscs.scene.sources import current_fingerprint, read_dataset_scene, resolve
-
-    source = resolve(source)
-    out = Path(out_root) / source.scene_id()
-    if out.exists() and not overwrite:
-        try:
-            scene = load_scene(out)
-            if (scene.source == source.to_dict()
-                    and scene.manifest.get("dataset_fingerprint") == current_fingerprint(source)):
-                return IngestResult(scene.scene_id, out, reused=True)
-        except ValidationError:
-            pass  # a damaged earlier result is read again below
-        overwrite = True
-    read_dataset_scene(source, out, overwrite=overwrite, progress=progress)
-    return IngestResult(source.scene_id(), out, reused=False)

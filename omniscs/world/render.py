@@ -17,7 +17,7 @@ from omniscs.world.model import World
 # Ray caster: open3d ``RaycastingScene`` (Embree inside, multi-threaded). On the idle 2-core dev machine
 # one 480x270 image (130k rays, 96k triangles) cast in 10 ms with open3d against 18 ms with
 # trimesh/embreex (single-threaded); with the other core busy both took ~17 ms, and
-# ``omniscs.world.bench`` re-measures the ratio each run. Static geometry lives in one scene built once;
+# ``omniscs.bench.world`` re-measures the ratio each run. Static geometry lives in one scene built once;
 # agents go into a small scene rebuilt per frame, and each ray keeps the nearer hit. Shading (numpy)
 # costs more than casting: about 0.55 s per frame for three 480x270 cameras on 2 cores.
 

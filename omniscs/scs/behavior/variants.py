@@ -2,11 +2,10 @@
 and the one call that makes them for a scene (used by the CLI and the flow task)."""
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -17,7 +16,7 @@ from omniscs.scs.behavior.adversarial import AdversarialConfig, VariantResult, g
 from omniscs.scs.behavior.appearance import AppearanceTerm
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint
 from omniscs.scs.behavior.tracks import TrafficScene, traffic_from_scene, traffic_from_world
-from omniscs.storage import atomic_write_bytes, atomic_write_json, content_hash
+from omniscs.storage import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger(__name__)
 
@@ -219,33 +218,25 @@ def load_traffic(scene_or_source: str | Path, dt: float = 0.1) -> TrafficScene:
 def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, checkpoint: Path | str | None = None,
                          config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
                          pictures: bool = True, progress: Callable[[int, int], None] | None = None,
-                         reuse: bool = True) -> VariantsOutput:
-    """Generate ``n_variants`` variants of ``traffic`` and write ``out_dir/variants.json`` (+ one BEV PNG each).
-
-    With ``reuse``, an ``out_dir`` made from the same scene, checkpoint, configuration and count is kept as is.
-    """
+                         published_dir: Path | None = None) -> VariantsOutput:
+    """Generate ``n_variants`` variants of ``traffic`` and write ``out_dir/variants.json`` (+ one BEV PNG each,
+    and ``catalog_rows.json``). ``published_dir``: where the folder will finally live when ``out_dir`` is a
+    temporary one (the catalog rows name files there). Whether to reuse earlier variants is the caller's
+    decision (the behavior stage's key)."""
     out_dir = Path(out_dir)
+    final_dir = Path(published_dir) if published_dir is not None else out_dir
     ckpt = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
     model = load_checkpoint(ckpt)
     ckpt_hash = checkpoint_hash(ckpt)
-    key = content_hash(traffic.scene_id, traffic.timestamps_us, traffic.xy, traffic.ego_xy, ckpt_hash,
-                       json.dumps(asdict(config), sort_keys=True, default=str), n_variants, appearance is not None,
-                       SPEC_VERSION)
-    stamp = out_dir / ".inputs_hash"
     target = out_dir / VARIANTS_JSON
-    if reuse and appearance is None and stamp.is_file() and stamp.read_text() == key and target.is_file():
-        specs = json.loads(target.read_text())
-        log.info("reusing %s (same scene, checkpoint and configuration)", target)
-        return VariantsOutput([], target, [out_dir / f"{s['variant_id']}.png" for s in specs],
-                              json.loads((out_dir / "catalog_rows.json").read_text()), True)
     started = time.perf_counter()
     results = generate_variants(traffic, model, n_variants, config, appearance, progress)
     specs = [variant_spec(v) for v in results]
     pngs = [bev_picture(v, traffic, out_dir / f"{v.variant_id}.png") for v in results] if pictures else []
     atomic_write_json(target, specs)
-    rows = [catalog_row(v, target, pngs[i] if pngs else None, ckpt_hash[:12]) for i, v in enumerate(results)]
+    rows = [catalog_row(v, final_dir / VARIANTS_JSON, final_dir / pngs[i].name if pngs else None, ckpt_hash[:12])
+            for i, v in enumerate(results)]
     atomic_write_json(out_dir / "catalog_rows.json", rows)
-    atomic_write_bytes(stamp, key.encode())
     log.info("%d variant(s) of %s in %.1f s -> %s", len(results), traffic.scene_id, time.perf_counter() - started,
              target)
     return VariantsOutput(results, target, pngs, rows, False)

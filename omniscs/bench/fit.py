@@ -1,31 +1,33 @@
 """Scene-graph benchmarks: presets' time vs held-out accuracy (``bench fit``) and edit fidelity against the
-procedural world's exact ground truth (``bench edits``, the paper's Table 1 protocol). JSON + Markdown + PNG."""
+procedural world's exact ground truth (``bench edits``, the paper's Table 1 protocol). Both run the pipeline's
+ingest, plan and fit stages. JSON + Markdown + PNG."""
 from __future__ import annotations
 
-import json
 import logging
 import os
-import platform
 import statistics
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
+from omniscs.bench.harness import drop_partial, finish, machine_info, save_partial, write_report
 from omniscs.edits import Edit, edit_to_dict
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
-from omniscs.nsg.config import FitConfig, fit_preset
+from omniscs.nsg.checkpoint import load_checkpoint
+from omniscs.nsg.config import fit_preset
 from omniscs.nsg.edit import apply_graph_edits
 from omniscs.nsg.metrics import psnr, ssim
 from omniscs.nsg.observations import MIN_POINT_DEPTH
-from omniscs.nsg.train import FitDiverged, fit_scene
-from omniscs.plan import make_plan
-from omniscs.scene import SyntheticSource, ingest, load_scene
+from omniscs.nsg.train import FitDiverged
+from omniscs.pipeline.records import SceneRequest
+from omniscs.progress import Progress
+from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
+from omniscs.scene import SyntheticSource, load_scene
 from omniscs.scene.summary import agent_rows
-from omniscs.storage import atomic_write_text, atomic_write_with, workspace_root
+from omniscs.storage import workspace_root
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +48,6 @@ EDIT_PROTOCOL: tuple[tuple[str, dict], ...] = (
     ("rotate 270°", {"op": "rotate", "yaw_deg": 270.0}),
 )
 
-Progress = Callable[[str], None]
 
 
 @dataclass(frozen=True)
@@ -81,19 +82,22 @@ class BenchScenes:
                                 self.height) for s in self.seeds]
 
 
-def _machine() -> dict:
-    return {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-            "torch": torch.__version__, "load_average_start": list(os.getloadavg())}
-
-
-def _scene_paths(scenes: BenchScenes, workspace: Path | None, progress: Progress | None) -> list[Path]:
-    ws = workspace_root(workspace)
+def _scene_paths(scenes: BenchScenes, workspace: Path, progress: Progress | None) -> list[Path]:
     paths = []
     for src in scenes.sources():
         if progress:
-            progress(f"scene {src.scene_id()}")
-        paths.append(ingest(src, ws).path)
+            progress(len(paths), None, f"scene {src.scene_id()}")
+        paths.append(Path(ingest_stage(src, workspace).path))
     return paths
+
+
+def _fit(path: Path, request: SceneRequest, workspace: Path, overrides: dict | None):
+    """The pipeline's plan and fit stages, fitting afresh (the benchmark times the fit, not a reuse); returns
+    the plan, the fit stage's record and the wall time."""
+    plan = load_plan(plan_stage(path, request, workspace))
+    started = time.perf_counter()
+    record = fit_stage(path, plan, request.fit_preset, workspace, reuse=False, **(overrides or {}))
+    return plan, record, time.perf_counter() - started
 
 
 # ----------------------------------------------------------------------------- bench fit
@@ -101,24 +105,23 @@ def run_fit_benchmark(out_dir: Path, scenes: BenchScenes, presets: tuple[str, ..
                       workspace: Path | None = None, overrides: dict | None = None,
                       progress: Progress | None = None) -> dict:
     """Fit every scene with every preset; wall time, Gaussians and held-out PSNR/SSIM per fit."""
-    machine = _machine()
+    machine = machine_info()
+    ws = workspace_root(workspace)
     rows = []
-    for path in _scene_paths(scenes, workspace, progress):
+    for path in _scene_paths(scenes, ws, progress):
         scene = load_scene(path)
         for preset in presets:
             config = fit_preset(preset, **(overrides or {}))
             if progress:
-                progress(f"fit {scene.scene_id} with {preset}")
+                progress(len(rows), None, f"fit {scene.scene_id} with {preset}")
             load_before = os.getloadavg()[0]
-            started = time.perf_counter()
-            try:
-                m = fit_scene(scene, config).metrics
-            except FitDiverged as exc:  # reported as a row, not a crash of the whole benchmark
-                log.warning("%s %s: %s", scene.scene_id, preset, exc)
+            _, record, wall = _fit(path, SceneRequest(fit_preset=preset), ws, overrides)
+            if record.info["status"] == "diverged":  # reported as a row, not a crash of the whole benchmark
+                log.warning("%s %s: %s", scene.scene_id, preset, record.info["error"])
                 rows.append({"scene_id": scene.scene_id, "preset": preset, "iterations": config.iterations,
-                             "wall_s": time.perf_counter() - started, "status": "diverged", "error": str(exc)})
+                             "wall_s": wall, "status": "diverged", "error": record.info["error"]})
                 continue
-            wall = time.perf_counter() - started
+            m = record.info["metrics"]
             rows.append({"scene_id": scene.scene_id, "preset": preset, "iterations": config.iterations,
                          "status": "fitted", "wall_s": wall, "fit_s": m["fit_seconds"], "n_gaussians": m["n_gaussians"],
                          "n_agent_nodes": m["n_agent_nodes"], "heldout_psnr": m["heldout_psnr"],
@@ -126,18 +129,15 @@ def run_fit_benchmark(out_dir: Path, scenes: BenchScenes, presets: tuple[str, ..
                          "load_1min_before": load_before, "load_1min_after": os.getloadavg()[0]})
             log.info("%s %s: %.0f s, %.2f dB", scene.scene_id, preset, wall, m["heldout_psnr"])
             # the partial table is on disk after every fit: a long run cut short still reports what it measured
-            atomic_write_text(Path(out_dir) / "fit_bench.partial.json", json.dumps(rows, indent=2) + "\n")
+            save_partial(out_dir, "fit_bench", rows)
     summary = _fit_summary(rows, presets)
     report = {"scenes": asdict(scenes), "label": scenes.label(), "presets": list(presets),
-              "overrides": overrides or {}, "machine": {**machine, "load_average_end": list(os.getloadavg())},
+              "overrides": overrides or {}, "machine": finish(machine),
               "rows": rows, "summary": summary,
               "targets": {"fast_s": FAST_TARGET_S, "balanced_s": BALANCED_TARGET_S,
                           "balanced_psnr_db": BALANCED_TARGET_PSNR}}
-    out_dir = Path(out_dir)
-    atomic_write_text(out_dir / "fit_bench.json", json.dumps(report, indent=2) + "\n")
-    (out_dir / "fit_bench.partial.json").unlink(missing_ok=True)
-    atomic_write_text(out_dir / "fit_bench.md", fit_markdown(report))
-    atomic_write_with(out_dir / "fit_bench.png", lambda buf: _fit_plot(report, buf))
+    write_report(out_dir, "fit_bench", report, fit_markdown(report), {"": lambda buf: _fit_plot(report, buf)})
+    drop_partial(out_dir, "fit_bench")
     return report
 
 
@@ -264,29 +264,32 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
     ground-truth world, and compare renders over the full image and over the agent's ground-truth mask."""
     from omniscs.world import WorldRenderer, apply_edits
 
-    machine = _machine()
+    machine = machine_info()
+    ws = workspace_root(workspace)
     rows, strips = [], []
     fits = []
-    for path in _scene_paths(scenes, workspace, progress):
+    for path in _scene_paths(scenes, ws, progress):
         scene = load_scene(path)
         if scene.world is None:
             continue
-        config: FitConfig = fit_preset(preset, **(overrides or {}))
         targets = edited_agents(scene, (), agents_per_scene, min_pixels)
         edits = [e for t in targets for _, e in protocol_edits(t)]
-        plan = make_plan(scene, edits, config.plan)
         if progress:
-            progress(f"fit {scene.scene_id} ({preset}) with agents {targets} as nodes")
-        started = time.perf_counter()
-        result = fit_scene(scene, config, plan)
-        fits.append({"scene_id": scene.scene_id, "edited_agents": targets, "fit_s": time.perf_counter() - started,
-                     "n_gaussians": result.metrics["n_gaussians"], "heldout_psnr": result.metrics["heldout_psnr"],
-                     "heldout_ssim": result.metrics["heldout_ssim"]})
+            progress(len(rows), None, f"fit {scene.scene_id} ({preset}) with agents {targets} as nodes")
+        request = SceneRequest(fit_preset=preset, edits=tuple(edit_to_dict(e) for e in edits))
+        _, record, wall = _fit(path, request, ws, overrides)
+        if record.info["status"] != "fitted":
+            raise FitDiverged(0, record.info["error"])
+        metrics = record.info["metrics"]
+        graph = load_checkpoint(record.path, scene)
+        fits.append({"scene_id": scene.scene_id, "edited_agents": targets, "fit_s": wall,
+                     "n_gaussians": metrics["n_gaussians"], "heldout_psnr": metrics["heldout_psnr"],
+                     "heldout_ssim": metrics["heldout_ssim"]})
         for tid in targets:
             for name, edit in protocol_edits(tid):
                 if progress:
-                    progress(f"{scene.scene_id} track {tid}: {name}")
-                edited = apply_graph_edits(result.graph, [edit])
+                    progress(len(rows), None, f"{scene.scene_id} track {tid}: {name}")
+                edited = apply_graph_edits(graph, [edit])
                 renderer = WorldRenderer(apply_edits(scene.world, [edit]))
                 views = _evaluation_views(renderer, scene, tid, frames_per_edit, min_pixels)
                 per_view = []
@@ -314,14 +317,11 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
             key: (float(np.mean([x[key] for x in r if x[key] is not None])) if r else None)
             for key in ("psnr", "ssim", "masked_psnr", "masked_ssim")}})
     report = {"scenes": asdict(scenes), "label": scenes.label(), "preset": preset, "overrides": overrides or {},
-              "machine": {**machine, "load_average_end": list(os.getloadavg())}, "fits": fits, "summary": summary,
+              "machine": finish(machine), "fits": fits, "summary": summary,
               "rows": rows, "protocol": [{"edit": n, **s} for n, s in EDIT_PROTOCOL],
               "unedited_heldout_psnr": float(np.mean([f["heldout_psnr"] for f in fits])) if fits else None}
-    out_dir = Path(out_dir)
-    atomic_write_text(out_dir / "edits_bench.json", json.dumps(report, indent=2) + "\n")
-    atomic_write_text(out_dir / "edits_bench.md", edits_markdown(report))
-    if strips:
-        atomic_write_with(out_dir / "edits_bench.png", lambda buf: _strip(strips, buf))
+    write_report(out_dir, "edits_bench", report, edits_markdown(report),
+                 {"": lambda buf: _strip(strips, buf)} if strips else None)
     return report
 
 

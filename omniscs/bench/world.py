@@ -6,10 +6,7 @@ on the same camera rays (a ratio from one run, since the machines are shared and
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -18,7 +15,7 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
-from omniscs.storage import atomic_write_text, atomic_write_with
+from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.world.assets import list_asset_ids
 from omniscs.world.render import WorldRenderer
 from omniscs.world.traffic import generate_world
@@ -70,9 +67,7 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
                         templates=("straight",), width: int = 480, height: int = 270, lighting: str = "day",
                         progress: Callable[[int, int], None] | None = None) -> dict:
     """Time generating and rendering (all cameras + LiDAR) one log per (template, seed); write JSON + Markdown."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    load_before = os.getloadavg()[0]
+    machine = machine_info()
     runs = []
     total_steps = len(seeds) * len(templates) * n_frames
     done = 0
@@ -117,21 +112,19 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
         "ray_caster": "open3d.t.geometry.RaycastingScene",
         "ray_caster_comparison": casters,
         "asset_count": len(list_asset_ids()),
-        "cpu_count": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version(),
-        "load_average_1m_before": load_before, "load_average_1m_after": os.getloadavg()[0],
+        "machine": finish(machine),
         "runs": runs,
         "median_total_s": statistics.median(r["total_s"] for r in runs),
         "goal_s": GOAL_SECONDS,
     }
     result["meets_goal"] = result["median_total_s"] < GOAL_SECONDS
-    atomic_write_text(out_dir / "world_render.json", json.dumps(result, indent=2))
-    atomic_write_text(out_dir / "world_render.md", _markdown(result))
-    _plot(result, out_dir / "world_render.png")
-    atomic_write_with(out_dir / "world_render_preview.png", lambda buf: Image.fromarray(preview).save(buf, format="PNG"))
+    write_report(out_dir, "world_render", result, _markdown(result),
+                 {"": lambda buf: _plot(result, buf),
+                  "_preview": lambda buf: Image.fromarray(preview).save(buf, format="PNG")})
     return result
 
 
-def _plot(result: dict, path: Path) -> None:
+def _plot(result: dict, buf) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -147,7 +140,7 @@ def _plot(result: dict, path: Path) -> None:
     ax.set_title(f"World render time per frame ({result['width']}x{result['height']})")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    atomic_write_with(path, lambda buf: fig.savefig(buf, format="png", dpi=110))
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
 
 
@@ -156,10 +149,9 @@ def _markdown(r: dict) -> str:
         "# Procedural world: generate + render",
         "",
         f"{r['n_frames']} frames x {r['n_cameras']} cameras at {r['width']}x{r['height']} + LiDAR, lighting "
-        f"`{r['lighting']}`, ray caster `{r['ray_caster']}`, {r['cpu_count']} CPU cores, "
-        f"{r['asset_count']} assets in the library. Machine load (1-min average) "
-        f"{r['load_average_1m_before']:.1f} before, {r['load_average_1m_after']:.1f} after: other work on a shared "
-        "machine slows the figures.",
+        f"`{r['lighting']}`, ray caster `{r['ray_caster']}`, {r['asset_count']} assets in the library.",
+        "",
+        load_line(r["machine"]),
         "",
         "| template | seed | agents | generate s | cameras/frame s (median) | LiDAR/frame s (median) | total s |",
         "|---|---|---|---|---|---|---|",

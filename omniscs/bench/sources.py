@@ -5,15 +5,13 @@ Writes ``sources_ingest.json`` and ``sources_ingest.md``. Each format is read ``
 """
 from __future__ import annotations
 
-import json
-import platform
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 from omniscs.scene.store import load_scene
-from omniscs.storage import atomic_write_text
+from omniscs.bench.harness import finish, load_line, machine_info, write_report
 
 #: Readers measured: (label, export format, export options, source options).
 CASES = (
@@ -31,8 +29,7 @@ def run_sources_benchmark(out_dir: Path, n_frames: int = 10, n_cameras: int = 6,
     from omniscs.scene.sources import DatasetSource, read_dataset_scene
     from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    machine = machine_info()
     repeats = max(2, repeats)  # one cold read and at least one warm one
     rows = []
     with tempfile.TemporaryDirectory(prefix="omniscs-bench-sources-") as tmp:
@@ -58,10 +55,9 @@ def run_sources_benchmark(out_dir: Path, n_frames: int = 10, n_cameras: int = 6,
                 "ingest_cold_s_per_frame": times[0] / frames,
                 "ingest_s_per_frame_median": statistics.median(times[1:]) / frames,
             })
-    result = {"machine": platform.platform(), "python": platform.python_version(), "n_frames": n_frames,
-              "n_cameras": n_cameras, "repeats": repeats, "results": rows}
-    atomic_write_text(out_dir / "sources_ingest.json", json.dumps(result, indent=2) + "\n")
-    atomic_write_text(out_dir / "sources_ingest.md", _markdown(result))
+    result = {"machine": finish(machine), "n_frames": n_frames, "n_cameras": n_cameras, "repeats": repeats,
+              "results": rows}
+    write_report(out_dir, "sources_ingest", result, _markdown(result))
     return result
 
 
@@ -74,5 +70,5 @@ def _markdown(result: dict) -> str:
         lines.append(f"| {r['reader']} | {r['frames']} | {r['cameras']} | {r['image_size'][0]}x{r['image_size'][1]} | "
                      f"{r['lidar_points_per_frame']} | {1000 * r['ingest_s_per_frame_median']:.0f} | "
                      f"{1000 * r['ingest_cold_s_per_frame']:.0f} | {1000 * r['export_s_per_frame']:.0f} |")
-    lines += ["", f"{result['machine']}, Python {result['python']}; medians of {result['repeats'] - 1} warm reads."]
+    lines += ["", f"Medians of {result['repeats'] - 1} warm reads. {load_line(result['machine'])}"]
     return "\n".join(lines) + "\n"

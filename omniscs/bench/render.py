@@ -10,7 +10,6 @@ import argparse
 import json
 import logging
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -22,7 +21,8 @@ import numba
 import torch
 
 from omniscs.render.api import rasterize
-from omniscs.storage import atomic_write_text, atomic_write_with
+from omniscs.bench.harness import finish, machine_info, write_report
+from omniscs.storage import atomic_write_with
 from omniscs.render.scenes import StreetScene, street_scene
 
 log = logging.getLogger(__name__)
@@ -86,7 +86,7 @@ def _forward_backward(scene: StreetScene, backend: str) -> Callable[[], Any]:
 _MEMORY_PROBE = """
 import json, sys, torch
 from pathlib import Path
-from omniscs.render.bench import _forward_backward, _status_bytes
+from omniscs.bench.render import _forward_backward, _status_bytes
 from omniscs.render.scenes import street_scene
 width, height, count = map(int, sys.argv[1:4])
 _forward_backward(street_scene(1_000, 64, 36), "cpu")()  # load the compiled kernels
@@ -133,9 +133,7 @@ def run_render_benchmark(
     exceeds ``reference_budget_s``. Compile (or cache-load) time of the Numba kernels is measured
     separately, on the first call.
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    load_before = os.getloadavg()
+    machine = machine_info()
     start = time.perf_counter()
     _forward_backward(street_scene(1_000, 64, 36), "cpu")()
     first_call_s = time.perf_counter() - start
@@ -177,9 +175,7 @@ def run_render_benchmark(
                 memory[f"{width}x{height}"] = _measure_peak_memory(width, height, count)
 
     results = {
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
-                    "torch_threads": torch.get_num_threads(), "numba_threading_layer": _threading_layer(),
-                    "load_average_before": load_before, "load_average_after": os.getloadavg(),
+        "machine": {**finish(machine), "numba_threading_layer": _threading_layer(),
                     "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "(unset: OpenMP threads spin)")},
         "settings": {"repeats": repeats, "reference_repeats": 1, "reference_budget_s": reference_budget_s,
                      "dtype": "float32", "scene": "street_scene (road, facades, cars; scales 0.05-0.5 m)"},
@@ -192,10 +188,8 @@ def run_render_benchmark(
         "targets": None,
     }
     results["targets"] = _targets(rows, results["speedups"])
-    atomic_write_text(out_dir / "render_bench.json", json.dumps(results, indent=2))
-    atomic_write_text(out_dir / "render_bench.md", render_markdown(results))
-    _plot(results, out_dir / "render_bench.png")
-    save_sample_render(out_dir / "render_sample.png", *resolutions[0], max(counts))
+    write_report(out_dir, "render_bench", results, render_markdown(results), {"": lambda buf: _plot(results, buf)})
+    save_sample_render(Path(out_dir) / "render_sample.png", *resolutions[0], max(counts))
     return results
 
 
@@ -255,8 +249,8 @@ def render_markdown(results: dict[str, Any]) -> str:
     lines = [
         "# Rasteriser benchmark", "",
         f"Street scene, one camera, float32; medians of {results['settings']['repeats']} runs (reference: 1 run). "
-        f"{machine['cpu_count']} CPUs, Numba {machine['numba_threads']} threads ({machine['numba_threading_layer']}), "
-        f"load average before/after: {machine['load_average_before'][0]:.2f} / {machine['load_average_after'][0]:.2f}, "
+        f"{machine['cpus']} CPUs, Numba {machine['numba_threads']} threads ({machine['numba_threading_layer']}), "
+        f"load average before/after: {machine['load_average_start'][0]:.2f} / {machine['load_average_end'][0]:.2f}, "
         f"OMP_WAIT_POLICY {machine['OMP_WAIT_POLICY']}. "
         "Shared machine: compare within this run; CPU ms counts all threads, so CPU / wall is the number of "
         "cores the run really had.", "",
@@ -294,7 +288,7 @@ def render_markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot(results: dict[str, Any], path: Path) -> None:
+def _plot(results: dict[str, Any], buf) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -319,7 +313,7 @@ def _plot(results: dict[str, Any], path: Path) -> None:
     axes[1].legend(fontsize=8)
     fig.tight_layout()
     try:
-        atomic_write_with(path, lambda buf: fig.savefig(buf, format="png", dpi=110))
+        fig.savefig(buf, format="png", dpi=110)
     finally:
         plt.close(fig)
 

@@ -1,0 +1,1 @@
+"""Benchmarks, one package and one harness: each runs the real pipeline stages and writes reports/<name>.*"""

@@ -1,0 +1,160 @@
+"""``omniscs bench``: the benchmarks (``omniscs.bench``); results go to reports/."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from omniscs.cli.common import comma_list, console, progress_bars
+from omniscs.cli.common import seeds as parse_seeds
+from omniscs.errors import OmniscsError
+
+app = typer.Typer(help="Benchmarks; results go to reports/.", no_args_is_help=True)
+
+
+@app.command("world")
+def bench_world(
+    seeds: str = typer.Option("0", help="Comma-separated seeds."),
+    out: Path = typer.Option(Path("reports"), help="Folder for world_render.json/.md."),
+    frames: int = typer.Option(40), cameras: int = typer.Option(3),
+) -> None:
+    """Time rendering a 40-frame, 3-camera 480x270 scene with LiDAR."""
+    from omniscs.bench.world import run_world_benchmark
+
+    result = run_world_benchmark(out, seeds=parse_seeds(seeds), n_frames=frames,
+                                 n_cameras=cameras)
+    console.print((out / "world_render.md").read_text())
+    console.print(f"wrote {out / 'world_render.json'}")
+    del result
+
+
+@app.command("sources")
+def bench_sources(
+    out: Path = typer.Option(Path("reports"), help="Folder for sources_ingest.json/.md."),
+    frames: int = typer.Option(10), cameras: int = typer.Option(6), repeats: int = typer.Option(3),
+) -> None:
+    """Time reading a 480x270 synthetic log back from nuScenes, KITTI and Waymo v2 (ms per frame)."""
+    from omniscs.bench.sources import run_sources_benchmark
+
+    run_sources_benchmark(out, n_frames=frames, n_cameras=cameras, repeats=repeats)
+    console.print((out / "sources_ingest.md").read_text())
+    console.print(f"wrote {out / 'sources_ingest.json'}")
+
+
+@app.command("behavior")
+def bench_behavior(
+    out: Path = typer.Option(Path("reports"), help="Folder for behavior_bench.json/.md/.png."),
+    scenes_per_template: int = typer.Option(5, help="Procedural scenes per road template."),
+    variants: int = typer.Option(2, help="Variants per scene."),
+    preset: str = typer.Option("balanced", help="Adversarial preset: fast, balanced or accurate."),
+    checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint (default: the shipped one)."),
+    rule_planner: bool = typer.Option(True, help="Also run against the reacting rule-based planner."),
+    threads: int = typer.Option(1, help="torch CPU threads."),
+    appearance_scenes: int = typer.Option(4, help="Rendered scenes fitted with a scene graph for the with/without "
+                                                  "L_app comparison (0 skips it)."),
+    workspace: Optional[Path] = typer.Option(None, help="Where those scenes and scene graphs go (and are reused)."),
+    app_weights: str = typer.Option("1,30", help="Comma-separated L_app weights compared."),
+    only_appearance: bool = typer.Option(False, help="Rerun only the L_app comparison in an existing report in --out."),
+    seed_offset: int = typer.Option(2000, help="First scene seed: 2000 is the fixed set, any other a fresh one."),
+    only_default: bool = typer.Option(False, help="Run only the default configuration on the procedural logs."),
+    search_starts: int = typer.Option(192, help="Feasibility search: random starts per candidate adversary."),
+) -> None:
+    """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
+    plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
+    from omniscs.scs.behavior.bench import BenchConfig, rerun_appearance_study, run_behavior_benchmark
+    from omniscs.scs.behavior.feasibility import FeasibilityConfig
+    from omniscs.scs.behavior.adversarial import adversarial_preset
+
+    adversarial_preset(preset)
+    weights = comma_list(app_weights, float, "--app-weights", "1,30")
+    if search_starts < 1:
+        raise OmniscsError(f"--search-starts must be at least 1; got {search_starts}")
+    if not weights or min(weights) <= 0:
+        raise OmniscsError(f"--app-weights takes positive numbers like 1,30; got {app_weights!r}")
+    config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
+                         rule_planner=rule_planner, torch_threads=threads,
+                         appearance_scenes=max(0, appearance_scenes), app_weights=weights,
+                         seed_offset=seed_offset, only_default=only_default,
+                         feasibility=FeasibilityConfig(starts=search_starts))
+    if only_appearance:
+        rerun_appearance_study(out, config, checkpoint, workspace)
+        console.print((out / "behavior_bench.md").read_text())
+        return
+    with progress_bars() as bars:
+        run_behavior_benchmark(out, config, checkpoint, progress=bars.sink("behaviour variants"),
+                               workspace=workspace)
+    console.print((out / "behavior_bench.md").read_text())
+    console.print(f"wrote {out / 'behavior_bench.json'}")
+
+
+@app.command("fit")
+def bench_fit(
+    out: Path = typer.Option(Path("reports"), help="Folder for fit_bench.json/.md/.png."),
+    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
+    presets: str = typer.Option("fast,balanced,accurate", help="Comma-separated presets."),
+    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
+) -> None:
+    """Fit the same scenes with each preset: wall time, Gaussians and held-out PSNR/SSIM; a time-vs-PSNR plot."""
+    from omniscs.bench.fit import BenchScenes, run_fit_benchmark
+    from omniscs.nsg.config import PRESETS
+
+    chosen = comma_list(presets)
+    unknown = [p for p in chosen if p not in PRESETS]
+    if unknown or not chosen:
+        raise OmniscsError(f"unknown preset(s) {unknown}; use some of {list(PRESETS)}")
+    scenes = BenchScenes(parse_seeds(seeds), template, "day", frames, cameras, width, height)
+    with progress_bars() as bars:
+        run_fit_benchmark(out, scenes, chosen, workspace,
+                          progress=bars.sink("bench fit"))
+    console.print((out / "fit_bench.md").read_text())
+    console.print(f"wrote {out / 'fit_bench.json'} and {out / 'fit_bench.png'}")
+
+
+@app.command("edits")
+def bench_edits(
+    out: Path = typer.Option(Path("reports"), help="Folder for edits_bench.json/.md/.png."),
+    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
+    preset: str = typer.Option("balanced", help="Fit preset of the scene graphs."),
+    agents: int = typer.Option(2, help="Edited agents per scene (the most visible ones)."),
+    views: int = typer.Option(4, help="Evaluated views per agent and edit."),
+    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
+) -> None:
+    """Edit fidelity against ground truth: translate 2.0/3.5 m, rotate 90/180/270°; PSNR/SSIM full and masked."""
+    from omniscs.bench.fit import BenchScenes, run_edit_benchmark
+    from omniscs.nsg.config import fit_preset
+
+    fit_preset(preset)
+    if agents < 1 or views < 1:
+        raise OmniscsError("--agents and --views must be at least 1")
+    scenes = BenchScenes(parse_seeds(seeds), template, "day", frames, cameras, width, height)
+    with progress_bars() as bars:
+        run_edit_benchmark(out, scenes, preset, agents, views, workspace=workspace,
+                           progress=bars.sink("bench fit"))
+    console.print((out / "edits_bench.md").read_text())
+    console.print(f"wrote {out / 'edits_bench.json'} and {out / 'edits_bench.png'}")
+
+
+@app.command("render")
+def bench_render(
+    out: Path = typer.Option(Path("reports"), help="Folder for render_bench.json/.md/.png."),
+    resolutions: str = typer.Option("320x180,640x360,1280x720", help="Comma-separated WxH."),
+    counts: str = typer.Option("10000,100000,1000000", help="Comma-separated Gaussian counts."),
+    repeats: int = typer.Option(5, help="Timed repeats per cell (median reported)."),
+    reference_budget_s: float = typer.Option(60.0, help="Skip reference cells expected to take longer."),
+) -> None:
+    """Time the Gaussian rasterizer (forward, forward+backward) per backend; cpu/reference speed-up."""
+    from omniscs.bench.render import run_render_benchmark
+
+    sizes = comma_list(resolutions, lambda r: tuple(int(v) for v in r.lower().split("x")), "--resolutions",
+                       "640x360,1280x720")
+    ns = comma_list(counts, int, "--counts", "10000,100000")
+    if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes) or not ns or min(ns) < 1:
+        raise OmniscsError("--resolutions is like 640x360,1280x720 and --counts like 10000,100000")
+    run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=repeats, reference_budget_s=reference_budget_s)
+    console.print((out / "render_bench.md").read_text())
+    console.print(f"wrote {out / 'render_bench.json'}")

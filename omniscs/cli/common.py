@@ -1,0 +1,136 @@
+"""What every command group shares: consoles, the progress sink, tables, and one parser each for comma lists,
+edit lists, seeds and output paths (all checked before any work starts), and the depth picture."""
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+from typing import Callable, Iterator, Optional, TypeVar
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from omniscs.errors import OmniscsError
+from omniscs.progress import LineProgress, Throttled
+
+console = Console(soft_wrap=True)  # paths and ids stay whole when output is not a terminal
+err_console = Console(stderr=True)
+
+T = TypeVar("T")
+
+
+# ----------------------------------------------------------------------------- progress
+class Bars:
+    """Progress sinks for one command: rich bars on a terminal, plain periodic lines (throttled) otherwise.
+    ``bars.sink(label)`` is a ``pipeline.progress.Progress`` callback."""
+
+    def __init__(self, rich: Progress | None) -> None:
+        self._rich = rich
+        self._tasks: dict[str, int] = {}
+
+    def sink(self, label: str) -> Callable[[int, int | None, str], None]:
+        if self._rich is None:
+            return Throttled(LineProgress(label, sys.stderr), step_pct=10.0, min_interval_s=30.0)
+        rich = self._rich
+
+        def update(done: int, total: int | None = None, note: str = "") -> None:
+            if label not in self._tasks:
+                self._tasks[label] = rich.add_task(label, total=total, note="")
+            rich.update(self._tasks[label], completed=done, total=total, note=note)
+        return update
+
+
+@contextlib.contextmanager
+def progress_bars() -> Iterator[Bars]:
+    """``with progress_bars() as bars: stage(..., progress=bars.sink("fit"))``."""
+    if not err_console.is_terminal:
+        yield Bars(None)
+        return
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TextColumn("{task.fields[note]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+                  console=err_console, transient=False) as rich:
+        yield Bars(rich)
+
+
+# ----------------------------------------------------------------------------- output
+def print_table(rows: list[dict], title: str | None = None) -> None:
+    table = Table(title=title)
+    if not rows:
+        console.print("(no rows)")
+        return
+    for col in rows[0]:
+        table.add_column(str(col), overflow="fold")
+    for row in rows:
+        table.add_row(*[_fmt(v) for v in row.values()])
+    console.print(table)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def depth_picture(depth: np.ndarray) -> np.ndarray:  # float [H, W] metres (0 = none) -> uint8 [H, W] (near bright)
+    """Depth as grey levels scaled to its 95th percentile; 0 where there is no surface."""
+    valid = depth > 0
+    far = float(np.percentile(depth[valid], 95)) if np.any(valid) else 1.0
+    grey = (255 * (1 - np.clip(depth / max(far, 1e-6), 0, 1))).astype(np.uint8)
+    grey[~valid] = 0
+    return grey
+
+
+# ----------------------------------------------------------------------------- option parsing
+def comma_list(text: Optional[str], parse: Callable[[str], T] = str, option: str = "the option",
+               example: str = "a,b") -> tuple[T, ...]:
+    """``a,b,c`` as a tuple (blank items dropped), each item parsed by ``parse``; a bad item is one error line."""
+    if not text:
+        return ()
+    items = []
+    for item in (p.strip() for p in text.split(",")):
+        if not item:
+            continue
+        try:
+            items.append(parse(item))
+        except (ValueError, TypeError):
+            raise OmniscsError(f"{option} takes a comma-separated list like {example}; got {text!r}") from None
+    return tuple(items)
+
+
+def seeds(text: str) -> tuple[int, ...]:
+    """``--seeds 0,1,2``; at least one."""
+    out = comma_list(text, int, "--seeds", "0,1,2")
+    if not out:
+        raise OmniscsError("--seeds needs at least one seed")
+    return out
+
+
+def read_edits(edit: Optional[str]) -> list:
+    """Edits from a JSON string, or from a file when the option starts with '@'."""
+    from omniscs.edits import parse_edits
+
+    if not edit:
+        return []
+    if edit.startswith("@"):
+        path = Path(edit[1:])
+        if not path.is_file():
+            raise OmniscsError(f"edit file {path} does not exist")
+        edit = path.read_text()
+    return parse_edits(edit)
+
+
+def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> Path:
+    """An ``--out`` path checked before work starts: the right suffix, and not already there unless
+    ``overwrite``."""
+    if suffix is not None and out.suffix.lower() != suffix:
+        raise OmniscsError(f"--out must end in {suffix}; got {out}")
+    if out.exists() and not overwrite:
+        raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    return out
+
+
+def workspace_option() -> Optional[Path]:
+    return typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data).")

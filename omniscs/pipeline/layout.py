@@ -1,0 +1,26 @@
+"""Where each stage's output lives under the workspace root (one place, so no caller builds a path of its own)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omniscs.catalog import catalog_root
+
+__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder"]
+
+#: Top-level folder of each stage's outputs.
+FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "behavior": "variants"}
+
+
+def scenes_dir(workspace: str | Path) -> Path:
+    """Scene stores ingested into the workspace (``scenes/<scene_id>/``)."""
+    return Path(workspace) / FOLDERS["ingest"]
+
+
+def scene_folder(workspace: str | Path, stage: str, scene_id: str) -> Path:
+    """``<workspace>/<stage folder>/<scene_id>``: all outputs of one stage for one scene."""
+    return Path(workspace) / FOLDERS[stage] / scene_id
+
+
+def stage_folder(workspace: str | Path, stage: str, scene_id: str, name: str) -> Path:
+    """One output of a stage for a scene, named by what made it (e.g. ``nsg-fast-<key>``)."""
+    return scene_folder(workspace, stage, scene_id) / name

@@ -1,0 +1,96 @@
+"""What a run asks of each scene (``SceneRequest``) and what each stage hands to the next (``StageRecord``):
+small, JSON-able values (ids, paths, catalog rows), never tensors, so Prefect can pass them between tasks."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from omniscs.errors import OmniscsError
+
+#: Named quality presets of the scene-graph fit and the behaviour optimisation.
+PRESET_NAMES = ("fast", "balanced", "accurate")
+
+
+@dataclass(frozen=True)
+class SceneRequest:
+    """The variants and quality a run asks for; the same for every scene of the run. The plan stage turns it
+    into what each scene needs modelled."""
+
+    fit_preset: str | None = None
+    """Scene-graph preset (fast, balanced, accurate); None: no scene graph is fitted."""
+    behavior_variants: int = 0
+    """Behaviour-level SCS variants per scene (0: none). With a scene graph, L_app is rendered by it."""
+    behavior_preset: str = "balanced"
+    """Adversarial-optimisation preset (fast, balanced, accurate)."""
+    behavior_checkpoint: str | None = None
+    """Traffic-model checkpoint folder; None: the shipped one."""
+    edits: tuple[dict, ...] = ()
+    """Edits the variants will apply (JSON dicts, see README); their tracks become nodes in the plan."""
+    previews: bool = True
+    """Contact sheet and BEV picture of every scene."""
+    device: str = "cpu"
+    """Compute device of the scene graph and the behaviour optimisation ("cpu" or "cuda")."""
+
+    def __post_init__(self) -> None:
+        if self.fit_preset is not None and self.fit_preset not in PRESET_NAMES:
+            raise OmniscsError(f"unknown fit preset {self.fit_preset!r}; use one of {list(PRESET_NAMES)} or none")
+        n = self.behavior_variants
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise OmniscsError(f"behavior_variants must be a non-negative integer; got {n!r}")
+        if self.behavior_preset not in PRESET_NAMES:
+            raise OmniscsError(f"unknown behavior preset {self.behavior_preset!r}; use one of {list(PRESET_NAMES)}")
+        if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
+            raise OmniscsError(f"unknown device {self.device!r}; use cpu or cuda")
+        object.__setattr__(self, "edits", tuple(dict(e) for e in self.edits))
+
+    def parsed_edits(self) -> list:
+        """The edits as the project's edit types (a malformed one is an OmniscsError)."""
+        from omniscs.edits import edit_from_dict
+
+        return [edit_from_dict(e) for e in self.edits]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["edits"] = [dict(e) for e in self.edits]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SceneRequest":
+        d = dict(d)
+        d["edits"] = tuple(d.get("edits") or ())
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class StageRecord:
+    """What one stage did for one scene: where its output is, whether it was reused or skipped, how long it
+    took, and the catalog rows it produced (table name -> rows) for the scene's catalog stage to write."""
+
+    stage: str
+    """Stage name: ingest, plan, preview, fit, behavior, ..."""
+    scene_id: str
+    """The scene the stage worked on."""
+    path: str | None = None
+    """Its output folder or file (None when it wrote nothing)."""
+    reused: bool = False
+    """An output made from the same inputs, config and stage version was already there."""
+    skipped: bool = False
+    """The scene's plan does not need this stage: it did nothing."""
+    seconds: float = 0.0
+    """Wall time of this call (near 0 when reused or skipped)."""
+    key: str | None = None
+    """The stage key (content hash) the output was made from."""
+    rows: dict[str, list[dict]] = field(default_factory=dict)
+    """Catalog rows by table."""
+    info: dict = field(default_factory=dict)
+    """Small facts for the caller (status, counts, ids)."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "StageRecord":
+        return cls(**d)
+
+    @classmethod
+    def skip(cls, stage: str, scene_id: str, why: str) -> "StageRecord":
+        return cls(stage, scene_id, skipped=True, info={"why": why})

@@ -1,0 +1,51 @@
+"""Prefect tasks: one line each over the pipeline's stage functions; they pass records (ids, paths, rows)."""
+from __future__ import annotations
+
+from prefect import task
+
+from omniscs.pipeline import stages
+from omniscs.pipeline.records import SceneRequest, StageRecord
+from tasks.progress import artifact_progress
+
+
+@task(name="ingest", task_run_name="ingest-{label}")
+def ingest(source: dict, workspace: str, label: str) -> StageRecord:
+    return stages.ingest_stage(source, workspace, progress=artifact_progress(f"ingest {label}"))
+
+
+@task(name="plan", task_run_name="plan-{scene.scene_id}")
+def plan(scene: StageRecord, request: SceneRequest, workspace: str) -> StageRecord:
+    return stages.plan_stage(scene.path, request, workspace)
+
+
+@task(name="preview", task_run_name="preview-{scene.scene_id}")
+def preview(scene: StageRecord, workspace: str) -> StageRecord:
+    return stages.preview_stage(scene.path, workspace)
+
+
+@task(name="fit", task_run_name="fit-{scene.scene_id}")
+def fit(scene: StageRecord, plan: StageRecord, request: SceneRequest, workspace: str) -> StageRecord:
+    return stages.fit_stage(scene.path, stages.load_plan(plan), request.fit_preset, workspace,
+                            progress=artifact_progress(f"fit scene graph of {scene.scene_id} ({request.fit_preset})"),
+                            **stages.device_overrides(request))
+
+
+@task(name="behavior", task_run_name="behavior-{scene.scene_id}")
+def behavior(scene: StageRecord, plan: StageRecord, model: StageRecord | None, request: SceneRequest,
+             workspace: str) -> StageRecord:
+    return stages.behavior_stage(scene.path, stages.load_plan(plan), request.behavior_variants, workspace,
+                                 request.behavior_preset, request.behavior_checkpoint, model,
+                                 progress=artifact_progress(f"behaviour variants of {scene.scene_id}"),
+                                 adversarial_overrides=stages.device_overrides(request))
+
+
+@task(name="catalog-scene", task_run_name="catalog-{scene_id}")
+def catalog_scene(run_id: str, workspace: str, scene_id: str, records: list[StageRecord]) -> list[str]:
+    return stages.catalog_scene_stage(run_id, workspace, records)
+
+
+@task(name="catalog-run")
+def catalog_run(run_id: str, workspace: str, flow: str, status: str, started_at_us: int, finished_at_us: int,
+                n_scenes: int, config: dict, error: str | None = None) -> str:
+    return stages.catalog_run_stage(run_id, workspace, flow, status, started_at_us, finished_at_us, n_scenes, config,
+                                    error)
