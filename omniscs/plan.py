@@ -8,7 +8,7 @@ Gaussian budget follows the area the cameras see along the ego path. Stages noth
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -43,6 +43,9 @@ class PlanConfig:
     """Ceiling on the total budget (memory and time on a 2-core machine)."""
     holdout_every: int = 4
     """Every Nth frame (N-1, 2N-1, ...) is held out of fitting for evaluation; 0 holds none out."""
+    every_track_a_node: bool = False
+    """Model every track as an agent node whatever the request (the baseline ``omniscs bench plan`` compares
+    the plan with: what modelling everything costs)."""
 
 
 @dataclass(frozen=True)
@@ -149,9 +152,9 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         edited = tid in by_track
         # behaviour variants may move any vehicle (L_app renders them where they move): each needs a node
         behaviour = behavior_variants > 0 and a["category"] in VEHICLE_CATEGORIES
-        if moving or edited or behaviour:
+        if moving or edited or behaviour or config.every_track_a_node:
             reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited), ("behavior", behaviour))
-                                    if on)
+                                    if on) or "every-track"
     nodes = tuple(sorted(reasons))
     needs_360 = tuple(sorted(t for t, es in by_track.items()
                              if any(_turns_far(e, config.rotation_needing_360_deg) for e in es)))

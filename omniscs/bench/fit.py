@@ -231,7 +231,7 @@ def _projected_box_area(scene, world_from_agent: np.ndarray, size: np.ndarray, c
     return float(np.prod(hi - lo))
 
 
-def _evaluation_views(renderer, scene, track_id: int, frames_per_edit: int, min_pixels: int):
+def evaluation_views(renderer, scene, track_id: int, frames_per_edit: int, min_pixels: int):
     """Up to ``frames_per_edit`` (frame, camera) pairs, spread over the log, where the edited agent covers at
     least ``min_pixels`` of the ground-truth image; each with its ground-truth render. Candidates come from
     the edited box's projection, so only the chosen views are ray-cast."""
@@ -291,7 +291,7 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
                     progress(len(rows), None, f"{scene.scene_id} track {tid}: {name}")
                 edited = apply_graph_edits(graph, [edit])
                 renderer = WorldRenderer(apply_edits(scene.world, [edit]))
-                views = _evaluation_views(renderer, scene, tid, frames_per_edit, min_pixels)
+                views = evaluation_views(renderer, scene, tid, frames_per_edit, min_pixels)
                 per_view = []
                 for f, cam, gt in views:
                     out = edited.render(edited.view(cam, f))

@@ -158,3 +158,37 @@ def bench_render(
     run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=repeats, reference_budget_s=reference_budget_s)
     console.print((out / "render_bench.md").read_text())
     console.print(f"wrote {out / 'render_bench.json'}")
+
+
+@app.command("plan")
+def bench_plan(
+    out: Path = typer.Option(Path("reports"), help="Folder for plan_bench.json/.md/.png."),
+    scenes: str = typer.Option("straight:31,t_junction:32,intersection:33",
+                               help="Comma-separated TEMPLATE:SEED procedural scenes."),
+    preset: str = typer.Option("fast", help="Scene-graph preset of both modes."),
+    variants: int = typer.Option(1, help="Behaviour variants requested per scene."),
+    frames: int = typer.Option(40), cameras: int = typer.Option(3),
+    width: int = typer.Option(480), height: int = typer.Option(270),
+    min_pixels: int = typer.Option(200, help="Views count when the edited agent covers this many pixels."),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
+) -> None:
+    """The pipeline with the scene's plan vs with every track an agent node: time, Gaussians, nodes, held-out and
+    edited-agent PSNR against ground truth."""
+    from omniscs.bench.plan import PlanBenchConfig, run_plan_benchmark
+    from omniscs.nsg.config import fit_preset
+
+    fit_preset(preset)
+
+    def template_seed(item: str) -> tuple[str, int]:
+        template, seed = item.split(":")
+        return template, int(seed)
+
+    chosen = comma_list(scenes, template_seed, "--scenes", "straight:31,t_junction:32")
+    if not chosen or variants < 0:
+        raise OmniscsError("--scenes needs at least one TEMPLATE:SEED and --variants must be >= 0")
+    config = PlanBenchConfig(scenes=chosen, n_frames=frames, n_cameras=cameras, width=width, height=height,
+                             fit_preset=preset, behavior_variants=variants, min_pixels=min_pixels)
+    with progress_bars() as bars:
+        run_plan_benchmark(out, config, workspace, progress=bars.sink("bench plan"))
+    console.print((out / "plan_bench.md").read_text())
+    console.print(f"wrote {out / 'plan_bench.json'} and {out / 'plan_bench.png'}")

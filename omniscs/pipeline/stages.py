@@ -211,11 +211,12 @@ def _result_config(config: dict) -> dict:
 def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, workspace: str | Path | None = None,
                    preset: str = "balanced", checkpoint: str | Path | None = None, model: StageRecord | None = None,
                    progress: Progress = no_progress, out_dir: str | Path | None = None,
-                   adversarial_overrides: dict | None = None, appearance_render=None) -> StageRecord:
+                   adversarial_overrides: dict | None = None, appearance_render=None,
+                   reuse: bool = True) -> StageRecord:
     """``n_variants`` behaviour-level SCS variants of the scene (variants.json, one BEV PNG each, ``variants``
     rows) in ``out_dir`` (default ``variants/<scene_id>/behavior-<key>/``). With the scene's fitted graph
     (``model``, the fit stage's record) the optimisation adds L_app rendered by it; that graph's key is part
-    of this stage's key, so variants with L_app are reused like any other."""
+    of this stage's key, so variants with L_app are reused like any other (unless ``reuse`` is False)."""
     from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
     from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash
     from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, appearance_from_checkpoint
@@ -239,7 +240,7 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
             raise OmniscsError("behavior_stage needs a workspace or an out_dir")
         out_dir = layout.stage_folder(workspace, "behavior", scene.scene_id, f"behavior-{key.short}")
     out_dir = Path(out_dir)
-    manifest = reusable(out_dir, key)
+    manifest = reusable(out_dir, key) if reuse else None
     if manifest is None:
         traffic = traffic_from_scene(scene)
         appearance = (appearance_from_checkpoint(graph.path, scene, traffic, ckpt, config, render)

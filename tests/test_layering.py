@@ -1,0 +1,58 @@
+"""The layers of DESIGN.md hold: the domain library never reaches the orchestrator, and model code never reaches
+the procedural world (a recorded log and a procedural one go through the same code)."""
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LIBRARY = ROOT / "omniscs"
+#: Model packages (present and future): they may not import the procedural world.
+MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate")
+#: Top floors that start flows or serve requests; everything else in omniscs/ is Prefect-free.
+TOP_FLOORS = ("cli",)
+
+
+def imported_modules(path: Path, root: Path = ROOT) -> list[tuple[int, str]]:
+    """Every module a file imports (absolute names; relative imports resolved against its package)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = ".".join(path.relative_to(root).with_suffix("").parts[:-1])
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            found.append((node.lineno, base))
+            found += [(node.lineno, f"{base}.{alias.name}") for alias in node.names]
+    return found
+
+
+def violations(files, forbidden, root: Path = ROOT) -> list[str]:
+    return [f"{f.relative_to(root)}:{line} imports {name}" for f in files for line, name in imported_modules(f, root)
+            if any(name == bad or name.startswith(bad + ".") for bad in forbidden)]
+
+
+def library_files(exclude=()) -> list[Path]:
+    return [f for f in LIBRARY.rglob("*.py") if f.relative_to(LIBRARY).parts[0] not in exclude]
+
+
+def test_the_domain_library_never_imports_prefect_tasks_or_flows():
+    assert violations(library_files(exclude=TOP_FLOORS), ("prefect", "tasks", "flows")) == []
+
+
+def test_model_code_never_imports_the_procedural_world():
+    files = [f for f in library_files() if f.relative_to(LIBRARY).parts[0] in MODEL_PACKAGES]
+    assert files, "no model package found"
+    assert violations(files, ("omniscs.world",)) == []
+
+
+def test_the_check_itself_sees_a_forbidden_import(tmp_path):
+    fake = tmp_path / "omniscs" / "nsg" / "probe.py"
+    fake.parent.mkdir(parents=True)
+    fake.write_text("from omniscs.world import generate_world\nfrom ..world import layouts\nimport prefect\n"
+                    "from omniscs.worldly import x\n")
+    names = violations([fake], ("omniscs.world", "prefect"), root=tmp_path)
+    # the module and its name, the relative module and its name, prefect; never a mere prefix like "worldly"
+    assert len(names) == 5 and not any("worldly" in n for n in names)
