@@ -4,4 +4,5 @@ CREATE OR REPLACE VIEW scenes AS SELECT * FROM read_parquet('omniscs-data/catalo
 CREATE OR REPLACE VIEW agents AS SELECT * FROM read_parquet('omniscs-data/catalog/agents/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
 CREATE OR REPLACE VIEW frames AS SELECT * FROM read_parquet('omniscs-data/catalog/frames/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
 CREATE OR REPLACE VIEW variants AS SELECT * FROM read_parquet('omniscs-data/catalog/variants/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
+CREATE OR REPLACE VIEW plans AS SELECT * FROM read_parquet('omniscs-data/catalog/plans/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);
 CREATE OR REPLACE VIEW models AS SELECT * FROM read_parquet('omniscs-data/catalog/models/run_id=*/*.parquet', hive_partitioning = true, union_by_name = true);

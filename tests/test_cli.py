@@ -83,3 +83,34 @@ def test_world_render_applies_edits_to_the_ground_truth_world(tmp_path):
 def test_world_render_refuses_a_bad_edit_with_one_line(tiny_scene, tmp_path):
     proc = run_cli("world", "render", str(tiny_scene), "--out", str(tmp_path / "x.png"))
     assert proc.returncode == 2 and "not a synthetic scene" in proc.stderr
+
+
+def test_generate_exposes_every_parameter_of_the_flow():
+    import inspect
+
+    from flows.generate import generate_dataset
+
+    # the CLI's names for flow parameters whose option reads better under another name
+    option = {"sources": None, "n_frames": "--frames", "n_cameras": "--cameras", "edits": "--edit"}
+    result = runner.invoke(app, ["generate", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    for name in inspect.signature(generate_dataset.fn).parameters:
+        flag = option.get(name, "--" + name.replace("_", "-"))
+        assert flag is None or flag in result.output, f"generate has no option for the flow's {name}"
+
+
+def test_comma_lists_parse_each_item_or_fail_in_one_line():
+    from omniscs.cli.common import comma_list, seeds
+    from omniscs.errors import OmniscsError
+
+    assert comma_list("1, 2,,3", int) == (1, 2, 3) and comma_list(None) == () and seeds("4") == (4,)
+    with pytest.raises(OmniscsError, match="comma-separated list like 0,1,2"):
+        seeds("1,x")
+    with pytest.raises(OmniscsError, match="at least one"):
+        seeds(" , ")
+
+
+def test_a_bad_generate_request_fails_before_the_flow_starts(tmp_path):
+    proc = run_cli("generate", "syn:straight:0", "--fit-preset", "fastest", "--workspace", str(tmp_path / "ws"))
+    assert proc.returncode == 2 and "unknown fit preset" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "ws" / "scenes").exists()
