@@ -201,7 +201,8 @@ def test_renderer_refuses_resampled_logs_and_foreign_graphs(fitted):
         scene_graph_appearance(graph, other, load_checkpoint())
 
 
-def test_flow_feeds_the_fitted_graph_to_the_behaviour_task(prefect_harness, tmp_path, monkeypatch):
+def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_with_l_app(prefect_harness, tmp_path,
+                                                                                         monkeypatch):
     from flows.generate import generate_dataset
     from omniscs import catalog
     from omniscs.nsg.config import PRESETS
@@ -211,10 +212,14 @@ def test_flow_feeds_the_fitted_graph_to_the_behaviour_task(prefect_harness, tmp_
     ws = tmp_path / "ws"
     out = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
                            behavior_variants=1, behavior_preset="fast", run_id="r1")
-    assert out["models"][0]["status"] == "fitted"
-    assert out["behavior_variants"][0]["appearance_term"] is True
-    rows = catalog.query(catalog.catalog_root(ws), "SELECT loss_app FROM variants").to_pylist()
-    assert rows and all(r["loss_app"] is not None for r in rows)
+    stages = out["scenes"][0]["stages"]
+    assert stages["fit"]["info"]["status"] == "fitted"
+    assert stages["behavior"]["info"]["appearance_term"] is True and not stages["behavior"]["reused"]
+    again = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
+                             behavior_variants=1, behavior_preset="fast", run_id="r2")["scenes"][0]["stages"]
+    assert again["fit"]["reused"] and again["behavior"]["reused"] and again["behavior"]["path"] == stages["behavior"]["path"]
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id, loss_app FROM variants ORDER BY 1").to_pylist()
+    assert [r["run_id"] for r in rows] == ["r1", "r2"] and rows[0]["loss_app"] == rows[1]["loss_app"] is not None
     models = catalog.query(catalog.catalog_root(ws), "SELECT agent_nodes FROM models").to_pylist()
     assert models[0]["agent_nodes"] == [1, 2, 3]  # the parked car too: variants may move it
 
