@@ -97,6 +97,8 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
     scene = load_scene(scene_path)
     config = plan_config or plan_config_for(request)
     edits = request.parsed_edits()
+    if request.behavior_variants > 0:
+        check_behavior_request(scene, request)
     plan = make_plan(scene, edits, config, behavior_variants=request.behavior_variants,
                      fit_nsg=request.fit_preset is not None)
     key = StageKey.of("plan", PLAN_VERSION, scene.content_hash, plan.to_dict())
@@ -109,6 +111,17 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
     return StageRecord("plan", scene.scene_id, str(out / PLAN_JSON), reused=reused,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"plans": [row]},
                        info={"summary": plan.summary(), "stages": dict(plan.stages)})
+
+
+def check_behavior_request(scene, request: SceneRequest) -> None:
+    """A log too short for behaviour variants fails at its plan, before any fitting (the checks the behavior
+    stage would make first: the checkpoint loads, the preset exists, the log covers the model's horizon)."""
+    from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
+    from omniscs.scs.behavior.adversarial import now_and_horizon
+    from omniscs.scs.behavior.checkpoint import load_checkpoint
+
+    now_and_horizon(traffic_from_scene(scene), load_checkpoint(request.behavior_checkpoint).config,
+                    adversarial_preset(request.behavior_preset))
 
 
 def load_plan(record_or_path: StageRecord | str | Path) -> ScenePlan:

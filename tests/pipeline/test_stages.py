@@ -100,3 +100,10 @@ def test_one_failing_scene_stops_no_other_and_the_run_is_recorded_failed(prefect
         {"scene_id": "b", "agent_nodes": [1, 2]}]
     (run,) = catalog.query(root, "SELECT status, error FROM runs").to_pylist()
     assert run["status"] == "failed" and "does not have" in run["error"]
+
+
+def test_a_log_too_short_for_behavior_variants_fails_at_its_plan_before_any_fit(tmp_path):
+    store = write_tiny_scene(tmp_path / "in", n_frames=5)
+    with pytest.raises(OmniscsError, match="behaviour variants need at least"):
+        stages.plan_stage(store, SceneRequest(fit_preset="fast", behavior_variants=1), tmp_path / "ws")
+    assert not (tmp_path / "ws").exists()
