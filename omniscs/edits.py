@@ -156,3 +156,11 @@ def poses_from_waypoints(waypoints, n_frames: int) -> tuple[np.ndarray, np.ndarr
         poses[i] = pose_from_xyz_yaw(*w)
         present[i] = True
     return poses, present
+
+
+def resting_tilt(size: np.ndarray, roll_deg: float, pitch_deg: float) -> tuple[np.ndarray, float]:  # R [3, 3], dz
+    """Local tilt (roll about x, then pitch about y) plus the vertical shift that keeps the tilted box
+    resting on the ground that the upright box stood on (roll 180: no shift; roll 90: z - h/2 + w/2)."""
+    R = rotmat_from_euler(np.radians(roll_deg), np.radians(pitch_deg), 0.0)
+    half_up = 0.5 * float(np.abs(R[2]) @ np.asarray(size, dtype=np.float64))
+    return R, half_up - 0.5 * float(size[2])

@@ -1,4 +1,4 @@
-"""Rigid-body geometry in float64: quaternions (w, x, y, z, Hamilton), SE(3), boxes, pinhole cameras.
+"""Rigid-body geometry in float64: rotations, SE(3), boxes, pinhole cameras (quaternions: omniscs.quaternions).
 
 Conventions (DESIGN.md): world z up; agent frame x forward, y left, z up; cameras OpenCV
 (x right, y down, z forward); transforms are 4x4 float64 named ``a_from_b``.
@@ -7,94 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from omniscs.errors import OmniscsError
-
-#: Quaternions shorter than this cannot be normalised into a rotation.
-MIN_QUAT_NORM = 1e-12
-
 #: Points closer to the camera than this (metres along +z) do not project.
 DEFAULT_NEAR = 0.01
 
 
-# ----------------------------------------------------------------------------- quaternions
-def quat_normalize(q: np.ndarray) -> np.ndarray:  # [..., 4] -> [..., 4]
-    """Unit quaternion with non-negative w (q and -q are the same rotation; this picks one)."""
-    q = np.asarray(q, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(~np.isfinite(q)) or np.any(norm < MIN_QUAT_NORM):
-        raise OmniscsError("quaternion has zero norm or is not finite; give a non-zero (w, x, y, z)")
-    q = q / norm
-    return np.where(q[..., :1] < 0, -q, q)
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:  # [..., 4] (w, x, y, z) -> [..., 3, 3]
-    w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] -> [..., 4] (w >= 0)
-    """Shepperd's method: picks the largest of w, x, y, z to divide by, so 180° turns stay exact."""
-    R = np.asarray(R, dtype=np.float64)
-    batch = R.shape[:-2]
-    m = R.reshape(-1, 3, 3)
-    tr = np.trace(m, axis1=1, axis2=2)
-    diag = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)
-    pick = np.argmax(diag, -1)
-    q = np.empty((m.shape[0], 4))
-    for i, k in enumerate(pick):
-        r = m[i]
-        if k == 0:
-            s = 2.0 * np.sqrt(max(1.0 + tr[i], 0.0))
-            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-        elif k == 1:
-            s = 2.0 * np.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
-            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-        elif k == 2:
-            s = 2.0 * np.sqrt(max(1.0 - r[0, 0] + r[1, 1] - r[2, 2], 0.0))
-            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(max(1.0 - r[0, 0] - r[1, 1] + r[2, 2], 0.0))
-            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
-    return quat_normalize(q).reshape(*batch, 4)
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # [..., 4] x [..., 4] -> [..., 4]
-    """Hamilton product a ⊗ b (apply b first, then a)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
-
-
-def quat_from_axis_angle(axis: np.ndarray, angle: float | np.ndarray) -> np.ndarray:  # [3] -> [4]
-    axis = np.asarray(axis, dtype=np.float64)
-    n = np.linalg.norm(axis, axis=-1, keepdims=True)
-    if np.any(n < MIN_QUAT_NORM):
-        raise OmniscsError("rotation axis has zero length; give a non-zero axis")
-    half = 0.5 * np.asarray(angle, dtype=np.float64)[..., None]
-    return np.concatenate([np.cos(half), np.sin(half) * axis / n], -1)
-
-
-def yaw_to_quat(yaw: float | np.ndarray) -> np.ndarray:  # [...] -> [..., 4]
-    return quat_from_axis_angle(np.array([0.0, 0.0, 1.0]), yaw)
-
-
+# ----------------------------------------------------------------------------- rotations
 def rotmat_from_euler(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> np.ndarray:
     """R = Rz(yaw) Ry(pitch) Rx(roll): roll about the agent's x (forward), then pitch, then yaw."""
     cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)

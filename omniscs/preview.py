@@ -6,8 +6,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform,
-                              make_transform, quat_to_rotmat, transform_points)
+from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform, make_transform,
+                              transform_points)
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
 from omniscs.storage import atomic_write_bytes, atomic_write_with
 

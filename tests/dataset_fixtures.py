@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from omniscs.geometry import quat_to_rotmat, wrap_angle
+from omniscs.geometry import wrap_angle
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene import Scene, SyntheticSource, write_synthetic_scene
 
 #: Six cameras (nuScenes rig), six frames at 10 Hz (two 2 Hz keyframes: 0 and 5), LiDAR; renders in ~3 s.

@@ -7,13 +7,18 @@ import numpy as np
 import pytest
 import torch
 
-from omniscs.scs.behavior.adversarial import (BehaviorProblem, adversarial_preset, box_gap, distinct_variants,
-                                              generate_variants, variant_schedule)
-from omniscs.scs.behavior.collision import footprints, overlapping
+from omniscs.errors import OmniscsError
+from omniscs.pipeline.procedural import traffic_from_world
+from omniscs.scs.behavior.adversarial_config import adversarial_preset
 from omniscs.scs.behavior.appearance import AppearanceTerm
 from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.collision import footprints, overlapping
+from omniscs.scs.behavior.evaluation import evaluate
+from omniscs.scs.behavior.generation import distinct_variants, generate_variants, variant_schedule
+from omniscs.scs.behavior.losses import box_gap
+from omniscs.scs.behavior.optimisation import intercept, optimise, warm_start
 from omniscs.scs.behavior.planner import PlannerConfig, rule_based_plan
-from omniscs.scs.behavior.tracks import traffic_from_world
+from omniscs.scs.behavior.problem import BehaviorProblem
 from omniscs.scs.behavior.variants import variant_spec
 from tests.behavior_fixtures import straight_world
 from tests.test_behavior_appearance import blob_renderer
@@ -74,17 +79,17 @@ def test_plausibility_catches_harsh_braking_collisions_between_agents_and_leavin
     lon = problem.fitted.longitudinal_accel.numpy().astype(np.float64)
     lat = problem.fitted.lateral_accel.numpy().astype(np.float64)
     plan = problem.plan(states)
-    assert problem.evaluate(states, lon, lat, plan, 1).plausible
+    assert evaluate(problem, states, lon, lat, plan, 1).plausible
     harsh = lon.copy()
     harsh[1, 5] = -6.0
-    assert any("braking 6.00 > 4.05" in v for v in problem.evaluate(states, harsh, lat, plan, 1).violations)
+    assert any("braking 6.00 > 4.05" in v for v in evaluate(problem, states, harsh, lat, plan, 1).violations)
     crash = states.copy()
     crash[2, 15:, :3] = crash[1, 15:, :3]
     assert any(v.startswith("collision of track 1 and track 2") for v in
-               problem.evaluate(crash, lon, lat, plan, 1).violations)
+               evaluate(problem, crash, lon, lat, plan, 1).violations)
     off = states.copy()
     off[1, 20:, 1] += 14.0  # scene frame y: onto the sidewalk
-    assert any("leaves the drivable area" in v for v in problem.evaluate(off, lon, lat, plan, 1).violations)
+    assert any("leaves the drivable area" in v for v in evaluate(problem, off, lon, lat, plan, 1).violations)
 
 
 def test_rule_planner_keeps_speed_on_a_clear_road_and_stops_behind_a_standing_car():
@@ -110,7 +115,7 @@ def test_variants_take_adversaries_in_turn_then_other_time_windows():
 def test_l_app_enters_the_loss_only_when_a_renderer_is_supplied(model):
     traffic = traffic_from_world(straight_world([{"x": 14.0, "y": 3.3, "speed": 8.0}]))
     plain = BehaviorProblem(traffic, model, FAST)
-    assert plain.optimise(1, (0, plain.horizon), "v", True).losses["L_app"] is None
+    assert optimise(plain, 1, (0, plain.horizon), "v", True).losses["L_app"] is None
 
     render = blob_renderer(size=24, extent_m=60.0)
     original = render(plain.world_trajectories(plain.fitted.states)).detach()
@@ -118,7 +123,7 @@ def test_l_app_enters_the_loss_only_when_a_renderer_is_supplied(model):
     seen = []
     wrapped = AppearanceTerm(lambda traj: seen.append(traj.poses.requires_grad) or render(traj), original)
     with_app = BehaviorProblem(traffic, model, FAST, appearance=wrapped)
-    result = with_app.optimise(1, (0, with_app.horizon), "v", True)
+    result = optimise(with_app, 1, (0, with_app.horizon), "v", True)
     assert result.losses["L_app"] is not None and np.isfinite(result.losses["L_app"])
     assert seen and all(seen)  # the renderer received differentiable trajectories every step
     assert appearance(plain.world_trajectories(plain.fitted.states)).item() == pytest.approx(0.0, abs=1e-8)
@@ -138,21 +143,21 @@ def test_warm_starts_are_deterministic_for_a_fixed_seed_and_differ_between_resta
                                                  {"x": 30.0, "y": 6.6, "yaw": np.pi, "speed": 8.0}]))
     problem = BehaviorProblem(traffic, model, FAST)
     window = (0, problem.horizon)
-    first = problem.warm_start(1, window, restart=0)
-    assert torch.equal(first, problem.warm_start(1, window, restart=0))
-    assert not torch.equal(first, problem.warm_start(1, window, restart=1))
+    first = warm_start(problem, 1, window, restart=0)
+    assert torch.equal(first, warm_start(problem, 1, window, restart=0))
+    assert not torch.equal(first, warm_start(problem, 1, window, restart=1))
     assert torch.equal(first[2:], problem.z_fit[2:]) and torch.equal(first[0], problem.z_fit[0])  # only node 1 moves
     problem.config = replace(FAST, seed=1)
-    assert not torch.equal(first, problem.warm_start(1, window, restart=0))
+    assert not torch.equal(first, warm_start(problem, 1, window, restart=0))
     problem.config = FAST
-    a, b = (problem.optimise(1, window, "v", True, z_start=first) for _ in range(2))
+    a, b = (optimise(problem, 1, window, "v", True, z_start=first) for _ in range(2))
     assert np.array_equal(a.agents[1], b.agents[1], equal_nan=True) and a.iterations == b.iterations
 
 
 def test_the_interception_search_finds_a_comfortable_path_of_a_parked_car_into_the_ego(model):
     traffic = traffic_from_world(straight_world([{"x": 18.0, "y": 3.3, "speed": 0.0}]))
     problem = BehaviorProblem(traffic, model, FAST)
-    states, gap = problem.intercept(1, (0, problem.horizon), problem.logged_plan, torch.Generator().manual_seed(0))
+    states, gap = intercept(problem, 1, (0, problem.horizon), problem.logged_plan, torch.Generator().manual_seed(0))
     assert gap < 0.0 and states[-1, 3] > 1.0  # it pulls out and its box overlaps the ego's
     lon, lat = np.diff(np.r_[0.0, states[:, 3].numpy()]) / traffic.dt, (states[:, 3] * states[:, 4]).numpy()
     cb = FAST.comfort
@@ -185,15 +190,15 @@ def test_agents_whose_reconstruction_collides_replay_their_log_and_are_never_adv
     base = adversarial_preset("balanced")
     unpinned = BehaviorProblem(traffic, model, replace(base, pin_colliding_reconstructions=False))
     fit = unpinned.fitted
-    ev = unpinned.evaluate(fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(),
-                           unpinned.logged_plan, 1)
+    ev = evaluate(unpinned, fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(),
+                  unpinned.logged_plan, 1)
     assert any(v.startswith("collision of track 10 and track 11") for v in ev.violations)
 
     p = BehaviorProblem(traffic, model, base)
     pinned = [int(traffic.track_ids[p.node_tracks[k]]) for k in np.flatnonzero(p.pinned)]
     assert pinned == [10, 11]
     fit = p.fitted
-    ev = p.evaluate(fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(), p.logged_plan, 1)
+    ev = evaluate(p, fit.states.numpy(), fit.longitudinal_accel.numpy(), fit.lateral_accel.numpy(), p.logged_plan, 1)
     assert not any(v.startswith("collision") for v in ev.violations), ev.violations
     mask = p.batch.future_mask[0].numpy()
     for k in np.flatnonzero(p.pinned):  # exactly the log, whatever the latents
@@ -223,3 +228,28 @@ def test_the_knot_fallback_keeps_a_plausible_interception_the_latent_cannot_expr
     assert -cb.max_decel <= spec["adversary_accel_mps2"][0] and spec["adversary_accel_mps2"][1] <= cb.max_accel
     assert spec["adversary_max_lateral_accel_mps2"] <= cb.max_lateral_accel
     assert all(np.isfinite(x) for x in v.losses.values() if x is not None)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="tests the message shown where CUDA is missing")
+def test_asking_for_cuda_without_it_is_a_clear_error_before_any_work(model):
+    from omniscs.scs.behavior.train import TrainConfig, train_model
+
+    traffic = traffic_from_world(straight_world([{"x": 8.0, "y": 3.3, "speed": 8.0}]))
+    with pytest.raises(OmniscsError, match="no CUDA device"):
+        generate_variants(traffic, model, 1, replace(FAST, device="cuda"))
+    never = lambda *args: pytest.fail("no procedural log may be made before the device is checked")  # noqa: E731
+    with pytest.raises(OmniscsError, match="no CUDA device"):
+        train_model(TrainConfig(device="cuda"), never)
+    with pytest.raises(OmniscsError, match="unknown device"):
+        generate_variants(traffic, model, 1, replace(FAST, device="gpu0"))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_variant_made_on_cuda_steers_the_car_into_the_ego_as_on_the_cpu(model):
+    traffic = traffic_from_world(straight_world([{"x": 8.0, "y": 3.3, "speed": 8.0}]))
+    (v,) = generate_variants(traffic, model, 1, replace(FAST, device="cuda"))
+    (cpu,) = generate_variants(traffic, model, 1, FAST)
+    assert v.success and v.plausible, v.evaluation.violations
+    assert v.adversary == cpu.adversary and v.kind == cpu.kind
+    assert all(np.isfinite(x) for x in v.losses.values() if x is not None)
+    assert next(model.parameters()).device.type == "cpu"  # the caller's model stays where it was

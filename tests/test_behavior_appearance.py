@@ -110,7 +110,7 @@ def test_masked_psnr_counts_only_the_adversarys_pixels():
 
 
 def test_ground_truth_of_a_variant_re_renders_the_adversary_on_its_new_path():
-    from omniscs.scs.behavior.appearance import variant_ground_truth
+    from omniscs.bench.behavior import variant_ground_truth
     from tests.behavior_fixtures import straight_world
 
     world = straight_world([{"x": 14.0, "y": 3.3, "speed": 8.0}])

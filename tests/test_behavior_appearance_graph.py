@@ -39,7 +39,7 @@ def fitted(tmp_path_factory):
     return scene, plan, fit_scene(scene, config, plan, checkpoint_dir=root / "nsg").graph
 
 
-def test_plan_for_behaviour_variants_makes_every_vehicle_a_node(fitted):
+def test_plan_for_behavior_variants_makes_every_vehicle_a_node(fitted):
     scene, plan, graph = fitted
     assert plan.agent_nodes == (1, 2, 3)
     assert plan.node_reasons[3] == "behavior"  # parked: a node only because variants may move it

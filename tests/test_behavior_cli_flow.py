@@ -13,8 +13,8 @@ from omniscs.cli import app
 from omniscs.errors import OmniscsError
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
-from omniscs.scs.behavior.bench import configurations, markdown
-from omniscs.scs.behavior.adversarial import adversarial_preset
+from omniscs.scs.behavior.adversarial_config import adversarial_preset
+from omniscs.bench.behavior import configurations, markdown
 from tests.conftest import write_tiny_scene
 
 ISSUE_KEYS = {"variant_id", "dt", "ego", "agents", "sizes", "adversary", "collision_step", "success", "plausible",
@@ -49,7 +49,8 @@ def _cli(*args):
 @pytest.mark.parametrize("args, message", [
     (["syn:roundabout:1", "--variants", "1"], "unknown template"),
     (["syn:straight:1", "--variants", "0"], "--variants must be at least 1"),
-    (["syn:straight:1:8", "--variants", "1"], "behaviour variants need at least"),
+    (["syn:straight:1", "--frames", "8", "--variants", "1"], "behaviour variants need at least"),
+    (["syn:straight:1:8", "--variants", "1"], "unknown lighting"),  # one syn: grammar: the 4th part is lighting
     (["syn:straight:1", "--planner", "magic"], "unknown planner"),
     (["syn:straight:1", "--checkpoint", "/nonexistent"], "train-behavior"),
 ])
@@ -60,12 +61,22 @@ def test_scs_behavior_user_errors_are_domain_errors_that_write_nothing(tmp_path,
 
 
 def test_scs_behavior_user_error_exits_2_with_one_line_and_no_traceback(tmp_path):
-    proc = _cli("scs", "behavior", "syn:straight:1:8", "--out", str(tmp_path / "o"))
+    proc = _cli("scs", "behavior", "syn:straight:1", "--frames", "8", "--out", str(tmp_path / "o"))
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "behaviour variants need at least 11 steps" in proc.stderr and proc.stderr.strip().count("\n") == 0
 
 
-def test_the_plan_runs_the_behaviour_stage_only_when_variants_are_requested(tiny_scene):
+def test_the_device_never_changes_which_behavior_variants_are_reused():
+    from dataclasses import asdict, replace
+
+    from omniscs.pipeline.stages import _result_config
+
+    fast = adversarial_preset("fast")
+    assert _result_config(asdict(replace(fast, device="cuda"))) == _result_config(asdict(fast))
+    assert _result_config(asdict(replace(fast, seed=1))) != _result_config(asdict(fast))
+
+
+def test_the_plan_runs_the_behavior_stage_only_when_variants_are_requested(tiny_scene):
     scene = load_scene(tiny_scene)
     assert not make_plan(scene).stages["behavior_variants"]
     assert make_plan(scene, behavior_variants=3).stages["behavior_variants"]
@@ -73,7 +84,7 @@ def test_the_plan_runs_the_behaviour_stage_only_when_variants_are_requested(tiny
         make_plan(scene, behavior_variants=-1)
 
 
-def test_generate_dataset_makes_and_catalogues_behaviour_variants(prefect_harness, tmp_path):
+def test_generate_dataset_makes_and_catalogues_behavior_variants(prefect_harness, tmp_path):
     from flows.generate import generate_dataset
 
     store = write_tiny_scene(tmp_path / "in" / "road", n_frames=30, n_tracks=3, scene_id="road", with_lidar=False)
@@ -112,7 +123,7 @@ def _summary_row(**extra) -> dict:
 
 
 def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
-    from omniscs.scs.behavior.bench import appearance_configs
+    from omniscs.bench.behavior import appearance_configs
 
     configs = configurations(adversarial_preset("fast"), rule_planner=False)
     assert len(configs) == 3
@@ -131,7 +142,7 @@ def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
 
 @pytest.mark.slow
 def test_benchmark_runs_on_a_small_scene_set(tmp_path):
-    from omniscs.scs.behavior.bench import BenchConfig, run_behavior_benchmark
+    from omniscs.bench.behavior import BenchConfig, run_behavior_benchmark
 
     result = run_behavior_benchmark(tmp_path, BenchConfig(scenes_per_template=1, variants_per_scene=1,
                                                           preset="fast", rule_planner=False, appearance_scenes=1,

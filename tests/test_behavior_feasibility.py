@@ -5,14 +5,15 @@ import pytest
 import torch
 
 from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.adversarial import BehaviorProblem, adversarial_preset
-from omniscs.scs.behavior.bench import _summary, mark_feasible, markdown
+from omniscs.pipeline.procedural import traffic_from_world
+from omniscs.scs.behavior.adversarial_config import adversarial_preset
+from omniscs.bench.behavior import _summary, mark_feasible, markdown
 from omniscs.scs.behavior.checkpoint import load_checkpoint
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.feasibility import (FeasibilityConfig, comfort_kinematics, out_of_reach, search_reach,
                                               search_scene)
 from omniscs.scs.behavior.kinematics import accelerations, bound_controls, rollout, soft_clip_accel
-from omniscs.scs.behavior.tracks import traffic_from_world
+from omniscs.scs.behavior.problem import BehaviorProblem
 from tests.behavior_fixtures import straight_world
 
 FAST = adversarial_preset("fast")

@@ -5,8 +5,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from omniscs.scs.behavior.adversarial import behaviour_loss, disc_centres, restore_loss
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
+from omniscs.scs.behavior.losses import behavior_loss, disc_centres, restore_loss
 
 
 def _naive(agent_xy, plan_xy):  # the paper's formula written directly (underflows far away)
@@ -18,7 +18,7 @@ def _naive(agent_xy, plan_xy):  # the paper's formula written directly (underflo
 def test_lbeh_is_the_papers_softmax_weighted_distance_for_near_agents():
     g = torch.Generator().manual_seed(0)
     agents, plan = torch.randn(3, 8, 2, generator=g) * 3, torch.randn(8, 2, generator=g)
-    loss, delta = behaviour_loss(agents, plan, torch.ones(3, 8, dtype=torch.bool))
+    loss, delta = behavior_loss(agents, plan, torch.ones(3, 8, dtype=torch.bool))
     assert torch.isclose(loss, _naive(agents, plan), rtol=1e-5)
     assert torch.isclose(delta.sum(), torch.tensor(1.0)) and (delta >= 0).all()
 
@@ -28,7 +28,7 @@ def test_lbeh_does_not_underflow_to_nan_when_every_agent_is_far(far_m):
     agents = torch.tensor([[[far_m, 0.0]] * 5, [[0.0, far_m * 1.5]] * 5], requires_grad=True)
     plan = torch.zeros(5, 2)
     assert torch.isnan(_naive(agents.detach(), plan)), "the naive formula is the failure this guards against"
-    loss, delta = behaviour_loss(agents, plan, torch.ones(2, 5, dtype=torch.bool))
+    loss, delta = behavior_loss(agents, plan, torch.ones(2, 5, dtype=torch.bool))
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(agents.grad).all()
     assert torch.isclose(delta.sum(), torch.tensor(1.0))
@@ -39,7 +39,7 @@ def test_lbeh_does_not_underflow_to_nan_when_every_agent_is_far(far_m):
 def test_lbeh_weights_only_participating_agents_and_steps():
     agents = torch.tensor([[[1.0, 0.0], [2.0, 0.0]], [[0.1, 0.0], [0.1, 0.0]]], requires_grad=True)
     mask = torch.tensor([[True, True], [False, False]])
-    loss, delta = behaviour_loss(agents, torch.zeros(2, 2), mask)
+    loss, delta = behavior_loss(agents, torch.zeros(2, 2), mask)
     loss.backward()
     assert (delta[1] == 0).all() and (agents.grad[1] == 0).all()
     assert delta[0, 0] > delta[0, 1]  # the closer step weighs more
@@ -47,14 +47,14 @@ def test_lbeh_weights_only_participating_agents_and_steps():
 
 def test_lbeh_without_participants_is_zero_with_zero_gradient():
     agents = torch.randn(2, 4, 2, requires_grad=True)
-    loss, delta = behaviour_loss(agents, torch.zeros(4, 2), torch.zeros(2, 4, dtype=torch.bool))
+    loss, delta = behavior_loss(agents, torch.zeros(4, 2), torch.zeros(2, 4, dtype=torch.bool))
     loss.backward()
     assert loss.item() == 0.0 and (delta == 0).all() and (agents.grad == 0).all()
 
 
 def test_lbeh_of_an_agent_on_the_plan_has_a_finite_gradient():
     agents = torch.zeros(1, 3, 2, requires_grad=True)
-    loss, _ = behaviour_loss(agents, torch.zeros(3, 2), torch.ones(1, 3, dtype=torch.bool))
+    loss, _ = behavior_loss(agents, torch.zeros(3, 2), torch.ones(1, 3, dtype=torch.bool))
     loss.backward()
     assert torch.isfinite(agents.grad).all() and loss.item() == pytest.approx(0.0, abs=1e-9)
 
@@ -63,7 +63,7 @@ def test_lbeh_of_an_agent_on_the_plan_has_a_finite_gradient():
 @given(distances=st.lists(st.floats(0.0, 1e7), min_size=1, max_size=12))
 def test_lbeh_weights_form_a_distribution_at_any_scale(distances):
     agents = torch.tensor([[[d, 0.0]] for d in distances], dtype=torch.float32)
-    loss, delta = behaviour_loss(agents, torch.zeros(1, 2), torch.ones(len(distances), 1, dtype=torch.bool))
+    loss, delta = behavior_loss(agents, torch.zeros(1, 2), torch.ones(len(distances), 1, dtype=torch.bool))
     assert torch.isfinite(loss) and torch.isfinite(delta).all()
     assert abs(float(delta.sum()) - 1.0) < 1e-5 and (delta >= 0).all()
 

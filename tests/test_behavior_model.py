@@ -5,11 +5,11 @@ import pytest
 import torch
 
 from omniscs.errors import OmniscsError
+from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint, training_record
 from omniscs.scs.behavior.features import build_sample, collate
 from omniscs.scs.behavior.kinematics import yaw_rate_bound
 from omniscs.scs.behavior.model import ModelConfig, TrafficModel
-from omniscs.scs.behavior.tracks import traffic_from_world
 from tests.behavior_fixtures import straight_world
 
 

@@ -1,4 +1,5 @@
-"""The behaviour model's view of a log: tracks on a time grid, maps (layout or derived), per-agent features."""
+"""The behaviour model's view of a log: tracks on a time grid, maps (from a road map or derived), per-agent
+features; a recorded log and a procedural one go through the same code."""
 import numpy as np
 import pytest
 import torch
@@ -6,9 +7,12 @@ import torch
 from omniscs.geometry import pose_from_xyz_yaw
 from omniscs.scene import CameraRecord, SceneWriter, load_scene
 from omniscs.geometry import ego_from_camera_mount, intrinsics_from_fov
+from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.features import build_sample, collate, dequantise_crops
-from omniscs.scs.behavior.maps import CropSpec
-from omniscs.scs.behavior.tracks import traffic_from_scene, traffic_from_world
+from omniscs.roadmap import RoadMap
+from omniscs.scs.behavior.maps import CropSpec, map_from_road_map
+from omniscs.scs.behavior.tracks import traffic_from_log, traffic_from_scene
+from omniscs.world import road_map_for
 from tests.behavior_fixtures import straight_world
 
 
@@ -17,10 +21,10 @@ def test_ego_positions_are_box_centres_ahead_of_the_rear_axle():
     assert np.allclose(traffic.ego_xy[0], [1.3, 0.0]) and np.allclose(traffic.ego_xy[10], [6.3, 0.0])
 
 
-def test_layout_map_knows_lanes_road_and_kerb():
+def test_road_map_knows_lanes_road_and_kerb():
     traffic = traffic_from_world(straight_world([]))
     m = traffic.map
-    assert m.source == "layout"
+    assert m.source == "road_map"
     assert m.is_drivable(np.array([[20.0, 0.0], [20.0, 9.9], [20.0, 16.0], [20.0, -4.0]])).tolist() == \
         [True, True, False, False]
     d = m.outside_distance(torch.tensor([[20.0, 0.0], [20.0, -5.66]])).numpy()
@@ -115,3 +119,31 @@ def test_logs_without_a_map_derive_the_drivable_area_from_driven_paths_and_parke
     assert m.source == "derived" and traffic.source_frames is not None
     assert m.is_drivable(np.array([[3.0, 0.0], [16.0, 3.5], [-20.0, -3.5], [3.0, 30.0]])).tolist() == \
         [True, True, True, False]
+
+
+def test_a_road_map_survives_json_and_rasterises_to_the_same_map():
+    world = straight_world([])
+    road = road_map_for(world)
+    again = RoadMap.from_json(road.to_json())
+    assert again.to_dict() == road.to_dict()
+    ego_xy = traffic_from_world(world).ego_xy
+    a, b = map_from_road_map(road, ego_xy), map_from_road_map(again, ego_xy)
+    assert np.array_equal(a.layers, b.layers) and np.array_equal(a.extent, b.extent)
+    probe = np.random.default_rng(0).uniform(-40.0, 120.0, (500, 2))
+    assert np.array_equal(a.is_drivable(probe), road.is_drivable(probe))
+
+
+def test_a_recorded_log_and_the_same_log_as_arrays_give_the_same_traffic_and_derived_map(tmp_path):
+    scene = _store(tmp_path, 100_000, 30)
+    from_store = traffic_from_scene(scene, dt=0.1)
+    n, s = from_store.n_tracks, from_store.n_steps
+    poses = np.zeros((n, s, 4, 4))
+    poses[:] = np.eye(4)
+    for row in scene.boxes.itertuples():
+        poses[from_store.index_of(row.track_id), row.frame_idx] = pose_from_xyz_yaw(row.cx, row.cy, row.cz, row.yaw)
+    from_arrays = traffic_from_log("log", from_store.timestamps_us, scene.world_from_ego_all, from_store.track_ids,
+                                   from_store.categories, from_store.sizes, poses, from_store.present, dt=0.1)
+    assert from_arrays.map.source == from_store.map.source == "derived"
+    assert np.array_equal(from_arrays.map.layers, from_store.map.layers)
+    for name in ("ego_xy", "ego_yaw", "xy", "yaw", "present", "source_frames"):
+        assert np.allclose(getattr(from_arrays, name), getattr(from_store, name)), name

@@ -1,61 +1,16 @@
-"""Geometry: quaternions, SE(3), boxes and cameras stay exact and finite at the extremes."""
+"""Geometry: rotations, SE(3), boxes and cameras stay exact and finite at the extremes (quaternions:
+test_quaternions.py)."""
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from omniscs.errors import OmniscsError
 from omniscs.geometry import (box_corners, box_corners_from_pose, clip_segment_to_near, compose,
                               ego_from_camera_mount, intrinsics_from_fov, invert_transform, is_rigid,
-                              make_transform, points_in_box, pose_from_xyz_yaw, project, quat_from_axis_angle,
-                              quat_multiply, quat_normalize, quat_to_rotmat, rotmat_from_euler, rotmat_to_quat,
+                              make_transform, points_in_box, pose_from_xyz_yaw, project, rotmat_from_euler,
                               transform_points, unproject, wrap_angle, yaw_of)
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
-quats = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
-    lambda q: np.linalg.norm(q) > 1e-3)
-
-
-@given(quats)
-def test_q_and_minus_q_give_the_same_rotation(q):
-    q = np.array(q)
-    np.testing.assert_allclose(quat_to_rotmat(q), quat_to_rotmat(-q), atol=1e-12)
-
-
-@given(quats)
-def test_rotmat_quat_round_trip_is_orthonormal_and_exact(q):
-    R = quat_to_rotmat(np.array(q))
-    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
-    np.testing.assert_allclose(quat_to_rotmat(rotmat_to_quat(R)), R, atol=1e-12)
-
-
-@pytest.mark.parametrize("axis", [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
-@pytest.mark.parametrize("angle", [np.pi, np.pi - 1e-9, 1e-12, 0.0])
-def test_rotations_near_identity_and_at_180_degrees_round_trip(axis, angle):
-    q = quat_from_axis_angle(np.array(axis, float), angle)
-    R = quat_to_rotmat(q)
-    q2 = rotmat_to_quat(R)
-    assert np.all(np.isfinite(q2))
-    np.testing.assert_allclose(quat_to_rotmat(q2), R, atol=1e-9)
-    assert min(np.abs(q2 - q).max(), np.abs(q2 + q).max()) < 1e-6
-
-
-def test_zero_norm_quaternion_is_a_clear_error():
-    with pytest.raises(OmniscsError, match="zero norm"):
-        quat_to_rotmat(np.zeros(4))
-    with pytest.raises(OmniscsError):
-        quat_normalize(np.array([np.nan, 0, 0, 1]))
-
-
-def test_unnormalised_quaternion_gives_the_normalised_rotation():
-    q = np.array([2.0, 0.0, 0.0, 2.0])
-    np.testing.assert_allclose(quat_to_rotmat(q), rotmat_from_euler(yaw=np.pi / 2), atol=1e-12)
-
-
-@given(quats, quats)
-def test_quaternion_product_matches_matrix_product(a, b):
-    a, b = np.array(a), np.array(b)
-    np.testing.assert_allclose(quat_to_rotmat(quat_multiply(a, b)), quat_to_rotmat(a) @ quat_to_rotmat(b), atol=1e-9)
 
 
 @given(finite, finite, finite, st.floats(-10, 10))

@@ -10,6 +10,7 @@ from omniscs.errors import OmniscsError
 from omniscs.nsg import fit_scene
 from omniscs.nsg.checkpoint import GRAPH_JSON, load_checkpoint, load_metrics, load_plan, save_checkpoint
 from omniscs.nsg.edit import apply_graph_edits
+from omniscs.plan import make_plan
 from omniscs.scene import load_scene
 from tests.conftest import write_tiny_scene
 from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
@@ -19,7 +20,8 @@ from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 def fitted(tmp_path_factory):
     root = tmp_path_factory.mktemp("nsg-ckpt")
     scene = load_scene(write_nsg_scene(root / "scene", nsg_world(n_frames=5)))
-    result = fit_scene(scene, tiny_fit_config(20), checkpoint_dir=root / "ckpt")
+    config = tiny_fit_config(20)
+    result = fit_scene(scene, config, make_plan(scene, None, config.plan), checkpoint_dir=root / "ckpt")
     return scene, result, root / "ckpt"
 
 

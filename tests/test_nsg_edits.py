@@ -8,12 +8,13 @@ import torch
 from omniscs.edits import Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate
-from omniscs.geometry import quat_to_rotmat, transform_points
+from omniscs.geometry import transform_points
 from omniscs.nsg import Observations
 from omniscs.nsg.compose import place_gaussians
 from omniscs.nsg.edit import apply_graph_edits, scale_to_box
 from omniscs.nsg.init import initial_graph
 from omniscs.plan import make_plan
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene import load_scene
 from omniscs.world import apply_edits
 from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene

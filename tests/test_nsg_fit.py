@@ -128,7 +128,7 @@ def test_a_diverging_fit_raises_and_saves_nothing(scene, tmp_path):
     out = tmp_path / "ckpt"
     config = tiny_fit_config(40, lr=LearningRates(sh_dc=1e30), divergence_warmup=5)  # colours explode
     with pytest.raises(FitDiverged, match="diverged at iteration"):
-        fit_scene(scene, config, checkpoint_dir=out)
+        fit_scene(scene, config, make_plan(scene, None, config.plan), checkpoint_dir=out)
     assert not out.exists()
 
 

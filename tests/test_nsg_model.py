@@ -6,14 +6,16 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from omniscs.gaussians import GaussianParams, activate, colors_from_sh, params_from_values
+from omniscs.gaussians import GaussianParams, activate, params_from_values
 from omniscs.geometry import (ego_from_camera_mount, intrinsics_from_fov, make_transform, pose_from_xyz_yaw,
-                              quat_to_rotmat, rotmat_from_euler)
+                              rotmat_from_euler)
 from omniscs.nsg.agent import AgentNode, box_surface_points
 from omniscs.nsg.compose import place_gaussians
 from omniscs.nsg.graph import SceneGraph, identity_exposure
 from omniscs.nsg.observations import View
 from omniscs.nsg.sky import init_sky
+from omniscs.quaternions import quat_to_rotmat
+from omniscs.render.sh import colors_from_sh
 from omniscs.scene.store import CameraRecord
 
 W, H = 64, 40
@@ -49,7 +51,7 @@ def test_activation_inverts_params_from_values():
     g = activate(params_from_values(means, scales, opac, rgb, 2))
     assert torch.allclose(g.means, means) and torch.allclose(g.scales, scales, rtol=1e-5)
     assert torch.allclose(g.opacities, opac, atol=1e-6)
-    colours = colors_from_sh(g.sh, torch.randn(1, 5, 3), 2)[0]
+    colours = colors_from_sh(2, g.sh, torch.randn(1, 5, 3))[0]
     assert torch.allclose(colours, rgb, atol=1e-6)  # higher bands start at zero: colour is view-independent
 
 

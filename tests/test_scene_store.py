@@ -27,7 +27,7 @@ def test_loaded_scene_exposes_the_documented_api(tiny_scene):
     assert scene.depth("CAM_FRONT", 0) is None and scene.instance_mask("CAM_FRONT", 0) is None
     for col in ["frame_idx", "track_id", "category", "cx", "cy", "cz", "length", "width", "height", "yaw"]:
         assert col in scene.boxes.columns
-    assert len(scene.boxes) == 10 and scene.world is None
+    assert len(scene.boxes) == 10 and scene.world is None and scene.road_map is None
 
 
 def test_unknown_camera_and_frame_out_of_range_are_clear_errors(tiny_scene):

@@ -3,8 +3,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from omniscs.geometry import make_transform, quat_from_axis_angle, quat_to_rotmat, rotmat_from_euler
-from omniscs.scene.sources.common import interpolate_pose, slerp, world_from_global_at
+from omniscs.geometry import make_transform, rotmat_from_euler
+from omniscs.quaternions import quat_from_axis_angle, quat_to_rotmat, slerp
+from omniscs.scene.sources.common import interpolate_pose, world_from_global_at
 
 angles = st.floats(-np.pi, np.pi, allow_nan=False)
 

@@ -7,7 +7,8 @@ import pytest
 
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.export import export_scenes
-from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform, project, quat_to_rotmat
+from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform, project
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene import CameraRecord, SceneWriter, load_scene
 from omniscs.scene.sources import DatasetSource, SkippedFramesWarning, load_attributes, read_dataset_scene
 from tests.dataset_fixtures import (

@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniscs.geometry import (box_corners_from_pose, invert_transform, make_transform, project, quat_to_rotmat,
-                              transform_points, unproject)
+from omniscs.geometry import (box_corners_from_pose, invert_transform, make_transform, project, transform_points,
+                              unproject)
 from omniscs.pipeline.stages import ingest_stage
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene import SyntheticSource, load_scene, write_synthetic_scene
 
 SOURCE = SyntheticSource(template="straight_parked_truck", seed=3, n_frames=6, n_cameras=3, width=160, height=90)
@@ -19,6 +20,14 @@ def scene(tmp_path_factory):
 
 def _box_pose(row) -> np.ndarray:
     return make_transform(quat_to_rotmat(np.array([row.qw, row.qx, row.qy, row.qz])), [row.cx, row.cy, row.cz])
+
+
+def test_a_synthetic_scene_exposes_its_worlds_road_map(scene):
+    from omniscs.world import road_map_for
+
+    expected, road = road_map_for(scene.world), scene.road_map
+    assert road is not None and road.to_dict() == expected.to_dict()
+    assert road.is_drivable(scene.world_from_ego_all[:, :2, 3]).all()  # the ego drives on the road
 
 
 def test_synthetic_scene_has_ground_truth_and_the_world_it_came_from(scene):

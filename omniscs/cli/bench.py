@@ -62,9 +62,9 @@ def bench_behavior(
 ) -> None:
     """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
     plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
-    from omniscs.scs.behavior.bench import BenchConfig, rerun_appearance_study, run_behavior_benchmark
+    from omniscs.scs.behavior.adversarial_config import adversarial_preset
+    from omniscs.bench.behavior import BenchConfig, rerun_appearance_study, run_behavior_benchmark
     from omniscs.scs.behavior.feasibility import FeasibilityConfig
-    from omniscs.scs.behavior.adversarial import adversarial_preset
 
     adversarial_preset(preset)
     weights = comma_list(app_weights, float, "--app-weights", "1,30")

@@ -27,6 +27,7 @@ def scs_train_behavior(
 ) -> None:
     """Train the behaviour (traffic) model on procedural traffic (+ scene stores); writes weights, config and
     training.json (seed, command, held-out ADE/FDE against constant velocity)."""
+    from omniscs.pipeline.procedural import procedural_traffic
     from omniscs.scs.behavior.train import train_model, train_preset
 
     overrides = {"seed": seed, "torch_threads": threads}
@@ -45,9 +46,10 @@ def scs_train_behavior(
         def progress(stage: str, done: int, total: int) -> None:
             bars.sink(stage)(done, total)
 
-        _, record = train_model(config, out, command=command or f"omniscs scs train-behavior --out {out} "
-                                f"--preset {preset} --seed {seed}", extra_scenes=list(scene or []),
-                                progress=progress, overwrite=overwrite)
+        _, record = train_model(config, procedural_traffic, out,
+                                command=command or f"omniscs scs train-behavior --out {out} --preset {preset} "
+                                f"--seed {seed}", extra_scenes=list(scene or []), progress=progress,
+                                overwrite=overwrite)
     rows = []
     for group in ("all", "moving"):
         m = record["heldout_metrics"][group]
@@ -60,7 +62,9 @@ def scs_train_behavior(
 
 @app.command("behavior")
 def scs_behavior(
-    scene: str = typer.Argument(..., help="A scene store, or syn:TEMPLATE:SEED[:FRAMES] (procedural log, not rendered)."),
+    scene: str = typer.Argument(..., help="A scene store, or syn:TEMPLATE:SEED[:LIGHTING] (a procedural log, "
+                                          "not rendered)."),
+    frames: int = typer.Option(40, help="Frames of a syn: log (10 Hz; a scene store keeps its own)."),
     variants: int = typer.Option(3, "--variants", help="How many variants (distinct adversaries, then time windows)."),
     out: Path = typer.Option(..., help="Folder for variants.json and one BEV PNG per variant."),
     checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint folder (default: the shipped one)."),
@@ -73,23 +77,24 @@ def scs_behavior(
     app_downscale: int = typer.Option(4, help="L_app: render at 1/N of the camera resolution."),
 ) -> None:
     """Behaviour-level SCS: perturb agents' latents so one of them collides with the ego plan, plausibly."""
-    from omniscs.scs.behavior import PlannerConfig, adversarial_preset, load_traffic, write_scene_variants
+    from omniscs.pipeline.procedural import traffic_for_source
+    from omniscs.scene import SyntheticSource, parse_source
+    from omniscs.scs.behavior import PlannerConfig, adversarial_preset, now_and_horizon, write_scene_variants
+    from omniscs.scs.behavior.checkpoint import load_checkpoint
     from omniscs.scs.behavior.planner import check_planner
 
     if variants < 1:
         raise OmniscsError(f"--variants must be at least 1; got {variants}")
-    from omniscs.scs.behavior.adversarial import now_and_horizon
-    from omniscs.scs.behavior.checkpoint import load_checkpoint
-
     config = adversarial_preset(preset, planner=PlannerConfig(kind=check_planner(planner)), torch_threads=threads)
-    traffic = load_traffic(scene)
+    source = parse_source(scene, n_frames=frames)
+    traffic = traffic_for_source(source)
     now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
     appearance = None
     if nsg is not None:
         from omniscs.scene import load_scene
         from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, appearance_from_checkpoint
 
-        if scene.startswith("syn:"):
+        if isinstance(source, SyntheticSource):
             raise OmniscsError("--nsg needs a rendered scene store (a syn: log has no images to fit a graph to)")
         appearance = appearance_from_checkpoint(nsg, load_scene(Path(scene)), traffic, checkpoint, config,
                                                 AppearanceRenderConfig(frames=app_frames, downscale=app_downscale))

@@ -15,9 +15,9 @@ from omniscs.geometry import (
     invert_transform,
     make_transform,
     project,
-    quat_to_rotmat,
     transform_points,
 )
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ego_from_lidar_of, global_from_world_of, load_attributes
 from omniscs.scene.store import Scene, load_scene
 from omniscs.storage import atomic_directory

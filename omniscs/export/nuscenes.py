@@ -37,7 +37,8 @@ from omniscs.export.common import (
     visible_fraction,
     write_bytes,
 )
-from omniscs.geometry import invert_transform, rotmat_to_quat
+from omniscs.geometry import invert_transform
+from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.sources.common import global_from_world_of
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene

@@ -9,8 +9,9 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, params_from_values
-from omniscs.geometry import invert_transform, make_transform, quat_to_rotmat, transform_points
+from omniscs.geometry import invert_transform, make_transform, transform_points
 from omniscs.nsg.background import neighbour_scales
+from omniscs.quaternions import quat_to_rotmat
 
 
 @dataclass(frozen=True)

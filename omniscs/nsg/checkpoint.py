@@ -11,6 +11,7 @@ from safetensors.torch import load_file, save_file
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import PARAM_NAMES, GaussianParams
 from omniscs.nsg.agent import AgentNode
+from omniscs.nsg.config import resolve_device
 from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan
@@ -89,8 +90,10 @@ def read_checkpoint_meta(ckpt_dir: str | Path) -> dict:
     return meta
 
 
-def load_checkpoint(ckpt_dir: str | Path, scene=None) -> SceneGraph:
-    """The graph saved in ``ckpt_dir``; with ``scene``, refuse a checkpoint fitted to other scene content."""
+def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str = "cpu") -> SceneGraph:
+    """The graph saved in ``ckpt_dir`` with its tensors on ``device`` (wherever it was fitted); with ``scene``,
+    refuse a checkpoint fitted to other scene content."""
+    device = resolve_device(device)
     meta = read_checkpoint_meta(ckpt_dir)
     if scene is not None:
         check_same_scene(meta, scene, ckpt_dir)
@@ -110,10 +113,11 @@ def load_checkpoint(ckpt_dir: str | Path, scene=None) -> SceneGraph:
                                 params(key)))
     cameras = tuple(CameraRecord(c["name"], int(c["width"]), int(c["height"]), np.array(c["K"], dtype=np.float64),
                                  np.array(c["ego_from_camera"], dtype=np.float64)) for c in meta["cameras"])
-    return SceneGraph(meta["scene_id"], meta["content_hash"], params(BACKGROUND), tuple(agents),
-                      SkyParams(t["sky.texture"]), {c: t[f"exposure.{c}"] for c in meta["exposure_cameras"]},
-                      cameras, t["world_from_ego"].numpy().copy(), int(meta["sh_degree"]),
-                      RenderSettings(**meta["settings"]))
+    graph = SceneGraph(meta["scene_id"], meta["content_hash"], params(BACKGROUND), tuple(agents),
+                       SkyParams(t["sky.texture"]), {c: t[f"exposure.{c}"] for c in meta["exposure_cameras"]},
+                       cameras, t["world_from_ego"].numpy().copy(), int(meta["sh_degree"]),
+                       RenderSettings(**meta["settings"]))
+    return graph.to(device)  # poses and sizes stay numpy on the host; only the tensors move
 
 
 def check_same_scene(meta_or_graph, scene, ckpt_dir: str | Path | None = None) -> None:

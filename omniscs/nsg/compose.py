@@ -8,8 +8,7 @@ import torch
 from torch import Tensor
 
 from omniscs.gaussians import Gaussians
-from omniscs.geometry import rotmat_to_quat
-from omniscs.render.projection import rotmats_from_quats
+from omniscs.quaternions import normalize_quats, quat_multiply, rotmat_to_quat, rotmats_from_quats
 
 
 @dataclass(frozen=True)
@@ -28,21 +27,11 @@ class NodePose:
         quat = torch.stack([torch.cos(half), zero, zero, torch.sin(half)])
         return cls(quat, torch.stack([x, y, torch.full_like(x, float(z))]))
 
-    def unit_quat(self) -> Tensor:  # [4]
-        return self.quat / self.quat.norm().clamp_min(1e-12)
+    def unit_quat(self) -> Tensor:  # [4]; a zero quaternion reads as the identity
+        return normalize_quats(self.quat)
 
     def rotmat(self) -> Tensor:  # [3, 3] world_from_node rotation
-        return rotmats_from_quats(self.quat[None])[0]
-
-
-def quat_multiply(a: Tensor, b: Tensor) -> Tensor:  # [..., 4] x [..., 4] -> [..., 4]
-    """Hamilton product a ⊗ b (rotate by b, then by a), (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], -1)
+        return rotmats_from_quats(self.quat)
 
 
 def place_gaussians(local: Gaussians,
@@ -50,16 +39,16 @@ def place_gaussians(local: Gaussians,
                     ) -> Gaussians:
     """``T ⊗ G = (R μ + t, Rot(R, q), s, c, α)``: means and orientations move; scales, colours and
     opacities do not (SH colours stay in the node frame; the renderer evaluates them there)."""
-    dtype = local.means.dtype
+    on = dict(device=local.means.device, dtype=local.means.dtype)  # the pose joins the Gaussians where they are
     if isinstance(world_from_node, NodePose):
-        q_R = world_from_node.unit_quat().to(dtype)
-        R = world_from_node.rotmat().to(dtype)
-        t = world_from_node.translation.to(dtype)
+        q_R = world_from_node.unit_quat().to(**on)
+        R = world_from_node.rotmat().to(**on)
+        t = world_from_node.translation.to(**on)
     else:
         T = np.asarray(world_from_node, dtype=np.float64)
-        R = torch.from_numpy(T[:3, :3].copy()).to(dtype)
-        t = torch.from_numpy(T[:3, 3].copy()).to(dtype)
-        q_R = torch.from_numpy(rotmat_to_quat(T[:3, :3])).to(dtype)
+        R = torch.from_numpy(T[:3, :3].copy()).to(**on)
+        t = torch.from_numpy(T[:3, 3].copy()).to(**on)
+        q_R = torch.from_numpy(rotmat_to_quat(T[:3, :3])).to(**on)
     means = local.means @ R.T + t
     quats = quat_multiply(q_R.expand_as(local.quats), local.quats)
     return Gaussians(means, quats, local.scales, local.opacities, local.sh)

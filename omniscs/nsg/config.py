@@ -4,10 +4,37 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+import torch
+
 from omniscs.errors import OmniscsError
 from omniscs.nsg.graph import RenderSettings
 from omniscs.nsg.strategy import DensifyStrategy
 from omniscs.plan import PlanConfig
+
+
+#: FitConfig fields that say where a fit runs, not what it means: left out of ``FitConfig.to_dict`` (which
+#: checkpoints record and stage keys hash), so the same fit on another device reuses and compares as the same.
+EXECUTION_ONLY_FIELDS = ("device",)
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """The torch device called ``name`` ('cpu', 'cuda', 'cuda:<index>'), or an OmniscsError saying why it
+    cannot be used here (an unknown name, or CUDA asked for on a machine without it)."""
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise OmniscsError(f"unknown device {name!r}; use 'cpu' or 'cuda' (or 'cuda:<index>')") from None
+    if device.type not in ("cpu", "cuda"):
+        raise OmniscsError(f"device {name!r} is not supported; use 'cpu' or 'cuda' (or 'cuda:<index>')")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise OmniscsError(f"device {name!r} was asked for, but torch sees no CUDA GPU here "
+                               "(torch.cuda.is_available() is False); use device='cpu', or run on a machine with "
+                               "a GPU and a CUDA build of torch")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise OmniscsError(f"device {name!r} does not exist: torch sees {torch.cuda.device_count()} CUDA "
+                               f"GPU(s); use 'cuda:0' .. 'cuda:{torch.cuda.device_count() - 1}'")
+    return device
 
 
 @dataclass(frozen=True)
@@ -113,12 +140,28 @@ class FitConfig:
     torch_threads: int = 1
     """torch CPU threads; the rasterizer's Numba kernels have their own pool, and on a 2-core machine one
     torch thread is faster than two for the small per-node tensor operations."""
+    device: str = "cpu"
+    """Torch device the graph is fitted on: 'cpu' (the Numba rasterizer) or 'cuda' / 'cuda:<index>' (gsplat).
+    Where a fit runs, not what it means: not in ``to_dict``. Asking for CUDA where there is none is an error."""
+
+    def __post_init__(self) -> None:
+        resolve_device(self.device)
+
+    @property
+    def torch_device(self) -> torch.device:
+        return resolve_device(self.device)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """The settings that decide what the fit is (recorded in checkpoints, hashed into stage keys); the
+        device is left out, so moving a fit between CPU and GPU keeps its fingerprint."""
+        d = dataclasses.asdict(self)
+        for name in EXECUTION_ONLY_FIELDS:
+            del d[name]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "FitConfig":
+        """The config of ``to_dict`` (the device is the default unless ``d`` names one)."""
         d = dict(d)
         nested = {"plan": PlanConfig, "strategy": DensifyStrategy, "lr": LearningRates, "loss": LossConfig,
                   "init": InitConfig, "render": RenderSettings}

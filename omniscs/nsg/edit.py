@@ -9,12 +9,13 @@ import numpy as np
 import torch
 
 from omniscs.edits import Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, local_motion, parse_edits, \
-    poses_from_waypoints
+    poses_from_waypoints, resting_tilt
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams
-from omniscs.geometry import make_transform, quat_to_rotmat, rotmat_to_quat
+from omniscs.geometry import make_transform
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.graph import SceneGraph
+from omniscs.quaternions import normalize_quats, quat_to_rotmat, rotmat_to_quat
 
 #: Prefix of asset ids that name a fitted agent node: ``nsg:<track_id>`` (this graph) or
 #: ``nsg:<track_id>@<checkpoint folder>`` (another fit). The model pool of later stages adds other sources.
@@ -48,7 +49,7 @@ def node_model_resolver(graph: SceneGraph) -> ModelResolver:
         source = graph
         if ckpt:
             from omniscs.nsg.checkpoint import load_checkpoint
-            source = load_checkpoint(Path(ckpt))
+            source = load_checkpoint(Path(ckpt), device=graph.device)
         node = source.agent(track_id)
         return AgentModel(node.gaussians, np.array(node.size), node.category)
     return resolve
@@ -62,21 +63,18 @@ def scale_to_box(gaussians: GaussianParams, from_size: np.ndarray, to_size: np.n
         raise OmniscsError(f"cannot scale a model of size {from_size} to a box of size {to_size}")
     if np.allclose(D, 1.0) or len(gaussians) == 0:
         return gaussians
-    q = gaussians.quats.detach().double().numpy()
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.maximum(norm, 1e-300), np.array([1.0, 0, 0, 0]))
-    R = quat_to_rotmat(q)                                      # [N, 3, 3]
-    s2 = np.exp(2.0 * gaussians.log_scales.detach().double().numpy())
+    R = quat_to_rotmat(normalize_quats(gaussians.quats.detach().double().cpu().numpy()))  # [N, 3, 3]
+    s2 = np.exp(2.0 * gaussians.log_scales.detach().double().cpu().numpy())
     cov = np.einsum("nij,nj,nkj->nik", R, s2, R)
     cov = D[None, :, None] * cov * D[None, None, :]
     eigval, eigvec = np.linalg.eigh(cov)
     flip = np.linalg.det(eigvec) < 0
     eigvec[flip, :, 0] *= -1.0                                 # a proper rotation
-    dtype = gaussians.means.dtype
+    on = dict(device=gaussians.means.device, dtype=gaussians.means.dtype)  # the covariance algebra ran on the host
     return GaussianParams(
-        means=gaussians.means * torch.from_numpy(D).to(dtype),
-        quats=torch.from_numpy(rotmat_to_quat(eigvec)).to(dtype),
-        log_scales=torch.from_numpy(0.5 * np.log(np.maximum(eigval, 1e-300))).to(dtype),
+        means=gaussians.means * torch.from_numpy(D).to(**on),
+        quats=torch.from_numpy(rotmat_to_quat(eigvec)).to(**on),
+        log_scales=torch.from_numpy(0.5 * np.log(np.maximum(eigval, 1e-300))).to(**on),
         opacity_logits=gaussians.opacity_logits, sh_dc=gaussians.sh_dc, sh_rest=gaussians.sh_rest)
 
 
@@ -109,8 +107,8 @@ def apply_graph_edits(graph: SceneGraph, edits, resolve: ModelResolver | None = 
             del nodes[tid]
         elif isinstance(edit, ReplaceModel):
             model = resolve(edit.asset_id)
-            nodes[tid] = node.with_changes(gaussians=scale_to_box(model.gaussians, model.size, node.size),
-                                           category=model.category)
+            gaussians = scale_to_box(model.gaussians.to(graph.device), model.size, node.size)
+            nodes[tid] = node.with_changes(gaussians=gaussians, category=model.category)
         elif isinstance(edit, SetTrajectory):
             poses, present = poses_from_waypoints(edit.waypoints, graph.n_frames)
             poses[~present] = node.world_from_agent[~present]
@@ -121,8 +119,6 @@ def apply_graph_edits(graph: SceneGraph, edits, resolve: ModelResolver | None = 
 
 
 def _inserted_node(graph: SceneGraph, edit: Insert, resolve: ModelResolver) -> AgentNode:
-    from omniscs.world.edit import resting_tilt  # the same resting rule as the ground-truth world
-
     from omniscs.taxonomy import CATEGORIES
 
     if edit.track_id < 0:
@@ -139,8 +135,8 @@ def _inserted_node(graph: SceneGraph, edit: Insert, resolve: ModelResolver) -> A
         raise OmniscsError(f"insert pose must be (x, y, z, yaw); got {edit.pose!r}")
     waypoints = [tuple(edit.pose)] * graph.n_frames if edit.pose is not None else edit.waypoints
     poses, present = poses_from_waypoints(waypoints, graph.n_frames)
-    R, lift = resting_tilt(size, edit.roll_deg, edit.pitch_deg)
+    R, lift = resting_tilt(size, edit.roll_deg, edit.pitch_deg)  # the same resting rule as the ground-truth world
     poses = poses @ make_transform(R, np.zeros(3))
     poses[:, 2, 3] += lift
     return AgentNode(int(edit.track_id), edit.category, size, poses, present,
-                     scale_to_box(model.gaussians, model.size, size))
+                     scale_to_box(model.gaussians.to(graph.device), model.size, size))

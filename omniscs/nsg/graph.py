@@ -11,13 +11,14 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import GaussianParams, activate, colors_from_sh
+from omniscs.gaussians import GaussianParams, activate
 from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
 from omniscs.nsg.sky import SkyParams, sky_colors
 from omniscs.render import rasterize
+from omniscs.render.sh import colors_from_sh
 from omniscs.scene.store import CameraRecord
 
 #: Key of the background node in per-node bookkeeping (slices, optimisers, checkpoints).
@@ -107,6 +108,18 @@ class SceneGraph:
     def replace(self, **changes) -> "SceneGraph":
         return dataclasses.replace(self, **changes)
 
+    @property
+    def device(self) -> torch.device:
+        """Where the graph's tensors live (and so where it renders: CUDA through gsplat, CPU through Numba)."""
+        return self.background.device
+
+    def to(self, device: torch.device | str) -> "SceneGraph":
+        """The same graph with every tensor on ``device`` (shares the tensors already there)."""
+        agents = tuple(a.with_changes(gaussians=a.gaussians.to(device)) for a in self.agents)
+        return self.replace(background=self.background.to(device), agents=agents,
+                            sky=SkyParams(self.sky.texture.to(device)),
+                            exposure={c: t.to(device) for c, t in self.exposure.items()})
+
     def check_frame(self, frame_idx: int) -> int:
         if not 0 <= int(frame_idx) < self.n_frames:
             raise OmniscsError(f"frame {frame_idx} is out of range; the scene graph has frames 0..{self.n_frames - 1}")
@@ -127,14 +140,14 @@ class SceneGraph:
         return render_view(self, view)
 
 
-def pixel_directions(view: View) -> Tensor:  # [H, W, 3] float32 unit, world frame
+def pixel_directions(view: View, device: torch.device | str = "cpu") -> Tensor:  # [H, W, 3] float32 unit, world
     """Viewing direction through every pixel centre."""
     u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
     K = view.K
     d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     d = d @ view.world_from_camera[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return torch.from_numpy(d.astype(np.float32))
+    return torch.from_numpy(d.astype(np.float32)).to(device)
 
 
 @dataclass(frozen=True)
@@ -164,17 +177,18 @@ def static_layer(graph: SceneGraph, view: View, sh_degree: int | None = None) ->
     """The background of ``graph`` for ``view`` (see StaticLayer): one projection decides what stays."""
     degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
     local = activate(graph.background.detached())
-    centre = torch.from_numpy(view.world_from_camera[:3, 3]).to(local.means.dtype)
-    colours = colors_from_sh(local.sh, (local.means - centre)[None], degree)[0]
-    keep = torch.zeros(len(local), dtype=torch.bool)
+    on = dict(device=local.means.device, dtype=local.means.dtype)
+    centre = torch.from_numpy(view.world_from_camera[:3, 3]).to(**on)
+    colours = colors_from_sh(degree, local.sh, (local.means - centre)[None])[0]
+    keep = torch.zeros(len(local), dtype=torch.bool, device=local.means.device)
     if len(local):
         s = graph.settings
-        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(local.means.dtype)[None]
-        K = torch.from_numpy(view.K).to(local.means.dtype)[None]
+        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(**on)[None]
+        K = torch.from_numpy(view.K).to(**on)[None]
         _, _, meta = rasterize(local.means, local.quats, local.scales, local.opacities, colours, viewmat, K,
                                view.width, view.height, near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
                                render_mode="RGB", backend=s.backend, rasterize_mode=s.rasterize_mode)
-        keep = (meta["radii"][0] > 0).reshape(len(local), -1).any(-1).cpu()
+        keep = (meta["radii"][0] > 0).reshape(len(local), -1).any(-1).to(local.means.device)
     return StaticLayer(int(view.frame_idx), np.array(view.world_from_camera, dtype=np.float64), np.array(view.K),
                        (int(view.width), int(view.height)), local.means[keep].contiguous(), local.quats[keep].contiguous(),
                        local.scales[keep].contiguous(), local.opacities[keep].contiguous(), colours[keep].contiguous(),
@@ -245,17 +259,17 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         if len(params) == 0:
             continue
         local = activate(params)
-        dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.dtype)
-        colours = colors_from_sh(local.sh, dirs[None], degree)[0]
+        dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device, local.means.dtype)
+        colours = colors_from_sh(degree, local.sh, dirs[None])[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)
         parts.append((placed, colours))
         slices[key] = slice(start, start + len(local))
         start += len(local)
 
-    dirs = pixel_directions(view)
-    sky = sky_colors(graph.sky, dirs)
+    device = graph.sky.texture.device
+    sky = sky_colors(graph.sky, pixel_directions(view, device))
     if start == 0:
-        zeros = torch.zeros(view.height, view.width)
+        zeros = torch.zeros(view.height, view.width, device=device)
         rgb, depth, alpha, meta = sky, zeros, zeros, {}
     else:
         means = torch.cat([p.means for p, _ in parts])
@@ -263,8 +277,9 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         scales = torch.cat([p.scales for p, _ in parts])
         opacities = torch.cat([p.opacities for p, _ in parts])
         colours = torch.cat([c for _, c in parts])
-        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(means.dtype)[None]
-        K = torch.from_numpy(view.K).to(means.dtype)[None]
+        # CUDA tensors go to gsplat, CPU ones to the Numba kernels (backend 'auto' dispatches on the device)
+        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(means.device, means.dtype)[None]
+        K = torch.from_numpy(view.K).to(means.device, means.dtype)[None]
         s = graph.settings
         out, alphas, meta = rasterize(means, quats, scales, opacities, colours, viewmat, K, view.width, view.height,
                                       near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
@@ -285,10 +300,10 @@ def _centre_in_node(camera_centre: np.ndarray, world_from_node: np.ndarray | Nod
         return torch.from_numpy(camera_centre)
     if isinstance(world_from_node, NodePose):
         R = world_from_node.rotmat()
-        c = torch.from_numpy(camera_centre).to(R.dtype)
-        return (c - world_from_node.translation.to(R.dtype)) @ R
+        c = torch.from_numpy(camera_centre).to(R.device, R.dtype)
+        return (c - world_from_node.translation.to(R.device, R.dtype)) @ R
     return torch.from_numpy(transform_points(invert_transform(world_from_node), camera_centre[None])[0])
 
 
-def identity_exposure() -> Tensor:  # [3, 4]
-    return torch.cat([torch.eye(3), torch.zeros(3, 1)], 1)
+def identity_exposure(device: torch.device | str = "cpu") -> Tensor:  # [3, 4]
+    return torch.cat([torch.eye(3, device=device), torch.zeros(3, 1, device=device)], 1)

@@ -63,7 +63,8 @@ def agent_scene_scale(size: np.ndarray) -> float:
 
 
 def initial_graph(scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> SceneGraph:
-    """Seed every node of ``plan``; only the plan's training frames are looked at."""
+    """Seed every node of ``plan`` on ``config.device``; only the plan's training frames are looked at.
+    Seeds are computed on the host (they come from numpy point clouds) and moved once at the end."""
     rng = np.random.default_rng(config.seed)
     init = config.init
     budgets = node_budgets(plan, config)
@@ -105,8 +106,9 @@ def initial_graph(scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observa
     sky = init_sky(_sky_colour(obs, plan), config.sky_height, config.sky_width)
     exposure = {c: identity_exposure() for c in plan.cameras}
     cameras = tuple(scene.camera(c) for c in plan.cameras)
-    return SceneGraph(scene.scene_id, scene.content_hash, background, tuple(nodes), sky, exposure, cameras,
-                      scene.world_from_ego_all, config.sh_degree, config.render)
+    graph = SceneGraph(scene.scene_id, scene.content_hash, background, tuple(nodes), sky, exposure, cameras,
+                       scene.world_from_ego_all, config.sh_degree, config.render)
+    return graph.to(config.torch_device)
 
 
 def _lidar_background(obs: Observations, points: list[np.ndarray], frames: list[np.ndarray], budget: int,
@@ -143,7 +145,7 @@ def _ray_seeds(obs: Observations, plan: ScenePlan, n: int, config: FitConfig,
                             np.ones_like(col)], -1) * depth[:, None]
         points[idx] = transform_points(view.world_from_camera, cam_pts)
         depths[idx], fx[idx] = depth, view.K[0, 0]
-        img = obs.image(cam, f).numpy()
+        img = obs.pixels(cam, f)
         colours[idx] = img[np.floor(row).astype(int), np.floor(col).astype(int)]
     # about the footprint of RAY_SEED_PIXELS pixels at the seed's depth
     seed_scale = np.minimum(depths * RAY_SEED_PIXELS / fx, config.init.max_seed_scale_m)
@@ -180,7 +182,7 @@ def _sky_colour(obs: Observations, plan: ScenePlan) -> torch.Tensor:  # [3]
     tops = []
     for f in plan.train_frames[:: max(1, len(plan.train_frames) // 4)]:
         for c in plan.cameras:
-            img = obs.image(c, f)
+            img = torch.from_numpy(obs.pixels(c, f))
             tops.append(img[: max(1, int(SKY_INIT_ROWS * img.shape[0]))].reshape(-1, 3))
     if not tops:
         return torch.full((3,), 0.5)

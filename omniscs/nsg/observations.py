@@ -47,11 +47,15 @@ def project_points(view: View, points_world: np.ndarray,  # [N, 3]
 
 
 class Observations:
-    """Images (float32 [H, W, 3] in [0, 1]) and LiDAR of a scene's frames, loaded on first use and kept."""
+    """Images (float32 [H, W, 3] in [0, 1], on ``device``: they meet the graph's renders there) and LiDAR
+    of a scene's frames, loaded on first use and kept."""
 
-    def __init__(self, scene: Scene, cameras: tuple[str, ...] | list[str] | None = None) -> None:
+    def __init__(self, scene: Scene, cameras: tuple[str, ...] | list[str] | None = None,
+                 device: torch.device | str = "cpu") -> None:
         self.scene = scene
         self.cameras = tuple(cameras or scene.camera_names)
+        self.device = torch.device(device)
+        self._pixels: dict[tuple[str, int], np.ndarray] = {}
         self._images: dict[tuple[str, int], Tensor] = {}
         self._downscaled: dict[tuple[str, int, int], Tensor] = {}
         self._lidar: dict[int, np.ndarray] = {}
@@ -62,10 +66,17 @@ class Observations:
         return View(int(frame_idx), self.scene.world_from_camera(camera, frame_idx), rec.K.copy(), rec.width,
                     rec.height, camera)
 
-    def image(self, camera: str, frame_idx: int, factor: int = 1) -> Tensor:  # [H/factor, W/factor, 3]
+    def pixels(self, camera: str, frame_idx: int) -> np.ndarray:  # [H, W, 3] float32 in [0, 1], host memory
+        """The image as numpy, for seeding Gaussians from point colours (host-side work on any device)."""
+        key = (camera, int(frame_idx))
+        if key not in self._pixels:
+            self._pixels[key] = self.scene.image(camera, frame_idx).astype(np.float32) / 255.0
+        return self._pixels[key]
+
+    def image(self, camera: str, frame_idx: int, factor: int = 1) -> Tensor:  # [H/factor, W/factor, 3] on device
         key = (camera, int(frame_idx))
         if key not in self._images:
-            self._images[key] = torch.from_numpy(self.scene.image(camera, frame_idx).astype(np.float32) / 255.0)
+            self._images[key] = torch.from_numpy(self.pixels(camera, frame_idx)).to(self.device)
         full = self._images[key]
         if factor == 1:
             return full
@@ -109,7 +120,7 @@ class Observations:
                 uv, _, inside = project_points(view, points_world[todo])
                 hit = todo[inside]
                 px = np.floor(uv[inside]).astype(np.int64)
-                img = self.image(cam, int(f)).numpy()
+                img = self.pixels(cam, int(f))
                 colours[hit] = img[px[:, 1], px[:, 0]]
                 seen[hit] = True
         return colours, seen

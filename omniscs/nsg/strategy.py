@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from omniscs.gaussians import PARAM_NAMES, GaussianParams, activate
+from omniscs.quaternions import rotmats_from_unit_quats
 
 #: Adam moment buffers that follow their parameter rows when Gaussians are added or removed.
 ADAM_BUFFERS = ("exp_avg", "exp_avg_sq")
@@ -60,8 +61,9 @@ class OptimisedGaussians:
                                           for k, v in params.as_dict().items()}
         self.optimizers = {k: torch.optim.Adam([self.params[k]], lr=learning_rates[k], eps=1e-15)
                            for k in PARAM_NAMES}
-        self.grad2d = torch.zeros(len(params))
-        self.count = torch.zeros(len(params))
+        self.device = params.device
+        self.grad2d = torch.zeros(len(params), device=self.device)
+        self.count = torch.zeros(len(params), device=self.device)
 
     def __len__(self) -> int:
         return self.params["means"].shape[0]
@@ -107,8 +109,8 @@ class OptimisedGaussians:
                         state[buf] = moved
                 opt.state[fresh] = state
             self.params[name] = fresh
-        self.grad2d = torch.cat([self.grad2d[keep], torch.zeros(n_new)])
-        self.count = torch.cat([self.count[keep], torch.zeros(n_new)])
+        self.grad2d = torch.cat([self.grad2d[keep], torch.zeros(n_new, device=self.device)])
+        self.count = torch.cat([self.count[keep], torch.zeros(n_new, device=self.device)])
 
     def reset_moments(self, name: str) -> None:
         state = self.optimizers[name].state.get(self.params[name])
@@ -135,7 +137,8 @@ def accumulate_gradients(strategy: DensifyStrategy, node: OptimisedGaussians,
 
 
 def refine(strategy: DensifyStrategy, node: OptimisedGaussians, step: int, scene_scale: float, budget: int,
-           generator: torch.Generator) -> dict[str, int]:
+           generator: torch.Generator,  # a CPU generator (see _split_rows)
+           ) -> dict[str, int]:
     """Grow (clone/split, within ``budget``) then prune; resets the gradient statistics. Returns counts."""
     with torch.no_grad():
         g = activate(node.current())
@@ -149,7 +152,7 @@ def refine(strategy: DensifyStrategy, node: OptimisedGaussians, step: int, scene
         if len(candidates) > room:
             order = torch.argsort(avg[candidates], descending=True)
             candidates = candidates[order[:room]]
-        chosen = torch.zeros(len(node), dtype=torch.bool)
+        chosen = torch.zeros(len(node), dtype=torch.bool, device=node.device)
         chosen[candidates] = True
         clone = chosen & small
         split = chosen & ~small
@@ -187,12 +190,9 @@ def _split_rows(node: OptimisedGaussians, g, mask: Tensor, divisor: float,
     raw = {k: node.params[k].detach()[mask] for k in PARAM_NAMES}
     scales, quats = g.scales[mask], g.quats[mask]
     n = scales.shape[0]
-    offsets = torch.randn(2, n, 3, generator=generator) * scales[None]
-    w, x, y, z = quats.unbind(-1)
-    R = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(n, 3, 3)
-    means = raw["means"][None] + torch.einsum("nij,cnj->cni", R, offsets)
+    # drawn on the host generator whatever the device: the same seed splits the same way on CPU and GPU
+    offsets = torch.randn(2, n, 3, generator=generator).to(scales.device) * scales[None]
+    means = raw["means"][None] + torch.einsum("nij,cnj->cni", rotmats_from_unit_quats(quats), offsets)
     out = {k: torch.cat([v, v]) for k, v in raw.items()}
     out["means"] = means.reshape(2 * n, 3)
     out["log_scales"] = torch.log(scales / divisor).repeat(2, 1)

@@ -13,7 +13,6 @@ import torch
 from kornia.losses import ssim_loss
 from torch import Tensor
 
-from omniscs.edits import Edit
 from omniscs.errors import OmniscsError
 from omniscs.nsg.checkpoint import save_checkpoint
 from omniscs.nsg.config import FitConfig
@@ -23,7 +22,7 @@ from omniscs.nsg.metrics import psnr, ssim
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
 from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities
-from omniscs.plan import ScenePlan, make_plan
+from omniscs.plan import ScenePlan
 from omniscs.progress import Progress
 from omniscs.scene.store import Scene
 
@@ -97,9 +96,9 @@ def lidar_depth_loss(depth: Tensor, alpha: Tensor,  # [h, w] expected depth and 
     if len(z) == 0:
         return depth.sum() * 0.0
     h, w = depth.shape
-    px = torch.from_numpy(np.clip((uv[:, 0] / factor).astype(np.int64), 0, w - 1))
-    py = torch.from_numpy(np.clip((uv[:, 1] / factor).astype(np.int64), 0, h - 1))
-    target = torch.from_numpy(z.astype(np.float32))
+    px = torch.from_numpy(np.clip((uv[:, 0] / factor).astype(np.int64), 0, w - 1)).to(depth.device)
+    py = torch.from_numpy(np.clip((uv[:, 1] / factor).astype(np.int64), 0, h - 1)).to(depth.device)
+    target = torch.from_numpy(z.astype(np.float32)).to(depth.device)
     d, a = depth[py, px], alpha[py, px].detach()
     covered = a > min_alpha
     if not bool(covered.any()):
@@ -127,8 +126,8 @@ class _Trainer:
 
     def __init__(self, scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> None:
         self.scene, self.plan, self.config, self.obs = scene, plan, config, obs
-        self.template = initial_graph(scene, plan, config, obs)
-        self.generator = torch.Generator().manual_seed(config.seed)
+        self.template = initial_graph(scene, plan, config, obs)  # on config.device
+        self.generator = torch.Generator().manual_seed(config.seed)  # host generator: same splits on any device
         budgets = node_budgets(plan, config)
         self.nodes: dict[str, OptimisedGaussians] = {}
         self.scene_scale: dict[str, float] = {}
@@ -204,13 +203,13 @@ class _Trainer:
         return loss_value, psnr(out.rgb.detach(), target)
 
 
-def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan | None = None, edits: list[Edit] | None = None,
-              progress: Progress | None = None, evaluate: bool = True, checkpoint_dir: str | Path | None = None,
-              overwrite: bool = False) -> FitResult:
-    """Fit a scene graph to ``scene``: nodes from ``plan`` (made from ``edits`` and ``config.plan`` when not
-    given), trained on its training frames, evaluated on its held-out frames, saved to ``checkpoint_dir``
-    when given. Raises FitDiverged (and saves nothing) when the fit blows up."""
-    plan = plan or make_plan(scene, edits, config.plan)
+def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan, progress: Progress | None = None,
+              evaluate: bool = True, checkpoint_dir: str | Path | None = None, overwrite: bool = False) -> FitResult:
+    """Fit a scene graph to ``scene``: nodes from ``plan`` (the plan stage decides what is modelled; the fit
+    never re-plans), trained on its training frames, evaluated on its held-out frames, saved to
+    ``checkpoint_dir`` when given. Raises FitDiverged (and saves nothing) when the fit blows up."""
+    if not isinstance(plan, ScenePlan):
+        raise OmniscsError(f"fit_scene needs the scene's plan (omniscs.plan.make_plan), got {type(plan).__name__}")
     if plan.content_hash != scene.content_hash:
         raise OmniscsError(f"plan is for scene content {plan.content_hash[:12]}, not {scene.scene_id} "
                            f"({scene.content_hash[:12]}); re-plan")
@@ -233,7 +232,7 @@ def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan | None = None, ed
 
 def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | None, evaluate: bool) -> FitResult:
     started = time.perf_counter()
-    obs = Observations(scene, plan.cameras)
+    obs = Observations(scene, plan.cameras, config.torch_device)
     trainer = _Trainer(scene, plan, config, obs)
     n_init = trainer.template.n_gaussians
     init_seconds = time.perf_counter() - started

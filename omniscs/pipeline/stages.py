@@ -117,8 +117,8 @@ def check_behavior_request(scene, request: SceneRequest) -> None:
     """A log too short for behaviour variants fails at its plan, before any fitting (the checks the behavior
     stage would make first: the checkpoint loads, the preset exists, the log covers the model's horizon)."""
     from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
-    from omniscs.scs.behavior.adversarial import now_and_horizon
     from omniscs.scs.behavior.checkpoint import load_checkpoint
+    from omniscs.scs.behavior.problem import now_and_horizon
 
     now_and_horizon(traffic_from_scene(scene), load_checkpoint(request.behavior_checkpoint).config,
                     adversarial_preset(request.behavior_preset))

@@ -12,13 +12,15 @@ import math
 import numba as nb
 import numpy as np
 
-from omniscs.render.constants import ALPHA_THRESHOLD, FRUSTUM_MARGIN, MAX_RADIUS, MIN_QUAT_NORM
+from omniscs.quaternions import MIN_QUAT_NORM
+from omniscs.render.constants import ALPHA_THRESHOLD, FRUSTUM_MARGIN, MAX_RADIUS
 from omniscs.render.projection import MIN_COMPENSATION_RATIO
 
 
 @nb.njit(cache=True, inline="always")
 def _unit_quat(quats, n):
-    """Normalised quaternion and its norm; the identity (norm 0) when too short to have a direction."""
+    """Normalised quaternion and its norm; the identity (norm 0) when too short to have a direction
+    (the rule of ``omniscs.quaternions.normalize_quats``, fused here because Numba cannot call torch)."""
     w, x, y, z = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
     norm = math.sqrt(w * w + x * x + y * y + z * z)
     if not norm >= MIN_QUAT_NORM:

@@ -11,7 +11,7 @@ from omniscs.render.cpu import project_cpu, rasterize_cpu
 from omniscs.render.gsplat_backend import rasterize_gsplat
 from omniscs.render.projection import project_gaussians
 from omniscs.render.reference import rasterize_reference
-from omniscs.render.sh import MAX_SH_DEGREE, colors_from_sh, num_sh_bases
+from omniscs.render.sh import MAX_SH_DEGREE, colors_from_sh_at_cameras, num_sh_bases
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("auto", "reference", "cpu", "gsplat")
@@ -78,7 +78,7 @@ def rasterize(
                                    near_plane, far_plane, eps2d, antialiased)
     n_cameras = viewmats.shape[0]
     if sh_degree is not None:
-        features = colors_from_sh(sh_degree, colors, means, viewmats)
+        features = colors_from_sh_at_cameras(sh_degree, colors, means, viewmats)
     elif colors.dim() == 2:
         features = colors[None].expand(n_cameras, -1, -1)
     else:

@@ -13,9 +13,6 @@ TRANSMITTANCE_STOP = 1e-4
 #: fraction of it (gsplat's 1.3x frustum clamp), which tames Gaussians far outside the view.
 FRUSTUM_MARGIN = 0.3
 
-#: Quaternions shorter than this are treated as the identity rotation (and get no gradient).
-MIN_QUAT_NORM = 1e-12
-
 #: Side of the square screen tiles the CPU backend bins Gaussians into, in pixels.
 TILE_SIZE = 16
 

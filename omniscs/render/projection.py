@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from omniscs.render.constants import ALPHA_THRESHOLD, FRUSTUM_MARGIN, MAX_RADIUS, MIN_QUAT_NORM
+from omniscs.quaternions import rotmats_from_quats
+from omniscs.render.constants import ALPHA_THRESHOLD, FRUSTUM_MARGIN, MAX_RADIUS
 
 #: Floor of det(Sigma2d) / det(Sigma2d + eps2d I) in antialiased mode; keeps the sqrt's gradient finite.
 MIN_COMPENSATION_RATIO = 1e-12
@@ -29,28 +30,6 @@ class ScreenGaussians:
     @property
     def visible(self) -> Tensor:  # [C, N] bool
         return self.radii[..., 0] > 0
-
-
-def rotmats_from_quats(quats: Tensor) -> Tensor:  # [N, 4] (w, x, y, z), any norm -> [N, 3, 3]
-    """Rotation matrices of unnormalised quaternions; q and -q give the same matrix.
-
-    A quaternion shorter than MIN_QUAT_NORM has no direction: it is read as the identity (as gsplat's
-    normalisation effectively does) and passes no gradient back, so it never produces NaN.
-    """
-    usable = torch.linalg.vector_norm(quats.detach(), dim=-1, keepdim=True) >= MIN_QUAT_NORM
-    identity = torch.zeros_like(quats)
-    identity[..., 0] = 1.0
-    q = torch.where(usable, quats, identity)
-    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def project_gaussians(

@@ -9,6 +9,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.quaternions import yaw_to_quat
+
 #: Street layout, metres (world: x down the street, y left, z up).
 STREET_LENGTH = 80.0
 STREET_START = 1.0
@@ -61,10 +63,6 @@ def street_camera(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:  # 
     return np.linalg.inv(world_from_cam), K
 
 
-def _yaw_quats(yaw: np.ndarray) -> np.ndarray:  # [n] -> [n, 4]
-    return np.stack([np.cos(yaw / 2), np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2)], -1)
-
-
 def street_scene(n: int, width: int, height: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> StreetScene:
     """N Gaussians on a road, two facades and cars, seen by one street camera."""
     rng = np.random.default_rng(seed)
@@ -78,7 +76,7 @@ def street_scene(n: int, width: int, height: int, seed: int = 0, dtype: torch.dt
     ground = np.stack([rng.uniform(STREET_START, STREET_START + STREET_LENGTH, n_ground),
                        rng.uniform(-FACADE_OFFSET, FACADE_OFFSET, n_ground), np.zeros(n_ground)], -1)
     scales[:n_ground, 2] = MIN_SCALE
-    quats[:n_ground] = _yaw_quats(rng.uniform(0, 2 * math.pi, n_ground))
+    quats[:n_ground] = yaw_to_quat(rng.uniform(0, 2 * math.pi, n_ground))
     colors[:n_ground] = 0.35 + 0.1 * rng.standard_normal((n_ground, 1))
 
     side = rng.choice([-1.0, 1.0], n_facade)
@@ -86,7 +84,7 @@ def street_scene(n: int, width: int, height: int, seed: int = 0, dtype: torch.dt
                        side * FACADE_OFFSET, rng.uniform(0.0, FACADE_HEIGHT, n_facade)], -1)
     sl = slice(n_ground, n_ground + n_facade)
     scales[sl, 1] = MIN_SCALE
-    quats[sl] = _yaw_quats(rng.uniform(-0.2, 0.2, n_facade))
+    quats[sl] = yaw_to_quat(rng.uniform(-0.2, 0.2, n_facade))
     building = np.floor(facade[:, 0] / 10.0) + 7 * (side > 0)
     colors[sl] = 0.3 + 0.5 * np.stack([np.sin(building), np.sin(building * 1.7 + 1), np.sin(building * 2.3 + 2)], -1) ** 2
 

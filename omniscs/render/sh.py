@@ -1,4 +1,5 @@
-"""Real spherical harmonics up to degree 3 with gsplat's constants and basis order, shared by all backends."""
+"""Real spherical harmonics up to degree 3 (gsplat's constants and basis order): the one home of SH colour,
+used by every rasterizer backend and by the scene graph."""
 from __future__ import annotations
 
 import torch
@@ -7,17 +8,19 @@ from torch import Tensor
 #: Highest supported SH degree (16 coefficients per channel).
 MAX_SH_DEGREE = 3
 
-#: Directions shorter than this are not normalised (a camera sitting on a Gaussian's centre).
+#: Viewing directions shorter than this (a camera sitting on a Gaussian's centre) have no direction: they
+#: are read as +z, so the colour is still a colour seen from somewhere (finite, and no gradient flows).
 MIN_DIRECTION_NORM = 1e-12
 
-#: gsplat adds this to SH colours (the DC term then encodes colour - 0.5) and clamps below at 0.
+#: Colours are SH(view) + this offset (so a zero DC coefficient is mid grey), clamped below at 0, as in gsplat.
 SH_COLOR_OFFSET = 0.5
 
+#: Real spherical-harmonic normalisation constants, band 0..3, signs folded in (the usual 3DGS basis order).
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, 0.9461746957575601, 0.31539156525252005, 0.5462742152960396)
-SH_C3 = (0.5900435899266435, 2.890611442640554, 2.285228997322329, 0.4570457994644658,
-         1.865881662950577, 1.119528997770346, 1.445305721320277)
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
 
 
 def num_sh_bases(degree: int) -> int:
@@ -31,46 +34,47 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:  # dirs [..., 3] unit -> [...
     if degree >= 1:
         basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        basis += [
-            SH_C2[0] * x * y,
-            -SH_C2[0] * y * z,
-            SH_C2[1] * zz - SH_C2[2],
-            -SH_C2[0] * x * z,
-            SH_C2[3] * (xx - yy),
-        ]
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        basis += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
     if degree >= 3:
-        radial = -SH_C3[2] * zz + SH_C3[3]
-        basis += [
-            -SH_C3[0] * y * (3 * xx - yy),
-            SH_C3[1] * x * y * z,
-            radial * y,
-            z * (SH_C3[4] * zz - SH_C3[5]),
-            radial * x,
-            SH_C3[6] * z * (xx - yy),
-            -SH_C3[0] * x * (xx - 3 * yy),
-        ]
+        basis += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                  SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                  SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
     return torch.stack(basis, -1)
 
 
-def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:  # [..., K, 3], [..., 3] -> [..., 3]
-    """Raw SH colour (no offset, no clamp) seen along ``dirs`` (any length; zero length is allowed)."""
+def unit_directions(dirs: Tensor) -> Tensor:  # [..., 3] any length -> [..., 3] unit
+    """``dirs`` normalised; one shorter than MIN_DIRECTION_NORM reads as +z and passes no gradient back."""
+    # the mask is taken on detached values and the division never sees a zero length: no 0/0 anywhere
     usable = torch.linalg.vector_norm(dirs.detach(), dim=-1, keepdim=True) >= MIN_DIRECTION_NORM
-    safe = torch.where(usable, dirs, torch.ones_like(dirs))
-    unit = torch.where(usable, safe / torch.linalg.vector_norm(safe, dim=-1, keepdim=True), 0.0)
-    basis = sh_basis(degree, unit)  # [..., B]
-    return (basis[..., None] * coeffs[..., : basis.shape[-1], :]).sum(-2)
+    forward = torch.zeros_like(dirs)
+    forward[..., 2] = 1.0
+    safe = torch.where(usable, dirs, forward)
+    return safe / torch.linalg.vector_norm(safe, dim=-1, keepdim=True)
 
 
-def colors_from_sh(
-    degree: int,
-    coeffs: Tensor,    # [N, K, 3] SH coefficients, K >= (degree+1)^2
-    means: Tensor,     # [N, 3] world
-    viewmats: Tensor,  # [C, 4, 4] cam_from_world
-) -> Tensor:  # [C, N, 3] colours, clamped at 0
-    """View-dependent colours as gsplat computes them: direction = mean - camera centre, +0.5, max(., 0)."""
+def colors_from_sh(degree: int,
+                   coeffs: Tensor,  # [N, K, 3] SH coefficients, K >= (degree+1)^2
+                   dirs: Tensor,    # [C, N, 3] viewing directions (camera -> Gaussian), any length
+                   ) -> Tensor:     # [C, N, 3] colours >= 0
+    """View-dependent colour up to ``degree`` (<= the degree ``coeffs`` holds); degree 0 ignores ``dirs``."""
+    if degree == 0:
+        return (SH_C0 * coeffs[None, :, 0] + SH_COLOR_OFFSET).clamp_min(0.0).expand(dirs.shape[0], -1, -1)
+    basis = sh_basis(degree, unit_directions(dirs))  # [C, N, B]
+    return (torch.einsum("cnb,nbk->cnk", basis, coeffs[:, :num_sh_bases(degree)]) + SH_COLOR_OFFSET).clamp_min(0.0)
+
+
+def colors_from_sh_at_cameras(degree: int,
+                              coeffs: Tensor,    # [N, K, 3] SH coefficients, K >= (degree+1)^2
+                              means: Tensor,     # [N, 3] world
+                              viewmats: Tensor,  # [C, 4, 4] cam_from_world
+                              ) -> Tensor:       # [C, N, 3] colours >= 0
+    """Colours as gsplat computes them inside ``rasterization``: direction = mean - camera centre."""
     rotation, translation = viewmats[:, :3, :3], viewmats[:, :3, 3]
     camera_centres = -torch.einsum("cji,cj->ci", rotation, translation)  # [C, 3] = -R^T t
-    dirs = means[None, :, :] - camera_centres[:, None, :]  # [C, N, 3]
-    rgb = eval_sh(degree, coeffs[None].expand(dirs.shape[0], -1, -1, -1), dirs)
-    return torch.clamp_min(rgb + SH_COLOR_OFFSET, 0.0)
+    return colors_from_sh(degree, coeffs, means[None, :, :] - camera_centres[:, None, :])
+
+
+def rgb_to_sh_dc(rgb: Tensor) -> Tensor:  # [..., 3] in [0, 1] -> [..., 3] band-0 coefficient
+    """The DC coefficient whose view-independent colour is ``rgb`` (inverse of the degree-0 colour)."""
+    return (rgb - SH_COLOR_OFFSET) / SH_C0

@@ -27,6 +27,7 @@ import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.geometry import is_rigid
+from omniscs.roadmap import RoadMap
 from omniscs.storage import atomic_directory, atomic_write_json, content_hash
 
 SCHEMA_VERSION = 1
@@ -203,6 +204,17 @@ class Scene:
             return None
         from omniscs.world.model import World  # the world package is heavy; only synthetic scenes need it
         return World.from_json(path.read_text())
+
+    @cached_property
+    def road_map(self) -> RoadMap | None:
+        """The log's road map: the procedural world's for synthetic scenes, None for recorded logs (models then
+        derive a map from the traffic)."""
+        world = self.world
+        if world is None:
+            return None
+        from omniscs.world.layouts import road_map_for
+
+        return road_map_for(world)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

@@ -7,7 +7,8 @@ from typing import Callable
 
 import numpy as np
 
-from omniscs.geometry import invert_transform, rotmat_to_quat, transform_points, yaw_of
+from omniscs.geometry import invert_transform, transform_points, yaw_of
+from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.store import CameraRecord, SceneWriter
 from omniscs.storage import content_hash
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from omniscs.edits import (Edit, Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, local_motion,
-                           parse_edits, poses_from_waypoints)
+                           parse_edits, poses_from_waypoints, resting_tilt)
 from omniscs.errors import OmniscsError
-from omniscs.geometry import make_transform, rotmat_from_euler
+from omniscs.geometry import make_transform
 from omniscs.taxonomy import CATEGORIES
 from omniscs.world.assets import asset_category, build_asset
 from omniscs.world.model import AgentTrack, World
@@ -41,14 +41,6 @@ def _replace(track: AgentTrack, **changes) -> AgentTrack:
                   size=track.size.copy(), poses=track.poses.copy(), present=track.present.copy())
     fields.update(changes)
     return AgentTrack(**fields)
-
-
-def resting_tilt(size: np.ndarray, roll_deg: float, pitch_deg: float) -> tuple[np.ndarray, float]:  # R [3, 3], dz
-    """Local tilt (roll about x, then pitch about y) plus the vertical shift that keeps the tilted box
-    resting on the ground that the upright box stood on (roll 180: no shift; roll 90: z - h/2 + w/2)."""
-    R = rotmat_from_euler(np.radians(roll_deg), np.radians(pitch_deg), 0.0)
-    half_up = 0.5 * float(np.abs(R[2]) @ np.asarray(size, dtype=np.float64))
-    return R, half_up - 0.5 * float(size[2])
 
 
 def _apply_one(world: World, tracks: dict[int, AgentTrack], edit: Edit) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, transform_points
+from omniscs.roadmap import RoadMap, in_convex_polygon
 from omniscs.taxonomy import SEMANTIC_IDS
 from omniscs.world.assets import FACE_PARAMS, Material, MeshBuilder, SurfaceMesh, srgb
 from omniscs.world.model import LAYOUT_VERSION
@@ -158,8 +159,16 @@ class Layout:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         inside = np.zeros(len(xy), dtype=bool)
         for poly in self.drivable_polygons:
-            inside |= _in_convex_polygon(xy, poly)
+            inside |= in_convex_polygon(xy, poly)
         return inside
+
+    def road_map(self) -> RoadMap:
+        """The layout's map in neutral form: drivable polygons, every lane's centreline (in ``lanes`` order) and,
+        as the known extent, the bounding box of roads and sidewalks (the procedural world stops at its road ends)."""
+        known = np.concatenate([*self.drivable_polygons, *self.sidewalk_polygons])
+        return RoadMap(drivable_polygons=tuple(self.drivable_polygons),
+                       lane_centrelines=tuple(lane.centreline for lane in self.lanes.values()),
+                       extent_min=known.min(0), extent_max=known.max(0))
 
     def rasterize_drivable(self, x_range: tuple[float, float], y_range: tuple[float, float],
                            resolution: float) -> np.ndarray:
@@ -171,15 +180,6 @@ class Layout:
         ys = np.arange(y_range[0] + 0.5 * resolution, y_range[1], resolution)
         gx, gy = np.meshgrid(xs, ys)
         return self.is_drivable(np.stack([gx.ravel(), gy.ravel()], -1)).reshape(gy.shape)
-
-
-def _in_convex_polygon(xy: np.ndarray, poly: np.ndarray) -> np.ndarray:  # [N,2], [K,2] ccw -> [N]
-    inside = np.ones(len(xy), dtype=bool)
-    for i in range(len(poly)):
-        a, b = poly[i], poly[(i + 1) % len(poly)]
-        cross = (b[0] - a[0]) * (xy[:, 1] - a[1]) - (b[1] - a[1]) * (xy[:, 0] - a[0])
-        inside &= cross >= -1e-9
-    return inside
 
 
 def _rect(x0: float, x1: float, y0: float, y1: float) -> np.ndarray:  # -> [4, 2] ccw
@@ -708,3 +708,8 @@ def layout_for(world) -> Layout:
         raise OmniscsError(f"world was made with layout version {world.layout_version}, this code builds version "
                            f"{LAYOUT_VERSION}; regenerate the world with this version")
     return build_layout(world.template, world.seed)
+
+
+def road_map_for(world) -> RoadMap:
+    """The road map of a World (from the layout it was generated on)."""
+    return layout_for(world).road_map()

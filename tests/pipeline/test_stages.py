@@ -15,7 +15,7 @@ from tests.nsg_fixtures import tiny_fit_config, write_nsg_scene
 
 
 def test_the_plan_stage_writes_one_plan_per_scene_and_request_and_reuses_it(tmp_path):
-    store = write_tiny_scene(tmp_path / "in", n_tracks=3, scene_id="road")
+    store = write_tiny_scene(tmp_path / "in", n_frames=30, n_tracks=3, scene_id="road", with_lidar=False)
     first = stages.plan_stage(store, SceneRequest(), tmp_path / "ws")
     again = stages.plan_stage(store, SceneRequest(), tmp_path / "ws")
     other = stages.plan_stage(store, SceneRequest(behavior_variants=2), tmp_path / "ws")

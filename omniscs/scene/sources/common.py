@@ -31,12 +31,10 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.geometry import (
     invert_transform,
     make_transform,
-    quat_normalize,
-    quat_to_rotmat,
     rotmat_from_euler,
-    rotmat_to_quat,
     yaw_of,
 )
+from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat, slerp
 from omniscs.scene.store import CameraRecord, Scene, SceneWriter
 from omniscs.storage import content_hash
 
@@ -184,18 +182,6 @@ def ego_from_lidar_of(scene: Scene) -> np.ndarray | None:  # -> [4, 4] or None
         return np.asarray(values, dtype=np.float64).reshape(4, 4)
     world = scene.world
     return None if world is None else np.asarray(world.lidar.ego_from_lidar, dtype=np.float64)
-
-
-def slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:  # [4], [4], scalar -> [4] (w, x, y, z)
-    """Spherical interpolation along the shorter arc (q and -q are the same rotation)."""
-    q0, q1 = quat_normalize(q0), quat_normalize(q1)
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 1.0 - 1e-12:  # nearly the same rotation: linear interpolation is exact to rounding
-        return quat_normalize(q0 + t * (q1 - q0))
-    theta = np.arccos(dot)
-    return quat_normalize((np.sin((1 - t) * theta) * q0 + np.sin(t * theta) * q1) / np.sin(theta))
 
 
 def interpolate_pose(a_from_b0: np.ndarray, a_from_b1: np.ndarray, t: float) -> np.ndarray:  # [4,4] x2 -> [4,4]

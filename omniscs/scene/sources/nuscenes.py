@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.errors import OmniscsError, ValidationError
-from omniscs.geometry import make_transform, quat_to_rotmat
+from omniscs.geometry import make_transform
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import (
     BadFrame,
     DatasetSource,

@@ -9,7 +9,7 @@ procedural world into the metric (a net self-trained on our renders would). A us
 plugs in from local weights: a state dict for this architecture, or a torch.export / TorchScript file of any CNN.
 
 Also here: the appearance-drift metric of the benchmark (PSNR of rendered perturbed frames against ground
-truth, masked to the adversary) and the ground truth for a variant from the procedural world.
+truth, masked to the adversary) and the ego's poses under a variant's plan.
 """
 from __future__ import annotations
 
@@ -185,40 +185,6 @@ def masked_psnr(rendered: np.ndarray,      # [T, H, W, 3] or [T, 3, H, W] float 
         return None
     mse = float(((r - g) ** 2)[m].mean())
     return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
-
-
-def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
-                         ) -> tuple[np.ndarray, np.ndarray]:  # rgb [T, H, W, 3] in [0, 1], adversary mask [T, H, W]
-    """Ground truth for a variant of a procedural log: the world with every agent on its variant trajectory
-    (SetTrajectory edits; heights kept from the log), re-rendered, and the adversary's instance mask."""
-    from omniscs.edits import SetTrajectory
-    from omniscs.world import WorldRenderer, apply_edits
-
-    if variant.get("source_frames") is None:
-        raise OmniscsError("variant steps are not the scene's frames (the log was resampled); no ground truth")
-    n = world.n_frames
-    edits = []
-    by_id = {a.track_id: a for a in world.agents}
-    for key, traj in variant["agents"].items():
-        agent = by_id.get(int(key))
-        if agent is None:
-            continue
-        waypoints = [None] * n
-        for step, pose in zip(variant["source_frames"], traj):
-            if pose is not None and 0 <= step < n:
-                z = float(agent.poses[step, 2, 3]) if agent.present[step] else float(agent.size[2] / 2)
-                waypoints[step] = (pose[0], pose[1], z, pose[2])
-        edits.append(SetTrajectory(int(key), tuple(waypoints)))
-    edited = apply_edits(world, edits)
-    if variant.get("ego") is not None:  # a reacting planner moves the ego too
-        edited = edited.replace(ego_poses=variant_ego_poses(variant, edited.ego_poses))
-    renderer = WorldRenderer(edited)
-    rgb, masks = [], []
-    for f in frames:
-        r = renderer.render_camera(int(f), camera)
-        rgb.append(r.rgb.astype(np.float64) / 255.0)
-        masks.append(r.instance == int(variant["adversary"]))
-    return np.stack(rgb), np.stack(masks)
 
 
 def variant_ego_poses(variant: dict, logged: np.ndarray) -> np.ndarray:  # [F, 4, 4] -> [F, 4, 4]

@@ -1,6 +1,7 @@
-"""Saving and loading traffic-model checkpoints: weights (safetensors), model config and training record."""
+"""Saving and loading traffic-model checkpoints (weights, model config, training record), and where models run."""
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from pathlib import Path
@@ -71,3 +72,28 @@ def set_threads(n: int) -> int:
     if n and n > 0:
         torch.set_num_threads(int(n))
     return previous
+
+
+def resolve_device(name: str) -> torch.device:
+    """The torch device a config names ("cpu", "cuda", "cuda:N"); an OmniscsError when it is unknown or absent."""
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError):
+        raise OmniscsError(f"unknown device {name!r}; use 'cpu' or 'cuda' (or 'cuda:N')") from None
+    if device.type == "cpu":
+        return torch.device("cpu")
+    if device.type != "cuda":
+        raise OmniscsError(f"device {name!r} is not supported; use 'cpu' or 'cuda' (or 'cuda:N')")
+    if not torch.cuda.is_available():
+        raise OmniscsError(f"device {name!r} was asked for but torch sees no CUDA device here; use device='cpu'")
+    index = torch.cuda.current_device() if device.index is None else device.index
+    if index >= torch.cuda.device_count():
+        raise OmniscsError(f"device {name!r} does not exist; this machine has {torch.cuda.device_count()} CUDA "
+                           "device(s)")
+    return torch.device("cuda", index)
+
+
+def model_on(model: TrafficModel, device: torch.device) -> TrafficModel:
+    """``model`` itself when its weights are on ``device``, else a copy moved there (the caller's stays put)."""
+    current = next(model.parameters()).device
+    return model if current == device else copy.deepcopy(model).to(device)

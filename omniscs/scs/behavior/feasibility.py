@@ -25,9 +25,10 @@ import numpy as np
 import torch
 
 from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.adversarial import INTERCEPT_SOFTMIN_M, box_gap
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.kinematics import bound_controls, rollout, soft_clip_accel
+from omniscs.scs.behavior.losses import INTERCEPT_SOFTMIN_M, box_gap
+
 
 @dataclass(frozen=True)
 class FeasibilityConfig:
@@ -104,12 +105,12 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
         raise OmniscsError("feasibility search needs starts, steps and check_every >= 1 and some init_std")
     cfg, cb = problem.config, problem.config.comfort
     if plan is None:
-        plan = problem.plan(problem.fitted.states.numpy().astype(np.float64))
+        plan = problem.plan(problem.fitted_np)
     plan = np.asarray(plan, dtype=np.float64)
     track = int(problem.node_tracks[node])
     state0_t = problem.sample.state0[node].to(torch.float32)
     state0 = state0_t.numpy().astype(np.float64)
-    size = tuple(float(x) for x in problem.node_sizes[node])
+    size = tuple(float(x) for x in problem.node_sizes_np[node])
     lim = comfort_kinematics(problem)
     threshold = cfg.collision_iou
     if out_of_reach(state0, size, plan, problem.ego_size, problem.traffic.dt, cb.max_accel, lim.max_speed):
@@ -136,7 +137,7 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
     def offroad(states: torch.Tensor) -> torch.Tensor:  # [S, T] metres off the drivable area
         return road_map.outside_distance(frame.to_world(states[..., :3])[..., :2])
 
-    def stays_on_road(states: np.ndarray) -> np.ndarray:  # [S, T, 5] -> [S] bool, as BehaviorProblem.evaluate tests
+    def stays_on_road(states: np.ndarray) -> np.ndarray:  # [S, T, 5] -> [S] bool, as evaluation.evaluate tests
         if not on_road:
             return np.ones(len(states), dtype=bool)
         xy = frame.to_world_np(states[..., :3])[..., :2].reshape(-1, 2)
@@ -186,7 +187,7 @@ def search_scene(problem, config: FeasibilityConfig = FeasibilityConfig(), stop_
                  ) -> list[Reach]:
     """``search_reach`` for every candidate adversary of the scene (``problem.candidates()``, heuristic reachable
     ones first); with ``stop_at_first`` it stops at the first feasible one."""
-    plan = problem.plan(problem.fitted.states.numpy().astype(np.float64))
+    plan = problem.plan(problem.fitted_np)
     out = []
     for node, _, _ in problem.candidates():
         out.append(search_reach(problem, node, plan, config))

@@ -95,6 +95,10 @@ class Batch:
     is_ego: Tensor  # [B, N] bool
     node_mask: Tensor  # [B, N] bool
 
+    def to(self, device: torch.device | str) -> "Batch":
+        """The same batch on ``device`` (itself when already there)."""
+        return Batch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
 
 def finite_rates(xy: np.ndarray, yaw: np.ndarray, present: np.ndarray, dt: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # [S,2],[S],[S] -> speed [S], yaw rate [S], ok [S]

@@ -1,8 +1,8 @@
 """Rasterised scene maps for the behaviour model: drivable area and lane centrelines (with direction).
 
-Synthetic scenes know their map (``omniscs.world.Layout``); recorded logs without one get a map derived
-from where vehicles were seen driving: corridors around the ego path and moving tracks, plus the
-footprints of parked vehicles.
+Logs that bring a road map (``omniscs.roadmap.RoadMap``; synthetic scenes do) are rasterised from it; recorded
+logs without one get a map derived from where vehicles were seen driving: corridors around the ego path and
+moving tracks, plus the footprints of parked vehicles.
 """
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from omniscs.errors import OmniscsError
+from omniscs.roadmap import RoadMap
 
 #: Layers of SceneMap.layers, in order.
 MAP_LAYERS = ("drivable", "centreline", "lane_dir_cos", "lane_dir_sin")
@@ -55,42 +56,45 @@ class CropSpec:
 
 class SceneMap:
     """World-aligned raster of one scene: layers [C, H, W] (see MAP_LAYERS), row i at y0 + (i + 0.5) * res,
-    column j at x0 + (j + 0.5) * res, and the distance (metres) from each cell to the drivable area."""
+    column j at x0 + (j + 0.5) * res, and the distance (metres) from each cell to the drivable area.
+    Its tensors are copied to the device of the points they are sampled at (once per device)."""
 
     def __init__(self, origin: np.ndarray, resolution: float, layers: np.ndarray, source: str,
-                 polygons: tuple | None = None, extent: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 road_map: RoadMap | None = None, extent: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.origin = np.asarray(origin, dtype=np.float64)  # [2] world xy of the raster's lower-left corner
         self.resolution = float(resolution)
         self.layers = np.ascontiguousarray(layers, dtype=np.float32)  # [C, H, W]
-        self.source = source  # "layout" or "derived"
-        self._polygons = polygons
+        self.source = source  # "road_map" or "derived"
+        self.road_map = road_map  # exact drivable test when the map came from a RoadMap
         if extent is None:
             h, w = self.layers.shape[1:]
             extent = (self.origin.copy(), self.origin + np.array([w, h]) * self.resolution)
         self.extent = (np.asarray(extent[0], dtype=np.float64), np.asarray(extent[1], dtype=np.float64))
         outside = (self.layers[0] < 0.5).astype(np.uint8)
         self.outside_m = (cv2.distanceTransform(outside, cv2.DIST_L2, 5) * self.resolution).astype(np.float32)
-        self._layers_t = torch.from_numpy(self.layers)[None]  # [1, C, H, W]
-        self._outside_t = torch.from_numpy(self.outside_m)[None, None]  # [1, 1, H, W]
+        self._tensors: dict[torch.device, tuple[torch.Tensor, torch.Tensor]] = {}
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.layers.shape[1], self.layers.shape[2]
+
+    def tensors(self, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+        """layers [1, C, H, W] and distance outside the drivable area [1, 1, H, W] (float32) on ``device``."""
+        device = torch.device(device)
+        if device not in self._tensors:
+            self._tensors[device] = (torch.from_numpy(self.layers)[None].to(device),
+                                     torch.from_numpy(self.outside_m)[None, None].to(device))
+        return self._tensors[device]
 
     def _pixel(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # [N, 2] -> rows [N], cols [N] (int)
         ij = np.floor((np.asarray(xy, dtype=np.float64) - self.origin) / self.resolution).astype(np.int64)
         return ij[:, 1], ij[:, 0]
 
     def is_drivable(self, xy: np.ndarray) -> np.ndarray:  # [N, 2] world -> [N] bool
-        """Whether each point lies on the drivable area (exact polygons when the map came from a layout)."""
+        """Whether each point lies on the drivable area (exact polygons when the map came from a RoadMap)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if self._polygons is not None:
-            from omniscs.world.layouts import _in_convex_polygon
-
-            inside = np.zeros(len(xy), dtype=bool)
-            for poly in self._polygons:
-                inside |= _in_convex_polygon(xy, poly)
-            return inside
+        if self.road_map is not None:
+            return self.road_map.is_drivable(xy)
         rows, cols = self._pixel(xy)
         h, w = self.shape
         ok = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
@@ -99,21 +103,22 @@ class SceneMap:
         return out
 
     def covers(self, xy: np.ndarray) -> np.ndarray:  # [N, 2] world -> [N] bool
-        """Whether the map knows what is at each point (``extent``: the bounding box of a layout's roads and
-        sidewalks, since a procedural world stops at its road ends; the raster for derived maps)."""
+        """Whether the map knows what is at each point (``extent``: a RoadMap's known extent, e.g. the bounding box
+        of a procedural layout's roads and sidewalks, since that world stops at its road ends; the raster for
+        derived maps)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         return np.all((xy >= self.extent[0]) & (xy <= self.extent[1]), axis=1)
 
     def _normalised(self, xy: torch.Tensor) -> torch.Tensor:  # [..., 2] world -> grid_sample coordinates
         h, w = self.shape
-        size = torch.tensor([w * self.resolution, h * self.resolution], dtype=xy.dtype)
-        return 2.0 * (xy - torch.as_tensor(self.origin, dtype=xy.dtype)) / size - 1.0
+        size = torch.tensor([w * self.resolution, h * self.resolution], dtype=xy.dtype, device=xy.device)
+        return 2.0 * (xy - torch.as_tensor(self.origin, dtype=xy.dtype, device=xy.device)) / size - 1.0
 
     def outside_distance(self, xy: torch.Tensor) -> torch.Tensor:  # [..., 2] world (float) -> [...] metres
         """Bilinear distance to the drivable area (0 inside); differentiable in ``xy``; border value outside."""
         shape = xy.shape[:-1]
         grid = self._normalised(xy.reshape(1, -1, 1, 2).to(torch.float32))
-        d = torch.nn.functional.grid_sample(self._outside_t, grid, mode="bilinear", padding_mode="border",
+        d = torch.nn.functional.grid_sample(self.tensors(xy.device)[1], grid, mode="bilinear", padding_mode="border",
                                             align_corners=False)
         return d.reshape(shape)
 
@@ -133,7 +138,7 @@ class SceneMap:
         wx = xy[:, 0, None, None] + c * gx - s * gy
         wy = xy[:, 1, None, None] + s * gx + c * gy
         grid = self._normalised(torch.from_numpy(np.stack([wx, wy], -1)).to(torch.float64)).to(torch.float32)
-        layers = self._layers_t
+        layers = self.tensors()[0]
         if extra is not None:
             layers = torch.cat([layers, torch.from_numpy(np.asarray(extra, np.float32))[None, None]], dim=1)
         out = torch.nn.functional.grid_sample(layers, grid.reshape(1, n * rows, cols, 2), mode="bilinear",
@@ -208,19 +213,19 @@ def _paint_lanes(layers: np.ndarray, origin: np.ndarray, res: float, polylines: 
     layers[3][on] = directions[segment_of_cell[on], 1]
 
 
-def map_from_layout(layout, ego_xy: np.ndarray, config: MapConfig = MapConfig()) -> SceneMap:
-    """Raster of a procedural layout's drivable polygons and lane centrelines around the ego path ([S, 2])."""
+def map_from_road_map(road_map: RoadMap, ego_xy: np.ndarray,  # [S, 2] ego path (box centres)
+                      config: MapConfig = MapConfig()) -> SceneMap:
+    """Raster of a road map's drivable polygons and lane centrelines around the ego path."""
     origin, h, w = _grid(ego_xy.min(0), ego_xy.max(0), config)
     res = config.resolution_m
     xs = origin[0] + (np.arange(w) + 0.5) * res
     ys = origin[1] + (np.arange(h) + 0.5) * res
     gx, gy = np.meshgrid(xs, ys)
     layers = np.zeros((len(MAP_LAYERS), h, w), dtype=np.float32)
-    layers[0] = layout.is_drivable(np.stack([gx.ravel(), gy.ravel()], -1)).reshape(h, w)
-    _paint_lanes(layers, origin, res, [lane.centreline for lane in layout.lanes.values()], config.lane_line_width_m)
-    known = np.concatenate([*layout.drivable_polygons, *layout.sidewalk_polygons])
-    return SceneMap(origin, res, layers, "layout", polygons=tuple(layout.drivable_polygons),
-                    extent=(known.min(0), known.max(0)))
+    layers[0] = road_map.is_drivable(np.stack([gx.ravel(), gy.ravel()], -1)).reshape(h, w)
+    _paint_lanes(layers, origin, res, list(road_map.lane_centrelines), config.lane_line_width_m)
+    return SceneMap(origin, res, layers, "road_map", road_map=road_map,
+                    extent=(road_map.extent_min, road_map.extent_max))
 
 
 def map_from_tracks(ego_xy: np.ndarray,          # [S, 2] ego path (box centres)

@@ -25,10 +25,11 @@ from torch import Tensor
 from omniscs.errors import OmniscsError
 from omniscs.nsg.compose import NodePose
 from omniscs.nsg.graph import SceneGraph, agent_may_show, node_radius, render_view, static_layer
-from omniscs.scs.behavior.adversarial import AdversarialConfig, now_and_horizon
+from omniscs.scs.behavior.adversarial_config import AdversarialConfig
 from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNetConfig, build_feature_net,
                                             variant_ego_poses)
 from omniscs.scs.behavior.model import TrafficModel
+from omniscs.scs.behavior.problem import now_and_horizon
 from omniscs.scs.behavior.tracks import TrafficScene
 
 
@@ -136,14 +137,14 @@ def scene_graph_appearance(graph: SceneGraph, traffic: TrafficScene, model: Traf
 
 
 def appearance_from_checkpoint(nsg_dir: str | Path, scene, traffic: TrafficScene,
-                               behaviour_checkpoint: str | Path | None = None,
+                               behavior_checkpoint: str | Path | None = None,
                                adversarial: AdversarialConfig = AdversarialConfig(),
                                config: AppearanceRenderConfig = AppearanceRenderConfig()) -> AppearanceTerm:
     """L_app from a scene-graph checkpoint folder of ``scene`` (refused when it belongs to another scene)."""
     from omniscs.nsg.checkpoint import load_checkpoint as load_graph
     from omniscs.scs.behavior.checkpoint import load_checkpoint as load_model
 
-    return scene_graph_appearance(load_graph(nsg_dir, scene), traffic, load_model(behaviour_checkpoint),
+    return scene_graph_appearance(load_graph(nsg_dir, scene), traffic, load_model(behavior_checkpoint),
                                   adversarial, config)
 
 

@@ -1,17 +1,19 @@
 """Traffic of one log on a regular time grid (world frame, float64): the behaviour model's view of a scene.
 
-Built from a procedural ``World`` (synthetic logs and training data) or from a scene store (any source).
-Positions are box centres; the ego's box centre lies ``ego_centre_ahead_m`` ahead of its frame origin.
+Built from a scene store (any source) or from a log's arrays (``traffic_from_log``: e.g. a procedural log that
+was never rendered). Positions are box centres; the ego's box centre lies ``ego_centre_ahead_m`` ahead of its
+frame origin. The map comes from the log's road map when it has one, else it is derived from the traffic.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.geometry import wrap_angle, yaw_of
-from omniscs.scs.behavior.maps import MapConfig, SceneMap, map_from_layout, map_from_tracks
+from omniscs.roadmap import RoadMap
+from omniscs.scs.behavior.maps import MapConfig, SceneMap, map_from_road_map, map_from_tracks
 from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 #: Relative tolerance on a log's frame period before it is resampled to the model's time step.
@@ -52,7 +54,6 @@ class TrafficScene:
     present: np.ndarray  # [N, S] bool
     map: SceneMap
     source_frames: np.ndarray | None = None  # [S] scene frame of each step; None when the log was resampled
-    world: object = field(default=None, repr=False)  # the procedural World, when the log has one
 
     @property
     def n_steps(self) -> int:
@@ -93,40 +94,60 @@ def _moving_paths_and_parked(xy, yaw, present, sizes, vehicle, moving_path_m) ->
     return paths, np.asarray(parked, dtype=np.float64).reshape(-1, 5)
 
 
-def traffic_from_world(world, scene_id: str | None = None, ego_box: EgoBox = EgoBox(),
-                       map_config: MapConfig = MapConfig()) -> TrafficScene:
-    """The traffic of a procedural world (no rendering needed), with its layout as the map."""
-    from omniscs.world import layout_for
+def scene_map(road_map: RoadMap | None,
+              ego_xy: np.ndarray,      # [S, 2] ego box centres
+              xy: np.ndarray,          # [N, S, 2] track box centres (0 where absent)
+              yaw: np.ndarray,         # [N, S]
+              present: np.ndarray,     # [N, S] bool
+              sizes: np.ndarray,       # [N, 3] length, width, height
+              categories: tuple[str, ...] | list[str],  # [N]
+              config: MapConfig = MapConfig()) -> SceneMap:
+    """The raster map of a log: its road map's when it brings one, else derived from the ego path, the paths of
+    moving vehicles and the footprints of standing ones."""
+    if road_map is not None:
+        return map_from_road_map(road_map, ego_xy, config)
+    vehicle = np.array([c in VEHICLE_CATEGORIES for c in categories], dtype=bool)
+    paths, parked = _moving_paths_and_parked(xy, yaw, present, sizes, vehicle, config.moving_path_m)
+    return map_from_tracks(ego_xy, paths, parked, config)
 
-    ego_xy, ego_yaw = _ego_centre(world.ego_poses, ego_box)
-    agents = world.agents
-    n, s = len(agents), world.n_frames
-    xy = np.zeros((n, s, 2))
-    yaw = np.zeros((n, s))
-    z = np.zeros((n, s))
-    present = np.zeros((n, s), dtype=bool)
-    for i, a in enumerate(agents):
-        xy[i] = a.poses[:, :2, 3]
-        yaw[i] = yaw_of(a.poses[:, :3, :3])
-        z[i] = a.poses[:, 2, 3]
-        present[i] = a.present
+
+def traffic_from_log(scene_id: str,
+                     timestamps_us: np.ndarray,     # [S] int64, one per step
+                     world_from_ego: np.ndarray,    # [S, 4, 4] float64
+                     track_ids: np.ndarray,         # [N] int64
+                     categories: tuple[str, ...] | list[str],  # [N]
+                     sizes: np.ndarray,             # [N, 3] length, width, height
+                     world_from_agent: np.ndarray,  # [N, S, 4, 4] float64, box centre, x = heading
+                     present: np.ndarray,           # [N, S] bool
+                     dt: float,
+                     road_map: RoadMap | None = None, ego_box: EgoBox = EgoBox(),
+                     map_config: MapConfig = MapConfig()) -> TrafficScene:
+    """The traffic of a log already on a regular grid of ``dt`` seconds (each step is the log's frame of that
+    index), e.g. a procedural log that was never rendered; the map as ``scene_map`` makes it."""
+    world_from_ego = np.asarray(world_from_ego, dtype=np.float64)
+    ego_xy, ego_yaw = _ego_centre(world_from_ego, ego_box)
+    n, s = len(track_ids), len(timestamps_us)
+    poses = np.asarray(world_from_agent, dtype=np.float64).reshape(n, s, 4, 4)
+    present = np.asarray(present, dtype=bool).reshape(n, s)
+    xy = poses[..., :2, 3].copy()
+    yaw = yaw_of(poses[..., :3, :3])
+    z = poses[..., 2, 3].copy()
     xy[~present] = 0.0
-    dt = world.frame_period_us / 1e6
+    sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+    categories = tuple(categories)
     return TrafficScene(
-        scene_id=scene_id or f"world-{world.template}-s{world.seed}", dt=dt, timestamps_us=world.timestamps_us(),
-        ego_xy=ego_xy, ego_yaw=ego_yaw, ego_z=world.ego_poses[:, 2, 3].copy(), ego_box=ego_box,
-        track_ids=np.array([a.track_id for a in agents], dtype=np.int64),
-        categories=tuple(a.category for a in agents),
-        sizes=np.array([a.size for a in agents], dtype=np.float64).reshape(-1, 3),
-        xy=xy, yaw=yaw, z=z, present=present, map=map_from_layout(layout_for(world), ego_xy, map_config),
-        source_frames=np.arange(s), world=world,
+        scene_id=scene_id, dt=float(dt), timestamps_us=np.asarray(timestamps_us, dtype=np.int64),
+        ego_xy=ego_xy, ego_yaw=ego_yaw, ego_z=world_from_ego[:, 2, 3].copy(), ego_box=ego_box,
+        track_ids=np.asarray(track_ids, dtype=np.int64), categories=categories, sizes=sizes,
+        xy=xy, yaw=yaw, z=z, present=present,
+        map=scene_map(road_map, ego_xy, xy, yaw, present, sizes, categories, map_config), source_frames=np.arange(s),
     )
 
 
 def traffic_from_scene(scene, dt: float = 0.1, ego_box: EgoBox = EgoBox(),
                        map_config: MapConfig = MapConfig()) -> TrafficScene:
     """The traffic of a scene store on a ``dt`` grid (resampled when the log's period differs). The map is
-    the procedural layout for synthetic scenes, else derived from the ego path and boxes."""
+    the store's road map when it has one (synthetic scenes), else derived from the ego path and boxes."""
     ts_us = scene.frames["timestamp_us"].to_numpy().astype(np.int64)
     times = (ts_us - ts_us[0]) * 1e-6
     periods = np.diff(times)
@@ -174,19 +195,11 @@ def traffic_from_scene(scene, dt: float = 0.1, ego_box: EgoBox = EgoBox(),
         yaw[i] = wrap_angle(np.interp(grid, t, np.unwrap(g.yaw.to_numpy())))
         z[i] = np.interp(grid, t, g.cz.to_numpy())
     xy[~present] = 0.0
-    world = scene.world
-    vehicle = np.array([c in VEHICLE_CATEGORIES for c in categories], dtype=bool)
-    if world is not None:
-        from omniscs.world import layout_for
-
-        scene_map = map_from_layout(layout_for(world), ego_xy, map_config)
-    else:
-        paths, parked = _moving_paths_and_parked(xy, yaw, present, sizes, vehicle, map_config.moving_path_m)
-        scene_map = map_from_tracks(ego_xy, paths, parked, map_config)
     return TrafficScene(
         scene_id=scene.scene_id,
         dt=float(dt if not native or len(times) == 1 else round(float(np.median(np.diff(ts_us))) / 1e6, 6)),
         timestamps_us=grid_us, ego_xy=ego_xy, ego_yaw=ego_yaw, ego_z=ego_z, ego_box=ego_box, track_ids=track_ids,
-        categories=tuple(categories), sizes=sizes, xy=xy, yaw=yaw, z=z, present=present, map=scene_map,
-        source_frames=np.arange(s) if native else None, world=world,
+        categories=tuple(categories), sizes=sizes, xy=xy, yaw=yaw, z=z, present=present,
+        map=scene_map(scene.road_map, ego_xy, xy, yaw, present, sizes, categories, map_config),
+        source_frames=np.arange(s) if native else None,
     )

@@ -1,5 +1,8 @@
 """Training the traffic model on procedural traffic (unlimited, no rendering) and scene stores, and measuring
-its reconstruction and prediction error (ADE/FDE) on held-out scenes against a constant-velocity baseline."""
+its reconstruction and prediction error (ADE/FDE) on held-out scenes against a constant-velocity baseline.
+
+The procedural logs come from a ``ProceduralLogs`` source the caller injects (the CLI passes
+``omniscs.pipeline.procedural.procedural_traffic``): model code never imports the procedural world."""
 from __future__ import annotations
 
 import logging
@@ -15,14 +18,17 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.augment import AugmentConfig, augment_traffic
-from omniscs.scs.behavior.checkpoint import save_checkpoint, set_threads
+from omniscs.scs.behavior.checkpoint import resolve_device, save_checkpoint, set_threads
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
 from omniscs.scs.behavior.model import ModelConfig, TrafficModel
-from omniscs.scs.behavior.tracks import traffic_from_scene, traffic_from_world
+from omniscs.scs.behavior.tracks import TrafficScene, traffic_from_scene
 
 log = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]  # (stage, done, total)
+#: The traffic of one procedural log: (template, seed, frames) -> TrafficScene, never rendered; raises OmniscsError
+#: for a seed of a template that cannot be built (training skips it).
+ProceduralLogs = Callable[[str, int, int], TrafficScene]
 
 #: Road templates that training draws procedural worlds from.
 TRAIN_TEMPLATES = ("straight", "t_junction", "intersection", "straight_parked_truck")
@@ -65,6 +71,8 @@ class TrainConfig:
     """Samples from the prior for the min-of-K prediction metric."""
     torch_threads: int = 1
     """torch CPU threads (1: the development machines have 2 shared cores)."""
+    device: str = "cpu"
+    """Where the model trains and is evaluated: "cpu" or "cuda" ("cuda:N"); samples are built on the CPU."""
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     """Manoeuvre augmentation of training futures (lane and speed changes), so the latent carries manoeuvres."""
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -90,25 +98,22 @@ def world_frames(model: ModelConfig, now_steps: tuple[int, ...]) -> int:
     return max(now_steps) + 1 + model.future_steps
 
 
-def procedural_samples(n_worlds: int, seed_offset: int, now_steps: tuple[int, ...], model: ModelConfig,
-                       progress: Progress | None = None, stage: str = "worlds",
+def procedural_samples(logs: ProceduralLogs, n_worlds: int, seed_offset: int, now_steps: tuple[int, ...],
+                       model: ModelConfig, progress: Progress | None = None, stage: str = "worlds",
                        augment: AugmentConfig | None = None) -> list[SceneSample]:
-    """Samples from procedural worlds ``seed_offset + i`` (templates in turn), without rendering anything;
-    with ``augment``, some moving vehicles' futures become lane or speed changes (seeded per world)."""
-    from omniscs.world import generate_world
-
+    """Samples from procedural logs ``seed_offset + i`` (templates in turn), without rendering anything;
+    with ``augment``, some moving vehicles' futures become lane or speed changes (seeded per log)."""
     frames = world_frames(model, now_steps)
     out = []
     for i in range(n_worlds):
         template = TRAIN_TEMPLATES[i % len(TRAIN_TEMPLATES)]
         try:
-            world = generate_world(template, seed_offset + i, n_frames=frames, n_cameras=1, width=64, height=36)
+            traffic = logs(template, seed_offset + i, frames)
         except OmniscsError as exc:  # a few seeds of some templates cannot be built; skip them
             log.warning("skipping procedural world %s seed %d: %s", template, seed_offset + i, exc)
             if progress:
                 progress(stage, i + 1, n_worlds)
             continue
-        traffic = traffic_from_world(world)
         rng = np.random.default_rng([seed_offset, i])
         for now in now_steps:
             scene = traffic if augment is None else augment_traffic(traffic, now, model.future_steps, rng, augment)
@@ -131,30 +136,32 @@ def scene_store_samples(paths: list[Path], model: ModelConfig) -> list[SceneSamp
     return out
 
 
-def train_model(config: TrainConfig = TrainConfig(), out_dir: Path | None = None, command: str = "",
+def train_model(config: TrainConfig, logs: ProceduralLogs, out_dir: Path | None = None, command: str = "",
                 extra_scenes: list[Path] = (), progress: Progress | None = None,
                 overwrite: bool = False) -> tuple[TrafficModel, dict]:
-    """Train on procedural worlds (+ optional scene stores); evaluate on held-out worlds; save to ``out_dir``.
+    """Train on procedural logs from ``logs`` (+ optional scene stores); evaluate on held-out procedural logs;
+    save to ``out_dir``.
 
     Returns the model and the training record (also written beside the weights as training.json).
     """
     if out_dir is not None and Path(out_dir).exists() and not overwrite:
         raise OmniscsError(f"{out_dir} already exists; choose another --out or pass --overwrite")
+    device = resolve_device(config.device)
     previous_threads = set_threads(config.torch_threads)
     started = time.perf_counter()
     try:
         torch.manual_seed(config.seed)
         rng = np.random.default_rng(config.seed)
-        train = procedural_samples(config.n_worlds, TRAIN_SEED_OFFSET + 10_000 * config.seed, config.now_steps,
+        train = procedural_samples(logs, config.n_worlds, TRAIN_SEED_OFFSET + 10_000 * config.seed, config.now_steps,
                                    config.model, progress, "training worlds", config.augment)
         train += scene_store_samples([Path(p) for p in extra_scenes], config.model)
         heldout_seed = HELDOUT_SEED_OFFSET + 10_000 * config.seed
-        heldout = procedural_samples(config.heldout_worlds, heldout_seed, (9,), config.model, progress,
+        heldout = procedural_samples(logs, config.heldout_worlds, heldout_seed, (9,), config.model, progress,
                                      "held-out worlds")
-        heldout_manoeuvres = procedural_samples(config.heldout_worlds, heldout_seed, (9,), config.model, progress,
-                                                "held-out worlds (manoeuvres)", config.augment)
+        heldout_manoeuvres = procedural_samples(logs, config.heldout_worlds, heldout_seed, (9,), config.model,
+                                                progress, "held-out worlds (manoeuvres)", config.augment)
         data_seconds = time.perf_counter() - started
-        model = TrafficModel(config.model)
+        model = TrafficModel(config.model).to(device)  # initialised on the CPU, so every device starts alike
         opt = torch.optim.Adam(model.parameters(), lr=config.lr)
         history = []
         t0 = time.perf_counter()
@@ -165,7 +172,8 @@ def train_model(config: TrainConfig = TrainConfig(), out_dir: Path | None = None
             kl_w = config.kl_weight * min(1.0, (step + 1) / max(1, config.kl_warmup_steps))
             idx = rng.choice(len(train), size=min(config.batch_size, len(train)), replace=False)
             model.train()
-            out = model.losses(collate([train[i] for i in idx]), kl_w, free_nats_per_dim=config.free_nats_per_dim)
+            batch = collate([train[i] for i in idx]).to(device)
+            out = model.losses(batch, kl_w, free_nats_per_dim=config.free_nats_per_dim)
             opt.zero_grad()
             out["loss"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
@@ -215,7 +223,7 @@ def _jsonable(x):
 
 def constant_velocity(state0: torch.Tensor, horizon: int, dt: float) -> torch.Tensor:  # [..., 5] -> [..., T, 2]
     """The baseline: keep the current speed and heading."""
-    t = torch.arange(1, horizon + 1, dtype=state0.dtype) * dt
+    t = torch.arange(1, horizon + 1, dtype=state0.dtype, device=state0.device) * dt
     heading = torch.stack([torch.cos(state0[..., 2]), torch.sin(state0[..., 2])], -1)
     return state0[..., None, :2] + (state0[..., 3, None, None] * t[:, None]) * heading[..., None, :]
 
@@ -227,8 +235,9 @@ def evaluate(model: TrafficModel, samples: list[SceneSample], prior_samples: int
     prior mean and best of ``prior_samples`` prior samples (prediction), and constant velocity; for all
     such agents and for those that move more than MOVING_FUTURE_M."""
     sums: dict[str, dict[str, list[float]]] = {}
+    device = next(model.parameters()).device
     for start in range(0, len(samples), batch_size):
-        batch = collate(samples[start:start + batch_size])
+        batch = collate(samples[start:start + batch_size]).to(device)
         context, edges, edge_mask = model.encode_past(batch)
         horizon = batch.future.shape[2]
         mu_q, _ = model.posterior(context, batch, edges, edge_mask)

@@ -11,11 +11,12 @@ from typing import Callable
 
 import numpy as np
 
-from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.adversarial import AdversarialConfig, VariantResult, generate_variants
+from omniscs.scs.behavior.adversarial_config import AdversarialConfig
 from omniscs.scs.behavior.appearance import AppearanceTerm
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint
-from omniscs.scs.behavior.tracks import TrafficScene, traffic_from_scene, traffic_from_world
+from omniscs.scs.behavior.evaluation import VariantResult
+from omniscs.scs.behavior.generation import generate_variants
+from omniscs.scs.behavior.tracks import TrafficScene
 from omniscs.storage import atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger(__name__)
@@ -191,28 +192,6 @@ class VariantsOutput:
     bev_pngs: list[Path]
     rows: list[dict]
     reused: bool
-
-
-def load_traffic(scene_or_source: str | Path, dt: float = 0.1) -> TrafficScene:
-    """A scene store path, or ``syn:TEMPLATE:SEED[:FRAMES]`` for a procedural log (generated, not rendered)."""
-    text = str(scene_or_source)
-    if text.startswith("syn:"):
-        from omniscs.world import TEMPLATES, generate_world
-
-        parts = text.split(":")
-        if len(parts) not in (3, 4) or not all(p.lstrip("-").isdigit() for p in parts[2:]):
-            raise OmniscsError(f"bad synthetic source {text!r}; write syn:TEMPLATE:SEED[:FRAMES], e.g. syn:t_junction:1")
-        if parts[1] not in TEMPLATES:
-            raise OmniscsError(f"unknown template {parts[1]!r}; use one of {list(TEMPLATES)}")
-        frames = int(parts[3]) if len(parts) == 4 else 40
-        world = generate_world(parts[1], int(parts[2]), n_frames=frames, n_cameras=1, width=64, height=36)
-        return traffic_from_world(world, scene_id=f"syn-{parts[1]}-s{int(parts[2])}")
-    from omniscs.scene import load_scene
-
-    path = Path(text)
-    if not path.exists():
-        raise OmniscsError(f"{text} is neither a scene-store directory nor syn:TEMPLATE:SEED")
-    return traffic_from_scene(load_scene(path), dt=dt)
 
 
 def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, checkpoint: Path | str | None = None,

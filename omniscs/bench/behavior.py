@@ -8,18 +8,19 @@ import textwrap
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.adversarial import (AdversarialConfig, BehaviorProblem, adversarial_preset,
-                                              distinct_variants)
-from omniscs.scs.behavior.appearance import masked_psnr, variant_ground_truth
+from omniscs.bench.harness import finish, load_line, machine_info
+from omniscs.progress import Progress
+from omniscs.scs.behavior.adversarial_config import AdversarialConfig, adversarial_preset
+from omniscs.scs.behavior.appearance import masked_psnr, variant_ego_poses
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint, set_threads
 from omniscs.scs.behavior.feasibility import FeasibilityConfig, search_scene
+from omniscs.scs.behavior.generation import distinct_variants
 from omniscs.scs.behavior.planner import PlannerConfig
-from omniscs.scs.behavior.tracks import traffic_from_world
+from omniscs.scs.behavior.problem import BehaviorProblem
 from omniscs.scs.behavior.train import TRAIN_TEMPLATES
 from omniscs.scs.behavior.variants import bev_picture
 from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text
@@ -83,7 +84,7 @@ def configurations(base: AdversarialConfig, rule_planner: bool, only_default: bo
 
 
 def violation_kind(message: str) -> str:
-    """comfort, collision or off_road, from a violation message of BehaviorProblem.evaluate."""
+    """comfort, collision or off_road, from a violation message of ``evaluation.evaluate``."""
     if message.startswith("collision"):
         return "collision"
     if "drivable" in message:
@@ -170,11 +171,12 @@ def _summary(rows: list[dict], scenes: list[dict]) -> dict:
 
 
 def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), checkpoint: Path | None = None,
-                           progress: Callable[[int, int], None] | None = None, workspace: Path | None = None) -> dict:
+                           progress: Progress | None = None, workspace: Path | None = None) -> dict:
     """Run every configuration on every benchmark scene, then the L_app comparison on rendered scenes (their
     scene stores and scene graphs go to ``workspace`` and are reused); write behavior_bench.{json,md,png}."""
-    from omniscs.world import generate_world
+    from omniscs.pipeline.procedural import procedural_traffic
 
+    machine = machine_info()
     previous = set_threads(config.torch_threads)
     try:
         ckpt = Path(checkpoint) if checkpoint else DEFAULT_CHECKPOINT
@@ -191,12 +193,11 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         example = None
         for template, seed in jobs:
             try:
-                world = generate_world(template, seed, n_frames=config.n_frames, n_cameras=1, width=64, height=36)
+                traffic = procedural_traffic(template, seed, config.n_frames, scene_id=f"bench-{template}-s{seed}")
             except OmniscsError as exc:
                 log.warning("benchmark skips %s seed %d: %s", template, seed, exc)
                 done += len(runnable) * config.variants_per_scene
                 continue
-            traffic = traffic_from_world(world, scene_id=f"bench-{template}-s{seed}")
             started = time.perf_counter()
             problem = BehaviorProblem(traffic, model, base)
             setup_s = time.perf_counter() - started
@@ -238,7 +239,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
             "traffic_model_heldout": training.get("heldout_metrics"),
             "traffic_model_heldout_manoeuvres": training.get("heldout_manoeuvre_metrics"),
             "latent_fit_ade_m_mean": float(np.mean([s["latent_fit_ade_m"] for s in scenes])) if scenes else None,
-            "appearance": appearance,
+            "appearance": appearance, "machine": finish(machine),
         }
         out_dir = Path(out_dir)
         atomic_write_json(out_dir / "behavior_bench.json", result)
@@ -251,6 +252,40 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
         set_threads(previous)
 
 
+def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
+                         ) -> tuple[np.ndarray, np.ndarray]:  # rgb [T, H, W, 3] in [0, 1], adversary mask [T, H, W]
+    """Ground truth for a variant of a procedural log: the world with every agent on its variant trajectory
+    (SetTrajectory edits; heights kept from the log), re-rendered, and the adversary's instance mask."""
+    from omniscs.edits import SetTrajectory
+    from omniscs.world import WorldRenderer, apply_edits
+
+    if variant.get("source_frames") is None:
+        raise OmniscsError("variant steps are not the scene's frames (the log was resampled); no ground truth")
+    n = world.n_frames
+    edits = []
+    by_id = {a.track_id: a for a in world.agents}
+    for key, traj in variant["agents"].items():
+        agent = by_id.get(int(key))
+        if agent is None:
+            continue
+        waypoints = [None] * n
+        for step, pose in zip(variant["source_frames"], traj):
+            if pose is not None and 0 <= step < n:
+                z = float(agent.poses[step, 2, 3]) if agent.present[step] else float(agent.size[2] / 2)
+                waypoints[step] = (pose[0], pose[1], z, pose[2])
+        edits.append(SetTrajectory(int(key), tuple(waypoints)))
+    edited = apply_edits(world, edits)
+    if variant.get("ego") is not None:  # a reacting planner moves the ego too
+        edited = edited.replace(ego_poses=variant_ego_poses(variant, edited.ego_poses))
+    renderer = WorldRenderer(edited)
+    rgb, masks = [], []
+    for f in frames:
+        r = renderer.render_camera(int(f), camera)
+        rgb.append(r.rgb.astype(np.float64) / 255.0)
+        masks.append(r.instance == int(variant["adversary"]))
+    return np.stack(rgb), np.stack(masks)
+
+
 #: The L_app comparison's baseline: the default configuration without L_app, on the same scenes.
 NO_APP = "default (L_beh + L_restore + penalty)"
 
@@ -261,13 +296,14 @@ def appearance_configs(weights: tuple[float, ...]) -> list[tuple[str, float | No
 
 
 def appearance_study(model, base: AdversarialConfig, config: BenchConfig, workspace: Path | None = None,
-                     progress: Callable[[str], None] | None = None) -> dict:
+                     progress: Progress | None = None) -> dict:
     """The default losses without and with L_app on rendered logs with fitted scene graphs: success,
     plausibility, time per variant, and the appearance drift (masked PSNR of the scene graph's render of each
     variant against the procedural world re-rendered with the same trajectories, adversary pixels only)."""
     from omniscs.nsg.checkpoint import load_checkpoint as load_graph
-    from omniscs.nsg.store import fit_into_workspace
-    from omniscs.scene import SyntheticSource, ingest, load_scene
+    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
+    from omniscs.scene import SyntheticSource, load_scene
     from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, render_variant, scene_graph_appearance
     from omniscs.scs.behavior.tracks import traffic_from_scene
     from omniscs.scs.behavior.variants import variant_spec
@@ -282,15 +318,18 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
     scenes, fits = [], []
     for template, seed in jobs:
         if progress:
-            progress(f"L_app comparison: {template} seed {seed}")
+            progress(len(scenes), None, f"L_app comparison: {template} seed {seed}")
         try:
-            stored = ingest(SyntheticSource(template, seed, "day", config.n_frames, 1, 480, 270), ws)
+            stored = ingest_stage(SyntheticSource(template, seed, "day", config.n_frames, 1, 480, 270), ws)
         except OmniscsError as exc:
             log.warning("L_app comparison skips %s seed %d: %s", template, seed, exc)
             continue
         scene = load_scene(stored.path)
-        fit = fit_into_workspace(stored.path, ws, config.appearance_fit_preset,
-                                 behavior_variants=config.variants_per_scene)
+        request = SceneRequest(fit_preset=config.appearance_fit_preset,
+                               behavior_variants=config.variants_per_scene, previews=False)
+        plan = load_plan(plan_stage(stored.path, request, ws))
+        record = fit_stage(stored.path, plan, config.appearance_fit_preset, ws)
+        (fit,) = record.rows["models"]
         fits.append({k: fit.get(k) for k in ("scene_id", "model_id", "status", "n_gaussians", "fit_seconds",
                                               "heldout_psnr", "n_agent_nodes", "reused")})
         if fit["status"] != "fitted":
@@ -454,7 +493,7 @@ def markdown(result: dict) -> str:
              "adversary that finds no collision is restarted once from a warm start (its latent refitted to a "
              "comfortable interception path found by a search over its control knots), and standing ones start "
              "from it; its time covers all attempts and warm starts. Times: 1 torch thread on a shared 2-core "
-             "machine.", "",
+             "machine.", ""] + ([load_line(result["machine"]), ""] if result.get("machine") else []) + [
              "| configuration | scene success, feasible scenes (any variant) | scene success, envelope-reachable "
              "scenes (any variant) | scene success, feasible (first variant) | variant success | "
              "violations among successes | violations, all variants | adversary abs(long. accel) mean / max m/s² | "

@@ -1,0 +1,57 @@
+"""The procedural world as a source of traffic for the behaviour model, never rendered: ``syn:`` logs, training
+logs and benchmark scenes. Model code never imports the world; this wiring hands it neutral arrays and a RoadMap."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from omniscs.errors import OmniscsError
+from omniscs.scene.ingest import Source, StoreSource, check_synthetic
+from omniscs.scene.synthetic import SyntheticSource
+from omniscs.scs.behavior.maps import MapConfig
+from omniscs.scs.behavior.tracks import EgoBox, TrafficScene, traffic_from_log, traffic_from_scene
+
+#: Sensor rig of procedural logs made only for their traffic: nothing is rendered, so the smallest one.
+TRAFFIC_ONLY_RIG = dict(n_cameras=1, width=64, height=36)
+
+
+def traffic_from_world(world, scene_id: str | None = None, ego_box: EgoBox = EgoBox(),
+                       map_config: MapConfig = MapConfig()) -> TrafficScene:
+    """The traffic of a procedural ``omniscs.world.World`` (no rendering), with its layout's road map."""
+    from omniscs.world import road_map_for
+
+    agents = world.agents
+    n, s = len(agents), world.n_frames
+    return traffic_from_log(
+        scene_id or f"world-{world.template}-s{world.seed}", world.timestamps_us(), world.ego_poses,
+        track_ids=np.array([a.track_id for a in agents], dtype=np.int64),
+        categories=tuple(a.category for a in agents),
+        sizes=np.array([a.size for a in agents], dtype=np.float64).reshape(-1, 3),
+        world_from_agent=np.array([a.poses for a in agents], dtype=np.float64).reshape(n, s, 4, 4),
+        present=np.array([a.present for a in agents], dtype=bool).reshape(n, s),
+        dt=world.frame_period_us / 1e6, road_map=road_map_for(world), ego_box=ego_box, map_config=map_config)
+
+
+def procedural_traffic(template: str, seed: int, n_frames: int, scene_id: str | None = None) -> TrafficScene:
+    """The traffic of the procedural log (template, seed) with ``n_frames`` frames; raises OmniscsError for a seed
+    that cannot be built. This is the ``ProceduralLogs`` source that ``train_model`` takes."""
+    from omniscs.world import generate_world
+
+    world = generate_world(template, int(seed), n_frames=int(n_frames), **TRAFFIC_ONLY_RIG)
+    return traffic_from_world(world, scene_id=scene_id)
+
+
+def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
+    """The traffic of a parsed source (``omniscs.scene.parse_source``): a ``syn:`` log is generated, not rendered
+    (scene id ``syn-TEMPLATE-sSEED``; lighting does not change traffic); a scene store is read on a ``dt`` grid."""
+    if isinstance(source, SyntheticSource):
+        check_synthetic(source)
+        return procedural_traffic(source.template, source.seed, source.n_frames,
+                                  scene_id=f"syn-{source.template}-s{source.seed}")
+    if isinstance(source, StoreSource):
+        from omniscs.scene import load_scene
+
+        return traffic_from_scene(load_scene(Path(source.path)), dt=dt)
+    raise OmniscsError(f"{source.format}:{source.dataroot} is a dataset, not a scene store; ingest it first "
+                       "(`omniscs ingest`) and pass the scene store it writes")

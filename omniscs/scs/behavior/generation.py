@@ -1,0 +1,128 @@
+"""Making N distinct behaviour variants of a scene: the adversary and time-window schedule, retries, fallbacks."""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from omniscs.errors import OmniscsError
+from omniscs.scs.behavior.adversarial_config import AdversarialConfig
+from omniscs.scs.behavior.appearance import AppearanceTerm
+from omniscs.scs.behavior.checkpoint import set_threads
+from omniscs.scs.behavior.evaluation import VariantResult, outcome
+from omniscs.scs.behavior.model import TrafficModel
+from omniscs.scs.behavior.optimisation import knot_variant, optimise, warm_start
+from omniscs.scs.behavior.problem import BehaviorProblem
+from omniscs.scs.behavior.tracks import TrafficScene
+
+log = logging.getLogger(__name__)
+
+Candidate = tuple[int, bool, float]  # (node, reachable, closest approach m), as BehaviorProblem.candidates gives
+
+
+def variant_schedule(candidates: list[Candidate], n_variants: int, horizon: int,
+                     windows: tuple[tuple[float, float], ...]) -> list[tuple[int, tuple[int, int], bool]]:
+    """(adversary node, horizon window, reachable) for each of ``n_variants``: reachable adversaries in
+    turn (all adversaries when none is reachable), then again with the next time window."""
+    reachable = [c for c in candidates if c[1]]
+    pool = reachable or candidates
+    out = []
+    for k in range(n_variants):
+        node, ok, _ = pool[k % len(pool)]
+        lo, hi = windows[(k // len(pool)) % len(windows)]
+        start, end = int(round(lo * horizon)), max(int(round(hi * horizon)), int(round(lo * horizon)) + 1)
+        out.append((node, (start, min(end, horizon)), ok))
+    return out
+
+
+def optimise_with_fallback(problem: BehaviorProblem, candidates: list[Candidate], node: int,
+                           window: tuple[int, int], reachable: bool, index: int,
+                           used: set[tuple[int, tuple[int, int]]] | None = None) -> VariantResult:
+    """Optimise variant ``index`` with adversary ``node``; while it finds no collision, restart it from warm starts
+    (up to ``restarts``); while it fails (no collision, or implausible), try the next reachable candidates the
+    same way (up to ``attempts_per_variant`` adversaries) that no earlier variant used with this window, so
+    variants stay distinct. Standing candidates (with ``warm_start_standing``) begin with the warm starts and
+    start from the fitted latents last. Keeps the best outcome; its time covers every attempt; records its
+    (adversary, window) in ``used``."""
+    cfg = problem.config
+    used = set() if used is None else used
+    others = [(c[0], c[1]) for c in candidates if c[1] and c[0] != node and (c[0], tuple(window)) not in used]
+    tries = [(node, reachable)] + others[: max(0, cfg.attempts_per_variant - 1)]
+    speed0 = problem.state0_np[:, 3]
+    best, seconds = None, 0.0
+    for attempt, (n, ok) in enumerate(tries, start=1):
+        track = int(problem.traffic.track_ids[problem.node_tracks[n]])
+        standing = cfg.warm_start_standing and speed0[n] < cfg.moving_speed
+        starts = [*range(cfg.restarts), None] if standing else [None, *range(cfg.restarts)]  # None: fitted latents
+        for restart in starts:
+            began = time.perf_counter()
+            z_start = None if restart is None else warm_start(problem, n, window, restart)
+            result = optimise(problem, n, window, f"v{index:02d}-track{track}", ok, z_start=z_start)
+            seconds += time.perf_counter() - began
+            if best is None or outcome(result) > outcome(best):
+                best = result
+            best.attempts = attempt
+            if result.success:
+                break
+        if cfg.knot_fallback and not (best.success and best.plausible) and cfg.restarts > 0:
+            began = time.perf_counter()
+            fallback = knot_variant(problem, n, window, 0, f"v{index:02d}-track{track}", ok)
+            seconds += time.perf_counter() - began
+            if fallback.success and fallback.plausible:
+                best = fallback
+                best.attempts = attempt
+        if best.success and best.plausible:
+            break
+    best.seconds = seconds
+    adversary_node = int(np.flatnonzero(problem.traffic.track_ids[problem.node_tracks[1:]] == best.adversary)[0]) + 1
+    used.add((adversary_node, tuple(window)))
+    return best
+
+
+def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_variants: int,
+                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
+    """Up to ``n_variants`` variants, no two with the same (adversary, time window): the schedule's pairs in
+    order, skipping pairs an earlier variant (or its fallback) already used. Fewer come back when the scene
+    has fewer distinct pairs."""
+    pool = [c for c in candidates if c[1]] or candidates
+    windows = problem.config.time_windows
+    queue = variant_schedule(candidates, len(pool) * len(windows), problem.horizon, windows)
+    results: list[VariantResult] = []
+    used: set[tuple[int, tuple[int, int]]] = set()
+    while len(results) < n_variants:
+        queue = [q for q in queue if (q[0], tuple(q[1])) not in used]
+        if not queue:
+            log.warning("scene %s: only %d distinct (adversary, window) variants", problem.traffic.scene_id,
+                        len(results))
+            break
+        node, window, reachable = queue.pop(0)
+        results.append(optimise_with_fallback(problem, candidates, node, window, reachable, len(results), used))
+        if progress:
+            progress(len(results), n_variants)
+    return results
+
+
+def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: int,
+                      config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
+                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
+    """``n_variants`` behaviour variants of one scene (different adversaries, then different time windows).
+
+    Returns an empty list when no vehicle other than the ego is present at the now step.
+    """
+    if n_variants < 1:
+        raise OmniscsError(f"the number of variants must be at least 1; got {n_variants}")
+    previous = set_threads(config.torch_threads)
+    try:
+        problem = BehaviorProblem(traffic, model, config, appearance)
+        candidates = problem.candidates()
+        if not candidates:
+            log.warning("scene %s: no vehicle besides the ego at step %d; no behaviour variant", traffic.scene_id,
+                        problem.now)
+            return []
+        log.info("scene %s: %d candidate adversaries (%d reachable); latent fit ADE %.2f m", traffic.scene_id,
+                 len(candidates), sum(c[1] for c in candidates), problem.fit_ade)
+        return distinct_variants(problem, candidates, n_variants, progress)
+    finally:
+        set_threads(previous)
