@@ -47,7 +47,7 @@ def test_same_id_builds_the_identical_mesh_in_a_fresh_process():
             f"print(','.join(_mesh_digest(i) for i in {ids!r}))")
     env = dict(os.environ, PYTHONHASHSEED="12345")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True,
-                         cwd=os.path.dirname(os.path.dirname(__file__)))
+                         cwd=os.path.dirname(os.path.dirname(os.path.dirname(__file__))))
     assert out.stdout.strip().split(",") == [_mesh_digest(i) for i in ids]
 
 

@@ -21,7 +21,7 @@ from omniscs.scs.behavior.planner import PlannerConfig, rule_based_plan
 from omniscs.scs.behavior.problem import BehaviorProblem
 from omniscs.scs.behavior.variants import variant_spec
 from tests.behavior_fixtures import straight_world
-from tests.test_behavior_appearance import blob_renderer
+from tests.scs.test_behavior_appearance import blob_renderer
 
 FAST = adversarial_preset("fast")
 

@@ -76,5 +76,5 @@ def test_summaries_of_a_scene_fit_their_schemas_and_measure_motion(tiny_scene, t
 
 
 def test_checked_in_views_sql_matches_the_declared_schemas():
-    text = (Path(__file__).parents[1] / "catalogs" / "views.sql").read_text()
+    text = (Path(__file__).parents[2] / "catalogs" / "views.sql").read_text()
     assert text == catalog.views_sql()
