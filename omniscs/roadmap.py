@@ -41,11 +41,7 @@ class RoadMap:
     """[2] upper-right corner of that box."""
 
     def is_drivable(self, xy: np.ndarray) -> np.ndarray:  # [N, 2] world -> [N] bool
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        inside = np.zeros(len(xy), dtype=bool)
-        for poly in self.drivable_polygons:
-            inside |= in_convex_polygon(xy, poly)
-        return inside
+        return in_any_convex_polygon(xy, self.drivable_polygons)
 
     # -- JSON -----------------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -73,3 +69,12 @@ class RoadMap:
     @classmethod
     def from_json(cls, text: str) -> "RoadMap":
         return cls.from_dict(json.loads(text))
+
+
+def in_any_convex_polygon(xy: np.ndarray, polygons) -> np.ndarray:  # [N, 2], [[K, 2], ...] -> [N] bool
+    """Whether each point lies in at least one of the convex polygons."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    inside = np.zeros(len(xy), dtype=bool)
+    for poly in polygons:
+        inside |= in_convex_polygon(xy, poly)
+    return inside

@@ -13,7 +13,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, transform_points
-from omniscs.roadmap import RoadMap, in_convex_polygon
+from omniscs.roadmap import RoadMap, in_any_convex_polygon
 from omniscs.taxonomy import SEMANTIC_IDS
 from omniscs.world.assets import FACE_PARAMS, Material, MeshBuilder, SurfaceMesh, srgb
 from omniscs.world.model import LAYOUT_VERSION
@@ -156,11 +156,7 @@ class Layout:
         return Path(np.concatenate(pts))
 
     def is_drivable(self, xy: np.ndarray) -> np.ndarray:  # [N, 2] world -> [N] bool
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        inside = np.zeros(len(xy), dtype=bool)
-        for poly in self.drivable_polygons:
-            inside |= in_convex_polygon(xy, poly)
-        return inside
+        return in_any_convex_polygon(xy, self.drivable_polygons)
 
     def road_map(self) -> RoadMap:
         """The layout's map in neutral form: drivable polygons, every lane's centreline (in ``lanes`` order) and,
