@@ -43,7 +43,7 @@ def test_every_asset_has_distinct_parameters_and_a_distinct_mesh():
 
 def test_same_id_builds_the_identical_mesh_in_a_fresh_process():
     ids = ["sedan-0007", "bus-0003", "debris-0011", "excavator-0002"]
-    code = ("import sys; sys.path.insert(0, 'tests'); from test_world_assets import _mesh_digest; "
+    code = ("import sys; sys.path.insert(0, 'tests/world'); from test_world_assets import _mesh_digest; "
             f"print(','.join(_mesh_digest(i) for i in {ids!r}))")
     env = dict(os.environ, PYTHONHASHSEED="12345")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True,
