@@ -11,7 +11,7 @@ from safetensors.torch import load_file, save_file
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import PARAM_NAMES, GaussianParams
 from omniscs.nsg.agent import AgentNode
-from omniscs.nsg.config import resolve_device
+from omniscs.devices import resolve_device
 from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
 from omniscs.nsg.graph import RenderSettings
 from omniscs.nsg.strategy import DensifyStrategy
@@ -15,26 +16,6 @@ from omniscs.plan import PlanConfig
 #: FitConfig fields that say where a fit runs, not what it means: left out of ``FitConfig.to_dict`` (which
 #: checkpoints record and stage keys hash), so the same fit on another device reuses and compares as the same.
 EXECUTION_ONLY_FIELDS = ("device",)
-
-
-def resolve_device(name: str | torch.device) -> torch.device:
-    """The torch device called ``name`` ('cpu', 'cuda', 'cuda:<index>'), or an OmniscsError saying why it
-    cannot be used here (an unknown name, or CUDA asked for on a machine without it)."""
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise OmniscsError(f"unknown device {name!r}; use 'cpu' or 'cuda' (or 'cuda:<index>')") from None
-    if device.type not in ("cpu", "cuda"):
-        raise OmniscsError(f"device {name!r} is not supported; use 'cpu' or 'cuda' (or 'cuda:<index>')")
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            raise OmniscsError(f"device {name!r} was asked for, but torch sees no CUDA GPU here "
-                               "(torch.cuda.is_available() is False); use device='cpu', or run on a machine with "
-                               "a GPU and a CUDA build of torch")
-        if device.index is not None and device.index >= torch.cuda.device_count():
-            raise OmniscsError(f"device {name!r} does not exist: torch sees {torch.cuda.device_count()} CUDA "
-                               f"GPU(s); use 'cuda:0' .. 'cuda:{torch.cuda.device_count() - 1}'")
-    return device
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ knots finds a comfortable path into the ego (``optimisation.intercept``) and its
 from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, ComfortBounds, adversarial_preset
 from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNet, FeatureNetConfig,
                                              build_feature_net, masked_psnr)
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, resolve_device, save_checkpoint
+from omniscs.devices import resolve_device
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
 from omniscs.scs.behavior.evaluation import Evaluation, VariantResult, evaluate
 from omniscs.scs.behavior.generation import distinct_variants, generate_variants
 from omniscs.scs.behavior.kinematics import KinematicLimits, rollout

@@ -74,25 +74,6 @@ def set_threads(n: int) -> int:
     return previous
 
 
-def resolve_device(name: str) -> torch.device:
-    """The torch device a config names ("cpu", "cuda", "cuda:N"); an OmniscsError when it is unknown or absent."""
-    try:
-        device = torch.device(name)
-    except (RuntimeError, TypeError):
-        raise OmniscsError(f"unknown device {name!r}; use 'cpu' or 'cuda' (or 'cuda:N')") from None
-    if device.type == "cpu":
-        return torch.device("cpu")
-    if device.type != "cuda":
-        raise OmniscsError(f"device {name!r} is not supported; use 'cpu' or 'cuda' (or 'cuda:N')")
-    if not torch.cuda.is_available():
-        raise OmniscsError(f"device {name!r} was asked for but torch sees no CUDA device here; use device='cpu'")
-    index = torch.cuda.current_device() if device.index is None else device.index
-    if index >= torch.cuda.device_count():
-        raise OmniscsError(f"device {name!r} does not exist; this machine has {torch.cuda.device_count()} CUDA "
-                           "device(s)")
-    return torch.device("cuda", index)
-
-
 def model_on(model: TrafficModel, device: torch.device) -> TrafficModel:
     """``model`` itself when its weights are on ``device``, else a copy moved there (the caller's stays put)."""
     current = next(model.parameters()).device

@@ -8,7 +8,8 @@ from torch import Tensor
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial_config import NON_ADVERSARY_CATEGORIES, AdversarialConfig
 from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
-from omniscs.scs.behavior.checkpoint import model_on, resolve_device
+from omniscs.devices import resolve_device
+from omniscs.scs.behavior.checkpoint import model_on
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
 from omniscs.scs.behavior.losses import track_fit_loss

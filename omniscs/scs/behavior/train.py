@@ -18,7 +18,8 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.augment import AugmentConfig, augment_traffic
-from omniscs.scs.behavior.checkpoint import resolve_device, save_checkpoint, set_threads
+from omniscs.devices import resolve_device
+from omniscs.scs.behavior.checkpoint import save_checkpoint, set_threads
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
 from omniscs.scs.behavior.model import ModelConfig, TrafficModel
 from omniscs.scs.behavior.tracks import TrafficScene, traffic_from_scene
