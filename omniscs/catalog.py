@@ -6,7 +6,6 @@ file per task, never edited in place. ``run_id`` lives in the path only, and Duc
 from __future__ import annotations
 
 import io
-import re
 import uuid
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError
+from omniscs.ids import check_id
 from omniscs.storage import atomic_write_bytes
 
 SCHEMAS: dict[str, pa.Schema] = {
@@ -153,16 +153,8 @@ SCHEMAS: dict[str, pa.Schema] = {
     ]),
 }
 
-_SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
-
-
 def catalog_root(workspace: Path) -> Path:
     return Path(workspace) / "catalog"
-
-
-def _check_id(kind: str, value: str) -> None:
-    if not _SAFE_ID.match(value or ""):
-        raise OmniscsError(f"{kind} {value!r} must be letters, digits, '.', '_' or '-'")
 
 
 def validated_table(table: str, rows: list[dict]) -> pa.Table:
@@ -185,8 +177,8 @@ def validated_table(table: str, rows: list[dict]) -> pa.Table:
 
 def write_rows(root: Path, table: str, run_id: str, rows: list[dict], writer: str = "task") -> Path | None:
     """Write ``rows`` as one new Parquet file in ``table``'s partition for ``run_id``; returns its path."""
-    _check_id("run id", run_id)
-    _check_id("writer", writer)
+    check_id("run id", run_id)
+    check_id("writer", writer)
     arrow = validated_table(table, rows)
     if arrow.num_rows == 0:
         return None

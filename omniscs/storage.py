@@ -13,15 +13,38 @@ from typing import BinaryIO, Callable, Iterator
 
 import numpy as np
 
+from omniscs.errors import OmniscsError
+
 #: Environment variable naming the workspace root; default ``./omniscs-data``.
 HOME_ENV = "OMNISCS_HOME"
 DEFAULT_HOME = "omniscs-data"
 
 
+def workspace_path(root: str | os.PathLike | None = None) -> Path:
+    """The workspace root's absolute path (``root`` if given, else $OMNISCS_HOME, else ./omniscs-data), not
+    created."""
+    return Path(root or os.environ.get(HOME_ENV) or DEFAULT_HOME).expanduser().resolve()
+
+
 def workspace_root(root: str | os.PathLike | None = None) -> Path:
-    """The workspace root: ``root`` if given, else $OMNISCS_HOME, else ./omniscs-data (created)."""
-    path = Path(root or os.environ.get(HOME_ENV) or DEFAULT_HOME).expanduser().resolve()
-    path.mkdir(parents=True, exist_ok=True)
+    """The workspace root (see ``workspace_path``), created when missing: for commands that write into it."""
+    path = workspace_path(root)
+    if path.exists() and not path.is_dir():
+        raise OmniscsError(f"workspace {path} is a file, not a folder; choose another --workspace")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OmniscsError(f"cannot create workspace {path}: {exc.strerror or exc}") from None
+    return path
+
+
+def existing_workspace(root: str | os.PathLike | None = None) -> Path:
+    """The workspace root for commands that only read it: an error when it does not exist (nothing is
+    created)."""
+    path = workspace_path(root)
+    if not path.is_dir():
+        raise OmniscsError(f"no workspace at {path}; run `omniscs generate` first or pass --workspace "
+                           f"(or set ${HOME_ENV})")
     return path
 
 
