@@ -7,24 +7,18 @@ between. A scene waits for nothing but its own stages: one slow or failed scene 
 from __future__ import annotations
 
 import time
-import uuid
-from datetime import datetime, timezone
 
 from prefect import flow, get_run_logger, task, unmapped
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.errors import OmniscsError
-from omniscs.pipeline.records import SceneRequest
-from omniscs.scene import parse_source
-from omniscs.storage import workspace_root
+from omniscs.pipeline.records import SceneRequest, new_run_id
+from omniscs.pipeline.validate import check_request, check_run_id, check_sources
+from omniscs.storage import clean_stale_temps, workspace_root
 from tasks import stages as t
 
 #: Scenes processed at once; the machines this runs on have 2 cores.
 MAX_PARALLEL_SCENES = 2
-
-
-def new_run_id() -> str:
-    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + uuid.uuid4().hex[:6]
 
 
 def _now_us() -> int:
@@ -58,7 +52,7 @@ def scene_run(source: dict, label: str, request: SceneRequest, workspace: str, r
         return scene_pipeline(source, label, request, workspace, run_id)
     except Exception as exc:  # the scene failed; the run goes on and records it
         get_run_logger().exception("scene %s failed", label)
-        return {"label": label, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"}
+        return {"label": label, "error": one_line(exc)}
 
 
 @flow(name="generate_dataset", task_runner=ThreadPoolTaskRunner(max_workers=MAX_PARALLEL_SCENES), log_prints=False)
@@ -76,33 +70,54 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ``behavior_checkpoint`` defaults to the shipped traffic model, ``behavior_preset`` is fast, balanced or
     accurate), with L_app rendered by the scene graph when one is fitted. ``edits`` (edit dicts, see README)
     are the edits the variants will apply: the plan makes their tracks nodes. Each scene's plan is in the
-    ``plans`` table. Returns the run id, workspace, and per scene its id, path and stage records; scenes that
-    failed are listed under ``failed``, and the run then ends failed after the others finished.
+    ``plans`` table. Every input is checked before any scene starts (a bad one fails the run with one line in its
+    ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and
+    stage records; scenes that failed are listed under ``failed``, and the run then ends failed after the others
+    finished. An interrupted run (KeyboardInterrupt) is recorded as ``cancelled``.
     """
-    request = SceneRequest(fit_preset=fit_preset, behavior_variants=behavior_variants,
-                           behavior_preset=behavior_preset, behavior_checkpoint=behavior_checkpoint,
-                           edits=tuple(edits or ()), previews=previews, device=device)
-    request.parsed_edits()  # a malformed edit fails before any scene starts
     ws = str(workspace_root(workspace))
-    run_id = run_id or new_run_id()
+    run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
-    config = {"sources": list(sources), "n_frames": n_frames, "n_cameras": n_cameras, "width": width,
-              "height": height, **request.to_dict()}
-    specs = [parse_source(s, n_frames=n_frames, n_cameras=n_cameras, width=width, height=height).to_dict()
-             for s in sources]
+    config = {"sources": list(sources) if not isinstance(sources, str) else [sources], "n_frames": n_frames,
+              "n_cameras": n_cameras, "width": width, "height": height, "fit_preset": fit_preset,
+              "behavior_variants": behavior_variants, "behavior_preset": behavior_preset,
+              "behavior_checkpoint": behavior_checkpoint, "edits": list(edits or ()), "previews": previews,
+              "device": device}
+    try:  # every input checked before any scene starts; a bad one is the run's one-line error
+        request = check_request(SceneRequest(
+            fit_preset=fit_preset, behavior_variants=behavior_variants, behavior_preset=behavior_preset,
+            behavior_checkpoint=behavior_checkpoint, edits=tuple(edits or ()), previews=previews, device=device))
+        scenes, repeats = check_sources(sources, n_frames, n_cameras, width, height)
+    except OmniscsError as exc:
+        t.catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), 0, config, error=one_line(exc))
+        raise
+    logger = get_run_logger()
+    if repeats:
+        logger.warning("scene(s) given more than once, run once: %s", ", ".join(repeats))
+    for stale in clean_stale_temps(ws):
+        logger.info("removed %s, left by a writer that is no longer running", stale)
     try:
-        futures = scene_run.map(specs, list(sources), request=unmapped(request), workspace=unmapped(ws),
-                                run_id=unmapped(run_id))
+        futures = scene_run.map([c.source for c in scenes], [c.text for c in scenes], request=unmapped(request),
+                                workspace=unmapped(ws), run_id=unmapped(run_id))
         results = [f.result() for f in futures]
-    except Exception as exc:
-        t.catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), len(specs), config,
-                      error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+    except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
+        status = "failed" if isinstance(exc, Exception) else "cancelled"
+        t.catalog_run.fn(run_id, ws, "generate_dataset", status, started, _now_us(), len(scenes), config,
+                         error=one_line(exc))
         raise
     failed = [r for r in results if "error" in r]
     done = [r for r in results if "error" not in r]
     error = "; ".join(f"{r['label']}: {r['error']}" for r in failed) or None
     t.catalog_run(run_id, ws, "generate_dataset", "failed" if failed else "completed", started, _now_us(),
-                  len(specs), config, error=error)
+                  len(scenes), config, error=error)
     if failed:
-        raise OmniscsError(f"{len(failed)} of {len(specs)} scene(s) failed in run {run_id}: {error}")
-    return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed}
+        raise OmniscsError(f"{len(failed)} of {len(scenes)} scene(s) failed in run {run_id}: {error}")
+    return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed, "repeats": repeats}
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as the one line a ``runs`` row records."""
+    text = " ".join(str(exc).split())
+    if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit, Prefect's TerminationSignal
+        return f"stopped ({type(exc).__name__}{': ' + text if text else ''})"
+    return text if isinstance(exc, OmniscsError) and text else f"{type(exc).__name__}: {text}".rstrip(": ")

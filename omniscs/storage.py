@@ -6,6 +6,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import shutil
 import uuid
 from pathlib import Path
@@ -48,14 +49,117 @@ def existing_workspace(root: str | os.PathLike | None = None) -> Path:
     return path
 
 
+#: File in every folder ``atomic_directory`` makes: proof that omniscs wrote it, so ``overwrite`` may replace it.
+OWNER_MARKER = ".omniscs"
+#: Files whose presence also proves a folder is the project's (the pipeline's stage manifest, in outputs
+#: written before the marker existed).
+OWNED_IF_HOLDS = (OWNER_MARKER, "stage.json")
+
+# Temporary siblings are named ``.<name>.tmp-<pid>-<12 hex>``: the pid says whose they are, so the temporaries of
+# a writer that died (killed, crashed machine) can be told from those of a live one and removed.
+_TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)-[0-9a-f]{12}$")
+
+
 def _temp_sibling(path: Path) -> Path:
-    return path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:12]}"
+    return path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:12]}"
+
+
+def temp_owner(path: str | os.PathLike) -> int | None:
+    """The pid of the writer a temporary file or folder belongs to (None: not a temporary)."""
+    m = _TEMP_NAME.match(Path(path).name)
+    return int(m.group(1)) if m else None
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this pid runs on this machine (a pid of another user's process counts)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def is_owned(folder: str | os.PathLike) -> bool:
+    """True when ``folder`` was written by omniscs (it holds the owner marker or a stage manifest) or is empty:
+    the only folders ``overwrite`` may replace."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return False
+    return any((folder / name).is_file() for name in OWNED_IF_HOLDS) or not any(folder.iterdir())
+
+
+def check_replaceable(path: str | os.PathLike) -> None:
+    """Refuse to replace ``path`` unless it is a folder omniscs wrote (see ``is_owned``)."""
+    path = Path(path)
+    if path.exists() and not is_owned(path):
+        what = "a file" if not path.is_dir() else "a folder omniscs did not write (no .omniscs marker)"
+        raise OmniscsError(f"refusing to overwrite {path}: it is {what}; move it away or choose another --out")
+
+
+def clean_stale_temps(root: str | os.PathLike, max_depth: int = 4, include_own: bool = False) -> list[Path]:
+    """Remove the temporary files and folders (and stale lock files) under ``root``, down to ``max_depth``
+    levels, whose writer is no longer running (``include_own``: this process's too, when it is being stopped).
+    Returns what was removed."""
+    from omniscs.locks import remove_if_stale
+
+    root = Path(root)
+    removed: list[Path] = []
+    if not root.is_dir():
+        return removed
+    own = os.getpid()
+    for dirpath, dirnames, filenames in os.walk(root):
+        depth = len(Path(dirpath).relative_to(root).parts)
+        for name in list(dirnames) + filenames:
+            path = Path(dirpath) / name
+            pid = temp_owner(path)
+            if pid is not None and (not pid_alive(pid) or (include_own and pid == own)):
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink(missing_ok=True)
+                removed.append(path)
+            elif pid is None and name.endswith(".lock") and name.startswith(".") and remove_if_stale(path):
+                removed.append(path)
+        dirnames[:] = [d for d in dirnames if temp_owner(d) is None and depth + 1 < max_depth
+                       and (Path(dirpath) / d).exists() and not (Path(dirpath) / d).is_symlink()]
+    return removed
+
+
+def _make_parents(path: Path) -> list[Path]:
+    """Create ``path``'s missing parent folders; returns those created (outermost first)."""
+    missing = []
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OmniscsError(f"cannot write {path}: {parent} is a file, not a folder")
+            break
+        missing.append(parent)
+    for parent in reversed(missing):
+        try:
+            parent.mkdir()
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise OmniscsError(f"cannot create {parent}: {exc.strerror or exc}") from None
+    return list(reversed(missing))
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    for folder in reversed(folders):  # innermost first
+        try:
+            folder.rmdir()
+        except OSError:
+            break
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to a temporary sibling, fsync, then rename over ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parents(path)
     tmp = _temp_sibling(path)
     try:
         with open(tmp, "wb") as fh:
@@ -87,26 +191,47 @@ def atomic_write_json(path: str | os.PathLike, obj) -> Path:
 def atomic_directory(final: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary directory that becomes ``final`` only if the block finishes without error.
 
-    On any exception the temporary directory is deleted and ``final`` is left as it was.
+    On any exception the temporary directory (and any parent folder made for it) is deleted and ``final`` is
+    left as it was. ``overwrite`` replaces an existing ``final`` only when omniscs wrote it (``is_owned``); the
+    new folder holds the owner marker. Temporary siblings of ``final`` left by dead writers are removed first.
     """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
+    if final.exists() and not overwrite:
+        raise OmniscsError(f"{final} already exists; choose another --out or pass --overwrite")
+    if overwrite:
+        check_replaceable(final)
+    created = _make_parents(final)
+    for stale in final.parent.glob(f".{glob_escape(final.name)}.tmp-*"):
+        pid = temp_owner(stale)
+        if pid is not None and not pid_alive(pid):
+            shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
     tmp = _temp_sibling(final)
     tmp.mkdir()
+    finished = False
     try:
+        (tmp / OWNER_MARKER).write_text("written by omniscs\n")
         yield tmp
         if final.exists():
             if not overwrite:
-                raise FileExistsError(f"{final} already exists")
+                raise OmniscsError(f"{final} already exists; choose another --out or pass --overwrite")
+            check_replaceable(final)
             trash = _temp_sibling(final)
             os.replace(final, trash)
             os.replace(tmp, final)
             shutil.rmtree(trash, ignore_errors=True)
         else:
             os.replace(tmp, final)
+        finished = True
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+        if not finished:
+            _remove_empty(created)
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob's special characters made literal."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
 
 
 def content_hash(*parts) -> str:

@@ -7,7 +7,7 @@ import sys
 import typer
 
 from omniscs.cli import bench, catalog, generate, nsg, scene, scs, world
-from omniscs.cli.common import err_console
+from omniscs.cli.common import print_error
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="OmniSCS data factory: safety-critical driving scenarios from ordinary logs.",
@@ -28,7 +28,7 @@ def main() -> None:
     try:
         app()
     except OmniscsError as exc:
-        err_console.print(f"[red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        print_error(str(exc))
         sys.exit(2)
 
 

@@ -12,12 +12,22 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
+from rich.text import Text
 
 from omniscs.errors import OmniscsError
 from omniscs.progress import LineProgress, Throttled
 
-console = Console(soft_wrap=True)  # paths and ids stay whole when output is not a terminal
-err_console = Console(stderr=True)
+# Output is text, never markup: ids, paths, SQL results and error messages may hold '[...]' or ':x:', which rich
+# would otherwise swallow or turn into emoji. Paths and ids stay whole when output is not a terminal.
+console = Console(soft_wrap=True, markup=False, emoji=False, highlight=False)
+err_console = Console(stderr=True, markup=False, emoji=False, highlight=False)
+
+
+def print_error(message: str, label: str = "error", style: str = "red") -> None:
+    """``error: message`` on stderr as one line of plain text (the label coloured on a terminal)."""
+    from rich.text import Text
+
+    err_console.print(Text.assemble((f"{label}:", style), " ", " ".join(str(message).split())), soft_wrap=True)
 
 T = TypeVar("T")
 
@@ -57,14 +67,14 @@ def progress_bars() -> Iterator[Bars]:
 
 # ----------------------------------------------------------------------------- output
 def print_table(rows: list[dict], title: str | None = None) -> None:
-    table = Table(title=title)
+    table = Table(title=Text(title) if title else None)
     if not rows:
         console.print("(no rows)")
         return
     for col in rows[0]:
         table.add_column(str(col), overflow="fold")
     for row in rows:
-        table.add_row(*[_fmt(v) for v in row.values()])
+        table.add_row(*[Text(_fmt(v)) for v in row.values()])
     console.print(table)
 
 

@@ -1,14 +1,18 @@
 """``omniscs generate`` (the ``generate_dataset`` flow, every parameter) and ``omniscs demo``."""
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import typer
 
-from omniscs.cli.common import console, print_table, read_edits
+from omniscs.cli.common import console, print_error, print_table, read_edits
 
 #: Sources of the demo run: every road template, the parked-truck scene, and low-light variants.
 DEMO_SOURCES = ("syn:straight_parked_truck:3:day", "syn:t_junction:1:dusk", "syn:intersection:2:day",
@@ -17,19 +21,72 @@ DEMO_FRAMES = 20
 
 
 def run_generate(sources: list[str], workspace: Optional[Path] = None, **parameters) -> dict:
-    """Check the sources and the request, then run the flow (a bad input fails before Prefect starts)."""
+    """Check every input (a bad one fails here, before Prefect starts and before anything is written), then run
+    the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    from omniscs.pipeline.records import SceneRequest
-    from omniscs.scene import parse_source
+    from omniscs.pipeline.records import new_run_id
+    from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
+    from omniscs.storage import workspace_path, workspace_root
 
-    for s in sources:
-        parse_source(s)
-    request = {k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
-                                           "behavior_checkpoint", "edits", "previews", "device") if k in parameters}
-    SceneRequest.from_dict(request).parsed_edits()
+    rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
+    request = check_request({k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
+                                                          "behavior_checkpoint", "edits", "previews", "device")
+                             if k in parameters})
+    scenes, _ = check_sources(list(sources), **rig)
+    run_id = check_run_id(parameters.pop("run_id", None)) or new_run_id()
+    if workspace_path(workspace).exists() and not workspace_path(workspace).is_dir():
+        workspace_root(workspace)  # the one error for a workspace that is a file
     from flows.generate import generate_dataset
+    from omniscs.cli.prefect_api import prefect_api
 
-    return generate_dataset(sources=list(sources), workspace=str(workspace) if workspace else None, **parameters)
+    config = run_config(sources, request=request, **{**dict(n_frames=40, n_cameras=3, width=480, height=270), **rig})
+    with stops_cleanly(run_id, workspace_path(workspace), config, len(scenes)), prefect_api():
+        return generate_dataset(sources=list(sources), workspace=str(workspace) if workspace else None,
+                                run_id=run_id, **parameters)
+
+
+@contextlib.contextmanager
+def stops_cleanly(run_id: str, workspace: Path, config: dict, n_scenes: int) -> Iterator[None]:
+    """On SIGINT or SIGTERM during the block: record the run as cancelled (unless it already has its ``runs``
+    row), stop the temporary Prefect server, remove this process's temporary folders, print one line and exit
+    (128 + signal number) without waiting for running stages. Finished stages stay and are reused by a rerun."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from omniscs import catalog
+    from omniscs.cli.prefect_api import stop_server
+    from omniscs.pipeline.stages import catalog_run_stage
+    from omniscs.storage import clean_stale_temps
+
+    started = int(time.time() * 1e6)
+
+    def stop(signum, frame) -> None:
+        for s in STOP_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        name = signal.Signals(signum).name
+        try:
+            if not any((catalog.catalog_root(workspace) / "runs" / f"run_id={run_id}").glob("*.parquet")):
+                catalog_run_stage(run_id, workspace, "generate_dataset", "cancelled", started,
+                                  int(time.time() * 1e6), n_scenes, config, error=f"stopped by {name}")
+            stop_server()
+            clean_stale_temps(workspace, include_own=True)
+        finally:
+            print_error(f"run {run_id} stopped by {name} and recorded as cancelled; run the same command again to "
+                        "go on (finished stages are reused)")
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(128 + signum)
+
+    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+#: Signals that stop a run cleanly.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def generate(

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from omniscs.cli.common import comma_list, console, err_console, print_table, progress_bars
+from omniscs.cli.common import comma_list, console, print_error, print_table, progress_bars
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Inspect scene stores.", no_args_is_help=True)
@@ -51,7 +51,7 @@ def ingest(
                 record = ingest_stage(src, out, progress=bars.sink(f"{source} {name}"), scenes_root=out,
                                       reuse=not overwrite)
             for w in caught:
-                err_console.print(f"[yellow]warning:[/] {w.message}", highlight=False, soft_wrap=True)
+                print_error(str(w.message), "warning", "yellow")
             scene = load_scene(record.path)
             rows.append({"scene": name, "scene_id": scene.scene_id, "frames": scene.n_frames,
                          "boxes": len(scene.boxes), "skipped": len(scene.manifest.get("skipped_frames", [])),
@@ -80,7 +80,7 @@ def scene_info(path: Path, as_json: bool = typer.Option(False, "--json", help="P
     if as_json:
         typer.echo(json.dumps(info, indent=2, default=str))
         return
-    console.print(f"[bold]{info['scene_id']}[/]  {info['path']}")
+    console.print(f"{info['scene_id']}  {info['path']}")
     console.print(f"source: {json.dumps(info['source'])}")
     console.print(f"{info['n_frames']} frames over {info['duration_s']:.1f} s; cameras: "
                   + ", ".join(f"{c} {v['size'][0]}x{v['size'][1]}" for c, v in info["cameras"].items()))

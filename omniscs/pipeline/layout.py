@@ -1,9 +1,12 @@
-"""Where each stage's output lives under the workspace root (one place, so no caller builds a path of its own)."""
+"""Where each stage's output lives under the workspace root (one place, so no caller builds a path of its own).
+Every id that becomes a folder name here passes the one safe-id rule (``omniscs.ids``): nothing lands outside the
+workspace."""
 from __future__ import annotations
 
 from pathlib import Path
 
 from omniscs.catalog import catalog_root
+from omniscs.ids import check_id
 
 __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder"]
 
@@ -18,9 +21,9 @@ def scenes_dir(workspace: str | Path) -> Path:
 
 def scene_folder(workspace: str | Path, stage: str, scene_id: str) -> Path:
     """``<workspace>/<stage folder>/<scene_id>``: all outputs of one stage for one scene."""
-    return Path(workspace) / FOLDERS[stage] / scene_id
+    return Path(workspace) / FOLDERS[stage] / check_id("scene id", scene_id)
 
 
 def stage_folder(workspace: str | Path, stage: str, scene_id: str, name: str) -> Path:
     """One output of a stage for a scene, named by what made it (e.g. ``nsg-fast-<key>``)."""
-    return scene_folder(workspace, stage, scene_id) / name
+    return scene_folder(workspace, stage, scene_id) / check_id(f"{stage} output name", name)

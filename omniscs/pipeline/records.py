@@ -2,9 +2,16 @@
 small, JSON-able values (ids, paths, catalog rows), never tensors, so Prefect can pass them between tasks."""
 from __future__ import annotations
 
+import uuid
 from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
 
 from omniscs.errors import OmniscsError
+
+def new_run_id() -> str:
+    """A fresh run id: UTC time stamp and 6 random hex digits (sortable, unique, a safe id)."""
+    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + uuid.uuid4().hex[:6]
+
 
 #: Named quality presets of the scene-graph fit and the behaviour optimisation.
 PRESET_NAMES = ("fast", "balanced", "accurate")
@@ -40,6 +47,10 @@ class SceneRequest:
             raise OmniscsError(f"unknown behavior preset {self.behavior_preset!r}; use one of {list(PRESET_NAMES)}")
         if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
             raise OmniscsError(f"unknown device {self.device!r}; use cpu or cuda")
+        if isinstance(self.edits, (str, bytes, dict)) or not all(isinstance(e, dict) for e in self.edits):
+            raise OmniscsError(f"edits must be a list of edit objects (JSON dicts, see README); got {self.edits!r}")
+        if self.behavior_checkpoint is not None and not isinstance(self.behavior_checkpoint, str):
+            object.__setattr__(self, "behavior_checkpoint", str(self.behavior_checkpoint))
         object.__setattr__(self, "edits", tuple(dict(e) for e in self.edits))
 
     def parsed_edits(self) -> list:

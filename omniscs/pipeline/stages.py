@@ -15,6 +15,8 @@ from pathlib import Path
 
 from omniscs import catalog
 from omniscs.errors import OmniscsError
+from omniscs.ids import check_id
+from omniscs.locks import output_lock
 from omniscs.pipeline import layout
 from omniscs.progress import Progress, no_progress
 from omniscs.pipeline.records import SceneRequest, StageRecord
@@ -35,6 +37,11 @@ BEHAVIOR_VERSION = 1
 
 #: The plan file in a plan stage's folder.
 PLAN_JSON = "plan.json"
+
+
+def _waiting(progress: Progress, out: Path):
+    """What a stage reports while another writer (another run, or the same scene twice) holds its output."""
+    return lambda who: progress(0, None, f"waiting for {who or 'another writer'} to finish {Path(out).name}")
 
 
 def _source(source) -> SyntheticSource | StoreSource | DatasetSource:
@@ -69,11 +76,12 @@ def ingest_stage(source, workspace: str | Path, progress: Progress = no_progress
     key = StageKey.of("ingest", INGEST_VERSION, src.to_dict(), {"dataset_files": fingerprint,
                                                                 "schema": SCHEMA_VERSION})
     out = Path(scenes_root) if scenes_root is not None else layout.scenes_dir(workspace)
-    out = out / src.scene_id()
-    reused = reuse and reusable(out, key) is not None
-    if not reused:
-        write_source_scene(src, out, progress=progress)
-        mark_done(out, key, {"scene_store": "."}, time.perf_counter() - started)
+    out = out / check_id("scene id", src.scene_id())
+    with output_lock(out, _waiting(progress, out)):
+        reused = reuse and reusable(out, key) is not None
+        if not reused:
+            write_source_scene(src, out, progress=progress)
+            mark_done(out, key, {"scene_store": "."}, time.perf_counter() - started)
     scene = load_scene(out)  # validates a reused store as well
     return StageRecord("ingest", scene.scene_id, str(out), reused=reused, seconds=time.perf_counter() - started,
                        key=key.digest, info={"source": src.to_dict()})
@@ -103,10 +111,11 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
                      fit_nsg=request.fit_preset is not None)
     key = StageKey.of("plan", PLAN_VERSION, scene.content_hash, plan.to_dict())
     out = layout.stage_folder(workspace, "plan", scene.scene_id, f"plan-{key.short}")
-    reused = reusable(out, key) is not None
-    if not reused:
-        produce(out, key, lambda tmp: (atomic_write_text(tmp / PLAN_JSON, plan.to_json() + "\n"),
-                                       {"plan": PLAN_JSON})[1])
+    with output_lock(out):
+        reused = reusable(out, key) is not None
+        if not reused:
+            produce(out, key, lambda tmp: (atomic_write_text(tmp / PLAN_JSON, plan.to_json() + "\n"),
+                                           {"plan": PLAN_JSON})[1])
     row = plan_row(plan, key.short, out / PLAN_JSON, reused)
     return StageRecord("plan", scene.scene_id, str(out / PLAN_JSON), reused=reused,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"plans": [row]},
@@ -152,9 +161,10 @@ def preview_stage(scene_path: str | Path, workspace: str | Path) -> StageRecord:
     scene = load_scene(scene_path)
     key = StageKey.of("preview", PREVIEW_VERSION, scene.content_hash, {})
     out = layout.scene_folder(workspace, "preview", scene.scene_id)
-    reused = reusable(out, key) is not None
-    if not reused:
-        produce(out, key, lambda tmp: {k: p.name for k, p in write_previews(scene, tmp).items()})
+    with output_lock(out):
+        reused = reusable(out, key) is not None
+        if not reused:
+            produce(out, key, lambda tmp: {k: p.name for k, p in write_previews(scene, tmp).items()})
     return StageRecord("preview", scene.scene_id, str(out), reused=reused, seconds=time.perf_counter() - started,
                        key=key.digest)
 
@@ -188,21 +198,24 @@ def fit_stage(scene_path: str | Path, plan: ScenePlan, preset: str, workspace: s
     row = {"scene_id": scene.scene_id, "model_id": name, "kind": "nsg", "preset": preset,
            "n_agent_nodes": len(plan.agent_nodes), "agent_nodes": list(plan.agent_nodes),
            "iterations": config.iterations}
-    found = reusable(out_dir, key)
-    if out_dir.exists() and not replace and (found is None or not reuse):
-        raise OmniscsError(f"{out_dir} already exists and holds another fit; choose another folder or overwrite it")
-    if reuse and found is not None:
-        metrics = load_metrics(out_dir)
-        row.update(_metric_fields(metrics), status="fitted", checkpoint_path=str(out_dir), reused=True)
-        return StageRecord("fit", scene.scene_id, str(out_dir), reused=True, seconds=time.perf_counter() - started,
-                           key=key.digest, rows={"models": [row]}, info={"status": "fitted", "metrics": metrics})
-    try:
-        result = fit_scene(scene, config, plan, progress=progress, checkpoint_dir=out_dir, overwrite=True)
-    except FitDiverged as exc:
-        row.update(status="diverged", checkpoint_path=None, reused=False, error=str(exc))
-        return StageRecord("fit", scene.scene_id, None, seconds=time.perf_counter() - started, key=key.digest,
-                           rows={"models": [row]}, info={"status": "diverged", "error": str(exc)})
-    mark_done(out_dir, key, {"checkpoint": "."}, time.perf_counter() - started)
+    with output_lock(out_dir, _waiting(progress, out_dir)):
+        found = reusable(out_dir, key)
+        if out_dir.exists() and not replace and (found is None or not reuse):
+            raise OmniscsError(f"{out_dir} already exists and holds another fit; choose another folder or "
+                               "overwrite it")
+        if reuse and found is not None:
+            metrics = load_metrics(out_dir)
+            row.update(_metric_fields(metrics), status="fitted", checkpoint_path=str(out_dir), reused=True)
+            return StageRecord("fit", scene.scene_id, str(out_dir), reused=True,
+                               seconds=time.perf_counter() - started, key=key.digest, rows={"models": [row]},
+                               info={"status": "fitted", "metrics": metrics})
+        try:
+            result = fit_scene(scene, config, plan, progress=progress, checkpoint_dir=out_dir, overwrite=True)
+        except FitDiverged as exc:
+            row.update(status="diverged", checkpoint_path=None, reused=False, error=str(exc))
+            return StageRecord("fit", scene.scene_id, None, seconds=time.perf_counter() - started, key=key.digest,
+                               rows={"models": [row]}, info={"status": "diverged", "error": str(exc)})
+        mark_done(out_dir, key, {"checkpoint": "."}, time.perf_counter() - started)
     row.update(_metric_fields(result.metrics), status="fitted", checkpoint_path=str(out_dir), reused=False)
     return StageRecord("fit", scene.scene_id, str(out_dir), seconds=time.perf_counter() - started, key=key.digest,
                        rows={"models": [row]}, info={"status": "fitted", "metrics": result.metrics})
@@ -253,22 +266,23 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
             raise OmniscsError("behavior_stage needs a workspace or an out_dir")
         out_dir = layout.stage_folder(workspace, "behavior", scene.scene_id, f"behavior-{key.short}")
     out_dir = Path(out_dir)
-    manifest = reusable(out_dir, key) if reuse else None
-    if manifest is None:
-        traffic = traffic_from_scene(scene)
-        appearance = (appearance_from_checkpoint(graph.path, scene, traffic, ckpt, config, render)
-                      if graph is not None else None)
+    with output_lock(out_dir, _waiting(progress, out_dir)):
+        manifest = reusable(out_dir, key) if reuse else None
+        if manifest is None:
+            traffic = traffic_from_scene(scene)
+            appearance = (appearance_from_checkpoint(graph.path, scene, traffic, ckpt, config, render)
+                          if graph is not None else None)
 
-        def make(tmp: Path) -> dict:
-            result = write_scene_variants(traffic, tmp, n_variants, ckpt, config, appearance, progress=progress,
-                                          published_dir=out_dir)
-            if not result.rows:
-                raise OmniscsError(f"scene {scene.scene_id} has no vehicle besides the ego at the now step; "
-                                   "no behaviour variant can be made")
-            return {"variants": result.variants_json.name, "catalog_rows": "catalog_rows.json",
-                    "bev": [p.name for p in result.bev_pngs]}
+            def make(tmp: Path) -> dict:
+                result = write_scene_variants(traffic, tmp, n_variants, ckpt, config, appearance,
+                                              progress=progress, published_dir=out_dir)
+                if not result.rows:
+                    raise OmniscsError(f"scene {scene.scene_id} has no vehicle besides the ego at the now step; "
+                                       "no behaviour variant can be made")
+                return {"variants": result.variants_json.name, "catalog_rows": "catalog_rows.json",
+                        "bev": [p.name for p in result.bev_pngs]}
 
-        produce(out_dir, key, make)
+            produce(out_dir, key, make)
     rows = json.loads((out_dir / "catalog_rows.json").read_text())
     return StageRecord("behavior", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},

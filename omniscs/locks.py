@@ -1,0 +1,96 @@
+"""Per-output locks, so two writers (two runs, or one source given twice) never produce the same folder at once.
+
+A lock is the hidden file ``.<name>.lock`` beside the output, held with ``flock``: the kernel releases it when its
+holder dies, however it dies (SIGKILL included), so a lock can never outlive its writer — that is how stale locks
+are detected. The file names the holder (pid, host, start time) for the message a waiting writer prints, and the
+holder removes it when done. Locks are for one machine's file system (local disks; not NFS).
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+#: How often a waiting writer retries (seconds).
+POLL_SECONDS = 0.2
+
+
+def lock_path(target: str | os.PathLike) -> Path:
+    target = Path(target)
+    return target.parent / f".{target.name}.lock"
+
+
+def holder(target: str | os.PathLike) -> str:
+    """Who holds ``target``'s lock, as its lock file says ('' when nobody or unknown)."""
+    try:
+        return lock_path(target).read_text().strip()
+    except OSError:
+        return ""
+
+
+@contextlib.contextmanager
+def output_lock(target: str | os.PathLike, waiting: Callable[[str], None] | None = None) -> Iterator[None]:
+    """Hold ``target``'s lock for the block; wait (calling ``waiting(holder)`` once) while another writer has
+    it. Inside the block, check again whether the output is already there: the other writer may have made it."""
+    from omniscs.storage import _make_parents
+
+    path = lock_path(target)
+    _make_parents(path)
+    told = False
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if not told and waiting is not None:
+                        waiting(holder(target))
+                        told = True
+                    time.sleep(POLL_SECONDS)
+            # the previous holder may have removed the file between our open and our lock: lock the live one
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+        except BaseException:
+            os.close(fd)
+            raise
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()} since {time.strftime('%H:%M:%S')}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        os.close(fd)
+
+
+def remove_if_stale(path: str | os.PathLike) -> bool:
+    """Remove a lock file nobody holds (its holder died before removing it); True when removed."""
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        try:
+            if os.stat(path).st_ino != os.fstat(fd).st_ino:
+                return False
+        except FileNotFoundError:
+            return False
+        os.unlink(path)
+        return True
+    finally:
+        os.close(fd)
