@@ -6,6 +6,7 @@ between. A scene waits for nothing but its own stages: one slow or failed scene 
 """
 from __future__ import annotations
 
+import signal
 import time
 
 from prefect import flow, get_run_logger, task, unmapped
@@ -119,5 +120,8 @@ def one_line(exc: BaseException) -> str:
     """An exception as the one line a ``runs`` row records."""
     text = " ".join(str(exc).split())
     if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit, Prefect's TerminationSignal
+        sig = getattr(exc, "signal", None)
+        if isinstance(sig, int):
+            return f"stopped by {signal.Signals(sig).name}"
         return f"stopped ({type(exc).__name__}{': ' + text if text else ''})"
     return text if isinstance(exc, OmniscsError) and text else f"{type(exc).__name__}: {text}".rstrip(": ")

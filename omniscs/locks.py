@@ -74,6 +74,15 @@ def output_lock(target: str | os.PathLike, waiting: Callable[[str], None] | None
         os.close(fd)
 
 
+def holder_pid(lock_file: str | os.PathLike) -> int | None:
+    """The pid a lock file names (None when it names none)."""
+    try:
+        words = Path(lock_file).read_text().split()
+    except OSError:
+        return None
+    return int(words[1]) if len(words) > 1 and words[0] == "pid" and words[1].isdigit() else None
+
+
 def remove_if_stale(path: str | os.PathLike) -> bool:
     """Remove a lock file nobody holds (its holder died before removing it); True when removed."""
     try:

@@ -104,7 +104,7 @@ def clean_stale_temps(root: str | os.PathLike, max_depth: int = 4, include_own: 
     """Remove the temporary files and folders (and stale lock files) under ``root``, down to ``max_depth``
     levels, whose writer is no longer running (``include_own``: this process's too, when it is being stopped).
     Returns what was removed."""
-    from omniscs.locks import remove_if_stale
+    from omniscs.locks import holder_pid, remove_if_stale
 
     root = Path(root)
     removed: list[Path] = []
@@ -122,11 +122,20 @@ def clean_stale_temps(root: str | os.PathLike, max_depth: int = 4, include_own: 
                 else:
                     path.unlink(missing_ok=True)
                 removed.append(path)
-            elif pid is None and name.endswith(".lock") and name.startswith(".") and remove_if_stale(path):
-                removed.append(path)
+            elif pid is None and name.endswith(".lock") and name.startswith("."):
+                if remove_if_stale(path) or (include_own and holder_pid(path) == own and _unlink(path)):
+                    removed.append(path)
         dirnames[:] = [d for d in dirnames if temp_owner(d) is None and depth + 1 < max_depth
                        and (Path(dirpath) / d).exists() and not (Path(dirpath) / d).is_symlink()]
     return removed
+
+
+def _unlink(path: Path) -> bool:
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        return False
+    return True
 
 
 def _make_parents(path: Path) -> list[Path]:

@@ -47,13 +47,18 @@ def test_rerun_appends_a_new_partition_and_never_edits_the_first(prefect_harness
     assert rows == [{"run_id": "first"}, {"run_id": "second"}]
 
 
-def test_bad_source_fails_before_anything_is_written(prefect_harness, tmp_path):
+def test_bad_source_fails_before_any_scene_starts_and_the_run_row_says_why(prefect_harness, tmp_path):
     from flows.generate import generate_dataset
 
     ws = tmp_path / "ws"
     with pytest.raises(OmniscsError, match="neither syn:TEMPLATE:SEED nor an existing scene-store"):
-        generate_dataset([str(tmp_path / "missing")], workspace=str(ws), run_id="bad")
-    assert not (ws / "scenes").exists() and not any(ws.rglob("*.parquet"))
+        generate_dataset(["syn:straight:0", str(tmp_path / "missing")], workspace=str(ws), run_id="bad")
+    assert not (ws / "scenes").exists()  # the good source did not start either
+    written = sorted(p.relative_to(ws).parts[:2] for p in ws.rglob("*.parquet"))
+    assert written == [("catalog", "runs")]
+    row = catalog.query(catalog.catalog_root(ws), "SELECT * FROM runs").to_pylist()[0]
+    assert row["status"] == "failed" and row["n_scenes"] == 0
+    assert "neither syn:TEMPLATE:SEED" in row["error"] and "\n" not in row["error"]
 
 
 def test_synthetic_source_is_rendered_once_and_reused_by_the_next_run(prefect_harness, tmp_path):
