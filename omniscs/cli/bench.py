@@ -192,3 +192,23 @@ def bench_plan(
         run_plan_benchmark(out, config, workspace, progress=bars.sink("bench plan"))
     console.print((out / "plan_bench.md").read_text())
     console.print(f"wrote {out / 'plan_bench.json'} and {out / 'plan_bench.png'}")
+
+
+@app.command("reliability")
+def bench_reliability(
+    out: Path = typer.Option(Path("reports"), help="Folder for reliability.json/.md."),
+    kills: int = typer.Option(10, help="SIGKILL moments of the fault-injection check (each then rerun)."),
+    processes: int = typer.Option(4, help="Concurrent generate processes of the concurrency check."),
+    seed: int = typer.Option(2026, help="Seed of the kill moments."),
+) -> None:
+    """Kill `omniscs generate` at random moments and rerun it (catalog and files must equal a clean run's, no
+    temporaries, no orphaned server); run several at once on one workspace (each scene once per run)."""
+    from omniscs.bench.reliability import ReliabilityConfig, run_bench
+
+    if not 1 <= kills <= 100 or not 2 <= processes <= 16 or seed < 0:
+        raise OmniscsError("--kills must be 1..100, --processes 2..16 and --seed >= 0")
+    with progress_bars() as bars:
+        run_bench(ReliabilityConfig(kills=kills, processes=processes, seed=seed), out,
+                  progress=bars.sink("bench reliability"))
+    console.print((out / "reliability.md").read_text())
+    console.print(f"wrote {out / 'reliability.json'}")
