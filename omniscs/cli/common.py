@@ -133,12 +133,21 @@ def read_edits(edit: Optional[str]) -> list:
 
 
 def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> Path:
-    """An ``--out`` path checked before work starts: the right suffix, and not already there unless
-    ``overwrite``."""
+    """An ``--out`` path checked before work starts: the right suffix, not under a file, and not already there
+    unless ``overwrite`` (a folder is then replaced only when omniscs wrote it)."""
+    from omniscs.storage import check_replaceable
+
     if suffix is not None and out.suffix.lower() != suffix:
         raise OmniscsError(f"--out must end in {suffix}; got {out}")
+    for parent in Path(out).absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OmniscsError(f"--out {out} lies under {parent}, which is a file; choose another --out")
+            break
     if out.exists() and not overwrite:
         raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    if out.exists() and suffix is None:
+        check_replaceable(out)  # a folder output replaces only a folder omniscs wrote
     return out
 
 
