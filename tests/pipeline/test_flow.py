@@ -77,3 +77,15 @@ def test_synthetic_source_is_rendered_once_and_reused_by_the_next_run(prefect_ha
     big = catalog.query(root, "SELECT category FROM agents WHERE run_id = 'r1' AND category IN ('truck', 'trailer') "
                               "AND NOT moving").to_pylist()
     assert big, "the parked-truck template must catalogue its large static object"
+
+
+def test_a_scene_named_twice_runs_and_is_catalogued_once(prefect_harness, tmp_path, two_stores):
+    from flows.generate import generate_dataset
+
+    ws = tmp_path / "ws"
+    a = str(two_stores[0])
+    result = generate_dataset([a, a, str(Path(a) / ".." / "a")], workspace=str(ws), run_id="twice", previews=False)
+    assert [s["scene_id"] for s in result["scenes"]] == ["a"] and len(result["repeats"]) == 2
+    raw = catalog.query(catalog.catalog_root(ws), "SELECT scene_id FROM scenes_raw").to_pylist()
+    assert raw == [{"scene_id": "a"}]
+    assert catalog.query(catalog.catalog_root(ws), "SELECT n_scenes FROM runs").to_pylist() == [{"n_scenes": 1}]
