@@ -1,11 +1,20 @@
-"""The Parquet catalog: table schemas (declared here once), validated writes, DuckDB queries.
+"""The Parquet catalog: table schemas (declared here once), validated writes, read-only DuckDB queries.
 
-Layout: ``<root>/<table>/run_id=<run_id>/<writer>-<uuid>.parquet``: hive-partitioned by run, one new
-file per task, never edited in place. ``run_id`` lives in the path only, and DuckDB adds it back.
+Layout: ``<root>/<table>/run_id=<run_id>/<writer>-<time_us>-<uuid>.parquet``: hive-partitioned by run, one new
+file per task, never edited in place; ``time_us`` (16 digits, microseconds since 1970) says when the file was
+written. ``run_id`` lives in the path only, and the views add it back.
+
+Every table has three views (see ``catalogs/README.md``): ``<table>`` shows each logical row once (rows of runs
+that ended; a completed run wins over a failed or cancelled one, then the run that finished last),
+``<table>_by_run`` one row per logical key and ended run (what a run produced), ``<table>_raw`` every row of every
+file, with the file it came from (runs still going or killed included).
 """
 from __future__ import annotations
 
 import io
+import os
+import re
+import time
 import uuid
 from pathlib import Path
 
@@ -20,7 +29,7 @@ from omniscs.storage import atomic_write_bytes
 SCHEMAS: dict[str, pa.Schema] = {
     "runs": pa.schema([
         pa.field("flow", pa.string(), nullable=False),
-        pa.field("status", pa.string(), nullable=False),          # completed | failed
+        pa.field("status", pa.string(), nullable=False),          # completed | failed | cancelled
         pa.field("started_at_us", pa.int64(), nullable=False),
         pa.field("finished_at_us", pa.int64(), nullable=False),
         pa.field("n_scenes", pa.int32(), nullable=False),
@@ -153,6 +162,23 @@ SCHEMAS: dict[str, pa.Schema] = {
     ]),
 }
 
+#: The columns that identify one logical row of each table. The default view ``<table>`` shows each value once,
+#: ``<table>_by_run`` once per run. Scene ids name a scene's content (source and its options), so the same key
+#: from two runs is the same thing made twice; plan, model and variant ids are only unique within their scene.
+KEYS: dict[str, tuple[str, ...]] = {
+    "runs": ("run_id",),
+    "scenes": ("scene_id",),
+    "agents": ("scene_id", "track_id"),
+    "frames": ("scene_id", "frame_idx"),
+    "variants": ("scene_id", "variant_id"),
+    "plans": ("scene_id", "plan_id"),
+    "models": ("scene_id", "model_id"),
+}
+
+#: The run status whose rows win over those of other ended runs (failed, cancelled) in the default views.
+COMPLETED = "completed"
+
+
 def catalog_root(workspace: Path) -> Path:
     return Path(workspace) / "catalog"
 
@@ -184,48 +210,206 @@ def write_rows(root: Path, table: str, run_id: str, rows: list[dict], writer: st
         return None
     buf = io.BytesIO()
     pq.write_table(arrow, buf)
-    path = Path(root) / table / f"run_id={run_id}" / f"{writer}-{uuid.uuid4().hex[:12]}.parquet"
+    name = f"{writer}-{time.time_ns() // 1000:016d}-{uuid.uuid4().hex[:12]}.parquet"
+    path = Path(root) / table / f"run_id={run_id}" / name
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def _glob(root: Path, table: str) -> str:
-    return str(Path(root) / table / "run_id=*" / "*.parquet")
 
 
-def connect(root: Path) -> duckdb.DuckDBPyConnection:
-    """An in-memory DuckDB connection with one view per catalog table (empty tables when no files yet)."""
-    con = duckdb.connect()
-    for table, schema in SCHEMAS.items():
-        if any((Path(root) / table).glob("run_id=*/*.parquet")):
-            con.execute(
-                f"CREATE VIEW {table} AS SELECT * FROM read_parquet('{_glob(root, table)}', "
-                "hive_partitioning = true, union_by_name = true)"
-            )
-        else:
-            empty = schema.insert(0, pa.field("run_id", pa.string())).empty_table()
-            con.register(f"_{table}_empty", empty)
-            con.execute(f"CREATE VIEW {table} AS SELECT * FROM _{table}_empty")
-    return con
+# ----------------------------------------------------------------------------- views
+#: DuckDB variable holding the catalog root (as a glob prefix) that every view reads from.
+ROOT_VARIABLE = "omniscs_catalog"
+
+_DUCK_TYPES = {pa.string(): "VARCHAR", pa.int64(): "BIGINT", pa.int32(): "INTEGER", pa.float64(): "DOUBLE",
+               pa.bool_(): "BOOLEAN"}
+
+# The run id from a file's path (``.../run_id=<id>/<file>``), and the write time (16 digits) from its name; files
+# written before names carried a time give '' and count as the oldest.
+_RUN_OF_FILE = r"regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1)"
+_WRITTEN = r"regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1)"
 
 
-def query(root: Path, sql: str) -> pa.Table:
-    """Run SQL over the catalog views; a SQL mistake is reported as an OmniscsError."""
-    con = connect(root)
-    try:
-        return con.sql(sql).to_arrow_table()
-    except duckdb.Error as exc:
-        first = str(exc).strip().splitlines()[0]
-        raise OmniscsError(f"catalog query failed: {first}") from None
-    finally:
-        con.close()
+def _duck_type(t: pa.DataType) -> str:
+    if pa.types.is_list(t):
+        return _duck_type(t.value_type) + "[]"
+    return _DUCK_TYPES[t]
+
+
+def _cols(table: str, prefix: str = "") -> str:
+    return ", ".join(f'{prefix}"{name}"' for name in SCHEMAS[table].names)
+
+
+def _raw_view(table: str) -> str:
+    """Every row of every file of ``table``, typed as declared (a file older than a column reads it as null);
+    with no file yet, no row but the same columns."""
+    schema = SCHEMAS[table]
+    typed = ", ".join(f'CAST("{f.name}" AS {_duck_type(f.type)}) AS "{f.name}"' for f in schema)
+    empty = ", ".join(["NULL::VARCHAR AS filename"] + [f'NULL::{_duck_type(f.type)} AS "{f.name}"' for f in schema])
+    return (f"CREATE OR REPLACE VIEW {table}_raw AS\n"
+            f"  SELECT {_RUN_OF_FILE} AS run_id,\n    {typed},\n    filename AS file\n"
+            f"  FROM (SELECT * FROM read_parquet(getvariable('{ROOT_VARIABLE}') || '/{table}/run_id=*/*.parquet',\n"
+            "          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)\n"
+            f"        UNION ALL BY NAME SELECT {empty} WHERE false);")
+
+
+def _placeholder_view(table: str) -> str:
+    """``<table>_raw`` with the right columns and no row, without reading any file (cheap to bind)."""
+    cols = ", ".join(f'NULL::{_duck_type(f.type)} AS "{f.name}"' for f in SCHEMAS[table])
+    return f"CREATE OR REPLACE VIEW {table}_raw AS SELECT NULL::VARCHAR AS run_id, {cols}, NULL::VARCHAR AS file " \
+           "WHERE false;"
+
+
+def _views(table: str) -> list[str]:
+    """``<table>_raw``, ``<table>_by_run`` and ``<table>`` (see the module docstring and catalogs/README.md)."""
+    cols = _cols(table)
+    if table == "runs":
+        return [
+            _raw_view("runs"),
+            f"CREATE OR REPLACE VIEW runs AS\n  SELECT run_id, {cols}\n  FROM runs_raw\n"
+            f"  QUALIFY row_number() OVER (PARTITION BY run_id\n"
+            f"    ORDER BY finished_at_us DESC, {_WRITTEN} DESC, file DESC) = 1;",
+            "CREATE OR REPLACE VIEW runs_by_run AS SELECT * FROM runs;",
+        ]
+    key = ", ".join(f'"{k}"' for k in KEYS[table])
+    b_key = ", ".join(f'b."{k}"' for k in KEYS[table])
+    return [
+        _raw_view(table),
+        f"CREATE OR REPLACE VIEW {table}_by_run AS\n  SELECT run_id, {cols}\n  FROM {table}_raw\n"
+        f"  WHERE run_id IN (SELECT run_id FROM runs_raw)\n"
+        f"  QUALIFY row_number() OVER (PARTITION BY run_id, {key}\n"
+        f"    ORDER BY {_WRITTEN} DESC, file DESC) = 1;",
+        f"CREATE OR REPLACE VIEW {table} AS\n  SELECT b.run_id, {_cols(table, 'b.')}\n"
+        f"  FROM {table}_by_run AS b JOIN runs AS r ON r.run_id = b.run_id\n"
+        f"  QUALIFY row_number() OVER (PARTITION BY {b_key}\n"
+        f"    ORDER BY (r.status = '{COMPLETED}') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;",
+    ]
+
+
+def view_statements() -> list[str]:
+    """The statements that create every view, reading from the root held in the DuckDB variable
+    ``ROOT_VARIABLE`` (set it first)."""
+    return [statement for table in SCHEMAS for statement in _views(table)]
+
+
+def view_names() -> list[str]:
+    """Every view a catalog query can read."""
+    return [f"{table}{suffix}" for table in SCHEMAS for suffix in ("", "_by_run", "_raw")]
+
+
+def _glob_prefix(root: str | os.PathLike) -> str:
+    """``root`` as the literal start of a DuckDB glob: '*', '?' and '[' match only themselves."""
+    text = str(root)
+    if os.sep == "\\":
+        text = text.replace("\\", "/")
+    elif "\\" in text:
+        raise OmniscsError(f"catalog root {text} holds a backslash, which DuckDB reads as a path separator; "
+                           "move the workspace to a path without one")
+    return re.sub(r"([*?\[])", r"[\1]", text)
+
+
+def _sql_string(text: str) -> str:
+    return "'" + text.replace("'", "''") + "'"
 
 
 def views_sql(root: str = "omniscs-data/catalog") -> str:
-    """DuckDB statements that create the catalog views, for use in the duckdb shell."""
-    lines = ["-- Catalog views for the duckdb shell; generated by omniscs.catalog.views_sql()."]
-    for table in SCHEMAS:
-        lines.append(
-            f"CREATE OR REPLACE VIEW {table} AS SELECT * FROM read_parquet('{root}/{table}/run_id=*/*.parquet', "
-            "hive_partitioning = true, union_by_name = true);"
-        )
-    return "\n".join(lines) + "\n"
+    """DuckDB statements that create the catalog views over ``root``, for use in the duckdb shell (the same
+    views as ``connect``)."""
+    lines = ["-- Catalog views for the duckdb shell; generated by omniscs.catalog.views_sql().",
+             "-- <table>: each logical row once; <table>_by_run: per run; <table>_raw: every row of every file.",
+             f"SET VARIABLE {ROOT_VARIABLE} = {_sql_string(_glob_prefix(root))};"]
+    return "\n".join(lines + view_statements()) + "\n"
+
+
+def connect(root: Path) -> duckdb.DuckDBPyConnection:
+    """An in-memory DuckDB connection with the catalog views over ``root`` (empty views when no files yet) that
+    can read nothing but files under ``root``: no other file, no extension, no network, no setting changed
+    (the configuration is locked), no spilling to disk."""
+    root = Path(root).expanduser().resolve()
+    prefix = _glob_prefix(root)
+    con = duckdb.connect()
+    try:
+        for name, value in [("temp_directory", ""), ("python_enable_replacements", False),
+                            ("parquet_metadata_cache", True),
+                            ("autoinstall_known_extensions", False), ("autoload_known_extensions", False),
+                            ("allow_community_extensions", False),
+                            # DuckDB checks the glob pattern as written, so the escaped prefix is allowed too
+                            ("allowed_directories", sorted({str(root) + "/", prefix + "/"})),
+                            ("enable_external_access", False), ("lock_configuration", True)]:
+            con.execute(f"SET {name} = ?", [value])
+        con.execute(f"SET VARIABLE {ROOT_VARIABLE} = ?", [prefix])
+        # DuckDB binds a view (reading every file's footer) when it is created, and again for each view built on
+        # it; so the views on top are created over placeholders first, then each _raw view once for real. The
+        # definitions end up exactly those of view_statements().
+        placeholders = [_placeholder_view(table) for table in SCHEMAS]
+        on_top = [statement for table in SCHEMAS for statement in _views(table)[1:]]
+        real = [_raw_view(table) for table in SCHEMAS]
+        for statement in placeholders + on_top + real:
+            con.execute(statement)
+    except BaseException:
+        con.close()
+        raise
+    return con
+
+
+_EXPLAIN = re.compile(r"\s*EXPLAIN\s+(?:ANALYZE\s+)?(?P<rest>.*)", re.IGNORECASE | re.DOTALL)
+
+
+def _first_line(exc: Exception) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
+def check_read_only(sql: str) -> str:
+    """``sql`` when it is one SELECT statement (or EXPLAIN of one), else one OmniscsError saying why."""
+    views = ", ".join(SCHEMAS)
+    if not isinstance(sql, str) or not sql.strip():
+        raise OmniscsError(f"the catalog query is empty; give one SELECT statement over the views {views} "
+                           "(or their _by_run and _raw forms)")
+    try:
+        statements = duckdb.extract_statements(sql)
+    except duckdb.Error as exc:
+        raise OmniscsError(f"catalog query failed: {_first_line(exc)}") from None
+    if not statements:
+        raise OmniscsError("the catalog query holds no statement, only comments or ';'; give one SELECT statement")
+    if len(statements) > 1:
+        raise OmniscsError(f"catalog queries are read-only: only SELECT, one statement at a time (got "
+                           f"{len(statements)} statements); run them one by one")
+    statement = statements[0]
+    kind = statement.type
+    if kind == duckdb.StatementType.EXPLAIN:
+        m = _EXPLAIN.fullmatch(statement.query.strip().rstrip(";"))
+        inner = None
+        if m:
+            try:
+                inner = duckdb.extract_statements(m.group("rest"))
+            except duckdb.Error:
+                inner = None
+        if inner is None or len(inner) != 1 or inner[0].type != duckdb.StatementType.SELECT:
+            raise OmniscsError("catalog queries are read-only: only SELECT, or EXPLAIN [ANALYZE] of a SELECT, "
+                               "is allowed")
+    elif kind != duckdb.StatementType.SELECT:
+        raise OmniscsError(f"catalog queries are read-only: only SELECT is allowed, not {kind.name} "
+                           f"(views: {views}, and their _by_run and _raw forms)")
+    return sql
+
+
+def query(root: Path, sql: str) -> pa.Table:
+    """Run one read-only SQL statement (SELECT, or EXPLAIN of one) over the catalog views; anything else, a SQL
+    mistake or an attempt to read outside the catalog is one OmniscsError line."""
+    check_read_only(sql)
+    con = connect(root)
+    try:
+        return con.sql(sql).to_arrow_table()
+    except duckdb.PermissionException as exc:
+        raise OmniscsError(f"catalog queries are read-only: only SELECT over the catalog's views, which read "
+                           f"nothing outside {root} ({_first_line(exc)})") from None
+    except duckdb.CatalogException as exc:
+        line = _first_line(exc)
+        hint = (f" (the views: {', '.join(SCHEMAS)}, each also as <table>_by_run and <table>_raw)"
+                if "Table with name" in line else "")
+        raise OmniscsError(f"catalog query failed: {line}{hint}") from None
+    except duckdb.Error as exc:
+        raise OmniscsError(f"catalog query failed: {_first_line(exc)}") from None
+    finally:
+        con.close()

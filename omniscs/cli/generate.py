@@ -144,9 +144,9 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     rows = catalog.query(root, f"""
         SELECT s.scene_id, s.n_frames, s.n_tracks, s.n_moving, s.reused,
                round(s.ingest_seconds, 1) AS ingest_s,
-               (SELECT count(*) FROM agents a WHERE a.run_id = s.run_id AND a.scene_id = s.scene_id
+               (SELECT count(*) FROM agents_by_run a WHERE a.run_id = s.run_id AND a.scene_id = s.scene_id
                 AND a.max_visible_pixels > 0) AS visible_tracks
-        FROM scenes s WHERE s.run_id = '{result['run_id']}' ORDER BY s.scene_id""").to_pylist()
+        FROM scenes_by_run s WHERE s.run_id = '{result['run_id']}' ORDER BY s.scene_id""").to_pylist()
     print_table(rows, title=f"run {result['run_id']}")
     console.print(f"scene stores: {ws / 'scenes'}")
     for s in result["scenes"]:

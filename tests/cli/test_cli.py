@@ -48,7 +48,7 @@ def test_scene_preview_writes_both_pictures(tiny_scene, tmp_path):
 ])
 def test_catalog_query_prints_json_and_csv(tiny_scene, tmp_path, flag, check):
     catalog.write_rows(catalog.catalog_root(tmp_path), "agents", "r", agent_rows(load_scene(tiny_scene)))
-    result = runner.invoke(app, ["catalog", "query", "SELECT category, count(*) AS n FROM agents GROUP BY 1",
+    result = runner.invoke(app, ["catalog", "query", "SELECT category, count(*) AS n FROM agents_raw GROUP BY 1",
                                  "--workspace", str(tmp_path), flag])
     assert result.exit_code == 0, result.output
     assert check(result.output)

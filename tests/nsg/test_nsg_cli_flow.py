@@ -60,7 +60,7 @@ def test_flow_fits_each_scene_once_and_catalogues_the_model(prefect_harness, sto
     fit1, fit2 = (r["scenes"][0]["stages"]["fit"] for r in (first, second))
     assert fit1["info"]["status"] == "fitted" and not fit1["reused"]
     assert fit2["reused"] and fit2["path"] == fit1["path"]
-    rows = catalog.query(catalog.catalog_root(ws), "SELECT * FROM models ORDER BY run_id").to_pylist()
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT * FROM models_by_run ORDER BY run_id").to_pylist()
     assert [r["run_id"] for r in rows] == ["r1", "r2"] and rows[0]["agent_nodes"] == [1, 2]
     assert rows[0]["heldout_psnr"] > 10 and rows[0]["preset"] == "fast"
     assert (ws / "models" / "nsg-test").is_dir()

@@ -1,4 +1,5 @@
 """Catalog: declared schemas are enforced on write, files are per task, DuckDB views query them."""
+import re
 from pathlib import Path
 
 import pytest
@@ -16,13 +17,21 @@ def _frame(i=0, **kw):
     return row
 
 
+def _run(root, run_id, status="completed", finished_at_us=1):
+    """The run's ``runs`` row: the run ended."""
+    catalog.write_rows(root, "runs", run_id, [dict(flow="test", status=status, started_at_us=0,
+                                                   finished_at_us=finished_at_us, n_scenes=1, config_json="{}",
+                                                   omniscs_version="test")], writer="run")
+
+
 def test_each_write_is_a_new_file_in_its_run_partition(tmp_path):
     p1 = catalog.write_rows(tmp_path, "frames", "run-a", [_frame(0)], writer="t1")
     p2 = catalog.write_rows(tmp_path, "frames", "run-a", [_frame(1)], writer="t1")
     p3 = catalog.write_rows(tmp_path, "frames", "run-b", [_frame(0)], writer="t2")
     assert len({p1, p2, p3}) == 3 and p1.parent == p2.parent != p3.parent
     assert p1.parent.name == "run_id=run-a"
-    rows = catalog.query(tmp_path, "SELECT run_id, count(*) n FROM frames GROUP BY 1 ORDER BY 1").to_pylist()
+    assert re.fullmatch(r"t1-[0-9]{16}-[0-9a-f]{12}\.parquet", p1.name)  # writer, write time (us), unique part
+    rows = catalog.query(tmp_path, "SELECT run_id, count(*) n FROM frames_raw GROUP BY 1 ORDER BY 1").to_pylist()
     assert rows == [{"run_id": "run-a", "n": 2}, {"run_id": "run-b", "n": 1}]
 
 
@@ -46,8 +55,13 @@ def test_unsafe_run_id_and_unknown_table_are_refused(tmp_path):
 
 def test_empty_catalog_has_every_view_with_its_columns(tmp_path):
     for table, schema in catalog.SCHEMAS.items():
-        cols = catalog.query(tmp_path, f"SELECT * FROM {table}").column_names
-        assert set(cols) == set(schema.names) | {"run_id"}
+        for view, extra in [(table, []), (f"{table}_by_run", []), (f"{table}_raw", ["file"])]:
+            result = catalog.query(tmp_path, f"SELECT * FROM {view}")
+            assert result.num_rows == 0
+            assert result.column_names == ["run_id", *schema.names, *extra]
+            assert result.schema.field("run_id").type == "string"
+            for field in schema:  # typed as declared, not as whatever a file happened to hold
+                assert result.schema.field(field.name).type == field.type, (view, field.name)
 
 
 def test_bad_sql_is_a_one_line_domain_error(tmp_path):
@@ -67,6 +81,7 @@ def test_summaries_of_a_scene_fit_their_schemas_and_measure_motion(tiny_scene, t
     frames = frame_rows(scene)
     assert frames[2]["ego_speed_mps"] == pytest.approx(10.0) and frames[0]["n_boxes"] == 2
     root = tmp_path / "cat"
+    _run(root, "r1")
     catalog.write_rows(root, "agents", "r1", agents)
     catalog.write_rows(root, "frames", "r1", frames)
     catalog.write_rows(root, "scenes", "r1", [scene_row(scene, agents, reused=False, ingest_seconds=0.1)])

@@ -43,7 +43,7 @@ def test_rerun_appends_a_new_partition_and_never_edits_the_first(prefect_harness
     mtimes = [p.stat().st_mtime_ns for p in first]
     generate_dataset([str(two_stores[0])], workspace=str(ws), run_id="second", previews=False)
     assert [p.stat().st_mtime_ns for p in first] == mtimes
-    rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id FROM scenes ORDER BY 1").to_pylist()
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id FROM scenes_by_run ORDER BY 1").to_pylist()
     assert rows == [{"run_id": "first"}, {"run_id": "second"}]
 
 
@@ -71,10 +71,10 @@ def test_synthetic_source_is_rendered_once_and_reused_by_the_next_run(prefect_ha
     assert first["scenes"][0]["scene_id"] == second["scenes"][0]["scene_id"]
     assert [first["scenes"][0]["reused"], second["scenes"][0]["reused"]] == [False, True]
     root = catalog.catalog_root(ws)
-    rows = catalog.query(root, "SELECT run_id, template, lighting, has_gt, reused FROM scenes ORDER BY run_id").to_pylist()
+    rows = catalog.query(root, "SELECT run_id, template, lighting, has_gt, reused FROM scenes_by_run ORDER BY run_id").to_pylist()
     assert rows == [{"run_id": "r1", "template": "straight_parked_truck", "lighting": "night", "has_gt": True, "reused": False},
                     {"run_id": "r2", "template": "straight_parked_truck", "lighting": "night", "has_gt": True, "reused": True}]
-    big = catalog.query(root, "SELECT category FROM agents WHERE run_id = 'r1' AND category IN ('truck', 'trailer') "
+    big = catalog.query(root, "SELECT category FROM agents_by_run WHERE run_id = 'r1' AND category IN ('truck', 'trailer') "
                               "AND NOT moving").to_pylist()
     assert big, "the parked-truck template must catalogue its large static object"
 

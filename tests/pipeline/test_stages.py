@@ -66,7 +66,7 @@ def test_run_scene_fits_once_then_reuses_and_catalogues_every_stage(tmp_path, mo
     assert not first["fit"].reused and second["fit"].reused and second["fit"].path == first["fit"].path
     assert stages.fit_stage(store, stages.load_plan(first["plan"]), "fast", tmp_path / "ws", reuse=False).reused is False
     root = catalog.catalog_root(tmp_path / "ws")
-    rows = catalog.query(root, "SELECT p.run_id, p.n_agent_nodes, m.reused FROM plans p JOIN models m "
+    rows = catalog.query(root, "SELECT p.run_id, p.n_agent_nodes, m.reused FROM plans_raw p JOIN models_raw m "
                                "USING (run_id, scene_id) ORDER BY 1").to_pylist()
     assert rows == [{"run_id": "r1", "n_agent_nodes": 2, "reused": False},
                     {"run_id": "r2", "n_agent_nodes": 2, "reused": True}]

@@ -218,7 +218,7 @@ def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_w
     again = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
                              behavior_variants=1, behavior_preset="fast", run_id="r2")["scenes"][0]["stages"]
     assert again["fit"]["reused"] and again["behavior"]["reused"] and again["behavior"]["path"] == stages["behavior"]["path"]
-    rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id, loss_app FROM variants ORDER BY 1").to_pylist()
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id, loss_app FROM variants_by_run ORDER BY 1").to_pylist()
     assert [r["run_id"] for r in rows] == ["r1", "r2"] and rows[0]["loss_app"] == rows[1]["loss_app"] is not None
     models = catalog.query(catalog.catalog_root(ws), "SELECT agent_nodes FROM models").to_pylist()
     assert models[0]["agent_nodes"] == [1, 2, 3]  # the parked car too: variants may move it

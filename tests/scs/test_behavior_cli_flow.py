@@ -99,10 +99,10 @@ def test_generate_dataset_makes_and_catalogues_behavior_variants(prefect_harness
     assert again["scenes"][0]["stages"]["behavior"]["reused"]
     root = catalog.catalog_root(ws)
     rows = catalog.query(root, "SELECT scene_id, variant_id, kind, adversary, success, plausible, loss_app, "
-                               "run_id FROM variants ORDER BY variant_id").to_pylist()
+                               "run_id FROM variants_by_run ORDER BY variant_id").to_pylist()
     assert [r["scene_id"] for r in rows if r["run_id"] == "beh"] == ["road", "road"]
     assert all(r["loss_app"] is None and r["adversary"] in (0, 1, 2) for r in rows)
-    assert catalog.query(root, "SELECT count(*) n FROM scenes").to_pylist() == [{"n": 2}]  # one per run
+    assert catalog.query(root, "SELECT count(*) n FROM scenes_by_run").to_pylist() == [{"n": 2}]  # one per run
 
 
 def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_path):
