@@ -215,8 +215,6 @@ def write_rows(root: Path, table: str, run_id: str, rows: list[dict], writer: st
     return atomic_write_bytes(path, buf.getvalue())
 
 
-
-
 # ----------------------------------------------------------------------------- views
 #: DuckDB variable holding the catalog root (as a glob prefix) that every view reads from.
 ROOT_VARIABLE = "omniscs_catalog"
