@@ -88,33 +88,169 @@ Edit = Translate | Rotate | Remove | ReplaceModel | SetTrajectory | Insert
 _OPS = {cls.__dataclass_fields__["op"].default: cls
         for cls in (Translate, Rotate, Remove, ReplaceModel, SetTrajectory, Insert)}
 
+#: Bounds of edit values: beyond them an edit is a typo, not a scenario.
+MAX_TRACK_ID = 2**31 - 1
+"""Largest track id (readers number tracks from 0; KITTI's own ids are small)."""
+MAX_SHIFT_M = 1_000.0
+"""Largest translate amount along each axis (metres)."""
+MAX_ANGLE_DEG = 360.0
+"""Largest rotate or insert-tilt angle (degrees, either sign)."""
+MAX_COORD_M = 100_000.0
+"""Largest world coordinate of an insert pose or a waypoint (metres from the log's first ego pose)."""
+MAX_YAW_RAD = 1_000.0
+"""Largest yaw of a pose or waypoint (radians; unwrapped yaws may pass 2 pi)."""
+MAX_SIZE_M = 100.0
+"""Largest inserted box side (metres)."""
+MAX_WAYPOINTS = 100_000
+"""Most waypoints of one trajectory (one per frame)."""
+MAX_NAME_LENGTH = 200
+"""Longest asset id or category name."""
 
-def edit_from_dict(d: dict) -> Edit:
+#: Fields holding an amount: (largest magnitude, unit).
+_AMOUNTS = {"longitudinal": (MAX_SHIFT_M, "metres"), "lateral": (MAX_SHIFT_M, "metres"),
+            "vertical": (MAX_SHIFT_M, "metres"), "yaw_deg": (MAX_ANGLE_DEG, "degrees"),
+            "pitch_deg": (MAX_ANGLE_DEG, "degrees"), "roll_deg": (MAX_ANGLE_DEG, "degrees")}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_sequence(v) -> bool:
+    return isinstance(v, (list, tuple, np.ndarray))
+
+
+def _fields_of(cls) -> tuple[list[str], list[str]]:
+    """(every field a user may give, the required ones) of an edit class."""
+    from dataclasses import MISSING, fields
+
+    given = [f for f in fields(cls) if f.init]
+    return [f.name for f in given], [f.name for f in given if f.default is MISSING and f.default_factory is MISSING]
+
+
+def _xyz_yaw(value, what: str, where: str) -> tuple:
+    if not _is_sequence(value) or len(value) != 4 or not all(_is_number(v) for v in value):
+        raise OmniscsError(f"{where}: {what} must be 4 numbers [x, y, z, yaw]; got {_short(value)}")
+    out = tuple(float(v) for v in value)
+    if not all(np.isfinite(out)) or max(abs(v) for v in out[:3]) > MAX_COORD_M or abs(out[3]) > MAX_YAW_RAD:
+        raise OmniscsError(f"{where}: {what} must be finite, with |x|, |y|, |z| <= {MAX_COORD_M:g} m and "
+                           f"|yaw| <= {MAX_YAW_RAD:g} rad; got {_short(value)}")
+    return out
+
+
+def _short(value) -> str:
+    text = repr(_thaw(value) if isinstance(value, (list, tuple)) else value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _check_field(name: str, value, where: str):
+    """``value`` of field ``name`` normalised (ints, floats, tuples), or one OmniscsError saying what is wrong."""
+    if name == "track_id":
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) \
+                or not 0 <= int(value) <= MAX_TRACK_ID:
+            raise OmniscsError(f"{where}: field track_id must be an integer from 0 to {MAX_TRACK_ID}; got "
+                               f"{_short(value)}")
+        return int(value)
+    if name in _AMOUNTS:
+        bound, unit = _AMOUNTS[name]
+        if not _is_number(value) or not np.isfinite(float(value)) or abs(float(value)) > bound:
+            raise OmniscsError(f"{where}: field {name} must be a finite number of {unit} from -{bound:g} to "
+                               f"{bound:g}; got {_short(value)}")
+        return float(value)
+    if name in ("asset_id", "category"):
+        if not isinstance(value, str) or not value.strip() or len(value) > MAX_NAME_LENGTH or "\n" in value:
+            raise OmniscsError(f"{where}: field {name} must be a non-empty name of at most {MAX_NAME_LENGTH} "
+                               f"characters; got {_short(value)}")
+        if name == "category":
+            from omniscs.taxonomy import CATEGORIES
+
+            if value not in CATEGORIES:
+                raise OmniscsError(f"{where}: unknown category {value!r}; use one of {list(CATEGORIES)}")
+        return value
+    if name == "pose":
+        return None if value is None else _xyz_yaw(value, "field pose", where)
+    if name == "waypoints":
+        if value is None:
+            return None
+        if not _is_sequence(value) or not 1 <= len(value) <= MAX_WAYPOINTS:
+            raise OmniscsError(f"{where}: field waypoints must be a list of 1 to {MAX_WAYPOINTS} entries "
+                               f"[x, y, z, yaw] or null (one per frame); got {_short(value)}")
+        return tuple(None if w is None else _xyz_yaw(w, f"waypoint {i}", where) for i, w in enumerate(value))
+    if name == "size":
+        if value is None:
+            return None
+        if (not _is_sequence(value) or len(value) != 3 or not all(_is_number(v) for v in value)
+                or not all(np.isfinite(float(v)) and 0 < float(v) <= MAX_SIZE_M for v in value)):
+            raise OmniscsError(f"{where}: field size must be 3 numbers (length, width, height) above 0 and at most "
+                               f"{MAX_SIZE_M:g} m, or null; got {_short(value)}")
+        return tuple(float(v) for v in value)
+    raise OmniscsError(f"{where}: unknown field {name!r}")
+
+
+def _build(cls, args: dict, where: str) -> Edit:
+    op = cls.__dataclass_fields__["op"].default
+    allowed, required = _fields_of(cls)
+    unknown = sorted(k for k in args if k not in allowed)
+    if unknown:
+        raise OmniscsError(f"{where}: unknown field(s) {unknown}; a {op} edit takes {allowed}")
+    missing = [k for k in required if k not in args]
+    if missing:
+        raise OmniscsError(f"{where}: missing field(s) {missing}; a {op} edit needs {required}")
+    values = {k: _check_field(k, v, where) for k, v in args.items()}
+    if cls is Insert and (values.get("pose") is None) == (values.get("waypoints") is None):
+        raise OmniscsError(f"{where}: an insert needs exactly one of 'pose' [x, y, z, yaw] or 'waypoints' (one "
+                           "per frame)")
+    return cls(**values)
+
+
+def _where(index: int | None, op) -> str:
+    op_text = f" ({op})" if isinstance(op, str) and op in _OPS else ""
+    return f"edit {index}{op_text}" if index is not None else f"edit{op_text}"
+
+
+def edit_from_dict(d: dict, index: int | None = None) -> Edit:
+    """One edit from its JSON form ``{"op": ..., "track_id": ..., ...}``; anything malformed (not an object, an
+    unknown op or field, a missing field, a value of the wrong type, NaN/Inf or out of bounds) is one
+    OmniscsError naming the edit (``index`` in its list) and field."""
+    where = _where(index, d.get("op") if isinstance(d, dict) else None)
     if not isinstance(d, dict) or "op" not in d:
-        raise OmniscsError(f"an edit must be an object with an 'op' field, one of {sorted(_OPS)}; got {d!r}")
-    cls = _OPS.get(d["op"])
-    if cls is None:
-        raise OmniscsError(f"unknown edit op {d['op']!r}; use one of {sorted(_OPS)}")
-    args = {k: v for k, v in d.items() if k != "op"}
-    for key in ("waypoints", "pose", "size"):
-        if args.get(key) is not None:
-            args[key] = _freeze(args[key])
-    try:
-        return cls(**args)
-    except TypeError as exc:
-        raise OmniscsError(f"bad fields for edit {d['op']!r}: {exc}") from None
+        raise OmniscsError(f"{where}: an edit must be a JSON object with an 'op' field, one of {sorted(_OPS)}; "
+                           f"got {_short(d)}")
+    op = d["op"]
+    if not isinstance(op, str) or op not in _OPS:
+        raise OmniscsError(f"{where}: unknown edit op {_short(op)}; use one of {sorted(_OPS)}")
+    return _build(_OPS[op], {k: v for k, v in d.items() if k != "op"}, where)
+
+
+def check_edit(edit: Edit, index: int | None = None) -> Edit:
+    """An edit object with every field checked as ``edit_from_dict`` checks JSON (a normalised copy)."""
+    where = _where(index, edit.op)
+    from dataclasses import fields
+
+    return _build(type(edit), {f.name: getattr(edit, f.name) for f in fields(edit) if f.init}, where)
 
 
 def parse_edits(text_or_list) -> list[Edit]:
-    """Edits from a JSON string, a list of dicts, or a list of edit objects."""
-    if isinstance(text_or_list, str):
+    """Edits from a JSON string (one edit object or a list of them), a dict, a list of dicts, or edit objects;
+    each is checked (see ``edit_from_dict``), and anything else is one OmniscsError."""
+    value = text_or_list
+    if isinstance(value, (bytes, bytearray)):
         try:
-            text_or_list = json.loads(text_or_list)
+            value = value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise OmniscsError("edit list is not UTF-8 text") from None
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
         except json.JSONDecodeError as exc:
             raise OmniscsError(f"edit list is not valid JSON: {exc}") from None
-    if isinstance(text_or_list, dict):
-        text_or_list = [text_or_list]
-    return [e if isinstance(e, tuple(_OPS.values())) else edit_from_dict(e) for e in text_or_list]
+    if isinstance(value, (dict, *_OPS.values())):
+        value = [value]
+    if not isinstance(value, (list, tuple)):
+        raise OmniscsError(f"edits must be one edit object with an 'op' field, or a list of them (e.g. "
+                           f'[{{"op": "remove", "track_id": 3}}]); got {_short(value)}')
+    return [check_edit(e, i) if isinstance(e, tuple(_OPS.values())) else edit_from_dict(e, i)
+            for i, e in enumerate(value)]
 
 
 def edit_to_dict(e: Edit) -> dict:

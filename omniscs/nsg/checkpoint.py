@@ -1,6 +1,8 @@
 """Scene-graph checkpoints: tensors in safetensors, plus JSON with the plan, config, scene content hash and version."""
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 from pathlib import Path
 
@@ -50,7 +52,8 @@ def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
 
 def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | None = None,
                     config: dict | None = None, metrics: dict | None = None, overwrite: bool = False) -> Path:
-    """Write ``graph`` (and what made it) to ``out_dir`` atomically: the folder appears whole or not at all."""
+    """Write ``graph`` (and what made it) to ``out_dir`` atomically: the folder appears whole or not at all. The
+    JSON records the tensor file's size and sha256, so a damaged or truncated checkpoint is refused on load."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OmniscsError(f"{out_dir} already exists; choose another checkpoint folder or overwrite it")
@@ -65,6 +68,7 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
     }
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         save_file(_graph_tensors(graph), str(tmp / TENSORS))
+        meta[TENSORS_RECORD] = {"bytes": (tmp / TENSORS).stat().st_size, "sha256": _sha256(tmp / TENSORS)}
         atomic_write_json(tmp / GRAPH_JSON, meta)
         if plan is not None:
             (tmp / PLAN_JSON).write_text(plan.to_json() + "\n")
@@ -73,50 +77,163 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
     return out_dir
 
 
+#: graph.json field with the tensor file's size and sha256 (checkpoints written before it lack it).
+TENSORS_RECORD = "tensors"
+_AGAIN = "the checkpoint is damaged: fit the scene again (omniscs fit)"
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def _read_json(path: Path, what: str):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise OmniscsError(f"{path} is not JSON text; {what}") from None
+    except json.JSONDecodeError as exc:
+        raise OmniscsError(f"{path} is not valid JSON ({exc}); {what}") from None
+    except OSError as exc:
+        raise OmniscsError(f"cannot read {path} ({exc.strerror or exc})") from None
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_matrix(v, n: int) -> bool:
+    try:
+        m = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return isinstance(v, list) and m.shape == (n, n) and bool(np.all(np.isfinite(m)))
+
+
+def _check_meta(path: Path, meta: dict) -> None:
+    """Every field ``load_checkpoint`` uses is there with the right type; else one OmniscsError naming it."""
+    def bad(field: str, what: str):
+        value = repr(meta.get(field) if "." not in field else "...")
+        raise OmniscsError(f"{path}: field {field} must be {what}; got {value[:60]} ({_AGAIN})")
+
+    required = {"scene_id": str, "content_hash": str, "sh_degree": int, "settings": dict, "cameras": list,
+                "agents": list, "exposure_cameras": list}
+    missing = [k for k in required if k not in meta]
+    if missing:
+        raise OmniscsError(f"{path}: missing field(s) {missing}; {_AGAIN}")
+    for key, kind in required.items():
+        if not (_is_int(meta[key]) if kind is int else isinstance(meta[key], kind)):
+            bad(key, f"a JSON {'integer' if kind is int else kind.__name__.replace('dict', 'object')}")
+    if not 0 <= meta["sh_degree"] <= MAX_SH_DEGREE:
+        bad("sh_degree", f"0..{MAX_SH_DEGREE}")
+    known = {f.name for f in dataclasses.fields(RenderSettings)}
+    if set(meta["settings"]) - known:
+        bad("settings", f"an object with fields among {sorted(known)}")
+    for i, c in enumerate(meta["cameras"]):
+        if not (isinstance(c, dict) and isinstance(c.get("name"), str) and _is_int(c.get("width"))
+                and _is_int(c.get("height")) and c["width"] > 0 and c["height"] > 0 and _is_matrix(c.get("K"), 3)
+                and _is_matrix(c.get("ego_from_camera"), 4)):
+            bad(f"cameras.{i}", "a camera: name, positive width and height, K (3x3), ego_from_camera (4x4)")
+    for i, a in enumerate(meta["agents"]):
+        if not (isinstance(a, dict) and _is_int(a.get("track_id")) and a["track_id"] >= 0
+                and isinstance(a.get("category"), str)):
+            bad(f"agents.{i}", "an agent: non-negative integer track_id and a category")
+    if not all(isinstance(c, str) for c in meta["exposure_cameras"]):
+        bad("exposure_cameras", "a list of camera names")
+    record = meta.get(TENSORS_RECORD)
+    if record is not None and not (isinstance(record, dict) and _is_int(record.get("bytes"))
+                                   and isinstance(record.get("sha256"), str)):
+        bad(TENSORS_RECORD, "an object with bytes and sha256")
+
+
+#: Highest spherical-harmonics degree a checkpoint may name.
+MAX_SH_DEGREE = 4
+
+
 def read_checkpoint_meta(ckpt_dir: str | Path) -> dict:
-    """The checkpoint's JSON description, after checking its kind and version."""
+    """The checkpoint's JSON description, after checking its kind, version and fields."""
     path = Path(ckpt_dir) / GRAPH_JSON
     if not path.is_file():
         raise OmniscsError(f"{ckpt_dir} is not a scene-graph checkpoint (no {GRAPH_JSON}); fit one with omniscs fit")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise OmniscsError(f"{path} is not valid JSON ({exc}); the checkpoint is damaged, fit again") from None
+    meta = _read_json(path, _AGAIN)
+    if not isinstance(meta, dict):
+        raise OmniscsError(f"{path} must be a JSON object; got a {type(meta).__name__} ({_AGAIN})")
     if meta.get("kind") != KIND:
         raise OmniscsError(f"{ckpt_dir} holds a {meta.get('kind')!r} checkpoint, not a scene graph")
     if meta.get("version") != CHECKPOINT_VERSION:
         raise OmniscsError(f"{ckpt_dir} is a version {meta.get('version')} scene-graph checkpoint; this omniscs reads "
                            f"version {CHECKPOINT_VERSION}: fit the scene again")
+    _check_meta(path, meta)
     return meta
+
+
+def _load_tensors(ckpt_dir: Path, meta: dict) -> dict[str, torch.Tensor]:
+    path = ckpt_dir / TENSORS
+    if not path.is_file():
+        raise OmniscsError(f"{path} is missing; the checkpoint is incomplete, fit again")
+    record = meta.get(TENSORS_RECORD)
+    if record is not None:
+        size = path.stat().st_size
+        if size != record["bytes"]:
+            raise OmniscsError(f"{path} is {size} bytes but {GRAPH_JSON} records {record['bytes']} (truncated); "
+                               f"{_AGAIN}")
+        if _sha256(path) != record["sha256"]:
+            raise OmniscsError(f"{path} does not match the sha256 in {GRAPH_JSON}; {_AGAIN}")
+    try:
+        return load_file(str(path))
+    except Exception as exc:  # safetensors raises its own error type (and OSError) for damaged files
+        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        raise OmniscsError(f"{path} is not a readable safetensors file ({detail}); {_AGAIN}") from None
+
+
+def _tensor(t: dict, path: Path, key: str, shape: tuple, floating: bool = True) -> torch.Tensor:
+    """``t[key]`` when its shape matches ``shape`` (None: any size) and its dtype kind; else one OmniscsError."""
+    if key not in t:
+        raise OmniscsError(f"{path} has no tensor {key!r}; {_AGAIN}")
+    x = t[key]
+    ok = x.dim() == len(shape) and all(want is None or got == want for got, want in zip(x.shape, shape))
+    if not ok or x.dtype.is_floating_point != floating:
+        want = "x".join("N" if d is None else str(d) for d in shape)
+        raise OmniscsError(f"{path}: tensor {key!r} is {x.dtype} {list(x.shape)}, expected "
+                           f"{'float' if floating else 'integer'} [{want}]; {_AGAIN}")
+    return x
 
 
 def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str = "cpu") -> SceneGraph:
     """The graph saved in ``ckpt_dir`` with its tensors on ``device`` (wherever it was fitted); with ``scene``,
-    refuse a checkpoint fitted to other scene content."""
+    refuse a checkpoint fitted to other scene content. A damaged, truncated or incomplete checkpoint is one
+    OmniscsError."""
     device = resolve_device(device)
+    ckpt_dir = Path(ckpt_dir)
     meta = read_checkpoint_meta(ckpt_dir)
     if scene is not None:
         check_same_scene(meta, scene, ckpt_dir)
-    tensors_path = Path(ckpt_dir) / TENSORS
-    if not tensors_path.is_file():
-        raise OmniscsError(f"{tensors_path} is missing; the checkpoint is incomplete, fit again")
-    t = load_file(str(tensors_path))
+    t = _load_tensors(ckpt_dir, meta)
+    path = ckpt_dir / TENSORS
 
     def params(prefix: str) -> GaussianParams:
-        return GaussianParams(**{name: t[f"{prefix}.{name}"] for name in PARAM_NAMES})
+        n = _tensor(t, path, f"{prefix}.means", (None, 3)).shape[0]
+        shapes = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,), "sh_dc": (n, 3),
+                  "sh_rest": (n, None, 3)}
+        return GaussianParams(**{name: _tensor(t, path, f"{prefix}.{name}", shapes[name]) for name in PARAM_NAMES})
 
+    world_from_ego = _tensor(t, path, "world_from_ego", (None, 4, 4)).numpy().copy()
+    n_frames = world_from_ego.shape[0]
+    if n_frames == 0 or not np.all(np.isfinite(world_from_ego)):
+        raise OmniscsError(f"{path}: tensor 'world_from_ego' has no frames or NaN/Inf values; {_AGAIN}")
     agents = []
     for a in meta["agents"]:
         key = agent_key(a["track_id"])
-        agents.append(AgentNode(int(a["track_id"]), a["category"], t[f"{key}.size"].numpy().copy(),
-                                t[f"{key}.world_from_agent"].numpy().copy(), t[f"{key}.present"].numpy().astype(bool),
-                                params(key)))
+        present = _tensor(t, path, f"{key}.present", (n_frames,), floating=False)
+        agents.append(AgentNode(int(a["track_id"]), a["category"], _tensor(t, path, f"{key}.size", (3,)).numpy().copy(),
+                                _tensor(t, path, f"{key}.world_from_agent", (n_frames, 4, 4)).numpy().copy(),
+                                present.numpy().astype(bool), params(key)))
     cameras = tuple(CameraRecord(c["name"], int(c["width"]), int(c["height"]), np.array(c["K"], dtype=np.float64),
                                  np.array(c["ego_from_camera"], dtype=np.float64)) for c in meta["cameras"])
+    exposure = {c: _tensor(t, path, f"exposure.{c}", (3, 4)) for c in meta["exposure_cameras"]}
     graph = SceneGraph(meta["scene_id"], meta["content_hash"], params(BACKGROUND), tuple(agents),
-                       SkyParams(t["sky.texture"]), {c: t[f"exposure.{c}"] for c in meta["exposure_cameras"]},
-                       cameras, t["world_from_ego"].numpy().copy(), int(meta["sh_degree"]),
-                       RenderSettings(**meta["settings"]))
+                       SkyParams(_tensor(t, path, "sky.texture", (3, None, None))), exposure, cameras,
+                       world_from_ego, int(meta["sh_degree"]), RenderSettings(**meta["settings"]))
     return graph.to(device)  # poses and sizes stay numpy on the host; only the tensors move
 
 
@@ -132,9 +249,25 @@ def check_same_scene(meta_or_graph, scene, ckpt_dir: str | Path | None = None) -
 
 def load_plan(ckpt_dir: str | Path) -> ScenePlan | None:
     path = Path(ckpt_dir) / PLAN_JSON
-    return ScenePlan.from_dict(json.loads(path.read_text())) if path.is_file() else None
+    if not path.is_file():
+        return None
+    d = _read_json(path, _AGAIN)
+    if not isinstance(d, dict):
+        raise OmniscsError(f"{path} must be a JSON object; got a {type(d).__name__} ({_AGAIN})")
+    try:
+        return ScenePlan.from_dict(d)
+    except OmniscsError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        detail = (str(exc).strip().splitlines() or [""])[0][:200]
+        raise OmniscsError(f"{path} is not a scene plan ({type(exc).__name__}: {detail}); {_AGAIN}") from None
 
 
 def load_metrics(ckpt_dir: str | Path) -> dict:
     path = Path(ckpt_dir) / METRICS_JSON
-    return json.loads(path.read_text()) if path.is_file() else {}
+    if not path.is_file():
+        return {}
+    d = _read_json(path, _AGAIN)
+    if not isinstance(d, dict):
+        raise OmniscsError(f"{path} must be a JSON object; got a {type(d).__name__} ({_AGAIN})")
+    return d

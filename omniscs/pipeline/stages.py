@@ -62,7 +62,7 @@ def ingest_stage(source, workspace: str | Path, progress: Progress = no_progress
     started = time.perf_counter()
     src = _source(source)
     if isinstance(src, StoreSource):
-        scene = load_scene(src.path)
+        scene = src.verify()  # used in place: every file checked against the sizes and hashes it was written with
         return StageRecord("ingest", scene.scene_id, str(scene.path), reused=True,
                            seconds=time.perf_counter() - started, info={"source": src.to_dict()})
     fingerprint = None

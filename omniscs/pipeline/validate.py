@@ -46,7 +46,7 @@ def check_source(text: str, n_frames: int = 40, n_cameras: int = 3, width: int =
                  height: int = 270) -> CheckedSource:
     """One source, parsed and checked as far as it can be without rendering or reading it: a synthetic
     source's template, seed and lighting; a recorded dataset's root and scene; a scene store's manifest."""
-    from omniscs.scene import DatasetSource, StoreSource, SyntheticSource, check_synthetic, load_scene, parse_source
+    from omniscs.scene import DatasetSource, StoreSource, SyntheticSource, check_synthetic, parse_source
 
     if not isinstance(text, str) or not text.strip():
         raise OmniscsError(f"empty source {text!r}; give syn:TEMPLATE:SEED[:LIGHTING], FORMAT:DATAROOT[:SCENE] or "
@@ -58,17 +58,12 @@ def check_source(text: str, n_frames: int = 40, n_cameras: int = 3, width: int =
         check_synthetic(src)
         scene_id = src.scene_id()
     elif isinstance(src, DatasetSource):
-        from omniscs.scene.sources import list_scenes, resolve
+        from omniscs.scene.sources import resolve
 
-        src = resolve(src)
-        scenes = list_scenes(src.format, src.dataroot, src.version)
-        if src.scene not in scenes:
-            shown = ", ".join(scenes[:5]) + (", ..." if len(scenes) > 5 else "")
-            raise OmniscsError(f"{src.format} scene {src.scene!r} is not in {src.dataroot} (it holds "
-                               f"{len(scenes)}: {shown or 'none'})")
+        src = resolve(src)  # the dataset's scene exists and its defining files are readable
         scene_id = src.scene_id()
     elif isinstance(src, StoreSource):
-        scene_id = load_scene(src.path).scene_id
+        scene_id = src.verify().scene_id  # every file checked, so a damaged store fails before any work
     else:  # pragma: no cover - parse_source returns one of the above
         raise OmniscsError(f"cannot use source {text!r}")
     return CheckedSource(text, src.to_dict(), check_id("scene id", scene_id))

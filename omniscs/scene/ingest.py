@@ -1,9 +1,12 @@
 """Scene sources and ingest: turn what a user points at into a validated scene store in the workspace."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Union
+
+import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.scene.sources.common import FORMATS, DatasetSource
@@ -16,8 +19,21 @@ class StoreSource:
 
     path: str
 
+    def __post_init__(self):
+        if isinstance(self.path, os.PathLike):
+            object.__setattr__(self, "path", os.fspath(self.path))
+        if not isinstance(self.path, str) or not self.path:
+            raise OmniscsError(f"a store source needs the path of a scene store; got {self.path!r}")
+
     def to_dict(self) -> dict:
         return {"kind": "store", "path": self.path}
+
+    def verify(self, progress: Callable[[int, int], None] | None = None):
+        """The store, fully checked (``omniscs.scene.store.verify_store``: every file's sha256, or a decode of
+        every file for stores written before sizes and hashes were recorded): what ingest uses in place."""
+        from omniscs.scene.store import verify_store
+
+        return verify_store(self.path, progress=progress)
 
 
 Source = Union[SyntheticSource, StoreSource, DatasetSource]
@@ -63,15 +79,29 @@ def _parse_dataset_source(fmt: str, rest: str) -> DatasetSource:
 
 
 def source_from_dict(d: dict) -> Source:
+    """A source from its dict form (``to_dict``); a wrong kind, an unknown or missing field or a value of the wrong
+    type is one OmniscsError."""
+    if not isinstance(d, dict):
+        raise OmniscsError(f"a source must be a JSON object with a 'kind'; got {d!r}")
     kind = d.get("kind")
-    fields = {k: v for k, v in d.items() if k != "kind"}
-    if kind == "synthetic":
-        return SyntheticSource(**fields)
-    if kind == "store":
-        return StoreSource(**fields)
     if kind in FORMATS:
         return DatasetSource.from_dict(d)
-    raise OmniscsError(f"unknown source kind {kind!r}; use 'synthetic', 'store' or one of {list(FORMATS)}")
+    classes = {"synthetic": SyntheticSource, "store": StoreSource}
+    if kind not in classes:
+        raise OmniscsError(f"unknown source kind {kind!r}; use 'synthetic', 'store' or one of {list(FORMATS)}")
+    cls = classes[kind]
+    args = {k: v for k, v in d.items() if k != "kind"}
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(args) - set(names))
+    if unknown:
+        raise OmniscsError(f"unknown field(s) {unknown} for a {kind} source; it takes {names}")
+    try:
+        source = cls(**args)
+    except TypeError as exc:
+        raise OmniscsError(f"bad {kind} source {d!r}: {exc}") from None
+    if isinstance(source, SyntheticSource):
+        check_synthetic_fields(source)
+    return source
 
 
 def write_source_scene(source: Source, out: Path, progress: Callable[[int, int], None] | None = None) -> Path:
@@ -89,9 +119,30 @@ def write_source_scene(source: Source, out: Path, progress: Callable[[int, int],
     return Path(out)
 
 
+#: Largest synthetic log and image a source may ask for (a typo such as 40000 frames is refused, not rendered).
+MAX_SYNTHETIC_FRAMES = 10_000
+MAX_SYNTHETIC_SIDE = 8192
+
+
+def check_synthetic_fields(source: SyntheticSource) -> None:
+    """The source's fields have the right types and sizes within bounds (templates are checked when rendering)."""
+    for name in ("seed", "n_frames", "n_cameras", "width", "height"):
+        value = getattr(source, name)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise OmniscsError(f"synthetic source field {name} must be an integer; got {value!r}")
+    for name in ("template", "lighting"):
+        if not isinstance(getattr(source, name), str):
+            raise OmniscsError(f"synthetic source field {name} must be a string; got {getattr(source, name)!r}")
+    if source.n_frames > MAX_SYNTHETIC_FRAMES or max(source.width, source.height) > MAX_SYNTHETIC_SIDE:
+        raise OmniscsError(f"synthetic logs are limited to {MAX_SYNTHETIC_FRAMES} frames and images of "
+                           f"{MAX_SYNTHETIC_SIDE} pixels a side; got {source.n_frames} frames of "
+                           f"{source.width}x{source.height}")
+
+
 def check_synthetic(source: SyntheticSource) -> None:
     from omniscs.world import LIGHTINGS, TEMPLATES
 
+    check_synthetic_fields(source)
     if source.template not in TEMPLATES:
         raise OmniscsError(f"unknown template {source.template!r}; use one of {list(TEMPLATES)}")
     if source.lighting not in LIGHTINGS:

@@ -34,25 +34,59 @@ def list_scenes(fmt: str, dataroot: str | Path, version: str | None = None) -> l
 
 
 def open_reader(source: DatasetSource):
-    """A reader opened on the source's scene (tables parsed, frames planned; no image read yet)."""
+    """A reader opened on the source's scene (tables parsed, frames planned; no image read yet).
+
+    Data that is not in the format's layout is one ValidationError naming the file (and field where known)."""
+    from omniscs.errors import ValidationError
+    from omniscs.scene.sources.common import UNEXPECTED_READ_ERRORS, BadFrame, reader_failure
+
     module = _module(source.format)
     cls = {"nuscenes": "NuScenesReader", "kitti": "KittiReader", "waymo-v2": "WaymoV2Reader"}[source.format]
-    return getattr(module, cls)(source)
+    try:
+        return getattr(module, cls)(source)
+    except BadFrame as bad:  # a file the reader needed up front (e.g. an image to learn a camera's size)
+        raise ValidationError(str(bad)) from None
+    except UNEXPECTED_READ_ERRORS as exc:
+        raise reader_failure(source, exc, "the tables") from None
 
 
 def resolve(source: DatasetSource) -> DatasetSource:
-    """The source with an absolute dataroot and its scene named (the only scene when none was given)."""
+    """The source with an absolute dataroot and its scene named (the only scene when none was given), after
+    checking that the scene exists and its defining files are there and readable: a source that cannot be read
+    fails here, before anything is written (the pipeline resolves every source before work starts)."""
+    from omniscs.scene.sources.common import UNEXPECTED_READ_ERRORS, reader_failure
+
+    if not isinstance(source, DatasetSource):
+        raise OmniscsError(f"not a dataset source: {source!r}")
+    module = _module(source.format)
     root = Path(source.dataroot).expanduser()
     if not root.is_dir():
         raise OmniscsError(f"{source.format} dataroot {root} does not exist")
     source = replace(source, dataroot=str(root.resolve()))
-    if source.scene is None:
-        scenes = list_scenes(source.format, source.dataroot, source.version)
-        if len(scenes) != 1:
-            example = scenes[0] if scenes else "SCENE"
-            raise OmniscsError(f"{root} holds {len(scenes)} scenes; name one, e.g. "
-                               f"{source.format}:{root}:{example}")
-        source = replace(source, scene=scenes[0])
+    try:
+        if source.scene is None:
+            scenes = list_scenes(source.format, source.dataroot, source.version)
+            if len(scenes) != 1:
+                example = scenes[0] if scenes else "SCENE"
+                raise OmniscsError(f"{root} holds {len(scenes)} scenes; name one, e.g. "
+                                   f"{source.format}:{root}:{example}")
+            source = replace(source, scene=scenes[0])
+        module.check_scene(source)
+    except UNEXPECTED_READ_ERRORS as exc:
+        raise reader_failure(source, exc, "the scene list") from None
+    return source
+
+
+def validate_source(source: DatasetSource) -> DatasetSource:
+    """``resolve`` plus opening the reader (every table parsed, cameras and frames checked) and, unless bad frames
+    are to be skipped, a stat of every per-frame file: what can be known about a source without decoding images,
+    for a pipeline that checks all its sources before any work starts. Returns the resolved source."""
+    from omniscs.scene.sources.common import check_frame_files
+
+    source = resolve(source)
+    reader = open_reader(source)
+    if not source.skip_bad_frames:
+        check_frame_files(reader)
     return source
 
 
@@ -72,4 +106,4 @@ def current_fingerprint(source: DatasetSource) -> list:
 
 
 __all__ = ["ATTRIBUTES", "FORMATS", "DatasetSource", "SkippedFramesWarning", "current_fingerprint", "list_scenes",
-           "load_attributes", "open_reader", "read_dataset_scene", "resolve"]
+           "load_attributes", "open_reader", "read_dataset_scene", "resolve", "validate_source"]

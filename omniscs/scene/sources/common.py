@@ -87,8 +87,25 @@ class DatasetSource:
     """Leave unreadable frames out with a warning and a count, instead of failing on the first one."""
 
     def __post_init__(self):
-        if self.cameras is not None and not isinstance(self.cameras, tuple):
+        if self.format not in FORMATS:
+            raise OmniscsError(f"unknown dataset format {self.format!r}; use one of {list(FORMATS)}")
+        if isinstance(self.dataroot, os.PathLike):
+            object.__setattr__(self, "dataroot", os.fspath(self.dataroot))
+        if not isinstance(self.dataroot, str) or not self.dataroot:
+            raise OmniscsError(f"{self.format} source: dataroot must be a folder path; got {self.dataroot!r}")
+        for name in ("scene", "version"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or not value):
+                raise OmniscsError(f"{self.format} source: {name} must be a non-empty string or null; got {value!r}")
+        if self.cameras is not None:
+            if isinstance(self.cameras, str) or not isinstance(self.cameras, (list, tuple)) or not all(
+                    isinstance(c, str) and c for c in self.cameras):
+                raise OmniscsError(f"{self.format} source: cameras must be a list of camera names or null; "
+                                   f"got {self.cameras!r}")
             object.__setattr__(self, "cameras", tuple(self.cameras))
+        for name in ("sweeps", "skip_bad_frames"):
+            if not isinstance(getattr(self, name), bool):
+                raise OmniscsError(f"{self.format} source: {name} must be true or false; got {getattr(self, name)!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -98,8 +115,16 @@ class DatasetSource:
 
     @classmethod
     def from_dict(cls, d: dict) -> "DatasetSource":
+        if not isinstance(d, dict):
+            raise OmniscsError(f"a dataset source must be a JSON object with a 'kind'; got {d!r}")
         fields = {k: v for k, v in d.items() if k != "kind"}
-        return cls(format=d["kind"], **fields)
+        unknown = sorted(set(fields) - set(cls.__dataclass_fields__) - {"format"})
+        if unknown or "format" in fields:
+            raise OmniscsError(f"unknown field(s) {unknown or ['format']} for a {d.get('kind')} source; it takes "
+                               f"{[f for f in cls.__dataclass_fields__ if f != 'format']}")
+        if "dataroot" not in fields:
+            raise OmniscsError(f"a {d.get('kind')} source needs a 'dataroot'")
+        return cls(format=d.get("kind"), **fields)
 
     def scene_id(self) -> str:
         if self.scene is None:
@@ -198,6 +223,44 @@ def require_file(path: Path, what: str) -> Path:
     return path
 
 
+def read_text_file(path: Path, what: str) -> str:
+    """A text file's contents; ValidationError naming it when missing, unreadable or not UTF-8 text."""
+    require_file(path, what)
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValidationError(f"{path}: {what} is not text (binary or damaged)") from None
+    except OSError as exc:
+        raise ValidationError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
+def check_camera(camera: CameraRecord, where) -> CameraRecord:
+    """A camera a reader built from calibration: positive size, pinhole K, rigid finite mount; else one
+    ValidationError naming ``where`` (the calibration file and record) before anything is written."""
+    from omniscs.geometry import is_rigid
+    from omniscs.ids import is_safe_id
+
+    K = np.asarray(camera.K, dtype=np.float64)
+    if not is_safe_id(camera.name):
+        raise ValidationError(f"{where}: camera name {camera.name!r} cannot name a folder")
+    if not (isinstance(camera.width, (int, np.integer)) and isinstance(camera.height, (int, np.integer))
+            and 0 < camera.width <= MAX_IMAGE_SIDE and 0 < camera.height <= MAX_IMAGE_SIDE):
+        raise ValidationError(f"{where}: camera {camera.name} has image size {camera.width}x{camera.height}; "
+                              f"width and height must be 1..{MAX_IMAGE_SIDE}")
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or \
+            not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise ValidationError(f"{where}: camera {camera.name} intrinsics are not a pinhole matrix with positive "
+                              f"focal lengths ({K.ravel().tolist()})")
+    T = np.asarray(camera.ego_from_camera, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not is_rigid(T):
+        raise ValidationError(f"{where}: camera {camera.name} mount (ego_from_camera) is not a finite rigid transform")
+    return camera
+
+
+#: Largest image side a reader accepts from calibration (pixels): larger values are damage, not cameras.
+MAX_IMAGE_SIDE = 16384
+
+
 def read_image_file(path: Path, expected_size: tuple[int, int] | None = None) -> np.ndarray:  # -> uint8 [H, W, 3]
     """Decode a PNG/JPEG as RGB; BadFrame when missing, undecodable or of the wrong (width, height)."""
     import cv2
@@ -236,7 +299,10 @@ def read_float32_records(path: Path, values_per_point: int) -> np.ndarray:  # ->
     if size % record:
         raise BadFrame(f"{path}: LiDAR file is truncated ({size} bytes is not a whole number of "
                        f"{values_per_point}-float points)")
-    points = np.fromfile(path, dtype=np.float32).reshape(-1, values_per_point)
+    try:
+        points = np.fromfile(path, dtype=np.float32).reshape(-1, values_per_point)
+    except OSError as exc:
+        raise BadFrame(f"{path}: LiDAR file cannot be read ({exc.strerror or exc})") from None
     if not np.all(np.isfinite(points)):
         raise BadFrame(f"{path}: LiDAR file has NaN or Inf values")
     return points
@@ -273,6 +339,8 @@ def write_log(reader: LogReader, out_dir: Path, overwrite: bool = False,
     total = len(reader.frames)
     if total == 0:
         raise ValidationError(f"{source.dataroot}: scene {source.scene} has no frames")
+    if not source.skip_bad_frames:
+        check_frame_files(reader)  # a missing or truncated file fails here, before anything is written
     skipped: list[dict] = []
     dropped: dict[str, int] = {}
     timestamps, poses, box_rows, attr_rows = [], [], [], []
@@ -283,7 +351,10 @@ def write_log(reader: LogReader, out_dir: Path, overwrite: bool = False,
         writer.set_cameras(reader.cameras)
         for i, plan in enumerate(reader.frames):
             try:
-                data = reader.load_frame(i)
+                try:
+                    data = reader.load_frame(i)
+                except UNEXPECTED_READ_ERRORS as exc:
+                    raise reader_failure(reader.source, exc, f"frame {plan.key}") from None
                 _check_frame(data, plan, reader)
             except BadFrame as bad:
                 if not source.skip_bad_frames:
@@ -328,6 +399,50 @@ def write_log(reader: LogReader, out_dir: Path, overwrite: bool = False,
         warnings.warn(f"{source.format} scene {source.scene}: skipped {len(skipped)} of {total} frames "
                       f"({reasons})", SkippedFramesWarning, stacklevel=2)
     return Path(out_dir)
+
+
+#: What a reader may raise on data that is not in the layout it expects (a field of the wrong type, a record that
+#: is not an object, a Parquet column it cannot filter): turned into one ValidationError by ``reader_failure``.
+UNEXPECTED_READ_ERRORS = (KeyError, TypeError, ValueError, IndexError, AttributeError, ArithmeticError, OSError,
+                          pa.ArrowException)
+
+
+def reader_failure(source: DatasetSource, exc: BaseException, what: str) -> ValidationError:
+    """One ValidationError for an unexpected failure while reading ``what`` of ``source``: the format's own
+    diagnosis (e.g. which nuScenes table and field is malformed) when it finds one, else the error's first line."""
+    from omniscs.scene.sources import _module
+
+    diagnose = getattr(_module(source.format), "diagnose", None)
+    found = diagnose(source) if diagnose is not None else None
+    if found:
+        return ValidationError(found)
+    text = str(exc).strip().splitlines()
+    detail = f"{type(exc).__name__}: {text[0][:200] if text else ''}".rstrip(": ")
+    return ValidationError(f"{source.dataroot}: cannot read {what} of {source.format} scene {source.scene} "
+                           f"({detail}); the dataset is damaged or not in the {source.format} layout")
+
+
+def check_frame_files(reader: LogReader) -> None:
+    """Every per-frame file a reader will open exists (and, for flat float32 point files, is a whole number of
+    points): a stat per file, so a broken dataset fails before the first frame is read or anything is written."""
+    files_of = getattr(reader, "frame_files", None)
+    if files_of is None:
+        return
+    for i, plan in enumerate(reader.frames):
+        try:
+            files = files_of(i)
+        except UNEXPECTED_READ_ERRORS as exc:
+            raise reader_failure(reader.source, exc, f"frame {plan.key}") from None
+        for path, what, record_bytes in files:
+            problem = None
+            if not path.is_file():
+                problem = f"{what} is missing"
+            elif record_bytes and path.stat().st_size % record_bytes:
+                problem = (f"{what} is truncated ({path.stat().st_size} bytes is not a whole number of "
+                           f"{record_bytes}-byte points)")
+            if problem:
+                raise ValidationError(f"{path}: {problem} (frame {plan.key}; pass skip_bad_frames / "
+                                      "--skip-bad-frames to leave such frames out)")
 
 
 def _check_frame(data: FrameData, plan: FramePlan, reader: LogReader) -> None:

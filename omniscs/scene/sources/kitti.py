@@ -25,10 +25,12 @@ from omniscs.scene.sources.common import (
     FrameData,
     FramePlan,
     RawBox,
+    check_camera,
     fingerprint,
     json_value,
     read_float32_records,
     read_image_file,
+    read_text_file,
     require_file,
     select_cameras,
 )
@@ -122,6 +124,18 @@ def list_scenes(dataroot: str | Path, version: str | None = None) -> list[str]:
     return sorted(p.name for p in (base / "image_02").iterdir() if p.is_dir())
 
 
+def check_scene(source: DatasetSource) -> None:
+    """The sequence exists and has its calibration, poses and (outside ``testing``) labels; else one error."""
+    base = split_dir(Path(source.dataroot), source.version)
+    seqs = list_scenes(source.dataroot, source.version)
+    if source.scene not in seqs:
+        raise OmniscsError(f"{base} has no sequence {source.scene!r}; it has {seqs[:20]}")
+    require_file(base / "calib" / f"{source.scene}.txt", "KITTI calibration file")
+    require_file(base / "oxts" / f"{source.scene}.txt", "OXTS pose file")
+    if base.name != "testing":
+        require_file(base / "label_02" / f"{source.scene}.txt", "KITTI label file")
+
+
 def dataset_files(source: DatasetSource) -> list[Path]:
     """The files whose change makes a stored copy of the sequence stale (calibration, poses, labels)."""
     base = split_dir(Path(source.dataroot), source.version)
@@ -131,16 +145,18 @@ def dataset_files(source: DatasetSource) -> list[Path]:
 
 def parse_calib(path: Path) -> dict[str, np.ndarray]:
     """``KEY[:] v1 v2 ...`` lines as float arrays (tracking spells R_rect, Tr_velo_cam, Tr_imu_velo)."""
-    require_file(path, "KITTI calibration file")
     out = {}
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(read_text_file(path, "KITTI calibration file").splitlines(), 1):
         if not line.strip():
             continue
         key, _, rest = line.strip().partition(" ")
         try:
-            out[key.rstrip(":")] = np.array([float(v) for v in rest.split()], dtype=np.float64)
+            values = np.array([float(v) for v in rest.split()], dtype=np.float64)
         except ValueError:
             raise ValidationError(f"{path}: line {n} ({key}) has a value that is not a number") from None
+        if not np.all(np.isfinite(values)):
+            raise ValidationError(f"{path}: line {n} ({key}) has a NaN or Inf value")
+        out[key.rstrip(":")] = values
     return out
 
 
@@ -219,8 +235,9 @@ class KittiReader:
             cam_from_rect = make_transform(np.eye(3), np.linalg.solve(K, P[:, 3]))
             self.image_dirs[name] = self.base / folder / seq
             width, height = self._image_size(self.image_dirs[name], n_frames)
-            self.cameras.append(CameraRecord(name, width, height, K,
-                                             invert_transform(cam_from_rect @ self.rect_from_ego)))
+            self.cameras.append(check_camera(CameraRecord(name, width, height, K,
+                                                          invert_transform(cam_from_rect @ self.rect_from_ego)),
+                                             self.calib_path))
         scale = next((mercator_scale(o[0]) for o in self.oxts if o is not None), None)
         if scale is None:
             raise ValidationError(f"{self.oxts_path}: no readable pose line")
@@ -239,7 +256,7 @@ class KittiReader:
 
     def _read_oxts(self) -> list[np.ndarray | None]:
         rows: list[np.ndarray | None] = []
-        for line in self.oxts_path.read_text().splitlines():
+        for line in read_text_file(self.oxts_path, "OXTS pose file").splitlines():
             if not line.strip():
                 continue
             try:
@@ -270,7 +287,7 @@ class KittiReader:
             if self.base.name == "testing":
                 return labels, errors
             require_file(self.label_path, "KITTI label file")
-        for n, line in enumerate(self.label_path.read_text().splitlines(), 1):
+        for n, line in enumerate(read_text_file(self.label_path, "KITTI label file").splitlines(), 1):
             fields = line.split()
             if not fields:
                 continue
@@ -284,6 +301,13 @@ class KittiReader:
                 continue
             labels.setdefault(frame, []).append(fields + [str(n)])
         return labels, errors
+
+    def frame_files(self, i: int) -> list[tuple[Path, str, int | None]]:
+        """The image and velodyne files frame ``i`` reads: (path, what, bytes per point or None)."""
+        out = [(self.image_dirs[cam.name] / f"{i:06d}.png", "image file", None) for cam in self.cameras]
+        if self.has_lidar:
+            out.append((self.velo_dir / f"{i:06d}.bin", "LiDAR file", 4 * VELODYNE_VALUES_PER_POINT))
+        return out
 
     def load_frame(self, i: int) -> FrameData:
         if not np.all(np.isfinite(self.frames[i].global_from_ego)):

@@ -27,6 +27,7 @@ from omniscs.scene.sources.common import (
     FrameData,
     FramePlan,
     RawBox,
+    check_camera,
     fingerprint,
     interpolate_pose,
     json_value,
@@ -109,8 +110,11 @@ def find_version(root: Path, version: str | None) -> str:
         if version not in found:
             raise OmniscsError(f"{root} has no nuScenes table folder {version!r}; it has {found or 'none'}")
         return version
+    if not found:
+        raise OmniscsError(f"{root} is not a nuScenes dataroot: it has no v1.0-* table folder; point at the folder "
+                           "that holds v1.0-mini/ (or v1.0-trainval/) and samples/")
     if len(found) != 1:
-        raise OmniscsError(f"{root}: name the nuScenes version (found {found or 'no v1.0-* folder'})")
+        raise OmniscsError(f"{root}: name the nuScenes version (found {found})")
     return found[0]
 
 
@@ -132,18 +136,122 @@ def _open_cached(root: str, version: str, stamp: tuple):  # stamp: file sizes an
 
     try:
         return NuScenes(version=version, dataroot=root, verbose=False)
-    except json.JSONDecodeError:
-        for path in table_paths(Path(root), version):
-            try:
-                json.loads(path.read_text())
-            except json.JSONDecodeError as exc:
-                raise ValidationError(f"{path}: invalid JSON ({exc})") from None
-        raise
     except KeyError as exc:
-        raise ValidationError(f"{Path(root) / version}: tables are inconsistent: token {exc} is referenced "
-                              "but not defined") from None
-    except (AssertionError, TypeError) as exc:
-        raise ValidationError(f"{Path(root) / version}: the devkit cannot load the tables ({exc})") from None
+        problem = table_problem(Path(root), version)
+        raise ValidationError(problem or f"{Path(root) / version}: tables are inconsistent: token {exc} is "
+                                         "referenced but not defined") from None
+    except Exception as exc:  # the devkit asserts, indexes and raises plain Exceptions on malformed tables
+        problem = table_problem(Path(root), version)
+        detail = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        raise ValidationError(problem or f"{Path(root) / version}: the devkit cannot load the tables "
+                                         f"({detail})") from None
+
+
+def _is_str(v) -> bool:
+    return isinstance(v, str)
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _numbers(n: int):
+    def check(v) -> bool:
+        return (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                             and np.isfinite(x) for x in v))
+    return check
+
+
+def _intrinsic(v) -> bool:
+    return v == [] or (isinstance(v, list) and len(v) == 3 and all(_numbers(3)(row) for row in v))
+
+
+def _str_list(v) -> bool:
+    return isinstance(v, list) and all(isinstance(x, str) for x in v)
+
+
+#: Fields the devkit and this reader use, per table, with what each must hold ("?" prefix: optional).
+TABLE_FIELDS: dict[str, dict[str, tuple]] = {
+    "category": {"token": (_is_str, "a string"), "name": (_is_str, "a string")},
+    "attribute": {"token": (_is_str, "a string"), "name": (_is_str, "a string")},
+    "visibility": {"token": (_is_str, "a string"), "level": (_is_str, "a string")},
+    "instance": {"token": (_is_str, "a string"), "category_token": (_is_str, "a string")},
+    "sensor": {"token": (_is_str, "a string"), "channel": (_is_str, "a string"), "modality": (_is_str, "a string")},
+    "calibrated_sensor": {"token": (_is_str, "a string"), "sensor_token": (_is_str, "a string"),
+                          "translation": (_numbers(3), "3 finite numbers"),
+                          "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"),
+                          "?camera_intrinsic": (_intrinsic, "a 3x3 matrix or []")},
+    "ego_pose": {"token": (_is_str, "a string"), "translation": (_numbers(3), "3 finite numbers"),
+                 "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"), "timestamp": (_is_int, "an integer")},
+    "log": {"token": (_is_str, "a string")},
+    "scene": {"token": (_is_str, "a string"), "name": (_is_str, "a string"), "log_token": (_is_str, "a string"),
+              "first_sample_token": (_is_str, "a string")},
+    "sample": {"token": (_is_str, "a string"), "timestamp": (_is_int, "an integer"), "next": (_is_str, "a string")},
+    "sample_data": {"token": (_is_str, "a string"), "sample_token": (_is_str, "a string"),
+                    "ego_pose_token": (_is_str, "a string"), "calibrated_sensor_token": (_is_str, "a string"),
+                    "timestamp": (_is_int, "an integer"), "is_key_frame": (lambda v: isinstance(v, bool), "a boolean"),
+                    "filename": (_is_str, "a string"), "next": (_is_str, "a string")},
+    "sample_annotation": {"token": (_is_str, "a string"), "sample_token": (_is_str, "a string"),
+                          "instance_token": (_is_str, "a string"), "translation": (_numbers(3), "3 finite numbers"),
+                          "size": (_numbers(3), "3 finite numbers"),
+                          "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"),
+                          "?attribute_tokens": (_str_list, "a list of tokens"),
+                          "?num_lidar_pts": (_is_int, "an integer")},
+    "map": {"token": (_is_str, "a string"), "log_tokens": (_str_list, "a list of tokens"),
+            "filename": (_is_str, "a string")},
+}
+
+
+def table_problem(root: Path, version: str) -> str | None:
+    """The first malformed table, record or field under ``root/version`` as a one-line message naming the file
+    (None when every table is a JSON list of records with the fields above). Runs only after a load failed."""
+    for table in TABLES:
+        path = root / version / f"{table}.json"
+        if not path.is_file():
+            return f"{path}: nuScenes table {table!r} is missing"
+        try:
+            rows = json.loads(path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            return f"{path}: not a JSON text file (binary or damaged)"
+        except json.JSONDecodeError as exc:
+            return f"{path}: invalid JSON ({exc})"
+        except OSError as exc:
+            return f"{path}: cannot read ({exc.strerror or exc})"
+        if not isinstance(rows, list):
+            return f"{path}: a nuScenes table must be a JSON list of records; got a {type(rows).__name__}"
+        if table == "map" and not rows:
+            return f"{path}: the map table is empty (every log needs a map record)"
+        for i, row in enumerate(rows):
+            if not isinstance(row, dict):
+                return f"{path}: record {i} is a {type(row).__name__}, not an object"
+            for name, (check, what) in TABLE_FIELDS[table].items():
+                optional = name.startswith("?")
+                name = name.lstrip("?")
+                if name not in row:
+                    if optional:
+                        continue
+                    return f"{path}: record {i} ({row.get('token', 'no token')}): field {name} is missing"
+                if not check(row[name]):
+                    value = repr(row[name])
+                    value = value if len(value) <= 40 else value[:37] + "..."
+                    return f"{path}: record {i} ({row.get('token', 'no token')}): field {name} must be {what}; got {value}"
+    return None
+
+
+def diagnose(source: DatasetSource) -> str | None:
+    """What is malformed in the source's tables, if anything (see ``table_problem``)."""
+    root = Path(source.dataroot)
+    try:
+        version = find_version(root, source.version)
+    except OmniscsError as exc:
+        return str(exc)
+    return table_problem(root, version)
+
+
+def check_scene(source: DatasetSource) -> None:
+    """The tables load and name the source's scene (name or token); else one OmniscsError."""
+    root = Path(source.dataroot)
+    _find_scene(open_nuscenes(root, find_version(root, source.version)), source.scene, root)
 
 
 def dataset_files(source: DatasetSource) -> list[Path]:
@@ -154,8 +262,12 @@ def dataset_files(source: DatasetSource) -> list[Path]:
 
 def list_scenes(dataroot: str | Path, version: str | None = None) -> list[str]:
     root = Path(dataroot)
-    nusc = open_nuscenes(root, find_version(root, version))
-    return [s["name"] for s in nusc.scene]
+    version = find_version(root, version)
+    names = [s.get("name") for s in open_nuscenes(root, version).scene]
+    if not all(isinstance(n, str) and n for n in names):
+        raise ValidationError(table_problem(root, version) or f"{root / version / 'scene.json'}: every scene needs a "
+                                                              "non-empty string name")
+    return names
 
 
 def _find_scene(nusc, name: str | None, where: Path) -> dict:
@@ -190,6 +302,14 @@ class NuScenesReader:
         self.root = Path(source.dataroot)
         self.version = find_version(self.root, source.version)
         self.table_root = self.root / self.version
+        try:
+            self._open(source)
+        except KeyError as exc:
+            raise ValidationError(table_problem(self.root, self.version) or
+                                  f"{self.table_root}: tables are inconsistent: token {exc} (scene "
+                                  f"{source.scene}) is referenced but not defined") from None
+
+    def _open(self, source: DatasetSource) -> None:
         nusc = self.nusc = open_nuscenes(self.root, self.version)
         self.scene = _find_scene(nusc, source.scene, self.root)
         self.samples = self._samples()
@@ -205,7 +325,8 @@ class NuScenesReader:
         first = self.samples[0]["data"]
         self._calib = {ch: nusc.get("calibrated_sensor", nusc.get("sample_data", first[ch])["calibrated_sensor_token"])
                        for ch in self.camera_channels + ([LIDAR_CHANNEL] if self.has_lidar else [])}
-        self.cameras = [self._camera(ch, first[ch]) for ch in self.camera_channels]
+        self.cameras = [check_camera(self._camera(ch, first[ch]), self.table_root / "calibrated_sensor.json")
+                        for ch in self.camera_channels]
         self._frames = self._sweep_frames() if source.sweeps else self._keyframes()
         self.frames = [f.plan for f in self._frames]
         self._tracks = self._annotations_by_instance() if source.sweeps else {}
@@ -302,6 +423,20 @@ class NuScenesReader:
         return tracks
 
     # ------------------------------------------------------------------ frames
+    def frame_files(self, i: int) -> list[tuple[Path, str, int | None]]:
+        """The image and LiDAR files frame ``i`` reads: (path, what, bytes per point or None)."""
+        frame = self._frames[i]
+        out = []
+        for cam in self.cameras:
+            token = frame.sample_data.get(cam.name)
+            if token is not None:
+                out.append((self.root / self.nusc.get("sample_data", token)["filename"], "image file", None))
+        token = frame.sample_data.get(LIDAR_CHANNEL) if self.has_lidar else None
+        if token is not None:
+            out.append((self.root / self.nusc.get("sample_data", token)["filename"], "LiDAR file",
+                        4 * LIDAR_VALUES_PER_POINT))
+        return out
+
     def load_frame(self, i: int) -> FrameData:
         try:
             return self._load_frame(self._frames[i])

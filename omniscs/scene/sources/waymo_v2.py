@@ -45,6 +45,7 @@ from omniscs.scene.sources.common import (
     FrameData,
     FramePlan,
     RawBox,
+    check_camera,
     decode_image_bytes,
     fingerprint,
     json_value,
@@ -113,28 +114,123 @@ def list_scenes(dataroot: str | Path, version: str | None = None) -> list[str]:
     return sorted(p.stem for p in folder.glob("*.parquet"))
 
 
+def expected_kind(column: str) -> str:
+    """What the v2 schema stores in a column this reader reads: string, integer, number, binary or a list."""
+    if column in (SEGMENT, LASER_OBJECT_ID, CAMERA_OBJECT_ID) or column.startswith(STATS):
+        return "string"
+    if column in (TIMESTAMP, CAMERA_NAME, LASER_NAME) or column.endswith(
+            (".type", ".width", ".height", ".num_lidar_points_in_box", ".difficulty_level.detection")):
+        return "integer"
+    if column.endswith(".image"):
+        return "binary"
+    if column.endswith(".shape"):
+        return "list of integers"
+    if column.endswith((".transform", ".values")):
+        return "list of numbers"
+    return "number"
+
+
+def _has_kind(t: pa.DataType, kind: str) -> bool:
+    if pa.types.is_dictionary(t):
+        t = t.value_type
+    if kind == "string":
+        return pa.types.is_string(t) or pa.types.is_large_string(t)
+    if kind == "integer":
+        return pa.types.is_integer(t)
+    if kind == "number":
+        return pa.types.is_integer(t) or pa.types.is_floating(t)
+    if kind == "binary":
+        return pa.types.is_binary(t) or pa.types.is_large_binary(t)
+    if pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t):
+        return _has_kind(t.value_type, "integer" if kind == "list of integers" else "number")
+    return False
+
+
+def check_component_schema(path: Path, schema: pa.Schema, columns: list[str], optional: tuple[str, ...] = ()) -> None:
+    """Required ``columns`` exist, and every column read has the v2 schema's kind; else one ValidationError."""
+    missing = [c for c in columns if c not in schema.names]
+    if missing:
+        raise ValidationError(f"{path}: missing column(s) {missing}")
+    for name in [*columns, *(c for c in optional if c in schema.names)]:
+        t = schema.field(name).type
+        if not _has_kind(t, expected_kind(name)):
+            raise ValidationError(f"{path}: column {name} has type {t}, expected {expected_kind(name)} "
+                                  "(Waymo Open Dataset v2 schema)")
+
+
 def read_component(root: Path, component: str, segment: str, columns: list[str], optional: tuple[str, ...] = (),
                    filters=None) -> pa.Table:
-    """Columns of one component of a segment; a missing file or column is a ValidationError naming it.
-
-    ``optional`` columns are read when present.
+    """Columns of one component of a segment; a missing file or column, a column of the wrong type or a null in a
+    required column is a ValidationError naming it. ``optional`` columns are read when present.
     """
     path = component_path(root, component, segment)
     if not path.is_file():
         raise ValidationError(f"{path}: Waymo v2 component {component!r} is missing")
     try:
-        names = set(pq.read_schema(path).names)
-        missing = [c for c in columns if c not in names]
-        if missing:
-            raise ValidationError(f"{path}: missing column(s) {missing}")
-        table = pq.read_table(path, columns=columns + [c for c in optional if c in names], filters=filters)
-    except (pa.ArrowInvalid, OSError) as exc:
-        raise ValidationError(f"{path}: unreadable Parquet ({exc})") from None
+        schema = pq.read_schema(path)
+        check_component_schema(path, schema, columns, optional)
+        table = pq.read_table(path, columns=columns + [c for c in optional if c in schema.names], filters=filters)
+    except (pa.ArrowException, OSError) as exc:
+        raise ValidationError(f"{path}: unreadable Parquet ({str(exc).strip().splitlines()[0][:200]})") from None
+    for name in columns:
+        if table.column(name).null_count:
+            raise ValidationError(f"{path}: column {name} has {table.column(name).null_count} null value(s)")
     if SEGMENT in table.column_names:
         seg = table.column(SEGMENT).to_numpy(zero_copy_only=False)
         if len(seg) and np.any(seg != segment):
             table = table.filter(pa.array(seg == segment))
     return table
+
+
+#: Columns each component must have, and optional ones read when present (checked when a source is resolved).
+def _schema_plan() -> dict[str, tuple[list[str], tuple[str, ...]]]:
+    lb, cb = LIDAR_BOX, CAMERA_BOX
+    return {
+        "vehicle_pose": ([SEGMENT, TIMESTAMP, POSE], ()),
+        "camera_calibration": ([SEGMENT, CAMERA_NAME, *(f"{CALIB}.intrinsic.{k}" for k in ("f_u", "f_v", "c_u", "c_v")),
+                                f"{CALIB}.extrinsic.transform", f"{CALIB}.width", f"{CALIB}.height"],
+                               tuple(f"{CALIB}.intrinsic.{k}" for k in DISTORTION)),
+        "camera_image": ([SEGMENT, TIMESTAMP, CAMERA_NAME, f"{IMAGE}.image"], ()),
+        "lidar_box": ([SEGMENT, TIMESTAMP, LASER_OBJECT_ID, *(f"{lb}.box.center.{a}" for a in "xyz"),
+                       *(f"{lb}.box.size.{a}" for a in "xyz"), f"{lb}.box.heading", f"{lb}.type"],
+                      (f"{lb}.num_lidar_points_in_box", *(f"{lb}.speed.{a}" for a in "xyz"),
+                       f"{lb}.difficulty_level.detection")),
+        "camera_box": ([SEGMENT, TIMESTAMP, CAMERA_NAME, CAMERA_OBJECT_ID, f"{cb}.box.center.x", f"{cb}.box.center.y",
+                        f"{cb}.box.size.x", f"{cb}.box.size.y", f"{cb}.type"], ()),
+        "lidar": ([SEGMENT, TIMESTAMP, LASER_NAME, f"{LIDAR}.range_image_return1.values",
+                   f"{LIDAR}.range_image_return1.shape"],
+                  (f"{LIDAR}.range_image_return2.values", f"{LIDAR}.range_image_return2.shape")),
+        "lidar_calibration": ([SEGMENT, LASER_NAME, f"{LIDAR_CALIB}.extrinsic.transform",
+                               f"{LIDAR_CALIB}.beam_inclination.min", f"{LIDAR_CALIB}.beam_inclination.max"],
+                              (f"{LIDAR_CALIB}.beam_inclination.values",)),
+        "lidar_pose": ([SEGMENT, TIMESTAMP, LASER_NAME, f"{LIDAR_POSE}.range_image_return1.values",
+                        f"{LIDAR_POSE}.range_image_return1.shape"], ()),
+        "stats": ([SEGMENT], (f"{STATS}.location", f"{STATS}.time_of_day", f"{STATS}.weather")),
+    }
+
+
+def check_scene(source: DatasetSource) -> None:
+    """The segment exists, has the required components, and every component present has the v2 schema (only the
+    Parquet footers are read); else one error naming the file and column."""
+    root = Path(source.dataroot)
+    segments = list_scenes(root)
+    if source.scene not in segments:
+        raise OmniscsError(f"{root} has no segment {source.scene!r}; it has {segments[:20]}")
+    for component, (columns, optional) in _schema_plan().items():
+        path = component_path(root, component, source.scene)
+        if not path.is_file():
+            if component in REQUIRED:
+                raise ValidationError(f"{path}: Waymo v2 component {component!r} is missing")
+            continue
+        try:
+            schema = pq.read_schema(path)
+        except (pa.ArrowException, OSError) as exc:
+            raise ValidationError(f"{path}: unreadable Parquet ({str(exc).strip().splitlines()[0][:200]})") from None
+        check_component_schema(path, schema, columns, optional)
+    if component_path(root, "lidar", source.scene).is_file() and \
+            not component_path(root, "lidar_calibration", source.scene).is_file():
+        raise ValidationError(f"{component_path(root, 'lidar_calibration', source.scene)}: Waymo v2 component "
+                              "'lidar_calibration' is missing (the segment has range images)")
 
 
 def _matrix(values, where: str) -> np.ndarray:  # 16 values -> [4, 4]
@@ -261,8 +357,11 @@ class WaymoV2Reader:
             coeffs = [float(table[c][i] or 0.0) if c in table else 0.0 for c in dist]
             if any(coeffs):
                 distortion[name] = coeffs
-            records[name] = CameraRecord(name, int(table[f"{CALIB}.width"][i]), int(table[f"{CALIB}.height"][i]), K,
-                                         vehicle_from_cam @ WAYMO_CAMERA_FROM_OPENCV)
+            if name in records:
+                raise ValidationError(f"{where}: camera {name} is calibrated twice")
+            records[name] = check_camera(CameraRecord(name, int(table[f"{CALIB}.width"][i]),
+                                                      int(table[f"{CALIB}.height"][i]), K,
+                                                      vehicle_from_cam @ WAYMO_CAMERA_FROM_OPENCV), where)
         order = [CAMERAS[e] for e in sorted(set(self._calib_enums))]
         keep = select_cameras(order, self.source.cameras, f"Waymo segment {self.segment}")
         return [records[n] for n in keep], {n: c for n, c in distortion.items() if n in keep}
