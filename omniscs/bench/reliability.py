@@ -257,12 +257,12 @@ def markdown(report: dict) -> str:
              f"(clean run {faults['clean_run_s']} s; catalog rows {faults['clean_rows']}; "
              f"{faults['clean_files']} files outside the catalog).", "",
              f"## Fault injection: SIGKILL at {len(kills)} random moments (seed {cfg['seed']}), each then rerun", "",
-             "| # | killed after s | scene stores at kill | temporaries at kill | orphaned processes | rerun exit "
-             "| rerun s | catalog = clean | files = clean | temporaries after rerun |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| # | killed after s | Prefect server up | scene stores at kill | temporaries at kill | orphaned "
+             "processes | rerun exit | rerun s | catalog = clean | files = clean | temporaries after rerun |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, k in enumerate(kills):
         lines.append(f"| {i} | {k['kill_after_s']}{' (had ended)' if k['ended_before_kill'] else ''} | "
-                     f"{k['scene_stores_after_kill']} | {k['temporaries_after_kill']} | {k['orphaned_processes']} | "
+                     f"{'yes' if k['children_seen'] else 'not yet'} | {k['scene_stores_after_kill']} | {k['temporaries_after_kill']} | {k['orphaned_processes']} | "
                      f"{k['rerun_exit']} | {k['rerun_s']} | {'yes' if k['catalog_equal'] else k['catalog_diff']} | "
                      f"{'yes' if k['files_equal'] else k['file_diff']} | {k['temporaries_after_rerun']} |")
     ok = sum(k["rerun_exit"] == 0 and k["catalog_equal"] and k["files_equal"] and not k["temporaries_after_rerun"]
