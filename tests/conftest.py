@@ -1,11 +1,15 @@
 """Shared fixtures: an isolated Prefect home, tiny hand-made scenes and small rendered synthetic scenes."""
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 
-# Prefect reads its settings when first imported: isolate it before any test module imports it.
+# Prefect reads its settings when first imported: isolate it before any test module imports it (and remove it
+# when the test process ends, so test runs leave nothing in /tmp).
 os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="omniscs-prefect-")
+atexit.register(shutil.rmtree, os.environ["PREFECT_HOME"], True)
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
