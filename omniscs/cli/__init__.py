@@ -24,12 +24,30 @@ app.add_typer(catalog.app, name="catalog")
 app.add_typer(bench.app, name="bench")
 
 
+#: Click's usage error (typer ships its own copy of click; found through a public subclass of it).
+UsageError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+
+
 def main() -> None:
+    """The ``omniscs`` entry point: a user's mistake, in the domain (OmniscsError) or in the command line (an
+    unknown option, a value of the wrong type), is one ``error:`` line on stderr and exit code 2."""
     try:
-        app()
+        code = app(standalone_mode=False)
     except OmniscsError as exc:
         print_error(str(exc))
         sys.exit(2)
+    except UsageError as exc:
+        ctx = getattr(exc, "ctx", None)
+        if type(exc).__name__ == "NoArgsIsHelpError" and ctx is not None:
+            print(ctx.get_help())
+            sys.exit(2)
+        hint = f" (see: {ctx.command_path} --help)" if ctx is not None else ""
+        print_error(exc.format_message() + hint)
+        sys.exit(2)
+    except (typer.Abort, KeyboardInterrupt, EOFError):
+        print_error("aborted")
+        sys.exit(130)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":
