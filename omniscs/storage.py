@@ -39,6 +39,20 @@ def workspace_root(root: str | os.PathLike | None = None) -> Path:
     return path
 
 
+def usable_workspace(root: str | os.PathLike | None = None) -> Path:
+    """The workspace root a command will write into, checked but not created (stages create what they write,
+    so a command refused later leaves no empty workspace behind): an error when it, or a folder above it, is a
+    file."""
+    path = workspace_path(root)
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            if not candidate.is_dir():
+                where = "is a file" if candidate == path else f"lies under {candidate}, which is a file"
+                raise OmniscsError(f"workspace {path} {where}; choose another --workspace")
+            break
+    return path
+
+
 def existing_workspace(root: str | os.PathLike | None = None) -> Path:
     """The workspace root for commands that only read it: an error when it does not exist (nothing is
     created)."""

@@ -212,3 +212,19 @@ def bench_reliability(
                   progress=bars.sink("bench reliability"))
     console.print((out / "reliability.md").read_text())
     console.print(f"wrote {out / 'reliability.json'}")
+
+
+@app.command("bad-inputs")
+def bench_bad_inputs(
+    out: Path = typer.Option(Path("reports"), help="Folder for bad_inputs.json/.md."),
+    subprocess_mode: bool = typer.Option(False, "--subprocess", help="Run each case as a new omniscs process "
+                                                                     "(slower; in-process by default)."),
+) -> None:
+    """Try every bad input of the table over every command; count one clear line / traceback / silently wrong /
+    left files / other, by category."""
+    from omniscs.bench.bad_inputs import run_bench
+
+    with progress_bars() as bars:
+        run_bench(out, subprocess_mode=subprocess_mode, progress=bars.sink("bench bad-inputs"))
+    console.print((out / "bad_inputs.md").read_text())
+    console.print(f"wrote {out / 'bad_inputs.json'}")

@@ -26,7 +26,7 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     from omniscs.pipeline.records import new_run_id
     from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
-    from omniscs.storage import workspace_path, workspace_root
+    from omniscs.storage import usable_workspace, workspace_path
 
     rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
     request = check_request({k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
@@ -34,8 +34,7 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
                              if k in parameters})
     scenes, _ = check_sources(list(sources), **rig)
     run_id = check_run_id(parameters.pop("run_id", None)) or new_run_id()
-    if workspace_path(workspace).exists() and not workspace_path(workspace).is_dir():
-        workspace_root(workspace)  # the one error for a workspace that is a file
+    usable_workspace(workspace)  # not a file, nor under one
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api
 

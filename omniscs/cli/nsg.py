@@ -28,22 +28,27 @@ def fit(
 ) -> None:
     """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
     from omniscs.edits import edit_to_dict
+    from omniscs.nsg.config import fit_preset
     from omniscs.pipeline.records import SceneRequest
     from omniscs.pipeline.stages import fit_stage, load_plan, plan_stage
-    from omniscs.storage import workspace_root
+    from omniscs.pipeline.validate import check_request
+    from omniscs.scene import load_scene
+    from omniscs.storage import usable_workspace
 
+    # everything checked before anything is written: the scene, the settings, --out and the workspace
     if not scene_path.is_dir():
         raise OmniscsError(f"{scene_path} is not a scene-store directory")
+    load_scene(scene_path)
     overrides = {"torch_threads": threads}
     if iterations is not None:
-        if iterations < 1:
-            raise OmniscsError(f"--iterations must be at least 1; got {iterations}")
         overrides["iterations"] = iterations
     if device != "cpu":
         overrides["device"] = device
-    request = SceneRequest(fit_preset=preset, behavior_variants=behavior_variants, device=device,
-                           edits=tuple(edit_to_dict(e) for e in read_edits(edit)))
-    planned = plan_stage(scene_path, request, workspace_root(workspace))
+    fit_preset(preset, **overrides)
+    request = check_request(SceneRequest(fit_preset=preset, behavior_variants=behavior_variants, device=device,
+                                         edits=tuple(edit_to_dict(e) for e in read_edits(edit))))
+    check_out(out, overwrite=True)  # an existing --out must be a folder omniscs wrote (reused or replaced)
+    planned = plan_stage(scene_path, request, usable_workspace(workspace))
     console.print(f"plan: {planned.info['summary']}")
     with progress_bars() as bars:
         record = fit_stage(scene_path, load_plan(planned), preset, out_dir=out, replace=overwrite,

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from omniscs.cli.common import console, print_table, progress_bars
+from omniscs.cli.common import check_out, console, print_table, progress_bars
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Safety-critical scenario synthesis (behaviour-level variants).", no_args_is_help=True)
@@ -36,8 +36,7 @@ def scs_train_behavior(
     if steps is not None:
         overrides["steps"] = steps
     config = train_preset(preset, **overrides)
-    if out.exists() and not overwrite:
-        raise OmniscsError(f"{out} already exists; choose another --out or pass --overwrite")
+    check_out(out, overwrite)
     for p in scene or []:
         if not p.is_dir():
             raise OmniscsError(f"--scene {p} is not a scene-store directory")

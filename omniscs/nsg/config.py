@@ -8,6 +8,7 @@ import torch
 
 from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
+from omniscs.overrides import replace_checked
 from omniscs.nsg.graph import RenderSettings
 from omniscs.nsg.strategy import DensifyStrategy
 from omniscs.plan import PlanConfig
@@ -185,7 +186,4 @@ def fit_preset(name: str, **overrides) -> FitConfig:
     """A named preset with some fields replaced (e.g. ``iterations=50`` for a smoke test)."""
     if name not in PRESETS:
         raise OmniscsError(f"unknown preset {name!r}; use one of {list(PRESETS)}")
-    try:
-        return dataclasses.replace(PRESETS[name], **overrides)
-    except TypeError as exc:
-        raise OmniscsError(f"bad fit setting: {exc}") from None
+    return replace_checked("fit", PRESETS[name], overrides)

@@ -1,9 +1,10 @@
 """Configuration of behaviour-variant synthesis: comfort bounds, AdversarialConfig and its named presets."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from omniscs.errors import OmniscsError
+from omniscs.overrides import replace_checked
 from omniscs.scs.behavior.planner import PlannerConfig
 
 #: Kinds of collision a variant is labelled with (``none`` when no collision was reached).
@@ -152,4 +153,4 @@ def adversarial_preset(name: str, **overrides) -> AdversarialConfig:
     """The preset ``name`` with ``overrides`` (AdversarialConfig fields) applied."""
     if name not in PRESETS:
         raise OmniscsError(f"unknown preset {name!r}; use one of {list(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+    return replace_checked("behaviour optimisation", PRESETS[name], overrides)

@@ -9,7 +9,7 @@ import logging
 import math
 import platform
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from omniscs.errors import OmniscsError
+from omniscs.overrides import replace_checked
 from omniscs.scs.behavior.augment import AugmentConfig, augment_traffic
 from omniscs.devices import resolve_device
 from omniscs.scs.behavior.checkpoint import save_checkpoint, set_threads
@@ -92,7 +93,7 @@ PRESETS: dict[str, TrainConfig] = {
 def train_preset(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise OmniscsError(f"unknown training preset {name!r}; use one of {list(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+    return replace_checked("training", PRESETS[name], overrides)
 
 
 def world_frames(model: ModelConfig, now_steps: tuple[int, ...]) -> int:
