@@ -448,8 +448,12 @@ def invoke_subprocess(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[
     """The same through a new ``omniscs`` process (slower: the import alone takes seconds)."""
     import subprocess
 
-    proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *argv], cwd=cwd,
-                          env={**os.environ, **env}, capture_output=True, text=True, timeout=300)
+    try:
+        proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *argv], cwd=cwd,
+                              env={**os.environ, **env}, capture_output=True, text=True,
+                              timeout=CASE_LIMIT_S + 30)  # + the import of a fresh process
+    except subprocess.TimeoutExpired as exc:
+        return 0, "", f"(harness) still running after {exc.timeout:.0f} s: the bad input was accepted", False
     return proc.returncode, proc.stdout, proc.stderr, False
 
 

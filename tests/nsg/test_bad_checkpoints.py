@@ -23,6 +23,7 @@ from omniscs.nsg.checkpoint import (GRAPH_JSON, METRICS_JSON, PLAN_JSON, TENSORS
 from omniscs.nsg.graph import RenderSettings, SceneGraph
 from omniscs.nsg.sky import SkyParams
 from omniscs.scene.store import CameraRecord
+from tests.damage import cut, files_under, write
 
 N_FRAMES = 3
 
@@ -51,10 +52,6 @@ def pristine(tmp_path_factory) -> Path:
     return save_checkpoint(tiny_graph(), tmp_path_factory.mktemp("ckpt") / "ckpt", metrics={"status": "fitted"})
 
 
-def files_under(root: Path) -> list[str]:
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
-
-
 # ----------------------------------------------------------------------------- damage
 def meta_change(change):
     def damage(ckpt: Path):
@@ -71,17 +68,6 @@ def old_checkpoint(damage=None):
         if damage is not None:
             damage(ckpt)
     return apply
-
-
-def write(name: str, data: bytes):
-    return lambda ckpt: (ckpt / name).write_bytes(data)
-
-
-def cut(name: str, fraction: float = 0.5):
-    def damage(ckpt: Path):
-        data = (ckpt / name).read_bytes()
-        (ckpt / name).write_bytes(data[: int(len(data) * fraction)])
-    return damage
 
 
 def flip(name: str, where: float = 0.7):

@@ -18,6 +18,7 @@ from omniscs.scene import source_from_dict
 from omniscs.scene.sources import DatasetSource, read_dataset_scene, resolve, validate_source
 from omniscs.scene.store import verify_store
 from tests.conftest import write_tiny_scene
+from tests.damage import files_under, set_column as column
 
 VERSION = "v1.0-mini"
 
@@ -29,10 +30,6 @@ def datasets(tmp_path_factory) -> dict[str, Path]:
     return {"nuscenes": export_scenes([store], "nuscenes", base / "nuscenes", version=VERSION, keyframe_every=2),
             "kitti": export_scenes([store], "kitti", base / "kitti"),
             "waymo-v2": export_scenes([store], "waymo-v2", base / "waymo")}
-
-
-def files_under(root: Path) -> list[str]:
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
 
 
 # ----------------------------------------------------------------------------- nuScenes damage
@@ -198,15 +195,6 @@ def waymo(component: str, change):
         path = root / component / "tiny.parquet"
         pq.write_table(change(pq.read_table(path)), path)
     return damage
-
-
-def column(name: str, values, type_=None):
-    def change(t: pa.Table) -> pa.Table:
-        i = t.column_names.index(name)
-        vals = values(t.column(name).to_pylist()) if callable(values) else values
-        arr = pa.array(vals, type=type_)
-        return t.set_column(i, pa.field(name, arr.type), arr)
-    return change
 
 
 TS = "key.frame_timestamp_micros"

@@ -17,6 +17,7 @@ from omniscs.geometry import ego_from_camera_mount, intrinsics_from_fov, pose_fr
 from omniscs.scene import CameraRecord, SceneWriter, load_scene
 from omniscs.scene.store import FILES, MANIFEST, file_sha256, verify_store
 from tests.conftest import write_tiny_scene
+from tests.damage import files_under, set_column
 
 W, H = 64, 36
 
@@ -32,10 +33,6 @@ def write_gt_scene(out: Path, n_frames: int = 2) -> Path:
             w.write_image("CAM_FRONT", f, np.full((H, W, 3), 90, np.uint8))
             w.write_gt("CAM_FRONT", f, np.full((H, W), 5.0), np.full((H, W), -1), np.zeros((H, W)))
     return out
-
-
-def files_under(root: Path) -> list[str]:
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
 
 
 # ----------------------------------------------------------------------------- damage
@@ -69,15 +66,6 @@ def table(name: str, change):
     def damage(root: Path):
         pq.write_table(change(pq.read_table(root / name)), root / name)
     return damage
-
-
-def set_column(name: str, values, type_=None):
-    def change(t: pa.Table) -> pa.Table:
-        i = t.column_names.index(name)
-        vals = values(t.column(name).to_pylist()) if callable(values) else values
-        arr = pa.array(vals, type=type_)
-        return t.set_column(i, pa.field(name, arr.type), arr)
-    return change
 
 
 def pose_entry(frame: int, index: int, value: float):

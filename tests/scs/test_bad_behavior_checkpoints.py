@@ -14,10 +14,7 @@ from hypothesis import strategies as st
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.checkpoint import (DEFAULT_CHECKPOINT, MODEL_CONFIG, TRAINING, WEIGHTS, checkpoint_hash,
                                              load_checkpoint, training_record)
-
-
-def files_under(root: Path) -> list[str]:
-    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+from tests.damage import cut, files_under, write
 
 
 def config_change(change):
@@ -25,17 +22,6 @@ def config_change(change):
         cfg = json.loads((ckpt / MODEL_CONFIG).read_text())
         change(cfg)
         (ckpt / MODEL_CONFIG).write_text(json.dumps(cfg))
-    return damage
-
-
-def write(name: str, data: bytes):
-    return lambda ckpt: (ckpt / name).write_bytes(data)
-
-
-def cut(name: str, fraction: float = 0.5):
-    def damage(ckpt: Path):
-        data = (ckpt / name).read_bytes()
-        (ckpt / name).write_bytes(data[: int(len(data) * fraction)])
     return damage
 
 
