@@ -82,16 +82,16 @@ def render(
     from omniscs.storage import atomic_write_with
 
     check_out(out, overwrite=True, suffix=".png")
-    graph = load_checkpoint(checkpoint)
     edits = read_edits(edit)
-    if edits:
-        graph = apply_graph_edits(graph, edits)
     world_from_ego = None
     if ego_pose is not None:
         values = comma_list(ego_pose, float, "--ego-pose", "x,y,z,yaw")
         if len(values) != 4 or not np.all(np.isfinite(values)):
             raise OmniscsError(f"--ego-pose must be four numbers x,y,z,yaw; got {ego_pose!r}")
         world_from_ego = pose_from_xyz_yaw(*values)
+    graph = load_checkpoint(checkpoint)
+    if edits:
+        graph = apply_graph_edits(graph, edits)
     result = graph.render(graph.view(camera, frame, world_from_ego))
     image = (result.rgb.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
     if depth:

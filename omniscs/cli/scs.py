@@ -82,9 +82,16 @@ def scs_behavior(
     from omniscs.scs.behavior.checkpoint import load_checkpoint
     from omniscs.scs.behavior.planner import check_planner
 
+    # the options first (cheap), then the scene and the checkpoint
     if variants < 1:
         raise OmniscsError(f"--variants must be at least 1; got {variants}")
     config = adversarial_preset(preset, planner=PlannerConfig(kind=check_planner(planner)), torch_threads=threads)
+    for name, value in (("--app-frames", app_frames), ("--app-downscale", app_downscale)):
+        if value < 1:
+            raise OmniscsError(f"{name} must be at least 1; got {value}")
+    if nsg is not None and not (nsg / "graph.json").is_file():
+        raise OmniscsError(f"--nsg {nsg} is not a scene-graph checkpoint (no graph.json); fit one with omniscs fit")
+    check_out(out, overwrite=True)  # variants.json and the pictures go into --out (an existing folder is fine)
     source = parse_source(scene, n_frames=frames)
     traffic = traffic_for_source(source)
     now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
