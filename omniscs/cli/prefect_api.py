@@ -118,6 +118,22 @@ def prefect_api() -> Iterator[str]:
     _server = proc
     try:
         with temporary_settings(updates={PREFECT_API_URL: url}):
-            yield url
+            try:
+                yield url
+            finally:
+                _drain()
     finally:
         stop_server()
+
+
+def _drain(timeout_s: float = 5.0) -> None:
+    """Send Prefect's queued logs and events while the server still answers (else they are retried against a
+    stopped server at exit, for a minute, and reported as connection errors)."""
+    from prefect.events.worker import EventsWorker
+    from prefect.logging.handlers import APILogWorker
+
+    for worker in (APILogWorker, EventsWorker):
+        try:
+            worker.drain_all(timeout=timeout_s)
+        except Exception:  # noqa: BLE001 - a worker that never started has nothing to send
+            pass
