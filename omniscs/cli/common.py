@@ -75,7 +75,10 @@ def print_table(rows: list[dict], title: str | None = None) -> None:
         table.add_column(str(col), overflow="fold")
     for row in rows:
         table.add_row(*[Text(_fmt(v)) for v in row.values()])
-    console.print(table)
+    if console.is_terminal:
+        console.print(table)
+    else:  # in a log or pipe rich assumes 80 columns and would fold ids and paths into many short lines
+        Console(file=sys.stdout, width=240, markup=False, emoji=False, highlight=False).print(table)
 
 
 def _fmt(v) -> str:
