@@ -14,7 +14,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.records import SceneRequest, new_run_id
-from omniscs.pipeline.validate import check_request, check_run_id, check_sources
+from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
 from omniscs.storage import clean_stale_temps, workspace_root
 from tasks import stages as t
 
@@ -79,11 +79,9 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
-    config = {"sources": list(sources) if not isinstance(sources, str) else [sources], "n_frames": n_frames,
-              "n_cameras": n_cameras, "width": width, "height": height, "fit_preset": fit_preset,
-              "behavior_variants": behavior_variants, "behavior_preset": behavior_preset,
-              "behavior_checkpoint": behavior_checkpoint, "edits": list(edits or ()), "previews": previews,
-              "device": device}
+    config = run_config(sources, n_frames, n_cameras, width, height, fit_preset=fit_preset,
+                        behavior_variants=behavior_variants, behavior_preset=behavior_preset,
+                        behavior_checkpoint=behavior_checkpoint, edits=edits or (), previews=previews, device=device)
     try:  # every input checked before any scene starts; a bad one is the run's one-line error
         request = check_request(SceneRequest(
             fit_preset=fit_preset, behavior_variants=behavior_variants, behavior_preset=behavior_preset,

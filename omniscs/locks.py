@@ -36,13 +36,13 @@ def holder(target: str | os.PathLike) -> str:
 def output_lock(target: str | os.PathLike, waiting: Callable[[str], None] | None = None) -> Iterator[None]:
     """Hold ``target``'s lock for the block; wait (calling ``waiting(holder)`` once) while another writer has
     it. Inside the block, check again whether the output is already there: the other writer may have made it."""
-    from omniscs.storage import _make_parents, _remove_empty
+    from omniscs.storage import make_parents, remove_empty
 
     path = lock_path(target)
     created: list[Path] = []
     told = False
     while True:
-        created += _make_parents(path)
+        created += make_parents(path)
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except FileNotFoundError:  # another writer removed the empty parent folder just now: make it again
@@ -76,7 +76,7 @@ def output_lock(target: str | os.PathLike, waiting: Callable[[str], None] | None
         with contextlib.suppress(FileNotFoundError):
             os.unlink(path)
         os.close(fd)
-        _remove_empty(created)  # a folder made only for the lock (the output failed) is not left behind
+        remove_empty(created)  # a folder made only for the lock (the output failed) is not left behind
 
 
 def holder_pid(lock_file: str | os.PathLike) -> int | None:

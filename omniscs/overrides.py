@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from omniscs.checks import is_int, is_real
 from omniscs.errors import OmniscsError
 
 #: Integer fields that need at least 1 (a 0 would silently do nothing, or make torch pick a thread count).
@@ -23,12 +24,12 @@ def replace_checked(kind: str, base, overrides: dict):
         if isinstance(default, bool):
             ok = isinstance(value, bool)
         elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
+            ok = is_int(value)
             if ok and (value < 0 or (name in AT_LEAST_ONE and value < 1)):
                 raise OmniscsError(f"{kind} setting {name} must be at least {1 if name in AT_LEAST_ONE else 0}; "
                                    f"got {value}")
         elif isinstance(default, float):
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            ok = is_real(value)
             if ok and not math.isfinite(value):
                 raise OmniscsError(f"{kind} setting {name} must be a finite number; got {value}")
         elif isinstance(default, str):

@@ -152,7 +152,7 @@ def _unlink(path: Path) -> bool:
     return True
 
 
-def _make_parents(path: Path) -> list[Path]:
+def make_parents(path: Path) -> list[Path]:
     """Create ``path``'s missing parent folders; returns those created (outermost first)."""
     missing = []
     for parent in path.parents:
@@ -171,7 +171,7 @@ def _make_parents(path: Path) -> list[Path]:
     return list(reversed(missing))
 
 
-def _remove_empty(folders: list[Path]) -> None:
+def remove_empty(folders: list[Path]) -> None:
     for folder in reversed(folders):  # innermost first
         try:
             folder.rmdir()
@@ -182,7 +182,7 @@ def _remove_empty(folders: list[Path]) -> None:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to a temporary sibling, fsync, then rename over ``path``."""
     path = Path(path)
-    _make_parents(path)
+    make_parents(path)
     tmp = _temp_sibling(path)
     try:
         with open(tmp, "wb") as fh:
@@ -223,7 +223,7 @@ def atomic_directory(final: str | os.PathLike, overwrite: bool = False) -> Itera
         raise OmniscsError(f"{final} already exists; choose another --out or pass --overwrite")
     if overwrite:
         check_replaceable(final)
-    created = _make_parents(final)
+    created = make_parents(final)
     for stale in final.parent.glob(f".{glob_escape(final.name)}.tmp-*"):
         pid = temp_owner(stale)
         if pid is not None and not pid_alive(pid):
@@ -249,12 +249,18 @@ def atomic_directory(final: str | os.PathLike, overwrite: bool = False) -> Itera
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
         if not finished:
-            _remove_empty(created)
+            remove_empty(created)
 
 
 def glob_escape(name: str) -> str:
     """``name`` with glob's special characters made literal."""
     return "".join(f"[{c}]" if c in "*?[" else c for c in name)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """sha256 of a file's bytes (hex), read in chunks."""
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def content_hash(*parts) -> str:

@@ -287,8 +287,6 @@ class Fixtures:
 
     def make(self, name: str, case_dir: Path) -> Path:
         """Fixture ``name`` inside ``case_dir`` (made fresh: a case may damage it further)."""
-        import numpy as np
-
         path = case_dir / name
         if name in ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wrongcol", "noimage"):
             shutil.copytree(self.store, path)

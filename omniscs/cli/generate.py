@@ -25,7 +25,7 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
     the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     from omniscs.pipeline.records import new_run_id
-    from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
+    from omniscs.pipeline.validate import RIG_DEFAULTS, check_request, check_run_id, check_sources, run_config
     from omniscs.storage import usable_workspace, workspace_path
 
     rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
@@ -38,7 +38,7 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api
 
-    config = run_config(sources, request=request, **{**dict(n_frames=40, n_cameras=3, width=480, height=270), **rig})
+    config = run_config(sources, **{**RIG_DEFAULTS, **rig}, **request.to_dict())
     with stops_cleanly(run_id, workspace_path(workspace), config, len(scenes)), prefect_api():
         return generate_dataset(sources=list(sources), workspace=str(workspace) if workspace else None,
                                 run_id=run_id, **parameters)

@@ -98,11 +98,6 @@ def stop_server() -> None:
         _stop(proc)
 
 
-def server_pid() -> int | None:
-    """The pid of the temporary server this process runs (None when it uses a configured API)."""
-    return _server.pid if _server is not None else None
-
-
 @contextlib.contextmanager
 def prefect_api() -> Iterator[str]:
     """Yield the API URL flows started in the block will use: the configured one, or a temporary server that

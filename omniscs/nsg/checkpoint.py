@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from omniscs.checks import is_int, read_json
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import PARAM_NAMES, GaussianParams
 from omniscs.nsg.agent import AgentNode
@@ -18,7 +17,7 @@ from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan
 from omniscs.scene.store import CameraRecord
-from omniscs.storage import atomic_directory, atomic_write_json
+from omniscs.storage import atomic_directory, atomic_write_json, file_sha256
 
 #: Bump when the checkpoint layout or the meaning of a stored tensor changes; older ones are refused.
 CHECKPOINT_VERSION = 1
@@ -68,7 +67,7 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
     }
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         save_file(_graph_tensors(graph), str(tmp / TENSORS))
-        meta[TENSORS_RECORD] = {"bytes": (tmp / TENSORS).stat().st_size, "sha256": _sha256(tmp / TENSORS)}
+        meta[TENSORS_RECORD] = {"bytes": (tmp / TENSORS).stat().st_size, "sha256": file_sha256(tmp / TENSORS)}
         atomic_write_json(tmp / GRAPH_JSON, meta)
         if plan is not None:
             (tmp / PLAN_JSON).write_text(plan.to_json() + "\n")
@@ -80,26 +79,6 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
 #: graph.json field with the tensor file's size and sha256 (checkpoints written before it lack it).
 TENSORS_RECORD = "tensors"
 _AGAIN = "the checkpoint is damaged: fit the scene again (omniscs fit)"
-
-
-def _sha256(path: Path) -> str:
-    with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
-
-
-def _read_json(path: Path, what: str):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise OmniscsError(f"{path} is not JSON text; {what}") from None
-    except json.JSONDecodeError as exc:
-        raise OmniscsError(f"{path} is not valid JSON ({exc}); {what}") from None
-    except OSError as exc:
-        raise OmniscsError(f"cannot read {path} ({exc.strerror or exc})") from None
-
-
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _is_matrix(v, n: int) -> bool:
@@ -122,7 +101,7 @@ def _check_meta(path: Path, meta: dict) -> None:
     if missing:
         raise OmniscsError(f"{path}: missing field(s) {missing}; {_AGAIN}")
     for key, kind in required.items():
-        if not (_is_int(meta[key]) if kind is int else isinstance(meta[key], kind)):
+        if not (is_int(meta[key]) if kind is int else isinstance(meta[key], kind)):
             bad(key, f"a JSON {'integer' if kind is int else kind.__name__.replace('dict', 'object')}")
     if not 0 <= meta["sh_degree"] <= MAX_SH_DEGREE:
         bad("sh_degree", f"0..{MAX_SH_DEGREE}")
@@ -130,18 +109,18 @@ def _check_meta(path: Path, meta: dict) -> None:
     if set(meta["settings"]) - known:
         bad("settings", f"an object with fields among {sorted(known)}")
     for i, c in enumerate(meta["cameras"]):
-        if not (isinstance(c, dict) and isinstance(c.get("name"), str) and _is_int(c.get("width"))
-                and _is_int(c.get("height")) and c["width"] > 0 and c["height"] > 0 and _is_matrix(c.get("K"), 3)
+        if not (isinstance(c, dict) and isinstance(c.get("name"), str) and is_int(c.get("width"))
+                and is_int(c.get("height")) and c["width"] > 0 and c["height"] > 0 and _is_matrix(c.get("K"), 3)
                 and _is_matrix(c.get("ego_from_camera"), 4)):
             bad(f"cameras.{i}", "a camera: name, positive width and height, K (3x3), ego_from_camera (4x4)")
     for i, a in enumerate(meta["agents"]):
-        if not (isinstance(a, dict) and _is_int(a.get("track_id")) and a["track_id"] >= 0
+        if not (isinstance(a, dict) and is_int(a.get("track_id")) and a["track_id"] >= 0
                 and isinstance(a.get("category"), str)):
             bad(f"agents.{i}", "an agent: non-negative integer track_id and a category")
     if not all(isinstance(c, str) for c in meta["exposure_cameras"]):
         bad("exposure_cameras", "a list of camera names")
     record = meta.get(TENSORS_RECORD)
-    if record is not None and not (isinstance(record, dict) and _is_int(record.get("bytes"))
+    if record is not None and not (isinstance(record, dict) and is_int(record.get("bytes"))
                                    and isinstance(record.get("sha256"), str)):
         bad(TENSORS_RECORD, "an object with bytes and sha256")
 
@@ -155,7 +134,7 @@ def read_checkpoint_meta(ckpt_dir: str | Path) -> dict:
     path = Path(ckpt_dir) / GRAPH_JSON
     if not path.is_file():
         raise OmniscsError(f"{ckpt_dir} is not a scene-graph checkpoint (no {GRAPH_JSON}); fit one with omniscs fit")
-    meta = _read_json(path, _AGAIN)
+    meta = read_json(path, _AGAIN)
     if not isinstance(meta, dict):
         raise OmniscsError(f"{path} must be a JSON object; got a {type(meta).__name__} ({_AGAIN})")
     if meta.get("kind") != KIND:
@@ -177,7 +156,7 @@ def _load_tensors(ckpt_dir: Path, meta: dict) -> dict[str, torch.Tensor]:
         if size != record["bytes"]:
             raise OmniscsError(f"{path} is {size} bytes but {GRAPH_JSON} records {record['bytes']} (truncated); "
                                f"{_AGAIN}")
-        if _sha256(path) != record["sha256"]:
+        if file_sha256(path) != record["sha256"]:
             raise OmniscsError(f"{path} does not match the sha256 in {GRAPH_JSON}; {_AGAIN}")
     try:
         return load_file(str(path))
@@ -251,7 +230,7 @@ def load_plan(ckpt_dir: str | Path) -> ScenePlan | None:
     path = Path(ckpt_dir) / PLAN_JSON
     if not path.is_file():
         return None
-    d = _read_json(path, _AGAIN)
+    d = read_json(path, _AGAIN)
     if not isinstance(d, dict):
         raise OmniscsError(f"{path} must be a JSON object; got a {type(d).__name__} ({_AGAIN})")
     try:
@@ -267,7 +246,7 @@ def load_metrics(ckpt_dir: str | Path) -> dict:
     path = Path(ckpt_dir) / METRICS_JSON
     if not path.is_file():
         return {}
-    d = _read_json(path, _AGAIN)
+    d = read_json(path, _AGAIN)
     if not isinstance(d, dict):
         raise OmniscsError(f"{path} must be a JSON object; got a {type(d).__name__} ({_AGAIN})")
     return d

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from omniscs.checks import is_int
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
 from omniscs.pipeline.records import SceneRequest
@@ -13,6 +14,8 @@ from omniscs.pipeline.records import SceneRequest
 FRAMES = (1, 10_000)
 CAMERAS = (1, 6)
 IMAGE_SIDE = (8, 4096)
+#: The synthetic rig when a caller names none (the defaults of ``generate_dataset`` and ``omniscs generate``).
+RIG_DEFAULTS = {"n_frames": 40, "n_cameras": 3, "width": 480, "height": 270}
 #: Most behaviour variants one scene may ask for.
 MAX_BEHAVIOR_VARIANTS = 1000
 
@@ -29,7 +32,7 @@ class CheckedSource:
 
 def _int_in(name: str, value, bounds: tuple[int, int]) -> int:
     lo, hi = bounds
-    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+    if not is_int(value) or not lo <= value <= hi:
         raise OmniscsError(f"{name} must be an integer from {lo} to {hi}; got {value!r}")
     return value
 
@@ -116,7 +119,9 @@ def check_run_id(run_id: str | None) -> str | None:
     return None if run_id is None else check_id("run id", run_id)
 
 
-def run_config(sources, n_frames: int, n_cameras: int, width: int, height: int, request: SceneRequest) -> dict:
-    """The run's configuration as recorded in its ``runs`` row."""
-    return {"sources": list(sources), "n_frames": n_frames, "n_cameras": n_cameras, "width": width,
-            "height": height, **request.to_dict()}
+def run_config(sources, n_frames: int, n_cameras: int, width: int, height: int, **request_fields) -> dict:
+    """The run's configuration as given (before checking), as its ``runs`` row records it: the sources, the
+    synthetic rig and the request's fields (``SceneRequest``'s names)."""
+    return {"sources": [sources] if isinstance(sources, str) else list(sources), "n_frames": n_frames,
+            "n_cameras": n_cameras, "width": width, "height": height,
+            **{k: list(v) if k == "edits" else v for k, v in request_fields.items()}}

@@ -4,10 +4,9 @@ from omniscs.scene.store import (
     SCHEMA_VERSION,
     CameraRecord,
     Scene,
-    SceneWriter,
-    boxes_frame,
     load_scene,
 )
+from omniscs.scene.writer import SceneWriter, boxes_frame
 
 __all__ = ["BOX_COLUMNS", "SCHEMA_VERSION", "CameraRecord", "Scene", "SceneWriter", "boxes_frame", "load_scene"]
 from omniscs.scene.ingest import StoreSource, check_synthetic, parse_source, source_from_dict, write_source_scene

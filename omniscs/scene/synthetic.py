@@ -9,7 +9,8 @@ import numpy as np
 
 from omniscs.geometry import invert_transform, transform_points, yaw_of
 from omniscs.quaternions import rotmat_to_quat
-from omniscs.scene.store import CameraRecord, SceneWriter
+from omniscs.scene.store import CameraRecord
+from omniscs.scene.writer import SceneWriter
 from omniscs.storage import content_hash
 
 

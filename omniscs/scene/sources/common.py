@@ -35,7 +35,8 @@ from omniscs.geometry import (
     yaw_of,
 )
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat, slerp
-from omniscs.scene.store import CameraRecord, Scene, SceneWriter
+from omniscs.scene.store import CameraRecord, Scene
+from omniscs.scene.writer import SceneWriter
 from omniscs.storage import content_hash
 
 #: Dataset formats a ``DatasetSource`` can name (also the ``kind`` in its dict form).

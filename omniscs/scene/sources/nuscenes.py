@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omniscs.checks import is_int
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.geometry import make_transform
 from omniscs.quaternions import quat_to_rotmat
@@ -151,10 +152,6 @@ def _is_str(v) -> bool:
     return isinstance(v, str)
 
 
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
 def _numbers(n: int):
     def check(v) -> bool:
         return (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool)
@@ -182,21 +179,21 @@ TABLE_FIELDS: dict[str, dict[str, tuple]] = {
                           "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"),
                           "?camera_intrinsic": (_intrinsic, "a 3x3 matrix or []")},
     "ego_pose": {"token": (_is_str, "a string"), "translation": (_numbers(3), "3 finite numbers"),
-                 "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"), "timestamp": (_is_int, "an integer")},
+                 "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"), "timestamp": (is_int, "an integer")},
     "log": {"token": (_is_str, "a string")},
     "scene": {"token": (_is_str, "a string"), "name": (_is_str, "a string"), "log_token": (_is_str, "a string"),
               "first_sample_token": (_is_str, "a string")},
-    "sample": {"token": (_is_str, "a string"), "timestamp": (_is_int, "an integer"), "next": (_is_str, "a string")},
+    "sample": {"token": (_is_str, "a string"), "timestamp": (is_int, "an integer"), "next": (_is_str, "a string")},
     "sample_data": {"token": (_is_str, "a string"), "sample_token": (_is_str, "a string"),
                     "ego_pose_token": (_is_str, "a string"), "calibrated_sensor_token": (_is_str, "a string"),
-                    "timestamp": (_is_int, "an integer"), "is_key_frame": (lambda v: isinstance(v, bool), "a boolean"),
+                    "timestamp": (is_int, "an integer"), "is_key_frame": (lambda v: isinstance(v, bool), "a boolean"),
                     "filename": (_is_str, "a string"), "next": (_is_str, "a string")},
     "sample_annotation": {"token": (_is_str, "a string"), "sample_token": (_is_str, "a string"),
                           "instance_token": (_is_str, "a string"), "translation": (_numbers(3), "3 finite numbers"),
                           "size": (_numbers(3), "3 finite numbers"),
                           "rotation": (_numbers(4), "4 finite numbers (w, x, y, z)"),
                           "?attribute_tokens": (_str_list, "a list of tokens"),
-                          "?num_lidar_pts": (_is_int, "an integer")},
+                          "?num_lidar_pts": (is_int, "an integer")},
     "map": {"token": (_is_str, "a string"), "log_tokens": (_str_list, "a list of tokens"),
             "filename": (_is_str, "a string")},
 }

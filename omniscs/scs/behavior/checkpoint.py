@@ -3,14 +3,13 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import json
-import math
 from dataclasses import fields
 from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
 
+from omniscs.checks import is_finite, is_int, read_json
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.kinematics import KinematicLimits
 from omniscs.scs.behavior.maps import CropSpec
@@ -45,20 +44,7 @@ _RETRAIN = "retrain it with `omniscs scs train-behavior`"
 
 
 def _read_json(path: Path, where: Path):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise OmniscsError(f"{path} is not JSON text; the behaviour-model checkpoint {where} is damaged: "
-                           f"{_RETRAIN}") from None
-    except json.JSONDecodeError as exc:
-        raise OmniscsError(f"{path} is not valid JSON ({exc}); the behaviour-model checkpoint {where} is damaged: "
-                           f"{_RETRAIN}") from None
-    except OSError as exc:
-        raise OmniscsError(f"cannot read {path} ({exc.strerror or exc})") from None
-
-
-def _number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    return read_json(path, f"the behaviour-model checkpoint {where} is damaged: {_RETRAIN}")
 
 
 def check_model_config(d, path: Path) -> ModelConfig:
@@ -76,10 +62,10 @@ def check_model_config(d, path: Path) -> ModelConfig:
         raise OmniscsError(f"{path}: unknown field(s) {unknown}; this omniscs's model takes {sorted(known)} "
                            f"({_RETRAIN})")
     for name, bound in _INT_FIELDS.items():
-        if name in d and not (isinstance(d[name], int) and not isinstance(d[name], bool) and 1 <= d[name] <= bound):
+        if name in d and not (is_int(d[name]) and 1 <= d[name] <= bound):
             bad(name, f"an integer from 1 to {bound}", d[name])
     for name in _FLOAT_FIELDS:
-        if name in d and not _number(d[name]):
+        if name in d and not is_finite(d[name]):
             bad(name, "a finite number", d[name])
     for name in ("dt", "edge_radius_m"):
         if d.get(name, 1.0) <= 0:
@@ -91,7 +77,7 @@ def check_model_config(d, path: Path) -> ModelConfig:
             continue
         sub = d[name]
         names = {f.name for f in fields(cls)}
-        if not isinstance(sub, dict) or set(sub) - names or not all(_number(v) for v in sub.values()):
+        if not isinstance(sub, dict) or set(sub) - names or not all(is_finite(v) for v in sub.values()):
             bad(name, f"an object of finite numbers with fields among {sorted(names)}", sub)
         args[name] = cls(**sub)
     config = ModelConfig(**args)

@@ -1,0 +1,38 @@
+"""Small checks shared by everything that reads JSON a user or a crash could have damaged (checkpoints, stores,
+dataset tables, presets, requests): JSON's numbers are Python's, so ``True`` is an int and ``NaN`` a float; these
+predicates say what a field really holds, and ``read_json`` turns any unreadable file into one domain error."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from omniscs.errors import OmniscsError
+
+
+def is_int(value) -> bool:
+    """An integer, not a bool."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def is_real(value) -> bool:
+    """An int or a float, not a bool (NaN and infinities included)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def is_finite(value) -> bool:
+    """A real number that is neither NaN nor infinite."""
+    return is_real(value) and math.isfinite(value)
+
+
+def read_json(path: Path, damaged: str):
+    """The JSON value in ``path``; text that is not UTF-8 or not JSON, or a file that cannot be read, is one
+    OmniscsError naming the file (``damaged`` says what that means and what to do)."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise OmniscsError(f"{path} is not JSON text; {damaged}") from None
+    except json.JSONDecodeError as exc:
+        raise OmniscsError(f"{path} is not valid JSON ({exc}); {damaged}") from None
+    except OSError as exc:
+        raise OmniscsError(f"cannot read {path} ({exc.strerror or exc})") from None
