@@ -122,3 +122,57 @@ CREATE OR REPLACE VIEW models AS
   FROM models_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."scene_id", b."model_id"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW datasets_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("dataset_id" AS VARCHAR) AS "dataset_id", CAST("path" AS VARCHAR) AS "path", CAST("content_hash" AS VARCHAR) AS "content_hash", CAST("reused" AS BOOLEAN) AS "reused", CAST("scene_ids" AS VARCHAR[]) AS "scene_ids", CAST("n_scenes" AS INTEGER) AS "n_scenes", CAST("n_variants" AS INTEGER) AS "n_variants", CAST("n_frames" AS BIGINT) AS "n_frames", CAST("n_samples" AS BIGINT) AS "n_samples", CAST("n_annotations" AS BIGINT) AS "n_annotations", CAST("n_ego_solved" AS INTEGER) AS "n_ego_solved", CAST("fidelity_psnr" AS DOUBLE) AS "fidelity_psnr", CAST("fidelity_ssim" AS DOUBLE) AS "fidelity_ssim", CAST("fidelity_masked_psnr" AS DOUBLE) AS "fidelity_masked_psnr", CAST("card_path" AS VARCHAR) AS "card_path", CAST("preview_path" AS VARCHAR) AS "preview_path", CAST("config_json" AS VARCHAR) AS "config_json",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/datasets/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "dataset_id", NULL::VARCHAR AS "path", NULL::VARCHAR AS "content_hash", NULL::BOOLEAN AS "reused", NULL::VARCHAR[] AS "scene_ids", NULL::INTEGER AS "n_scenes", NULL::INTEGER AS "n_variants", NULL::BIGINT AS "n_frames", NULL::BIGINT AS "n_samples", NULL::BIGINT AS "n_annotations", NULL::INTEGER AS "n_ego_solved", NULL::DOUBLE AS "fidelity_psnr", NULL::DOUBLE AS "fidelity_ssim", NULL::DOUBLE AS "fidelity_masked_psnr", NULL::VARCHAR AS "card_path", NULL::VARCHAR AS "preview_path", NULL::VARCHAR AS "config_json" WHERE false);
+CREATE OR REPLACE VIEW datasets_by_run AS
+  SELECT run_id, "dataset_id", "path", "content_hash", "reused", "scene_ids", "n_scenes", "n_variants", "n_frames", "n_samples", "n_annotations", "n_ego_solved", "fidelity_psnr", "fidelity_ssim", "fidelity_masked_psnr", "card_path", "preview_path", "config_json"
+  FROM datasets_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "dataset_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW datasets AS
+  SELECT b.run_id, b."dataset_id", b."path", b."content_hash", b."reused", b."scene_ids", b."n_scenes", b."n_variants", b."n_frames", b."n_samples", b."n_annotations", b."n_ego_solved", b."fidelity_psnr", b."fidelity_ssim", b."fidelity_masked_psnr", b."card_path", b."preview_path", b."config_json"
+  FROM datasets_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."dataset_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW samples_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("dataset_id" AS VARCHAR) AS "dataset_id", CAST("scene_id" AS VARCHAR) AS "scene_id", CAST("variant_id" AS VARCHAR) AS "variant_id", CAST("store_id" AS VARCHAR) AS "store_id", CAST("frame_idx" AS INTEGER) AS "frame_idx", CAST("scene_frame" AS INTEGER) AS "scene_frame", CAST("camera" AS VARCHAR) AS "camera", CAST("timestamp_us" AS BIGINT) AS "timestamp_us", CAST("image_path" AS VARCHAR) AS "image_path", CAST("gt_path" AS VARCHAR) AS "gt_path", CAST("ego_x" AS DOUBLE) AS "ego_x", CAST("ego_y" AS DOUBLE) AS "ego_y", CAST("ego_yaw" AS DOUBLE) AS "ego_yaw", CAST("command" AS VARCHAR) AS "command", CAST("n_boxes" AS INTEGER) AS "n_boxes", CAST("n_visible" AS INTEGER) AS "n_visible", CAST("viewpoint_offset_m" AS DOUBLE) AS "viewpoint_offset_m", CAST("fidelity_psnr" AS DOUBLE) AS "fidelity_psnr", CAST("fidelity_ssim" AS DOUBLE) AS "fidelity_ssim", CAST("fidelity_masked_psnr" AS DOUBLE) AS "fidelity_masked_psnr", CAST("fidelity_masked_ssim" AS DOUBLE) AS "fidelity_masked_ssim", CAST("variant_fidelity_psnr" AS DOUBLE) AS "variant_fidelity_psnr", CAST("ego_solved" AS BOOLEAN) AS "ego_solved",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/samples/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "dataset_id", NULL::VARCHAR AS "scene_id", NULL::VARCHAR AS "variant_id", NULL::VARCHAR AS "store_id", NULL::INTEGER AS "frame_idx", NULL::INTEGER AS "scene_frame", NULL::VARCHAR AS "camera", NULL::BIGINT AS "timestamp_us", NULL::VARCHAR AS "image_path", NULL::VARCHAR AS "gt_path", NULL::DOUBLE AS "ego_x", NULL::DOUBLE AS "ego_y", NULL::DOUBLE AS "ego_yaw", NULL::VARCHAR AS "command", NULL::INTEGER AS "n_boxes", NULL::INTEGER AS "n_visible", NULL::DOUBLE AS "viewpoint_offset_m", NULL::DOUBLE AS "fidelity_psnr", NULL::DOUBLE AS "fidelity_ssim", NULL::DOUBLE AS "fidelity_masked_psnr", NULL::DOUBLE AS "fidelity_masked_ssim", NULL::DOUBLE AS "variant_fidelity_psnr", NULL::BOOLEAN AS "ego_solved" WHERE false);
+CREATE OR REPLACE VIEW samples_by_run AS
+  SELECT run_id, "dataset_id", "scene_id", "variant_id", "store_id", "frame_idx", "scene_frame", "camera", "timestamp_us", "image_path", "gt_path", "ego_x", "ego_y", "ego_yaw", "command", "n_boxes", "n_visible", "viewpoint_offset_m", "fidelity_psnr", "fidelity_ssim", "fidelity_masked_psnr", "fidelity_masked_ssim", "variant_fidelity_psnr", "ego_solved"
+  FROM samples_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "dataset_id", "store_id", "frame_idx", "camera"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW samples AS
+  SELECT b.run_id, b."dataset_id", b."scene_id", b."variant_id", b."store_id", b."frame_idx", b."scene_frame", b."camera", b."timestamp_us", b."image_path", b."gt_path", b."ego_x", b."ego_y", b."ego_yaw", b."command", b."n_boxes", b."n_visible", b."viewpoint_offset_m", b."fidelity_psnr", b."fidelity_ssim", b."fidelity_masked_psnr", b."fidelity_masked_ssim", b."variant_fidelity_psnr", b."ego_solved"
+  FROM samples_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."dataset_id", b."store_id", b."frame_idx", b."camera"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW annotations_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("dataset_id" AS VARCHAR) AS "dataset_id", CAST("scene_id" AS VARCHAR) AS "scene_id", CAST("variant_id" AS VARCHAR) AS "variant_id", CAST("store_id" AS VARCHAR) AS "store_id", CAST("frame_idx" AS INTEGER) AS "frame_idx", CAST("camera" AS VARCHAR) AS "camera", CAST("track_id" AS BIGINT) AS "track_id", CAST("category" AS VARCHAR) AS "category", CAST("is_adversary" AS BOOLEAN) AS "is_adversary", CAST("moved" AS BOOLEAN) AS "moved", CAST("cx" AS DOUBLE) AS "cx", CAST("cy" AS DOUBLE) AS "cy", CAST("cz" AS DOUBLE) AS "cz", CAST("length" AS DOUBLE) AS "length", CAST("width" AS DOUBLE) AS "width", CAST("height" AS DOUBLE) AS "height", CAST("yaw" AS DOUBLE) AS "yaw", CAST("ego_x" AS DOUBLE) AS "ego_x", CAST("ego_y" AS DOUBLE) AS "ego_y", CAST("ego_z" AS DOUBLE) AS "ego_z", CAST("ego_yaw" AS DOUBLE) AS "ego_yaw", CAST("cam_x" AS DOUBLE) AS "cam_x", CAST("cam_y" AS DOUBLE) AS "cam_y", CAST("cam_z" AS DOUBLE) AS "cam_z", CAST("x1" AS DOUBLE) AS "x1", CAST("y1" AS DOUBLE) AS "y1", CAST("x2" AS DOUBLE) AS "x2", CAST("y2" AS DOUBLE) AS "y2", CAST("tight_x1" AS DOUBLE) AS "tight_x1", CAST("tight_y1" AS DOUBLE) AS "tight_y1", CAST("tight_x2" AS DOUBLE) AS "tight_x2", CAST("tight_y2" AS DOUBLE) AS "tight_y2", CAST("mask_pixels" AS BIGINT) AS "mask_pixels", CAST("visible_fraction" AS DOUBLE) AS "visible_fraction", CAST("visibility_level" AS INTEGER) AS "visibility_level", CAST("in_image_fraction" AS DOUBLE) AS "in_image_fraction", CAST("num_lidar_points" AS BIGINT) AS "num_lidar_points", CAST("vx" AS DOUBLE) AS "vx", CAST("vy" AS DOUBLE) AS "vy", CAST("vz" AS DOUBLE) AS "vz",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/annotations/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "dataset_id", NULL::VARCHAR AS "scene_id", NULL::VARCHAR AS "variant_id", NULL::VARCHAR AS "store_id", NULL::INTEGER AS "frame_idx", NULL::VARCHAR AS "camera", NULL::BIGINT AS "track_id", NULL::VARCHAR AS "category", NULL::BOOLEAN AS "is_adversary", NULL::BOOLEAN AS "moved", NULL::DOUBLE AS "cx", NULL::DOUBLE AS "cy", NULL::DOUBLE AS "cz", NULL::DOUBLE AS "length", NULL::DOUBLE AS "width", NULL::DOUBLE AS "height", NULL::DOUBLE AS "yaw", NULL::DOUBLE AS "ego_x", NULL::DOUBLE AS "ego_y", NULL::DOUBLE AS "ego_z", NULL::DOUBLE AS "ego_yaw", NULL::DOUBLE AS "cam_x", NULL::DOUBLE AS "cam_y", NULL::DOUBLE AS "cam_z", NULL::DOUBLE AS "x1", NULL::DOUBLE AS "y1", NULL::DOUBLE AS "x2", NULL::DOUBLE AS "y2", NULL::DOUBLE AS "tight_x1", NULL::DOUBLE AS "tight_y1", NULL::DOUBLE AS "tight_x2", NULL::DOUBLE AS "tight_y2", NULL::BIGINT AS "mask_pixels", NULL::DOUBLE AS "visible_fraction", NULL::INTEGER AS "visibility_level", NULL::DOUBLE AS "in_image_fraction", NULL::BIGINT AS "num_lidar_points", NULL::DOUBLE AS "vx", NULL::DOUBLE AS "vy", NULL::DOUBLE AS "vz" WHERE false);
+CREATE OR REPLACE VIEW annotations_by_run AS
+  SELECT run_id, "dataset_id", "scene_id", "variant_id", "store_id", "frame_idx", "camera", "track_id", "category", "is_adversary", "moved", "cx", "cy", "cz", "length", "width", "height", "yaw", "ego_x", "ego_y", "ego_z", "ego_yaw", "cam_x", "cam_y", "cam_z", "x1", "y1", "x2", "y2", "tight_x1", "tight_y1", "tight_x2", "tight_y2", "mask_pixels", "visible_fraction", "visibility_level", "in_image_fraction", "num_lidar_points", "vx", "vy", "vz"
+  FROM annotations_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "dataset_id", "store_id", "frame_idx", "camera", "track_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW annotations AS
+  SELECT b.run_id, b."dataset_id", b."scene_id", b."variant_id", b."store_id", b."frame_idx", b."camera", b."track_id", b."category", b."is_adversary", b."moved", b."cx", b."cy", b."cz", b."length", b."width", b."height", b."yaw", b."ego_x", b."ego_y", b."ego_z", b."ego_yaw", b."cam_x", b."cam_y", b."cam_z", b."x1", b."y1", b."x2", b."y2", b."tight_x1", b."tight_y1", b."tight_x2", b."tight_y2", b."mask_pixels", b."visible_fraction", b."visibility_level", b."in_image_fraction", b."num_lidar_points", b."vx", b."vy", b."vz"
+  FROM annotations_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."dataset_id", b."store_id", b."frame_idx", b."camera", b."track_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;

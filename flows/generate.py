@@ -1,8 +1,9 @@
 """The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
-Per scene (DESIGN.md): ingest → plan → preview → fit NSG → behaviour variants → catalog. Stages the scene's
-plan does not need are skipped; stages not built yet (agents, background, render + annotate, export) slot in
-between. A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
+Per scene (DESIGN.md): ingest → plan → preview → fit NSG → behaviour variants → render + annotate → catalog;
+then, once every scene is done, the run's annotated variants become one dataset (``datasets/<id>/``, catalogued).
+Stages the scene's plan does not need are skipped; stages not built yet (agents, background) slot in between.
+A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from prefect import flow, get_run_logger, task, unmapped
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.errors import OmniscsError
-from omniscs.pipeline.records import SceneRequest, new_run_id
+from omniscs.ids import check_id
+from omniscs.pipeline.records import SceneRequest, StageRecord, new_run_id
 from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
 from omniscs.storage import clean_stale_temps, workspace_root
 from tasks import stages as t
@@ -38,8 +40,11 @@ def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: s
     model = t.fit(scene, plan, request, workspace) if stages["fit_nsg"] else None
     if model is not None:
         records.append(model)
-    if stages["behavior_variants"]:
-        records.append(t.behavior(scene, plan, model, request, workspace))
+    variants = t.behavior(scene, plan, model, request, workspace) if stages["behavior_variants"] else None
+    if variants is not None:
+        records.append(variants)
+    if stages.get("render_annotate"):
+        records.append(t.annotate(scene, plan, model, variants, workspace))
     t.catalog_scene(run_id, workspace, scene.scene_id, records)
     return {"scene_id": scene.scene_id, "path": scene.path, "reused": scene.reused,
             "stages": {r.stage: r.to_dict() for r in records}}
@@ -61,7 +66,8 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
                      n_frames: int = 40, n_cameras: int = 3, width: int = 480, height: int = 270,
                      previews: bool = True, fit_preset: str | None = None, behavior_variants: int = 0,
                      behavior_preset: str = "balanced", behavior_checkpoint: str | None = None,
-                     edits: list[dict] | None = None, device: str = "cpu") -> dict:
+                     edits: list[dict] | None = None, device: str = "cpu", annotate: bool = False,
+                     dataset_id: str | None = None) -> dict:
     """Run the scene pipeline on every source and catalogue the run.
 
     Sources: ``syn:TEMPLATE:SEED[:LIGHTING]`` (procedural log of ``n_frames`` frames, ``n_cameras`` cameras at
@@ -71,9 +77,11 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ``behavior_checkpoint`` defaults to the shipped traffic model, ``behavior_preset`` is fast, balanced or
     accurate), with L_app rendered by the scene graph when one is fitted. ``edits`` (edit dicts, see README)
     are the edits the variants will apply: the plan makes their tracks nodes. Each scene's plan is in the
-    ``plans`` table. Every input is checked before any scene starts (a bad one fails the run with one line in its
+    ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
+    avoiding solution, and gathers them into the dataset ``dataset_id`` (default ``ds-<content hash>``;
+    ``datasets``, ``samples`` and ``annotations`` tables). Every input is checked before any scene starts (a bad one fails the run with one line in its
     ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and
-    stage records; scenes that failed are listed under ``failed``, and the run then ends failed after the others
+    stage records, and the dataset id (None without ``annotate``); scenes that failed are listed under ``failed``, and the run then ends failed after the others
     finished. An interrupted run (KeyboardInterrupt) is recorded as ``cancelled``.
     """
     ws = str(workspace_root(workspace))
@@ -81,12 +89,15 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     started = _now_us()
     config = run_config(sources, n_frames, n_cameras, width, height, fit_preset=fit_preset,
                         behavior_variants=behavior_variants, behavior_preset=behavior_preset,
-                        behavior_checkpoint=behavior_checkpoint, edits=edits or (), previews=previews, device=device)
+                        behavior_checkpoint=behavior_checkpoint, edits=edits or (), previews=previews, device=device,
+                        annotate=annotate, dataset_id=dataset_id)
     try:  # every input checked before any scene starts; a bad one is the run's one-line error
         request = check_request(SceneRequest(
             fit_preset=fit_preset, behavior_variants=behavior_variants, behavior_preset=behavior_preset,
-            behavior_checkpoint=behavior_checkpoint, edits=tuple(edits or ()), previews=previews, device=device))
+            behavior_checkpoint=behavior_checkpoint, edits=tuple(edits or ()), previews=previews, device=device,
+            annotate=annotate))
         scenes, repeats = check_sources(sources, n_frames, n_cameras, width, height)
+        dataset_id = check_id("dataset id", dataset_id) if dataset_id is not None else None
     except OmniscsError as exc:
         t.catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), 0, config, error=one_line(exc))
         raise
@@ -99,19 +110,26 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
         futures = scene_run.map([c.source for c in scenes], [c.text for c in scenes], request=unmapped(request),
                                 workspace=unmapped(ws), run_id=unmapped(run_id))
         results = [f.result() for f in futures]
+        dataset = None
+        done = [r for r in results if "error" not in r]
+        if annotate and done:
+            annotated = [StageRecord.from_dict(r["stages"]["annotate"]) for r in done if "annotate" in r["stages"]]
+            dataset = t.dataset(annotated, ws, dataset_id, {"sources": [c.text for c in scenes], "config": config})
+            t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"
         t.catalog_run.fn(run_id, ws, "generate_dataset", status, started, _now_us(), len(scenes), config,
                          error=one_line(exc))
         raise
     failed = [r for r in results if "error" in r]
-    done = [r for r in results if "error" not in r]
     error = "; ".join(f"{r['label']}: {r['error']}" for r in failed) or None
     t.catalog_run(run_id, ws, "generate_dataset", "failed" if failed else "completed", started, _now_us(),
                   len(scenes), config, error=error)
     if failed:
         raise OmniscsError(f"{len(failed)} of {len(scenes)} scene(s) failed in run {run_id}: {error}")
-    return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed, "repeats": repeats}
+    return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed, "repeats": repeats,
+            "dataset_id": None if dataset is None else dataset.info["dataset_id"],
+            "dataset_path": None if dataset is None else dataset.path}
 
 
 def one_line(exc: BaseException) -> str:

@@ -160,6 +160,73 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("heldout_ssim", pa.float64()),
         pa.field("error", pa.string()),                           # why the fit diverged
     ]),
+    "datasets": pa.schema([                                       # annotated datasets (dataset stage)
+        pa.field("dataset_id", pa.string(), nullable=False),
+        pa.field("path", pa.string(), nullable=False),
+        pa.field("content_hash", pa.string(), nullable=False),    # the dataset stage's key: same inputs, same data
+        pa.field("reused", pa.bool_(), nullable=False),
+        pa.field("scene_ids", pa.list_(pa.string()), nullable=False),
+        pa.field("n_scenes", pa.int32(), nullable=False),
+        pa.field("n_variants", pa.int32(), nullable=False),
+        pa.field("n_frames", pa.int64(), nullable=False),
+        pa.field("n_samples", pa.int64(), nullable=False),        # frame x camera images
+        pa.field("n_annotations", pa.int64(), nullable=False),    # box x camera
+        pa.field("n_ego_solved", pa.int32(), nullable=False),
+        pa.field("fidelity_psnr", pa.float64()),                  # mean over variants; null: no exact reference
+        pa.field("fidelity_ssim", pa.float64()),
+        pa.field("fidelity_masked_psnr", pa.float64()),
+        pa.field("card_path", pa.string(), nullable=False),
+        pa.field("preview_path", pa.string(), nullable=False),
+        pa.field("config_json", pa.string(), nullable=False),
+    ]),
+    "samples": pa.schema([                                        # one rendered image: frame x camera of a variant
+        pa.field("dataset_id", pa.string(), nullable=False),
+        pa.field("scene_id", pa.string(), nullable=False),        # the source scene
+        pa.field("variant_id", pa.string(), nullable=False),
+        pa.field("store_id", pa.string(), nullable=False),        # the variant's scene store in the dataset
+        pa.field("frame_idx", pa.int32(), nullable=False),        # frame of the variant's store
+        pa.field("scene_frame", pa.int32(), nullable=False),      # the source scene's frame
+        pa.field("camera", pa.string(), nullable=False),
+        pa.field("timestamp_us", pa.int64(), nullable=False),
+        pa.field("image_path", pa.string(), nullable=False),
+        pa.field("gt_path", pa.string(), nullable=False),         # depth, instance and semantic masks (npz)
+        pa.field("ego_x", pa.float64(), nullable=False),
+        pa.field("ego_y", pa.float64(), nullable=False),
+        pa.field("ego_yaw", pa.float64(), nullable=False),
+        pa.field("command", pa.string(), nullable=False),         # right | left | forward (UniAD's rule)
+        pa.field("n_boxes", pa.int32(), nullable=False),          # boxes whose rectangle meets the image
+        pa.field("n_visible", pa.int32(), nullable=False),        # ... with instance-mask pixels
+        pa.field("viewpoint_offset_m", pa.float64(), nullable=False),  # ego to the nearest logged ego position
+        pa.field("fidelity_psnr", pa.float64()),                  # against the exact render; null: none measured
+        pa.field("fidelity_ssim", pa.float64()),
+        pa.field("fidelity_masked_psnr", pa.float64()),           # over the reference's agent pixels
+        pa.field("fidelity_masked_ssim", pa.float64()),
+        pa.field("variant_fidelity_psnr", pa.float64()),          # mean over the variant's measured frames
+        pa.field("ego_solved", pa.bool_()),                       # the ego drives a collision-free solution
+    ]),
+    "annotations": pa.schema([                                    # one box seen by one camera in one sample
+        pa.field("dataset_id", pa.string(), nullable=False),
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("variant_id", pa.string(), nullable=False),
+        pa.field("store_id", pa.string(), nullable=False),
+        pa.field("frame_idx", pa.int32(), nullable=False),
+        pa.field("camera", pa.string(), nullable=False),
+        pa.field("track_id", pa.int64(), nullable=False),
+        pa.field("category", pa.string(), nullable=False),
+        pa.field("is_adversary", pa.bool_(), nullable=False),
+        pa.field("moved", pa.bool_(), nullable=False),            # an agent node the variant places
+        *[pa.field(c, pa.float64(), nullable=False) for c in ("cx", "cy", "cz", "length", "width", "height", "yaw")],
+        *[pa.field(c, pa.float64(), nullable=False) for c in ("ego_x", "ego_y", "ego_z", "ego_yaw")],  # ego frame
+        *[pa.field(c, pa.float64(), nullable=False) for c in ("cam_x", "cam_y", "cam_z")],  # camera frame centre
+        *[pa.field(c, pa.float64(), nullable=False) for c in ("x1", "y1", "x2", "y2")],  # projected box, clipped
+        *[pa.field(c, pa.float64()) for c in ("tight_x1", "tight_y1", "tight_x2", "tight_y2")],  # from the mask
+        pa.field("mask_pixels", pa.int64(), nullable=False),
+        pa.field("visible_fraction", pa.float64(), nullable=False),  # unoccluded, in-image share of the object
+        pa.field("visibility_level", pa.int32(), nullable=False),  # nuScenes 1..4 (v0-40 .. v80-100)
+        pa.field("in_image_fraction", pa.float64(), nullable=False),
+        pa.field("num_lidar_points", pa.int64(), nullable=False),  # simulated from the rendered depth, whole frame
+        *[pa.field(c, pa.float64(), nullable=False) for c in ("vx", "vy", "vz")],  # world frame, m/s
+    ]),
 }
 
 #: The columns that identify one logical row of each table. The default view ``<table>`` shows each value once,
@@ -173,6 +240,9 @@ KEYS: dict[str, tuple[str, ...]] = {
     "variants": ("scene_id", "variant_id"),
     "plans": ("scene_id", "plan_id"),
     "models": ("scene_id", "model_id"),
+    "datasets": ("dataset_id",),
+    "samples": ("dataset_id", "store_id", "frame_idx", "camera"),
+    "annotations": ("dataset_id", "store_id", "frame_idx", "camera", "track_id"),
 }
 
 #: The run status whose rows win over those of other ended runs (failed, cancelled) in the default views.

@@ -124,11 +124,13 @@ def modelled_area(scene: Scene, view_range_m: float) -> float:
 
 
 def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
-              cameras: list[str] | None = None, behavior_variants: int = 0, fit_nsg: bool = True) -> ScenePlan:
+              cameras: list[str] | None = None, behavior_variants: int = 0, fit_nsg: bool = True,
+              annotate: bool = False) -> ScenePlan:
     """Decide what to model for ``scene`` given the edits the requested variants will apply, how many
     behaviour-level variants are requested (their stage runs only when that is > 0, and then every vehicle
     becomes an agent node, since the adversarial optimisation may move any of them) and whether a scene graph
-    is fitted at all (``fit_nsg``; without one, no later stage that models the scene runs)."""
+    is fitted at all (``fit_nsg``; without one, no later stage that models the scene runs). ``annotate`` renders
+    and annotates the variants (the dataset's frames): it needs both a scene graph and behaviour variants."""
     if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, (int, np.integer)) \
             or behavior_variants < 0:
         raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
@@ -179,6 +181,7 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         "agent_models": bool(fit_nsg and (needs_360 or inserted)),
         "background_repair": bool(fit_nsg and repair),
         "behavior_variants": behavior_variants > 0,
+        "render_annotate": bool(annotate and fit_nsg and behavior_variants > 0),
     }
     return ScenePlan(
         scene_id=scene.scene_id, content_hash=scene.content_hash, agent_nodes=nodes, node_reasons=reasons,

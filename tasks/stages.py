@@ -39,6 +39,23 @@ def behavior(scene: StageRecord, plan: StageRecord, model: StageRecord | None, r
                                  adversarial_overrides=stages.device_overrides(request))
 
 
+@task(name="annotate", task_run_name="annotate-{scene.scene_id}")
+def annotate(scene: StageRecord, plan: StageRecord, model: StageRecord | None, behavior: StageRecord | None,
+             workspace: str) -> StageRecord:
+    return stages.annotate_stage(scene.path, stages.load_plan(plan), model, behavior, workspace,
+                                 progress=artifact_progress(f"render + annotate variants of {scene.scene_id}"))
+
+
+@task(name="dataset")
+def dataset(annotated: list[StageRecord], workspace: str, dataset_id: str | None, facts: dict) -> StageRecord:
+    return stages.dataset_stage(annotated, workspace, dataset_id, facts)
+
+
+@task(name="catalog-dataset", task_run_name="catalog-{record.scene_id}")
+def catalog_dataset(run_id: str, workspace: str, record: StageRecord) -> list[str]:
+    return stages.catalog_dataset_stage(run_id, workspace, record)
+
+
 @task(name="catalog-scene", task_run_name="catalog-{scene_id}")
 def catalog_scene(run_id: str, workspace: str, scene_id: str, records: list[StageRecord]) -> list[str]:
     return stages.catalog_scene_stage(run_id, workspace, records)

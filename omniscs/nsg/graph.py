@@ -54,6 +54,7 @@ class RenderOutput:
     alpha: Tensor   # [H, W] Gaussian coverage (1 - what the sky shows)
     meta: dict[str, Any]          # the rasterizer's meta (means2d [1, N, 2] for densification, radii, ...)
     node_slices: dict[str, slice]  # which of the N rasterised Gaussians belong to which node
+    labels: Tensor | None = None   # [H, W, E] blended label channels (``render_view(labels=...)``), else None
 
 
 @dataclass(frozen=True)
@@ -223,7 +224,8 @@ def agent_may_show(view: View, centre_world: np.ndarray, radius: float, near_pla
 
 def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False,
                 agent_poses: Mapping[int, NodePose] | None = None, static: StaticLayer | None = None,
-                only_agents: Collection[int] | None = None) -> RenderOutput:
+                only_agents: Collection[int] | None = None,
+                labels: Mapping[str, Tensor] | None = None) -> RenderOutput:
     """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
     the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
 
@@ -233,8 +235,13 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     ``static`` is the background already prepared for this view (``static_layer``; same image, less work);
     ``only_agents`` renders just those agent nodes (the caller has shown the others cannot reach the image:
     ``agent_may_show``).
+    ``labels`` ({node key: [n_node, E] float}) blends E extra channels with the same weights as the colours: a
+    one-hot column per instance gives, per pixel, how much of the pixel each instance covers once what lies in
+    front of it is taken off (auto-annotation); nodes without an entry blend zeros. Not with ``static``.
     """
     agent_poses = dict(agent_poses or {})
+    if labels is not None and static is not None:
+        raise OmniscsError("render_view blends labels over whole nodes; a static layer has culled the background")
     if static is not None and not static.matches(view):
         raise OmniscsError(f"static layer was made for frame {static.frame_idx} at {static.size[0]}x{static.size[1]}, "
                            f"not for this view (frame {view.frame_idx}, {view.width}x{view.height}, or another pose)")
@@ -251,6 +258,7 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians)
               for a in graph.agents if a.present[f] and (keep is None or a.track_id in keep)]
     parts, slices, start = [], {}, 0
+    n_labels = 0 if labels is None else _label_width(labels)
     if static is not None and len(static.means):
         parts.append((static, static.colours))
         slices[BACKGROUND] = slice(0, len(static.means))
@@ -262,15 +270,20 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device, local.means.dtype)
         colours = colors_from_sh(degree, local.sh, dirs[None])[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)
+        if n_labels:
+            colours = torch.cat([colours, _node_labels(labels, key, len(local), n_labels, colours)], -1)
         parts.append((placed, colours))
         slices[key] = slice(start, start + len(local))
         start += len(local)
 
     device = graph.sky.texture.device
     sky = sky_colors(graph.sky, pixel_directions(view, device))
+    label_image = None
     if start == 0:
         zeros = torch.zeros(view.height, view.width, device=device)
         rgb, depth, alpha, meta = sky, zeros, zeros, {}
+        if n_labels:
+            label_image = torch.zeros(view.height, view.width, n_labels, device=device)
     else:
         means = torch.cat([p.means for p, _ in parts])
         quats = torch.cat([p.quats for p, _ in parts])
@@ -287,11 +300,29 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
                                       absgrad=absgrad)
         alpha = alphas[0, ..., 0]
         rgb = out[0, ..., :3] + (1.0 - alpha)[..., None] * sky
-        depth = out[0, ..., 3]
+        depth = out[0, ..., -1]
+        if n_labels:
+            label_image = out[0, ..., 3:3 + n_labels]
     affine = graph.exposure.get(view.camera) if view.camera is not None else None
     if affine is not None:
         rgb = rgb @ affine[:, :3].T + affine[:, 3]
-    return RenderOutput(rgb, depth, alpha, meta, slices)
+    return RenderOutput(rgb, depth, alpha, meta, slices, label_image)
+
+
+def _label_width(labels: Mapping[str, Tensor]) -> int:
+    widths = {int(t.shape[-1]) for t in labels.values() if t.dim() == 2}
+    if len(widths) != 1 or any(t.dim() != 2 for t in labels.values()):
+        raise OmniscsError("render_view labels must be [n_node, E] tensors with one E for every node")
+    return widths.pop()
+
+
+def _node_labels(labels: Mapping[str, Tensor], key: str, n: int, width: int, like: Tensor) -> Tensor:  # [n, E]
+    own = labels.get(key)
+    if own is None:
+        return like.new_zeros(n, width)
+    if own.shape[0] != n:
+        raise OmniscsError(f"render_view labels of {key} have {own.shape[0]} rows; the node has {n} Gaussians")
+    return own.to(like.device, like.dtype)
 
 
 def _centre_in_node(camera_centre: np.ndarray, world_from_node: np.ndarray | NodePose | None) -> Tensor:  # [3]

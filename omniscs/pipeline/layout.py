@@ -8,10 +8,11 @@ from pathlib import Path
 from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
-__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder"]
+__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder"]
 
 #: Top-level folder of each stage's outputs.
-FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "behavior": "variants"}
+FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "behavior": "variants",
+           "annotate": "annotated", "dataset": "datasets"}
 
 
 def scenes_dir(workspace: str | Path) -> Path:
@@ -27,3 +28,8 @@ def scene_folder(workspace: str | Path, stage: str, scene_id: str) -> Path:
 def stage_folder(workspace: str | Path, stage: str, scene_id: str, name: str) -> Path:
     """One output of a stage for a scene, named by what made it (e.g. ``nsg-fast-<key>``)."""
     return scene_folder(workspace, stage, scene_id) / check_id(f"{stage} output name", name)
+
+
+def dataset_folder(workspace: str | Path, dataset_id: str) -> Path:
+    """``<workspace>/datasets/<dataset_id>``: one assembled dataset."""
+    return Path(workspace) / FOLDERS["dataset"] / check_id("dataset id", dataset_id)

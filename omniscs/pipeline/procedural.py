@@ -55,3 +55,49 @@ def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
         return traffic_from_scene(load_scene(Path(source.path)), dt=dt)
     raise OmniscsError(f"{source.format}:{source.dataroot} is a dataset, not a scene store; ingest it first "
                        "(`omniscs ingest`) and pass the scene store it writes")
+
+
+def world_reference(scene):
+    """For a procedural scene, the exact image of any rendered variant frame (``annotate.variant.Reference``): the
+    world with every moved agent node where the variant placed it and the ego where it drove, ray-cast; None for
+    recorded logs (their fidelity is the viewpoint proxy only). Renderers are kept per variant (by its frames)."""
+    world = scene.world
+    if world is None:
+        return None
+    from omniscs.edits import SetTrajectory
+    from omniscs.geometry import yaw_of
+    from omniscs.world import WorldRenderer, apply_edits
+
+    cache: dict[int, tuple[object, WorldRenderer]] = {}
+
+    def renderer_for(vf) -> WorldRenderer:
+        held = cache.get(id(vf))
+        if held is not None and held[0] is vf:
+            return held[1]
+        n = world.n_frames
+        moved: dict[int, list] = {}
+        for t, placed in enumerate(vf.node_poses):
+            for tid, T in placed.items():
+                moved.setdefault(tid, [None] * n)[int(vf.scene_frames[t])] = (
+                    float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_of(T[:3, :3])))
+        by_id = {a.track_id: a for a in world.agents}
+        edits = []
+        for tid, waypoints in moved.items():  # frames the variant does not render keep the logged pose
+            agent = by_id[tid]
+            full = [w if w is not None else (None if not agent.present[f] else (
+                float(agent.poses[f, 0, 3]), float(agent.poses[f, 1, 3]), float(agent.poses[f, 2, 3]),
+                float(yaw_of(agent.poses[f, :3, :3])))) for f, w in enumerate(waypoints)]
+            edits.append(SetTrajectory(int(tid), tuple(full)))
+        edited = apply_edits(world, edits)
+        ego = np.array(edited.ego_poses, dtype=np.float64, copy=True)
+        ego[np.asarray(vf.scene_frames, dtype=np.int64)] = vf.world_from_ego
+        renderer = WorldRenderer(edited.replace(ego_poses=ego))
+        cache.clear()
+        cache[id(vf)] = (vf, renderer)
+        return renderer
+
+    def reference(vf, camera: str, t: int):
+        r = renderer_for(vf).render_camera(int(vf.scene_frames[t]), camera)
+        return r.rgb, r.instance
+
+    return reference

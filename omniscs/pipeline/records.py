@@ -36,6 +36,9 @@ class SceneRequest:
     """Contact sheet and BEV picture of every scene."""
     device: str = "cpu"
     """Compute device of the scene graph and the behaviour optimisation ("cpu" or "cuda")."""
+    annotate: bool = False
+    """Render and annotate every variant through the scene graph (a dataset's frames and ground truth); needs
+    ``fit_preset`` and ``behavior_variants`` > 0."""
 
     def __post_init__(self) -> None:
         if self.fit_preset is not None and self.fit_preset not in PRESET_NAMES:
@@ -45,6 +48,11 @@ class SceneRequest:
             raise OmniscsError(f"behavior_variants must be a non-negative integer; got {n!r}")
         if self.behavior_preset not in PRESET_NAMES:
             raise OmniscsError(f"unknown behavior preset {self.behavior_preset!r}; use one of {list(PRESET_NAMES)}")
+        if not isinstance(self.annotate, bool):
+            raise OmniscsError(f"annotate must be true or false; got {self.annotate!r}")
+        if self.annotate and (self.fit_preset is None or self.behavior_variants < 1):
+            raise OmniscsError("a dataset renders variants through a scene graph: give a fit preset and "
+                               "behavior_variants >= 1")
         if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
             raise OmniscsError(f"unknown device {self.device!r}; use cpu or cuda")
         if isinstance(self.edits, (str, bytes, dict)) or not all(isinstance(e, dict) for e in self.edits):

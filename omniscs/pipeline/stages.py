@@ -24,7 +24,7 @@ from omniscs.pipeline.reuse import StageKey, mark_done, produce, reusable
 from omniscs.plan import PlanConfig, ScenePlan, make_plan
 from omniscs.scene import (DatasetSource, StoreSource, SyntheticSource, load_scene, parse_source, source_from_dict,
                            write_source_scene)
-from omniscs.storage import atomic_write_text
+from omniscs.storage import atomic_write_json, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,8 @@ PLAN_VERSION = 1
 PREVIEW_VERSION = 1
 FIT_VERSION = 1
 BEHAVIOR_VERSION = 1
+ANNOTATE_VERSION = 1
+DATASET_VERSION = 1
 
 #: The plan file in a plan stage's folder.
 PLAN_JSON = "plan.json"
@@ -108,7 +110,7 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
     if request.behavior_variants > 0:
         check_behavior_request(scene, request)
     plan = make_plan(scene, edits, config, behavior_variants=request.behavior_variants,
-                     fit_nsg=request.fit_preset is not None)
+                     fit_nsg=request.fit_preset is not None, annotate=request.annotate)
     key = StageKey.of("plan", PLAN_VERSION, scene.content_hash, plan.to_dict())
     out = layout.stage_folder(workspace, "plan", scene.scene_id, f"plan-{key.short}")
     with output_lock(out):
@@ -290,6 +292,116 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
                              "appearance_term": graph is not None})
 
 
+# ----------------------------------------------------------------------------- render + annotate
+def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
+                   workspace: str | Path, config=None, progress: Progress = no_progress,
+                   reuse: bool = True) -> StageRecord:
+    """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
+    the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
+    ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render."""
+    from omniscs.annotate import AnnotateConfig
+    from omniscs.annotate.scene import annotate_variants
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.pipeline.procedural import world_reference
+    from omniscs.scs.behavior import traffic_from_scene
+    from omniscs.scs.behavior.solution import SolutionConfig, solve_ego, solution_bev_picture
+
+    started = time.perf_counter()
+    scene = load_scene(scene_path)
+    if not plan.stages.get("render_annotate"):
+        return StageRecord.skip("annotate", scene.scene_id, "the request builds no dataset")
+    if model is None or model.info.get("status") != "fitted" or behavior is None or behavior.skipped:
+        return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no behaviour variants to render")
+    config = config or AnnotateConfig()
+    solution_config = SolutionConfig()
+    key = StageKey.of("annotate", ANNOTATE_VERSION, {"scene": scene.content_hash, "graph": model.key,
+                                                     "variants": behavior.key},
+                      {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config)})
+    out = layout.stage_folder(workspace, "annotate", scene.scene_id, f"annotate-{key.short}")
+    with output_lock(out, _waiting(progress, out)):
+        manifest = reusable(out, key) if reuse else None
+        if manifest is None:
+            variants = json.loads(Path(behavior.path).read_text())
+            traffic = traffic_from_scene(scene)
+            graph = load_checkpoint(model.path, scene)
+
+            def make(tmp: Path) -> dict:
+                results = annotate_variants(
+                    graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
+                    reference=world_reference(scene), config=config, progress=progress,
+                    picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png))
+                return {"stores": [r.store.name for r in results], "rows": "rows.json"}
+
+            produce(out, key, make)
+    from omniscs.annotate.scene import read_rows
+
+    rows = read_rows(out)
+    summaries = rows["variants"]
+    return StageRecord("annotate", scene.scene_id, str(out), reused=manifest is not None,
+                       seconds=time.perf_counter() - started, key=key.digest,
+                       info={"n_variants": len(summaries), "n_images": len(rows["samples"]),
+                             "n_annotations": len(rows["annotations"]),
+                             "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries)})
+
+
+# ----------------------------------------------------------------------------- dataset
+def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_id: str | None = None,
+                  facts: dict | None = None, reuse: bool = True) -> StageRecord:
+    """Gather the annotate stages' outputs of a run into ``datasets/<dataset_id>/`` (variant stores, BEVs,
+    preview, card; ``omniscs.annotate.dataset``) with its ``datasets``, ``samples`` and ``annotations`` rows.
+    ``dataset_id`` defaults to ``ds-<key>``: the same annotated inputs give the same dataset, reused."""
+    from omniscs.annotate.dataset import CARD_JSON, PREVIEW_PNG
+
+    started = time.perf_counter()
+    done = [r for r in annotated if r is not None and not r.skipped and r.path]
+    if not done:
+        raise OmniscsError("no scene of this run has annotated variants; a dataset needs at least one")
+    facts = dict(facts or {})
+    key = StageKey.of("dataset", DATASET_VERSION, sorted(r.key for r in done), facts)
+    dataset_id = check_id("dataset id", dataset_id or f"ds-{key.short}")
+    out = layout.dataset_folder(workspace, dataset_id)
+    with output_lock(out):
+        manifest = reusable(out, key) if reuse else None
+        if manifest is None:
+            produce(out, key, lambda tmp: _assemble(tmp, out, done, dataset_id, facts))
+    rows = json.loads((out / "rows.json").read_text())
+    card = json.loads((out / CARD_JSON).read_text())
+    c, fid = card["counts"], card["fidelity"]
+
+    def mean(stat):
+        return None if stat is None else stat["mean"]
+
+    dataset_row = {"dataset_id": dataset_id, "path": str(out), "content_hash": key.digest,
+                   "reused": manifest is not None, "scene_ids": sorted({r.scene_id for r in done}),
+                   "n_scenes": c["scenes"], "n_variants": c["variants"], "n_frames": c["frames"],
+                   "n_samples": c["images"], "n_annotations": c["annotations"], "n_ego_solved": c["ego_solved"],
+                   "fidelity_psnr": mean(fid["variant_psnr"]), "fidelity_ssim": mean(fid["variant_ssim"]),
+                   "fidelity_masked_psnr": mean(fid["variant_masked_psnr"]), "card_path": str(out / CARD_JSON),
+                   "preview_path": str(out / PREVIEW_PNG),
+                   "config_json": json.dumps(facts.get("config"), sort_keys=True, default=str)}
+    return StageRecord("dataset", dataset_id, str(out), reused=manifest is not None,
+                       seconds=time.perf_counter() - started, key=key.digest,
+                       rows={"datasets": [dataset_row], "samples": rows["samples"],
+                             "annotations": rows["annotations"]},
+                       info={"dataset_id": dataset_id, "counts": c})
+
+
+def _assemble(tmp: Path, final: Path, annotated: list[StageRecord], dataset_id: str, facts: dict) -> dict:
+    from omniscs.annotate.dataset import CARD_JSON, CARD_MD, PREVIEW_PNG, assemble_dataset
+
+    made = assemble_dataset([r.path for r in annotated], tmp, final, dataset_id, facts)
+    atomic_write_json(tmp / "rows.json", {"samples": made["samples"], "annotations": made["annotations"]})
+    return {"card": CARD_JSON, "readme": CARD_MD, "preview": PREVIEW_PNG, "rows": "rows.json"}
+
+
+def catalog_dataset_stage(run_id: str, workspace: str | Path, record: StageRecord) -> list[str]:
+    """The dataset's rows (``datasets``, ``samples``, ``annotations``), one new Parquet file per table."""
+    root = layout.catalog_root(workspace)
+    writer = f"dataset-{record.scene_id}"
+    written = [catalog.write_rows(root, table, run_id, rows, writer=writer) for table, rows in record.rows.items()]
+    return [str(p) for p in written if p is not None]
+
+
 # ----------------------------------------------------------------------------- catalog
 def catalog_scene_stage(run_id: str, workspace: str | Path, records: list[StageRecord]) -> list[str]:
     """One new Parquet file per catalog table for this scene: its scene, agent and frame rows (from the
@@ -351,11 +463,14 @@ def run_scene(source, request: SceneRequest, workspace: str | Path, run_id: str 
         fitted = fit_stage(ingested.path, plan, request.fit_preset, workspace, progress=sink("fit"),
                            **device_overrides(request))
         records.append(fitted)
+    behaved = None
     if plan.stages.get("behavior_variants"):
-        records.append(behavior_stage(ingested.path, plan, request.behavior_variants, workspace,
-                                      request.behavior_preset, request.behavior_checkpoint, fitted,
-                                      progress=sink("behavior"),
-                                      adversarial_overrides=device_overrides(request)))
+        behaved = behavior_stage(ingested.path, plan, request.behavior_variants, workspace,
+                                 request.behavior_preset, request.behavior_checkpoint, fitted,
+                                 progress=sink("behavior"), adversarial_overrides=device_overrides(request))
+        records.append(behaved)
+    if plan.stages.get("render_annotate"):
+        records.append(annotate_stage(ingested.path, plan, fitted, behaved, workspace, progress=sink("annotate")))
     if run_id is not None:
         catalog_scene_stage(run_id, workspace, records)
     return records

@@ -1,0 +1,209 @@
+"""A dataset: the annotated variants of one or more scenes gathered under ``datasets/<dataset_id>/``.
+
+Layout::
+
+    scenes/<store id>/   one scene store per variant (hard links to the annotate stage's stores: no copy)
+    bev/<store id>.png   the variant's BEV with the ego's plan, the adversary and the ego's solution
+    preview.png          contact sheet: rendered frames with instance masks and boxes drawn
+    dataset.json         the card: sources, config, counts, fidelity summary (README.md says the same in prose)
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from omniscs.annotate.scene import read_rows
+from omniscs.errors import OmniscsError
+from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text
+
+CARD_JSON = "dataset.json"
+CARD_MD = "README.md"
+PREVIEW_PNG = "preview.png"
+SCENES = "scenes"
+BEV = "bev"
+#: Contact sheet: tiles across and at most this many tiles.
+PREVIEW_COLUMNS = 4
+PREVIEW_TILES = 16
+#: Width of one contact-sheet tile (pixels).
+PREVIEW_TILE_WIDTH = 400
+
+
+def link_tree(src: Path, dst: Path) -> None:
+    """``dst`` as a copy of ``src`` made of hard links (a plain copy where the file system refuses links)."""
+    for dirpath, _, filenames in os.walk(src):
+        target = dst / Path(dirpath).relative_to(src)
+        target.mkdir(parents=True, exist_ok=True)
+        for name in filenames:
+            try:
+                os.link(Path(dirpath) / name, target / name)
+            except OSError:
+                shutil.copy2(Path(dirpath) / name, target / name)
+
+
+def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path, dataset_id: str,
+                     card_facts: dict) -> dict:
+    """Gather the annotate stages' outputs ``annotated`` into ``out_dir`` (a temporary folder that becomes
+    ``final_dir``): variant stores, BEV pictures, preview and card. Returns the card with the rows to catalogue
+    (``samples``, ``annotations``, ``variants``: paths already pointing into ``final_dir``)."""
+    samples, annotations, variants = [], [], []
+    for folder in annotated:
+        folder = Path(folder)
+        rows = read_rows(folder)
+        for v in rows["variants"]:
+            link_tree(folder / v["store_id"], out_dir / SCENES / v["store_id"])
+            bev = folder / f"{v['store_id']}-bev.png"
+            if bev.is_file():
+                (out_dir / BEV).mkdir(exist_ok=True)
+                link_tree_file(bev, out_dir / BEV / f"{v['store_id']}.png")
+            variants.append(dict(v, path=str(final_dir / SCENES / v["store_id"])))
+        for s in rows["samples"]:
+            store = final_dir / SCENES / s["store_id"]
+            samples.append(dict(s, dataset_id=dataset_id, image_path=str(store / s["image_path"]),
+                                gt_path=str(store / s["gt_path"])))
+        annotations.extend(dict(a, dataset_id=dataset_id) for a in rows["annotations"])
+    if not variants:
+        raise OmniscsError("no annotated variant to put in a dataset; ask for behaviour variants of at least one "
+                           "scene with a vehicle besides the ego")
+    card = dataset_card(dataset_id, variants, samples, annotations, card_facts)
+    atomic_write_json(out_dir / CARD_JSON, card)
+    atomic_write_text(out_dir / CARD_MD, card_markdown(card))
+    write_preview(out_dir, samples, annotations, out_dir / PREVIEW_PNG)
+    return {"card": card, "samples": samples, "annotations": annotations, "variants": variants}
+
+
+def link_tree_file(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _stats(values: list[float]) -> dict | None:
+    v = [float(x) for x in values if x is not None and np.isfinite(x)]
+    if not v:
+        return None
+    return {"mean": float(np.mean(v)), "median": float(np.median(v)), "min": float(np.min(v)),
+            "max": float(np.max(v)), "n": len(v)}
+
+
+def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], annotations: list[dict],
+                 facts: dict) -> dict:
+    """The dataset card: what went in, what came out, how faithful the renders are."""
+    categories: dict[str, int] = {}
+    levels = {1: 0, 2: 0, 3: 0, 4: 0}
+    for a in annotations:
+        categories[a["category"]] = categories.get(a["category"], 0) + 1
+        levels[int(a["visibility_level"])] += 1
+    commands: dict[str, int] = {}
+    for s in samples:
+        commands[s["command"]] = commands.get(s["command"], 0) + 1
+    return {
+        "dataset_id": dataset_id, **facts,
+        "counts": {"scenes": len({v["scene_id"] for v in variants}), "variants": len(variants),
+                   "frames": int(sum(v["n_frames"] for v in variants)), "images": len(samples),
+                   "annotations": len(annotations),
+                   "ego_solved": sum(bool(v.get("ego_solved")) for v in variants),
+                   "dropped_frames": int(sum(v["dropped_frames"] for v in variants)),
+                   "annotations_by_category": dict(sorted(categories.items())),
+                   "annotations_by_visibility": {f"level {k}": n for k, n in levels.items()},
+                   "samples_by_command": dict(sorted(commands.items()))},
+        "fidelity": {"variant_psnr": _stats([v.get("fidelity_psnr") for v in variants]),
+                     "variant_ssim": _stats([v.get("fidelity_ssim") for v in variants]),
+                     "variant_masked_psnr": _stats([v.get("fidelity_masked_psnr") for v in variants]),
+                     "max_viewpoint_offset_m": _stats([v.get("max_viewpoint_offset_m") for v in variants])},
+        "variants": [{k: v.get(k) for k in ("scene_id", "variant_id", "store_id", "n_frames", "n_images",
+                                            "n_annotations", "dropped_frames", "ego_solved", "fidelity_psnr",
+                                            "fidelity_ssim", "fidelity_masked_psnr", "max_viewpoint_offset_m")}
+                     for v in variants],
+    }
+
+
+def card_markdown(card: dict) -> str:
+    c, fid = card["counts"], card["fidelity"]
+
+    def stat(s: dict | None, unit: str = "") -> str:
+        return "not measured" if s is None else f"mean {s['mean']:.2f}{unit}, median {s['median']:.2f}{unit}, " \
+                                                f"min {s['min']:.2f}{unit} over {s['n']} variant(s)"
+
+    lines = [f"# Dataset {card['dataset_id']}", "",
+             f"{c['variants']} behaviour-level SCS variant(s) of {c['scenes']} scene(s): {c['frames']} frames, "
+             f"{c['images']} annotated images, {c['annotations']} box annotations (one per box and camera).", "",
+             f"- Sources: {', '.join(card.get('sources') or []) or 'n/a'}",
+             f"- The ego drives its avoiding solution in {c['ego_solved']} of {c['variants']} variant(s); the others "
+             "keep the plan that collides (test cases).",
+             f"- Frames not rendered because the ego left the fitted area: {c['dropped_frames']}",
+             f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
+             f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
+             f"- Distance of the rendered ego from the logged path: {stat(fid['max_viewpoint_offset_m'], ' m')}",
+             f"- Annotations by category: {c['annotations_by_category']}",
+             f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
+             f"- Samples by driving command: {c['samples_by_command']}", "",
+             "## Config", "", "```json", json.dumps(card.get("config"), indent=2, sort_keys=True), "```", "",
+             "## Variants", "", "| scene | variant | frames | images | boxes | ego solved | PSNR dB | masked PSNR dB |",
+             "|---|---|---:|---:|---:|---|---:|---:|"]
+    for v in card["variants"]:
+        def num(x):
+            return "" if x is None else f"{x:.2f}"
+        lines.append(f"| {v['scene_id']} | {v['variant_id']} | {v['n_frames']} | {v['n_images']} | "
+                     f"{v['n_annotations']} | {v['ego_solved']} | {num(v['fidelity_psnr'])} | "
+                     f"{num(v['fidelity_masked_psnr'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def _colour(track_id: int) -> tuple[int, int, int]:
+    from omniscs.preview import track_colour
+
+    return tuple(int(c) for c in track_colour(int(track_id)))
+
+
+def write_preview(root: Path, samples: list[dict], annotations: list[dict], out_png: Path) -> Path:
+    """Contact sheet: up to PREVIEW_TILES rendered images spread over the variants and frames, each with its
+    instance masks tinted and its boxes drawn (projected 3D box; red = the adversary)."""
+    if not samples:
+        raise OmniscsError("no sample to preview")
+    by_image: dict[tuple, list[dict]] = {}
+    for a in annotations:
+        by_image.setdefault((a["store_id"], a["frame_idx"], a["camera"]), []).append(a)
+    pick = np.unique(np.linspace(0, len(samples) - 1, min(PREVIEW_TILES, len(samples))).round().astype(int))
+    tiles = []
+    for i in pick:
+        s = samples[i]
+        store = root / SCENES / s["store_id"]
+        rgb = cv2.cvtColor(cv2.imread(str(store / "images" / s["camera"] / f"{s['frame_idx']:06d}.png")),
+                           cv2.COLOR_BGR2RGB)
+        with np.load(store / "gt" / s["camera"] / f"{s['frame_idx']:06d}.npz") as gt:
+            instance = gt["instance"]
+        tint = rgb.astype(np.float32)
+        for tid in np.unique(instance[instance >= 0]):
+            m = instance == tid
+            tint[m] = 0.55 * tint[m] + 0.45 * np.array(_colour(tid), np.float32)
+        img = tint.clip(0, 255).astype(np.uint8)
+        scale = PREVIEW_TILE_WIDTH / img.shape[1]
+        img = cv2.resize(img, (PREVIEW_TILE_WIDTH, max(1, int(round(img.shape[0] * scale)))),
+                         interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST)
+        for a in by_image.get((s["store_id"], s["frame_idx"], s["camera"]), []):
+            colour = (230, 30, 30) if a["is_adversary"] else (40, 220, 60)
+            p1 = (int(a["x1"] * scale), int(a["y1"] * scale))
+            p2 = (int(a["x2"] * scale) - 1, int(a["y2"] * scale) - 1)
+            cv2.rectangle(img, p1, p2, colour, 1)
+            cv2.putText(img, f"{a['track_id']} v{a['visibility_level']}", (p1[0] + 2, p1[1] + 11),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+        caption = f"{s['store_id']} f{s['frame_idx']} {s['camera']} {s['command']}"
+        cv2.rectangle(img, (0, 0), (img.shape[1], 14), (0, 0, 0), -1)
+        cv2.putText(img, caption, (3, 10), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(img)
+    h = max(t.shape[0] for t in tiles)
+    tiles = [np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0))) for t in tiles]
+    while len(tiles) % PREVIEW_COLUMNS and len(tiles) > PREVIEW_COLUMNS:
+        tiles.append(np.zeros_like(tiles[0]))
+    rows = [np.concatenate(tiles[i:i + PREVIEW_COLUMNS], 1) for i in range(0, len(tiles), PREVIEW_COLUMNS)]
+    sheet = np.concatenate(rows, 0)
+    ok, png = cv2.imencode(".png", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OmniscsError(f"could not encode {out_png}")
+    return atomic_write_bytes(out_png, png.tobytes())

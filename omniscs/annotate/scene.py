@@ -1,0 +1,85 @@
+"""Every behaviour variant of one scene rendered and annotated: the ego's solution first (the planning target of
+each variant), then one scene store per variant, and the rows and pictures that describe them."""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from omniscs.annotate.config import AnnotateConfig
+from omniscs.annotate.variant import AnnotatedVariant, Reference, background_tracks, write_annotated_variant
+from omniscs.annotate.views import ViewAnnotator, background_members
+from omniscs.errors import OmniscsError
+from omniscs.ids import check_id
+from omniscs.nsg.graph import SceneGraph
+from omniscs.progress import Progress, no_progress
+from omniscs.scene.store import Scene
+from omniscs.storage import atomic_write_json
+
+log = logging.getLogger(__name__)
+
+#: What the annotate stage writes beside the variant stores: every catalog row and every variant's summary.
+ROWS_JSON = "rows.json"
+
+
+def variant_store_id(scene_id: str, variant_id: str) -> str:
+    """The scene id of a variant's store (a safe id: it names a folder)."""
+    return check_id("variant store id", f"{scene_id}-{variant_id}")
+
+
+def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out_dir: str | Path,
+                      solve: Callable[[dict], object] | None = None, reference: Reference | None = None,
+                      config: AnnotateConfig = AnnotateConfig(), picture: Callable | None = None,
+                      progress: Progress = no_progress) -> list[AnnotatedVariant]:
+    """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
+
+    ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
+    solved the ego drives it in the rendered frames, else the ego keeps the variant's plan and the variant is kept
+    as a test case (``ego_solved`` false). ``picture(variant, solution, png)`` draws the variant's BEV with the
+    solution. Writes ``rows.json`` (samples, annotations, summaries) last."""
+    out_dir = Path(out_dir)
+    annotator = ViewAnnotator(graph, config)
+    members = background_members(graph, background_tracks(scene, graph))
+    results, pictures = [], []
+    for i, variant in enumerate(variants):
+        if variant.get("scene_id") not in (None, scene.scene_id):
+            raise OmniscsError(f"variant {variant.get('variant_id')} belongs to scene {variant.get('scene_id')}, "
+                               f"not {scene.scene_id}")
+        vid = str(variant.get("variant_id"))
+        solution = solve(variant) if solve is not None else None
+        solved = solution is not None and bool(solution.solved)
+        ego = np.asarray(solution.trajectory) if solved else None
+        if solution is not None and not solved:
+            log.warning("variant %s of %s: no comfortable collision-free ego trajectory (%s); kept as a test case "
+                        "with the ego on its plan", vid, scene.scene_id, solution.reason)
+        store_id = variant_store_id(scene.scene_id, vid)
+        done = i * 1.0
+
+        def step(k, n, what=None, _done=done):
+            progress(int(_done * 1000 + 1000 * k / max(n or 1, 1)), 1000 * len(variants), what)
+
+        result = write_annotated_variant(graph, scene, variant, out_dir / store_id, store_id, ego_xy_yaw=ego,
+                                         solution=None if solution is None else solution.to_dict(),
+                                         reference=reference, config=config, progress=step, annotator=annotator,
+                                         members=members)
+        if picture is not None and solution is not None:
+            pictures.append(Path(picture(variant, solution, out_dir / f"{store_id}-bev.png")).name)
+        results.append(result)
+    atomic_write_json(out_dir / ROWS_JSON, {
+        "samples": [r for v in results for r in v.samples],
+        "annotations": [r for v in results for r in v.annotations],
+        "variants": [dict(v.summary, store_id=v.store.name, scene_id=scene.scene_id) for v in results],
+        "bev": pictures})
+    return results
+
+
+def read_rows(out_dir: str | Path) -> dict:
+    """The rows an annotate stage wrote (samples, annotations, variant summaries, BEV file names)."""
+    path = Path(out_dir) / ROWS_JSON
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise OmniscsError(f"{path}: cannot read the annotate stage's rows ({exc}); run the stage again") from None

@@ -1,0 +1,300 @@
+"""One variant rendered and annotated, written as a scene store (the project's one format, so every reader,
+writer and exporter works on it unchanged) plus the rows of the ``samples`` and ``annotations`` catalog tables.
+
+Beside the usual store files a variant store holds ``attributes.parquet`` (per frame and track the nuScenes
+visibility level the exporter uses) and ``variant.json`` (the variant, the ego's solution, the driving command of
+every frame, the source frames and the frames that were dropped because the ego left the fitted area)."""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
+
+from omniscs.annotate.config import AnnotateConfig, visibility_level
+from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
+from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
+from omniscs.errors import OmniscsError
+from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
+from omniscs.nsg.graph import SceneGraph
+from omniscs.progress import Progress, no_progress
+from omniscs.quaternions import quat_to_rotmat
+from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
+from omniscs.scene.store import Scene, gt_path, image_path
+from omniscs.scene.writer import SceneWriter
+
+log = logging.getLogger(__name__)
+
+VARIANT_JSON = "variant.json"
+#: nuScenes' visibility level names, by level 1..4.
+VISIBILITY_NAMES = {1: "v0-40", 2: "v40-60", 3: "v60-80", 4: "v80-100"}
+#: A reference image for fidelity: (rgb uint8 [H, W, 3], instance int32 [H, W]) of a camera at a rendered frame.
+Reference = Callable[[VariantFrames, str, int], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class AnnotatedVariant:
+    """What ``write_annotated_variant`` wrote."""
+
+    store: Path
+    samples: list[dict]
+    annotations: list[dict]
+    summary: dict
+
+
+def _finite(x) -> float | None:
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _world_from_box(row) -> np.ndarray:  # -> [4, 4]
+    R = quat_to_rotmat(np.array([row.qw, row.qx, row.qy, row.qz], dtype=np.float64))
+    return make_transform(R, np.array([row.cx, row.cy, row.cz], dtype=np.float64))
+
+
+def background_tracks(scene: Scene, graph: SceneGraph) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """{track id: (world_from_box, size)} of the tracks left in the background (their first box: they do not move)."""
+    out = {}
+    nodes = set(graph.agent_ids)
+    for tid, rows in scene.boxes.groupby("track_id"):
+        if int(tid) in nodes:
+            continue
+        first = rows.sort_values("frame_idx").iloc[0]
+        out[int(tid)] = (_world_from_box(first), first[["length", "width", "height"]].to_numpy(np.float64))
+    return out
+
+
+def lidar_from_depth(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # (depth [H,W], K, ego_from_camera)
+                     config: AnnotateConfig) -> np.ndarray:  # -> float32 [N, 4] ego frame, intensity 0
+    """Points sampled from the rendered depth like a spinning LiDAR's beams (rows and columns at the configured
+    angular steps) over the cameras' fields of view: the LiDAR returns the scene graph itself can vouch for."""
+    points = []
+    for depth, K, ego_from_camera in views:
+        h, w = depth.shape
+        du = max(1, int(round(K[0, 0] * np.tan(np.radians(config.lidar_horizontal_step_deg)))))
+        dv = max(1, int(round(K[1, 1] * np.tan(np.radians(config.lidar_vertical_step_deg)))))
+        v, u = np.mgrid[dv // 2:h:dv, du // 2:w:du]
+        z = depth[v, u].astype(np.float64)
+        uv = np.stack([u + 0.5, v + 0.5], -1).reshape(-1, 2)
+        cam = unproject(uv, z.reshape(-1), K)
+        keep = (z.reshape(-1) > 0) & (np.linalg.norm(cam, axis=1) <= config.lidar_max_range_m)
+        points.append(transform_points(ego_from_camera, cam[keep]))
+    xyz = np.concatenate(points) if points else np.zeros((0, 3))
+    out = np.zeros((len(xyz), 4), np.float32)
+    out[:, :3] = xyz
+    return out
+
+
+def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:  # -> [B]
+    """How many points lie in each box (ego frame)."""
+    counts = np.zeros(len(sizes), dtype=np.int64)
+    for i, (T, size) in enumerate(zip(ego_from_boxes, sizes)):
+        local = transform_points(invert_transform(T), points_ego[:, :3].astype(np.float64))
+        counts[i] = int(np.all(np.abs(local) <= 0.5 * size, axis=1).sum())
+    return counts
+
+
+def image_fidelity(rendered: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> dict:
+    """PSNR / SSIM of a rendered frame against its reference, over the image and over ``mask`` (None when empty)."""
+    from omniscs.nsg.metrics import psnr, ssim
+
+    r = torch.from_numpy(rendered.astype(np.float32) / 255.0)
+    g = torch.from_numpy(reference.astype(np.float32) / 255.0)
+    m = torch.from_numpy(mask)
+    return {"psnr": _finite(psnr(r, g)), "ssim": _finite(ssim(r, g)),
+            "masked_psnr": _finite(psnr(r, g, m)) if mask.any() else None,
+            "masked_ssim": _finite(ssim(r, g, m)) if mask.any() else None}
+
+
+def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_dir: str | Path, store_id: str,
+                            ego_xy_yaw: np.ndarray | None = None, solution: dict | None = None,
+                            reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
+                            progress: Progress = no_progress, annotator: ViewAnnotator | None = None,
+                            members: dict | None = None) -> AnnotatedVariant:
+    """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
+    when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
+    exact image of a frame (procedural scenes) for fidelity; without it only the viewpoint proxy is measured.
+    ``annotator`` and ``members`` (background tracks' Gaussians) may be shared between variants of one graph."""
+    started = time.perf_counter()
+    if graph.scene_id != scene.scene_id:
+        raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
+    annotator = annotator or ViewAnnotator(graph, config)
+    if members is None:
+        members = background_members(graph, background_tracks(scene, graph))
+    vf = variant_frames(scene, variant, frozenset(graph.agent_ids), ego_xy_yaw, config)
+    if vf.dropped_frames:
+        log.warning("variant %s of %s: the ego leaves the fitted area (> %.1f m from every logged ego position) in "
+                    "%d frame(s); those frames are not rendered", variant.get("variant_id"), scene.scene_id,
+                    config.max_viewpoint_offset_m, len(vf.dropped_frames))
+    if vf.n_frames == 0:
+        raise OmniscsError(f"variant {variant.get('variant_id')} of {scene.scene_id}: the ego is outside the fitted "
+                           "area in every frame; nothing can be rendered")
+    cameras = [graph.camera(c) for c in scene.camera_names if c in {r.name for r in graph.cameras}]
+    adversary = int(variant.get("adversary", -1))
+    moved = {int(k) for k in (variant.get("agents") or {})} & set(graph.agent_ids)
+    boxes = vf.boxes.copy()
+    boxes["visible_pixels"] = 0
+    vis_alpha: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    samples, annotations, fidelity = [], [], []
+    render_s = label_s = write_s = 0.0
+    source = {"kind": "variant", "scene_id": scene.scene_id, "variant_id": str(variant.get("variant_id")),
+              "scene_content_hash": scene.content_hash}
+    out_dir = Path(out_dir)
+    total = vf.n_frames * len(cameras)
+    with SceneWriter(out_dir, store_id, source, overwrite=True) as writer:
+        writer.set_frames(vf.timestamps_us, vf.world_from_ego)
+        writer.set_cameras(cameras)
+        writer.set_extra(source_scene_id=scene.scene_id, **_location(scene))
+        rows_by_frame = {t: g for t, g in boxes.groupby("frame_idx")}
+        for t in range(vf.n_frames):
+            f = int(vf.scene_frames[t])
+            frame_rows = rows_by_frame.get(t, boxes.iloc[0:0])
+            instances = [Instance(int(r.track_id), str(r.category), _world_from_box(r),
+                                  np.array([r.length, r.width, r.height], dtype=np.float64),
+                                  members.get(int(r.track_id)) if int(r.track_id) not in graph.agent_ids else None)
+                         for r in frame_rows.itertuples()]
+            depth_views = []
+            for cam in cameras:
+                tick = time.perf_counter()
+                view = graph.view(cam.name, f, world_from_ego=vf.world_from_ego[t])
+                ann = annotator.annotate(view, vf.node_poses[t], instances)
+                tock = time.perf_counter()
+                render_s += ann_render_seconds(annotator)
+                label_s += (tock - tick) - ann_render_seconds(annotator)
+                writer.write_image(cam.name, t, ann.rgb)
+                writer.write_gt(cam.name, t, ann.depth, ann.instance, ann.semantic)
+                write_s += time.perf_counter() - tock
+                depth_views.append((ann.depth, cam.K, cam.ego_from_camera))
+                fid = {}
+                if reference is not None and config.fidelity_every and t % config.fidelity_every == 0:
+                    ref_rgb, ref_instance = reference(vf, cam.name, t)
+                    fid = image_fidelity(ann.rgb, ref_rgb, ref_instance >= 0)
+                    fidelity.append(fid)
+                samples.append(_sample_row(scene, variant, store_id, vf, t, cam.name, ann, fid))
+                for label in ann.labels:
+                    key = (t, label.track_id)
+                    full = label.own_alpha / label.in_image_fraction if label.in_image_fraction > 0 else 0.0
+                    vis_alpha.setdefault(key, []).append((label.visible_alpha, full))
+                    annotations.append(_annotation_row(label, frame_rows, vf, t, cam.name, variant, store_id,
+                                                       adversary, moved, config))
+                progress(t * len(cameras) + cameras.index(cam) + 1, total, f"variant {variant.get('variant_id')}")
+            tick = time.perf_counter()
+            points = lidar_from_depth(depth_views, config)
+            writer.write_lidar(t, points)
+            if len(frame_rows):
+                ego_from_world = invert_transform(vf.world_from_ego[t])
+                ego_from_boxes = np.stack([ego_from_world @ _world_from_box(r) for r in frame_rows.itertuples()])
+                sizes = frame_rows[["length", "width", "height"]].to_numpy(np.float64)
+                boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes)
+            label_s += time.perf_counter() - tick
+        for row in annotations:  # the frame's LiDAR count, known once the frame's cameras are all rendered
+            row["num_lidar_points"] = int(boxes.loc[(boxes.frame_idx == row["frame_idx"])
+                                                    & (boxes.track_id == row["track_id"]), "num_lidar_points"].iloc[0])
+        pixels = {}
+        for row in annotations:
+            pixels[(row["frame_idx"], row["track_id"])] = pixels.get((row["frame_idx"], row["track_id"]), 0) \
+                + row["mask_pixels"]
+        boxes["visible_pixels"] = [int(pixels.get((int(f), int(k)), 0)) for f, k in zip(boxes.frame_idx, boxes.track_id)]
+        writer.set_boxes(boxes)
+        attributes = _visibility_rows(boxes, vis_alpha)
+        pq.write_table(pa.Table.from_pandas(attributes, schema=ATTRIBUTE_SCHEMA, preserve_index=False),
+                       writer.tmp / ATTRIBUTES)
+        summary = _summary(variant, vf, solution, fidelity, render_s, label_s, write_s, time.perf_counter() - started,
+                           total, len(annotations))
+        (writer.tmp / VARIANT_JSON).write_text(json.dumps({
+            "variant": variant, "ego_solution": solution, "scene_frames": vf.scene_frames.tolist(),
+            "commands": [COMMANDS[c] for c in vf.commands], "dropped_frames": list(vf.dropped_frames),
+            "summary": summary}, indent=1, allow_nan=False))
+    for row in samples:
+        row.update(variant_fidelity_psnr=summary["fidelity_psnr"], ego_solved=summary["ego_solved"])
+    return AnnotatedVariant(out_dir, samples, annotations, summary)
+
+
+def ann_render_seconds(annotator: ViewAnnotator) -> float:
+    return annotator.last_render_seconds
+
+
+def _location(scene: Scene) -> dict:
+    out = {}
+    for key in ("location", "dataset", "global_from_world"):
+        if scene.manifest.get(key) is not None:
+            out[key] = scene.manifest[key]
+    if out.get("dataset") is not None:  # a variant is not a log of that dataset: keep where it was, not its tables
+        out["origin_dataset"] = out.pop("dataset")
+    return out
+
+
+def _visibility_rows(boxes: pd.DataFrame, vis_alpha: dict) -> pd.DataFrame:
+    """Per frame and track the nuScenes visibility level over all cameras: the unoccluded alpha summed over the
+    cameras, over the largest whole-object alpha one camera would see (own alpha over its in-image fraction)."""
+    rows = []
+    for f, tid in zip(boxes.frame_idx, boxes.track_id):
+        seen = vis_alpha.get((int(f), int(tid)), [])
+        full = max((b for _, b in seen), default=0.0)
+        fraction = 0.0 if full <= 0 else min(1.0, sum(a for a, _ in seen) / full)
+        rows.append({"frame_idx": int(f), "track_id": int(tid), "camera": "", "name": "visibility",
+                     "value": VISIBILITY_NAMES[visibility_level(fraction)]})
+    return pd.DataFrame(rows, columns=ATTRIBUTE_SCHEMA.names)
+
+
+def _sample_row(scene: Scene, variant: dict, store_id: str, vf: VariantFrames, t: int, camera: str,
+                ann: ViewAnnotation, fid: dict) -> dict:
+    """A ``samples`` row; image and ground-truth paths are relative to the variant's store."""
+    pose = vf.world_from_ego[t]
+    return {"scene_id": scene.scene_id, "variant_id": str(variant.get("variant_id")), "store_id": store_id,
+            "frame_idx": t, "scene_frame": int(vf.scene_frames[t]), "camera": camera,
+            "timestamp_us": int(vf.timestamps_us[t]), "image_path": image_path(Path(), camera, t).as_posix(),
+            "gt_path": gt_path(Path(), camera, t).as_posix(), "ego_x": float(pose[0, 3]), "ego_y": float(pose[1, 3]),
+            "ego_yaw": float(yaw_of(pose[:3, :3])), "command": COMMANDS[int(vf.commands[t])],
+            "n_boxes": len(ann.labels), "n_visible": sum(lab.mask_pixels > 0 for lab in ann.labels),
+            "viewpoint_offset_m": float(vf.viewpoint_offset_m[t]), "fidelity_psnr": fid.get("psnr"),
+            "fidelity_ssim": fid.get("ssim"), "fidelity_masked_psnr": fid.get("masked_psnr"),
+            "fidelity_masked_ssim": fid.get("masked_ssim")}
+
+
+def _annotation_row(label, frame_rows: pd.DataFrame, vf: VariantFrames, t: int, camera: str, variant: dict,
+                    store_id: str, adversary: int, moved: set[int], config: AnnotateConfig) -> dict:
+    row = frame_rows[frame_rows.track_id == label.track_id].iloc[0]
+    world_from_box = _world_from_box(row)
+    ego_from_box = invert_transform(vf.world_from_ego[t]) @ world_from_box
+    velocity = vf.velocities[row.name] if row.name < len(vf.velocities) else np.zeros(3)
+    b = label.box2d
+    tight = label.box2d_tight
+    return {"scene_id": str(variant.get("scene_id")), "variant_id": str(variant.get("variant_id")),
+            "store_id": store_id, "frame_idx": t, "camera": camera, "track_id": int(label.track_id),
+            "category": str(row.category), "is_adversary": int(label.track_id) == adversary,
+            "moved": int(label.track_id) in moved,
+            "cx": float(row.cx), "cy": float(row.cy), "cz": float(row.cz), "length": float(row.length),
+            "width": float(row.width), "height": float(row.height), "yaw": float(row.yaw),
+            "ego_x": float(ego_from_box[0, 3]), "ego_y": float(ego_from_box[1, 3]), "ego_z": float(ego_from_box[2, 3]),
+            "ego_yaw": float(yaw_of(ego_from_box[:3, :3])),
+            "cam_x": float(label.camera_from_box[0, 3]), "cam_y": float(label.camera_from_box[1, 3]),
+            "cam_z": float(label.camera_from_box[2, 3]),
+            "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],
+            "tight_x1": None if tight is None else tight[0], "tight_y1": None if tight is None else tight[1],
+            "tight_x2": None if tight is None else tight[2], "tight_y2": None if tight is None else tight[3],
+            "mask_pixels": int(label.mask_pixels), "visible_fraction": float(label.visibility),
+            "visibility_level": visibility_level(label.visibility), "in_image_fraction": float(label.in_image_fraction),
+            "num_lidar_points": -1, "vx": float(velocity[0]), "vy": float(velocity[1]), "vz": float(velocity[2])}
+
+
+def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: list[dict], render_s: float,
+             label_s: float, write_s: float, seconds: float, n_images: int, n_annotations: int) -> dict:
+    def mean(key: str) -> float | None:
+        values = [f[key] for f in fidelity if f.get(key) is not None]
+        return float(np.mean(values)) if values else None
+
+    return {"variant_id": str(variant.get("variant_id")), "n_frames": vf.n_frames, "n_images": n_images,
+            "n_annotations": n_annotations, "dropped_frames": len(vf.dropped_frames),
+            "ego_solved": None if solution is None else bool(solution.get("solved")),
+            "fidelity_psnr": mean("psnr"), "fidelity_ssim": mean("ssim"), "fidelity_masked_psnr": mean("masked_psnr"),
+            "fidelity_masked_ssim": mean("masked_ssim"), "fidelity_frames": len(fidelity),
+            "max_viewpoint_offset_m": float(vf.viewpoint_offset_m.max()),
+            "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s, "seconds": seconds}

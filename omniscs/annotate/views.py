@@ -1,0 +1,217 @@
+"""One camera view of a variant, rendered with its ground truth from the same rasterisation: colour, depth, and a
+label channel per instance that may show, blended with the colours' own weights. An instance's channel at a pixel
+is how much of that pixel it covers once everything in front of it is taken off, so the instance mask (front-most
+instance where that share is high), the unoccluded share of its alpha (visibility) and its tight 2D box all come
+from what was drawn, not from a separate geometric guess."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omniscs.annotate.config import AnnotateConfig
+from omniscs.gaussians import activate
+from omniscs.geometry import BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform
+from omniscs.nsg.compose import NodePose, place_gaussians
+from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, agent_may_show, node_radius, render_view
+from omniscs.nsg.observations import View
+from omniscs.quaternions import rotmat_to_quat
+from omniscs.render import rasterize
+from omniscs.taxonomy import SEMANTIC_IDS, VEHICLE_CATEGORIES
+
+#: Semantic id of pixels the Gaussians cover but no instance claims: the scene graph does not know what the
+#: background is made of (road, building, ...), only that something is there.
+SEMANTIC_UNKNOWN = 255
+#: Background Gaussians within this margin of a background track's box belong to that track (metres).
+MEMBER_MARGIN_M = 0.15
+#: ... unless they lie this close above the box floor (road surface under the object).
+MEMBER_GROUND_CLEARANCE_M = 0.1
+
+
+@dataclass(frozen=True)
+class Instance:
+    """A box that may be drawn in a view, and which Gaussians draw it."""
+
+    track_id: int
+    category: str
+    world_from_box: np.ndarray  # [4, 4]
+    size: np.ndarray            # [3] length, width, height
+    members: Tensor | None = None  # background Gaussian indices of a track left in the background; None = a node
+
+
+@dataclass(frozen=True)
+class InstanceLabel:
+    """What one instance looks like in one view."""
+
+    track_id: int
+    mask_pixels: int
+    visible_alpha: float     # sum over pixels of the instance's unoccluded share
+    own_alpha: float         # sum over pixels of its alpha rendered alone (0 when not rendered: nothing visible)
+    in_image_fraction: float  # of its projected box rectangle (1 - truncation)
+    visibility: float        # in_image_fraction * visible_alpha / own_alpha, in [0, 1]
+    box2d: tuple[float, float, float, float] | None        # projected 3D box, clipped to the image (x1, y1, x2, y2)
+    box2d_tight: tuple[float, float, float, float] | None  # around its instance-mask pixels
+    camera_from_box: np.ndarray  # [4, 4]
+
+
+@dataclass(frozen=True)
+class ViewAnnotation:
+    """One rendered, labelled view."""
+
+    rgb: np.ndarray        # uint8 [H, W, 3]
+    depth: np.ndarray      # float32 [H, W] metres along the camera axis; 0 = no surface
+    instance: np.ndarray   # int32 [H, W] track id; -1 = none
+    semantic: np.ndarray   # uint8 [H, W]: 0 sky, vehicle / obstacle for instances, SEMANTIC_UNKNOWN elsewhere
+    labels: tuple[InstanceLabel, ...]  # every instance whose projected box meets the image
+
+
+def background_members(graph: SceneGraph, tracks: dict[int, tuple[np.ndarray, np.ndarray]]  # id -> (pose, size)
+                       ) -> dict[int, Tensor]:
+    """The background Gaussians inside each background track's box (grown by MEMBER_MARGIN_M, above its floor
+    plus MEMBER_GROUND_CLEARANCE_M): the Gaussians that draw that object (it never moves, so once per graph)."""
+    means = graph.background.means.detach().to(torch.float64).cpu().numpy()
+    out = {}
+    for tid, (world_from_box, size) in tracks.items():
+        local = (means - world_from_box[:3, 3]) @ world_from_box[:3, :3]
+        half = 0.5 * np.asarray(size, dtype=np.float64)
+        inside = np.all(np.abs(local[:, :2]) <= half[:2] + MEMBER_MARGIN_M, axis=1)
+        inside &= (local[:, 2] <= half[2] + MEMBER_MARGIN_M) & (local[:, 2] >= -half[2] + MEMBER_GROUND_CLEARANCE_M)
+        out[int(tid)] = torch.from_numpy(np.flatnonzero(inside))
+    return out
+
+
+class ViewAnnotator:
+    """Renders and labels views of one scene graph (background activated once, node radii once)."""
+
+    def __init__(self, graph: SceneGraph, config: AnnotateConfig = AnnotateConfig()) -> None:
+        self.graph = graph
+        self.config = config
+        self.background = activate(graph.background.detached())
+        self.radii = {a.track_id: node_radius(a.gaussians) for a in graph.agents}
+        self.local = {a.track_id: activate(a.gaussians.detached()) for a in graph.agents}
+        self.last_render_seconds = 0.0
+        """Seconds the last ``annotate`` spent in the rasterisation of colour, depth and labels (the rest is
+        annotation: masks, boxes, the instances' own alpha)."""
+
+    @torch.no_grad()
+    def annotate(self, view: View, node_poses: dict[int, np.ndarray],  # moved agent nodes: world_from_agent
+                 instances: list[Instance]) -> ViewAnnotation:
+        graph, cfg = self.graph, self.config
+        f = graph.check_frame(view.frame_idx)
+        camera_from_world = invert_transform(view.world_from_camera)
+        showing: list[Instance] = []
+        for inst in instances:
+            radius = (self.radii.get(inst.track_id, 0.0) if inst.members is None else 0.0)
+            radius = max(radius, 0.5 * float(np.linalg.norm(inst.size)))
+            if agent_may_show(view, inst.world_from_box[:3, 3], radius, graph.settings.near_plane):
+                showing.append(inst)
+        labels = None
+        if showing:
+            n_bg = len(graph.background)
+            bg = torch.zeros(n_bg, len(showing))
+            labels = {BACKGROUND: bg}
+            for e, inst in enumerate(showing):
+                if inst.members is not None:
+                    bg[inst.members, e] = 1.0
+                else:
+                    labels[agent_key(inst.track_id)] = torch.ones(len(graph.agent(inst.track_id).gaussians), 1) \
+                        * torch.nn.functional.one_hot(torch.tensor(e), len(showing)).to(torch.float32)
+        tick = time.perf_counter()
+        out = render_view(graph, view, agent_poses=self._poses(node_poses, f), labels=labels)
+        self.last_render_seconds = time.perf_counter() - tick
+        rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        alpha = out.alpha.cpu().numpy()
+        depth = np.where(alpha >= cfg.depth_alpha, out.depth.cpu().numpy(), 0.0).astype(np.float32)
+        depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+        instance = np.full(alpha.shape, -1, dtype=np.int32)
+        semantic = np.where(alpha >= cfg.depth_alpha, SEMANTIC_UNKNOWN, SEMANTIC_IDS["sky"]).astype(np.uint8)
+        results = []
+        if showing:
+            shares = out.labels.cpu().numpy()  # [H, W, E]
+            best = shares.argmax(-1)
+            claimed = shares.max(-1) >= cfg.mask_weight
+            for e, inst in enumerate(showing):
+                mine = claimed & (best == e)
+                instance[mine] = inst.track_id
+                semantic[mine] = SEMANTIC_IDS["vehicle" if inst.category in VEHICLE_CATEGORIES else "obstacle"]
+            for e, inst in enumerate(showing):
+                label = self._label(view, camera_from_world, inst, node_poses, shares[..., e], instance)
+                if label is not None:
+                    results.append(label)
+        return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
+
+    def _poses(self, node_poses: dict[int, np.ndarray], frame: int) -> dict[int, NodePose]:
+        """The moved agent nodes present in ``frame`` as the renderer's node poses."""
+        return {tid: NodePose(torch.from_numpy(rotmat_to_quat(T[:3, :3])), torch.from_numpy(T[:3, 3].copy()))
+                for tid, T in node_poses.items() if tid in self.radii and self.graph.agent(tid).present[frame]}
+
+    def _label(self, view: View, camera_from_world: np.ndarray, inst: Instance, node_poses: dict[int, np.ndarray],
+               share: np.ndarray, instance: np.ndarray) -> InstanceLabel | None:
+        camera_from_box = camera_from_world @ inst.world_from_box
+        rect = projected_box(camera_from_box, inst.size, view.K, view.width, view.height,
+                             self.config.min_label_depth_m)
+        if rect is None:
+            return None
+        box2d, in_image = rect
+        visible = float(share.sum())
+        mask = instance == inst.track_id
+        n_mask = int(mask.sum())
+        tight = None
+        if n_mask >= self.config.min_mask_pixels:
+            ys, xs = np.nonzero(mask)
+            tight = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
+        own = self._own_alpha(view, inst, node_poses) if visible > 0.0 else 0.0
+        fraction = 0.0 if own <= 0.0 else float(np.clip(in_image * min(visible / own, 1.0), 0.0, 1.0))
+        return InstanceLabel(inst.track_id, n_mask, visible, own, in_image, fraction, box2d, tight, camera_from_box)
+
+    def _own_alpha(self, view: View, inst: Instance, node_poses: dict[int, np.ndarray]) -> float:
+        """Sum of the instance's alpha over the image when it is rendered alone (nothing in front of it)."""
+        if inst.members is not None:
+            g = self.background
+            idx = inst.members
+            means, quats, scales, opacities = g.means[idx], g.quats[idx], g.scales[idx], g.opacities[idx]
+        else:
+            node = self.graph.agent(inst.track_id)
+            pose = node_poses.get(inst.track_id, node.world_from_agent[view.frame_idx])
+            placed = place_gaussians(self.local[inst.track_id], pose)
+            means, quats, scales, opacities = placed.means, placed.quats, placed.scales, placed.opacities
+        if len(means) == 0:
+            return 0.0
+        s = self.graph.settings
+        on = dict(device=means.device, dtype=means.dtype)
+        viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(**on)[None]
+        K = torch.from_numpy(view.K).to(**on)[None]
+        _, alphas, _ = rasterize(means, quats, scales, opacities, torch.ones(len(means), 1, **on), viewmat, K,
+                                 view.width, view.height, near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
+                                 render_mode="RGB", backend=s.backend, rasterize_mode=s.rasterize_mode)
+        return float(alphas.sum())
+
+
+def projected_box(camera_from_box: np.ndarray, size: np.ndarray, K: np.ndarray, width: int, height: int,
+                  near: float) -> tuple[tuple[float, float, float, float], float] | None:
+    """The image rectangle of a 3D box clipped to the image, and the fraction of its unclipped rectangle inside
+    the image; the box's edges are first cut at the plane ``near`` in front of the camera, so a box beside or
+    partly behind the camera still gets its true rectangle. None when no part of it is in front or it misses
+    the image."""
+    corners = box_corners_from_pose(camera_from_box, size)
+    points = []
+    for a, b in BOX_EDGES:
+        seg = clip_segment_to_near(corners[a], corners[b], near)
+        if seg is not None:
+            points.extend(seg)
+    if not points:
+        return None
+    p = np.asarray(points)
+    uv = (p[:, :2] / p[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+    x1, y1 = uv.min(0)
+    x2, y2 = uv.max(0)
+    cx1, cy1 = float(np.clip(x1, 0, width)), float(np.clip(y1, 0, height))
+    cx2, cy2 = float(np.clip(x2, 0, width)), float(np.clip(y2, 0, height))
+    area = (cx2 - cx1) * (cy2 - cy1)
+    if not area > 0.0:
+        return None
+    full = max(float((x2 - x1) * (y2 - y1)), area)
+    return (cx1, cy1, cx2, cy2), float(area / full) if np.isfinite(full) else 0.0
