@@ -1,12 +1,14 @@
 """nuScenes v1.0 writer: scene stores as a dataroot the nuscenes-devkit loads (all 13 tables, samples and sweeps).
 
-Per scene: one log (and a map record per location, pointing at a small placeholder mask PNG written here: the
-store has no map), one calibrated_sensor per camera and LIDAR_TOP, one ego_pose and one sample_data per frame and
+Per scene: one log (and a map record per location, pointing at a small placeholder mask PNG written here: no
+raster prior is made), one calibrated_sensor per camera and LIDAR_TOP, one ego_pose and one sample_data per frame and
 sensor, keyframe samples every ``keyframe_every`` frames (default: the 2 Hz nuScenes rate) with the frames between
 them as sweeps (``sweeps/``; their sample_token is the next keyframe's sample, the devkit's convention), and a
 sample_annotation per keyframe and box, chained per instance. Tokens are md5 digests of what identifies a record,
-so exports are reproducible. Coordinates are in the store's dataset global frame (``global_from_world`` of the
-manifest; identity for synthetic scenes). Images are JPEG (quality ``JPEG_QUALITY``); LIDAR_TOP sweeps are float32
+so exports are reproducible. Coordinates: a recorded log with a nuScenes location keeps its dataset global frame
+(``global_from_world`` of the manifest); every other scene is placed in a grid cell of the chosen nuScenes
+``location`` and its roads go into that location's map expansion ``maps/expansion/<location>.json`` (placement,
+time shifts and map records: ``omniscs.export.nuscenes_map``). Images are JPEG (quality ``JPEG_QUALITY``); LIDAR_TOP sweeps are float32
 x, y, z, intensity, ring in the LiDAR frame (ring is 0: the store does not keep it).
 
 Estimated fields: ``visibility`` from the store's visible pixels over the boxes' image rectangles (v80-100 when the
@@ -31,15 +33,14 @@ from omniscs.export.common import (
     ego_from_lidar,
     encode_jpeg,
     encode_png,
-    global_poses,
     points_in_box,
     token,
     visible_fraction,
     write_bytes,
 )
 from omniscs.geometry import invert_transform
+from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M, ScenePlacement, map_expansions, place_scenes
 from omniscs.quaternions import rotmat_to_quat
-from omniscs.scene.sources.common import global_from_world_of
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
 
@@ -122,10 +123,14 @@ class _Tables:
 
 
 def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSION, keyframe_every: int | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> Path:
-    """Write ``scenes`` as a nuScenes dataroot at ``root`` (tables under ``root/version``)."""
-    if not version.startswith("v1.0"):
+                   progress: Callable[[int, int], None] | None = None, location: str = DEFAULT_LOCATION,
+                   scene_spacing_m: float = SCENE_SPACING_M) -> Path:
+    """Write ``scenes`` as a nuScenes dataroot at ``root`` (tables under ``root/version``, map expansions under
+    ``root/maps/expansion``); scenes without a recorded nuScenes location go to ``location``, one grid cell of
+    ``scene_spacing_m`` metres each."""
+    if not isinstance(version, str) or not version.startswith("v1.0"):
         raise OmniscsError(f"nuScenes versions look like v1.0-mini or v1.0-trainval; got {version!r}")
+    placements = place_scenes(scenes, location, scene_spacing_m)
     tables = _Tables()
     for name, (description, _) in CATEGORIES.items():
         tables.add("category", token=token("category", name), name=name, description=description)
@@ -136,8 +141,8 @@ def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSI
     total = sum(s.n_frames for s in scenes)
     done = 0
     names = _scene_names(scenes)
-    for scene, name in zip(scenes, names):
-        for _ in _write_scene(scene, name, root, tables, keyframe_every):
+    for scene, name, placement in zip(scenes, names, placements):
+        for _ in _write_scene(scene, name, root, tables, keyframe_every, placement):
             done += 1
             if progress:
                 progress(done, total)
@@ -145,6 +150,8 @@ def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSI
         tables.add("map", **record)
         mask = np.zeros((MAP_MASK_PIXELS, MAP_MASK_PIXELS, 3), np.uint8)
         write_bytes(root / record["filename"], encode_png(mask))
+    for location, expansion in map_expansions(placements, [s.scene_id for s in scenes]).items():
+        write_bytes(root / "maps" / "expansion" / f"{location}.json", json.dumps(expansion).encode())
     (root / version).mkdir(parents=True, exist_ok=True)
     for table, rows in tables.rows.items():
         (root / version / f"{table}.json").write_text(json.dumps(rows, indent=0))
@@ -159,15 +166,16 @@ def _scene_names(scenes: list[Scene]) -> list[str]:
     return names
 
 
-def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, keyframe_every: int | None):
+def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, keyframe_every: int | None,
+                 placement: ScenePlacement):
     """Write one scene's files and records; yields once per frame written."""
     sid = scene.scene_id
-    ts = scene.frames["timestamp_us"].to_numpy(np.int64)
-    poses = global_poses(scene)
+    ts = scene.frames["timestamp_us"].to_numpy(np.int64) + placement.time_offset_us
+    poses = placement.global_from_world @ scene.world_from_ego_all
     keys = keyframe_indices(ts, keyframe_every)
     is_key = np.zeros(len(ts), bool)
     is_key[keys] = True
-    location = scene.manifest.get("location") or "omniscs-synthetic"
+    location = placement.location
     logfile = scene.manifest.get("logfile") if scene.manifest.get("dataset") == "nuscenes" else None
     logfile = logfile or f"omniscs-{sid}"
     log_token = token("log", sid)
@@ -234,16 +242,17 @@ def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, key
                        prev=token("sample_data", sid, channel, f - 1) if f > 0 else "",
                        next=token("sample_data", sid, channel, f + 1) if f + 1 < len(ts) else "")
         yield f
-    _annotations(scene, keys, sample_tokens, tables)
+    _annotations(scene, keys, sample_tokens, tables, placement.global_from_world)
 
 
-def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], tables: _Tables) -> None:
+def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], tables: _Tables,
+                 global_from_world: np.ndarray) -> None:
     sid = scene.scene_id
     boxes = scene.boxes.reset_index(drop=True)
     if len(boxes) == 0:
         return
     world_from_box = box_poses(boxes)
-    global_from_box = global_from_world_of(scene) @ world_from_box
+    global_from_box = global_from_world @ world_from_box
     velocity = box_velocities(scene)
     speed = np.linalg.norm(velocity[:, :2], axis=1)
     moves = {int(t): bool((speed[g.index] >= STILL_SPEED_MPS).any()) for t, g in boxes.groupby("track_id")}

@@ -147,6 +147,8 @@ class Layout:
     junction_polygon: np.ndarray | None  # [4, 2] world xy of the junction box, None on straight roads
     world_from_map: np.ndarray  # [4, 4]
     params: dict  # the seeded road parameters
+    crosswalk_polygons: tuple = ()  # of [4, 2] world xy (counter-clockwise): the striped pedestrian crossings
+    stop_line_polygons: tuple = ()  # of [4, 2] world xy (counter-clockwise): painted stop lines
 
     def route_path(self, lane_ids) -> Path:
         """One path along consecutive lanes."""
@@ -288,6 +290,8 @@ class _LayoutBuilder:
         self.lamps: list[np.ndarray] = []
         self.drivable: list[np.ndarray] = []
         self.sidewalks: list[np.ndarray] = []
+        self.crosswalks: list[np.ndarray] = []
+        self.stop_lines: list[np.ndarray] = []
         self.lanes: dict[str, dict] = {}
 
     # -- roads ---------------------------------------------------------------------------
@@ -357,6 +361,7 @@ class _LayoutBuilder:
             x_near = self.xj + sign * (self.wc + gap)
             x_far = x_near + sign * CROSSWALK_LENGTH
             xa, xb = min(x_near, x_far), max(x_near, x_far)
+            self.crosswalks.append(_rect(xa, xb, -self.w_right, self.w_left))
             y = -self.w_right + 0.4
             while y + CROSSWALK_STRIPE <= self.w_left - 0.4:
                 _quad(b, _rect(xa, xb, y, y + CROSSWALK_STRIPE), MARKING_Z, PAINT_WHITE, Material.LANE_PAINT,
@@ -365,13 +370,15 @@ class _LayoutBuilder:
             if len(self.arms) == 2:  # signalised 4-way: stop lines on the main road too
                 x_stop = x_far + sign * 0.8
                 y0, y1 = (-self.half_lanes, 0.0) if sign < 0 else (0.0, self.half_lanes)
-                _quad(b, _rect(x_stop - STOP_LINE_WIDTH / 2, x_stop + STOP_LINE_WIDTH / 2, y0, y1), MARKING_Z,
-                      PAINT_WHITE, Material.LANE_PAINT, SEM["lane_marking"])
+                stop = _rect(x_stop - STOP_LINE_WIDTH / 2, x_stop + STOP_LINE_WIDTH / 2, y0, y1)
+                self.stop_lines.append(stop)
+                _quad(b, stop, MARKING_Z, PAINT_WHITE, Material.LANE_PAINT, SEM["lane_marking"])
         for side in self.arms:
             edge = self.w_left if side > 0 else self.w_right
             y_near = side * (edge + gap)
             y_far = y_near + side * CROSSWALK_LENGTH
             ya, yb = min(y_near, y_far), max(y_near, y_far)
+            self.crosswalks.append(_rect(self.xj - self.wc, self.xj + self.wc, ya, yb))
             x = self.xj - self.wc + 0.4
             while x + CROSSWALK_STRIPE <= self.xj + self.wc - 0.4:
                 _quad(b, _rect(x, x + CROSSWALK_STRIPE, ya, yb), MARKING_Z, PAINT_WHITE, Material.LANE_PAINT,
@@ -380,8 +387,9 @@ class _LayoutBuilder:
             y_stop = y_far + side * 0.8
             # Traffic entering from the left arm drives -y on the -x half; from the right arm +y on +x.
             x0, x1 = (self.xj - self.wc, self.xj) if side > 0 else (self.xj, self.xj + self.wc)
-            _quad(b, _rect(x0, x1, y_stop - STOP_LINE_WIDTH / 2, y_stop + STOP_LINE_WIDTH / 2), MARKING_Z,
-                  PAINT_WHITE, Material.LANE_PAINT, SEM["lane_marking"])
+            stop = _rect(x0, x1, y_stop - STOP_LINE_WIDTH / 2, y_stop + STOP_LINE_WIDTH / 2)
+            self.stop_lines.append(stop)
+            _quad(b, stop, MARKING_Z, PAINT_WHITE, Material.LANE_PAINT, SEM["lane_marking"])
 
     # -- sidewalks and kerbs -----------------------------------------------------------------
     def sidewalk_rects(self) -> list[tuple[np.ndarray, list[str]]]:
@@ -678,6 +686,8 @@ class _LayoutBuilder:
             sidewalk_polygons=tuple(to_world_xy(r) for r in self.sidewalks),
             parking_slots=slots, street_lamps=lamps, ego_route=tuple(route), ego_start_s=float(s0),
             junction_polygon=junction, world_from_map=world_from_map, params=dict(self.p),
+            crosswalk_polygons=tuple(to_world_xy(r) for r in self.crosswalks),
+            stop_line_polygons=tuple(to_world_xy(r) for r in self.stop_lines),
         )
 
 

@@ -67,7 +67,7 @@ def test_catalog_scene_rows_record_the_dataset_its_scene_id_and_location(nuscene
     scene = load_scene(result.path)
     row = scene_row(scene, agent_rows(scene), reused=False, ingest_seconds=0.1)
     assert row["source_kind"] == "nuscenes" and row["source_scene_id"] == "scene-0001"
-    assert row["dataroot"] == str(nuscenes_root.resolve()) and row["location"] == "omniscs-synthetic"
+    assert row["dataroot"] == str(nuscenes_root.resolve()) and row["location"] == "boston-seaport"
     assert catalog.validated_table("scenes", [row]).num_rows == 1
 
 
