@@ -30,7 +30,8 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
 
     rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
     request = check_request({k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
-                                                          "behavior_checkpoint", "edits", "previews", "device")
+                                                          "behavior_checkpoint", "edits", "previews", "device",
+                                                          "annotate")
                              if k in parameters})
     scenes, _ = check_sources(list(sources), **rig)
     run_id = check_run_id(parameters.pop("run_id", None)) or new_run_id()

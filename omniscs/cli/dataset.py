@@ -1,0 +1,104 @@
+"""``omniscs dataset build / info / export``: annotated SCS datasets, made by the ``generate_dataset`` flow."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from omniscs.cli.common import check_out, console, print_table, progress_bars, workspace_option
+from omniscs.errors import OmniscsError
+
+app = typer.Typer(help="Annotated SCS datasets: build (the generate_dataset flow with render + annotate), "
+                       "inspect, export to nuScenes or UniAD.", no_args_is_help=True)
+
+
+def dataset_path(dataset: str, workspace: Optional[Path]) -> Path:
+    """A dataset named by its folder or by its id in the workspace (``<workspace>/datasets/<id>``)."""
+    from omniscs.annotate.dataset import CARD_JSON
+    from omniscs.pipeline import layout
+    from omniscs.storage import workspace_path
+
+    path = Path(dataset)
+    if not (path / CARD_JSON).is_file():
+        from omniscs.ids import is_safe_id
+
+        if is_safe_id(dataset):
+            path = layout.dataset_folder(workspace_path(workspace), dataset)
+    if not (path / CARD_JSON).is_file():
+        raise OmniscsError(f"{dataset} is not a dataset (no {CARD_JSON} in {path}); build one with "
+                           "`omniscs dataset build` or name its folder")
+    return path
+
+
+def read_card(path: Path) -> dict:
+    from omniscs.annotate.dataset import CARD_JSON
+    from omniscs.checks import read_json
+
+    return read_json(path / CARD_JSON, "the dataset card is damaged; build the dataset again")
+
+
+@app.command("build")
+def build(
+    sources: list[str] = typer.Argument(..., help="syn:TEMPLATE:SEED[:LIGHTING], FORMAT:DATAROOT[:SCENE] or "
+                                                  "scene-store paths."),
+    fit_preset: str = typer.Option("fast", help="Scene-graph preset: fast, balanced or accurate."),
+    behavior_variants: int = typer.Option(2, help="Behaviour-level SCS variants per scene (at least 1)."),
+    out: Optional[str] = typer.Option(None, help="Dataset id: its folder is <workspace>/datasets/<id> "
+                                                 "(default ds-<content hash>: the same inputs give the same id)."),
+    workspace: Optional[Path] = workspace_option(),
+    run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+    frames: int = typer.Option(40, help="Synthetic sources: frames at 10 Hz."),
+    cameras: int = typer.Option(3, help="Synthetic sources: cameras, 1 to 6."),
+    width: int = typer.Option(480, help="Synthetic sources: image width."),
+    height: int = typer.Option(270, help="Synthetic sources: image height."),
+    behavior_preset: str = typer.Option("balanced", help="Behaviour optimisation preset."),
+    device: str = typer.Option("cpu", help="Compute device of the scene graph and behaviour optimisation."),
+) -> None:
+    """Generate, render and annotate variants of every source, gathered as one dataset (and catalogued)."""
+    from omniscs.cli.generate import run_generate
+
+    result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
+                          height=height, previews=False, fit_preset=fit_preset, behavior_variants=behavior_variants,
+                          behavior_preset=behavior_preset, device=device, annotate=True, dataset_id=out)
+    show(Path(result["dataset_path"]))
+
+
+@app.command("info")
+def info(dataset: str = typer.Argument(..., help="Dataset folder or id."),
+         workspace: Optional[Path] = workspace_option()) -> None:
+    """What a dataset holds: counts, fidelity, variants, where its card and preview are."""
+    show(dataset_path(dataset, workspace))
+
+
+def show(path: Path) -> None:
+    card = read_card(path)
+    c = card["counts"]
+    print_table([{k: v for k, v in row.items()} for row in card["variants"]], title=f"dataset {card['dataset_id']}")
+    fid = card["fidelity"]["variant_psnr"]
+    console.print(f"{c['variants']} variant(s) of {c['scenes']} scene(s): {c['frames']} frames, {c['images']} images, "
+                  f"{c['annotations']} box annotations; ego solved in {c['ego_solved']}; "
+                  + (f"fidelity PSNR mean {fid['mean']:.2f} dB" if fid else "no exact reference"))
+    console.print(f"folder:  {path}")
+    console.print(f"card:    {path / 'README.md'}")
+    console.print(f"preview: {path / 'preview.png'}  (BEVs with the ego's solution: {path / 'bev'})")
+
+
+@app.command("export")
+def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
+           format: str = typer.Option(..., "--format", help="nuscenes or uniad."),
+           out: Path = typer.Option(..., help="Output folder."),
+           overwrite: bool = typer.Option(False, help="Replace --out if omniscs wrote it."),
+           workspace: Optional[Path] = workspace_option()) -> None:
+    """Export every variant store of a dataset as one nuScenes dataroot (with map expansion) or for UniAD."""
+    from omniscs.annotate.dataset import SCENES
+    from omniscs.export import WRITERS, export_scenes
+
+    if format not in ("nuscenes", "uniad") or format not in WRITERS:
+        raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes or uniad")
+    path = dataset_path(dataset, workspace)
+    check_out(out, overwrite)
+    stores = sorted(p for p in (path / SCENES).iterdir() if p.is_dir())
+    with progress_bars() as bars:
+        export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"))
+    console.print(f"{len(stores)} variant store(s) of {path.name} exported as {format} to {out}")

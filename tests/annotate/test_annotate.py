@@ -1,0 +1,224 @@
+"""Render + annotate: the ground truth of a rendered variant agrees with what was drawn, stays finite at the
+edges (boxes behind the camera, cut by the border, none visible, the ego off the fitted area), and the variant's
+store reads and exports like any other."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from annotate_fixtures import fitted_scene, logged_variant
+from omniscs.annotate import AnnotateConfig
+from omniscs.annotate.config import visibility_level
+from omniscs.annotate.frames import COMMANDS, driving_commands
+from omniscs.annotate.variant import image_fidelity, write_annotated_variant
+from omniscs.annotate.views import projected_box
+from omniscs.errors import OmniscsError
+from omniscs.geometry import make_transform, pose_from_xyz_yaw, rotmat_from_euler
+from omniscs.nsg.graph import BACKGROUND, render_view
+from omniscs.pipeline.procedural import world_reference
+from omniscs.scene import load_scene
+
+K = np.array([[50.0, 0, 48], [0, 50.0, 27], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    return fitted_scene(tmp_path_factory.mktemp("annotate"))
+
+
+@pytest.fixture(scope="module")
+def annotated(fitted, tmp_path_factory):
+    scene, graph = fitted
+    variant = logged_variant(scene, shift={2: 0.15})
+    out = tmp_path_factory.mktemp("variant") / "store"
+    return write_annotated_variant(graph, scene, variant, out, "nsg-test-v000", reference=world_reference(scene))
+
+
+def _iou(a, b) -> float:
+    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = w * h
+    return inter / ((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter)
+
+
+def test_every_visible_box_projects_onto_its_rendered_instance_mask(annotated):
+    checked = 0
+    for a in annotated.annotations:
+        if a["visibility_level"] >= 3 and a["tight_x1"] is not None:
+            iou = _iou((a["x1"], a["y1"], a["x2"], a["y2"]), (a["tight_x1"], a["tight_y1"], a["tight_x2"], a["tight_y2"]))
+            assert iou >= 0.7, (a["frame_idx"], a["camera"], a["track_id"], iou)
+            checked += 1
+    assert checked >= 10
+
+
+def test_instance_masks_in_the_store_match_the_mask_pixels_of_the_annotations(annotated):
+    store = load_scene(annotated.store)
+    for a in annotated.annotations[:12]:
+        mask = store.instance_mask(a["camera"], a["frame_idx"]) == a["track_id"]
+        assert int(mask.sum()) == a["mask_pixels"]
+    boxes = store.boxes.set_index(["frame_idx", "track_id"])
+    pixels = pd.DataFrame(annotated.annotations).groupby(["frame_idx", "track_id"]).mask_pixels.sum()
+    for key, n in pixels.items():
+        assert boxes.loc[key, "visible_pixels"] == n
+
+
+def test_label_channels_leave_the_colours_unchanged(fitted):
+    scene, graph = fitted
+    view = graph.view(scene.camera_names[0], 3)
+    plain = render_view(graph, view)
+    labelled = render_view(graph, view, labels={BACKGROUND: torch.ones(len(graph.background), 2)})
+    assert torch.equal(plain.rgb, labelled.rgb) and torch.equal(plain.depth, labelled.depth)
+    # one all-ones channel on every background Gaussian sums to the background's unoccluded share, at most alpha
+    share = labelled.labels[..., 0]
+    assert float((share - labelled.alpha).max()) <= 1e-4 and float(share.sum()) > 0
+
+
+def test_a_car_behind_another_is_less_visible_than_the_car_in_front(tmp_path):
+    agents = ({"x": 11.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0003"},
+              {"x": 17.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0011"})
+    scene, graph = fitted_scene(tmp_path, agents=agents, n_frames=4, n_cameras=1, iterations=120)
+    result = write_annotated_variant(graph, scene, logged_variant(scene), tmp_path / "v", "occluded-v000")
+    front = [a for a in result.annotations if a["track_id"] == 1]
+    behind = [a for a in result.annotations if a["track_id"] == 2]
+    assert front and behind
+    assert min(a["visible_fraction"] for a in front) > max(a["visible_fraction"] for a in behind)
+    assert all(a["visibility_level"] >= 3 for a in front) and all(a["visibility_level"] <= 2 for a in behind)
+
+
+def test_every_number_written_is_finite(annotated):
+    for table in (annotated.samples, annotated.annotations):
+        for row in table:
+            for key, value in row.items():
+                if isinstance(value, float):
+                    assert np.isfinite(value), (key, value)
+    store = load_scene(annotated.store)
+    for cam in store.camera_names:
+        for f in range(store.n_frames):
+            assert np.all(np.isfinite(store.depth(cam, f))) and store.depth(cam, f).min() >= 0
+    assert np.all(np.isfinite(store.lidar(0))) and len(store.lidar(0)) > 100
+    assert (store.boxes.num_lidar_points >= 0).all()
+
+
+def test_fidelity_against_the_exact_render_is_measured_on_every_frame(annotated):
+    s = annotated.summary
+    assert s["fidelity_frames"] == s["n_images"]
+    assert 15.0 < s["fidelity_psnr"] < 60.0 and 0.0 < s["fidelity_ssim"] <= 1.0
+    assert all(r["fidelity_psnr"] is not None for r in annotated.samples)
+
+
+def test_identical_images_give_the_capped_psnr_and_an_empty_mask_gives_none():
+    img = np.full((20, 30, 3), 128, np.uint8)
+    fid = image_fidelity(img, img, np.zeros((20, 30), bool))
+    assert fid["psnr"] == 100.0 and fid["ssim"] == pytest.approx(1.0) and fid["masked_psnr"] is None
+
+
+def test_the_variant_store_reads_back_with_its_visibility_and_commands(annotated):
+    store = load_scene(annotated.store)
+    assert store.n_frames == annotated.summary["n_frames"] and store.has_gt and store.has_lidar
+    from omniscs.scene.sources.common import load_attributes
+
+    vis = load_attributes(store)
+    assert set(vis["value"]) <= {"v0-40", "v40-60", "v60-80", "v80-100"} and len(vis) == len(store.boxes)
+    meta = json.loads((annotated.store / "variant.json").read_text())
+    assert meta["commands"] and set(meta["commands"]) <= set(COMMANDS)
+    assert meta["scene_frames"] == list(range(store.n_frames))
+
+
+def test_moved_agents_are_annotated_where_the_variant_put_them(annotated, fitted):
+    scene, _ = fitted
+    store = load_scene(annotated.store)
+    last = store.n_frames - 1
+    moved = store.boxes[(store.boxes.frame_idx == last) & (store.boxes.track_id == 2)].iloc[0]
+    logged = scene.boxes[(scene.boxes.frame_idx == last) & (scene.boxes.track_id == 2)].iloc[0]
+    assert moved.cy == pytest.approx(logged.cy - 0.15 * last)
+
+
+def test_frames_where_the_ego_leaves_the_fitted_area_are_dropped_and_recorded(fitted, tmp_path):
+    scene, graph = fitted
+    variant = logged_variant(scene, ego_lateral=lambda f: 0.0 if f < 6 else 9.0)
+    result = write_annotated_variant(graph, scene, variant, tmp_path / "v", "off-v000",
+                                     config=AnnotateConfig(max_viewpoint_offset_m=4.0))
+    assert result.summary["dropped_frames"] == 4 and result.summary["n_frames"] == 6
+    everywhere = logged_variant(scene, ego_lateral=lambda f: 9.0)
+    with pytest.raises(OmniscsError, match="outside the fitted area in every frame"):
+        write_annotated_variant(graph, scene, everywhere, tmp_path / "w", "off-v001")
+    assert not (tmp_path / "w").exists()
+
+
+def test_a_scene_without_agents_gives_samples_and_no_annotations(tmp_path):
+    scene, graph = fitted_scene(tmp_path, agents=(), n_frames=3, n_cameras=1, iterations=40)
+    result = write_annotated_variant(graph, scene, logged_variant(scene), tmp_path / "v", "empty-v000")
+    assert len(result.samples) == 3 and result.annotations == []
+    assert all(r["n_boxes"] == 0 for r in result.samples)
+    assert load_scene(result.store).boxes.empty
+
+
+def test_a_variant_without_scene_frames_or_of_another_scene_is_refused(fitted, tmp_path):
+    scene, graph = fitted
+    resampled = dict(logged_variant(scene), source_frames=None)
+    with pytest.raises(OmniscsError, match="resampled"):
+        write_annotated_variant(graph, scene, resampled, tmp_path / "v", "x-v000")
+    short = dict(logged_variant(scene))
+    short["ego"] = short["ego"][:3]
+    with pytest.raises(OmniscsError, match="does not cover"):
+        write_annotated_variant(graph, scene, short, tmp_path / "v", "x-v000")
+    assert not (tmp_path / "v").exists()
+
+
+# ----------------------------------------------------------------------------- boxes at the edges of the view
+def test_a_box_straddling_the_camera_plane_gets_a_finite_rectangle_inside_the_image():
+    camera_from_box = make_transform(rotmat_from_euler(yaw=0.3), np.array([1.0, 0.2, 0.1]))
+    rect = projected_box(camera_from_box, np.array([4.5, 1.9, 1.6]), K, 96, 54, near=0.5)
+    assert rect is not None
+    (x1, y1, x2, y2), inside = rect
+    assert 0 <= x1 < x2 <= 96 and 0 <= y1 < y2 <= 54 and 0.0 < inside <= 1.0
+
+
+def test_a_box_wholly_behind_the_camera_or_beside_the_image_has_no_rectangle():
+    size = np.array([4.5, 1.9, 1.6])
+    assert projected_box(make_transform(np.eye(3), np.array([0.0, 0.0, -10.0])), size, K, 96, 54, 0.5) is None
+    assert projected_box(make_transform(np.eye(3), np.array([400.0, 0.0, 10.0])), size, K, 96, 54, 0.5) is None
+
+
+def test_a_box_ten_kilometres_away_is_finite_and_tiny():
+    rect = projected_box(make_transform(np.eye(3), np.array([0.0, 0.0, 10_000.0])), np.array([4.5, 1.9, 1.6]),
+                         K, 96, 54, 0.5)
+    (x1, y1, x2, y2), inside = rect
+    assert np.isfinite([x1, y1, x2, y2]).all() and x2 - x1 < 0.1 and inside == pytest.approx(1.0)
+
+
+def test_a_box_cut_by_the_image_border_reports_its_in_image_fraction():
+    rect = projected_box(make_transform(np.eye(3), np.array([5.0, 0.0, 8.0])), np.array([4.5, 1.9, 1.6]),
+                         K, 96, 54, 0.5)
+    (x1, _, x2, _), inside = rect
+    assert x2 == 96 and 0.0 < inside < 1.0
+
+
+# ----------------------------------------------------------------------------- commands and visibility levels
+def _path(lateral_per_s: float, n: int = 40, speed: float = 8.0) -> np.ndarray:
+    t = np.arange(n) * 0.1
+    return np.stack([pose_from_xyz_yaw(speed * ti, lateral_per_s * ti ** 2, 0.0, 0.0) for ti in t])
+
+
+def test_driving_commands_follow_uniads_rule():
+    ts = (np.arange(40) * 100_000).astype(np.int64)
+    assert set(driving_commands(_path(0.0), ts)) == {COMMANDS.index("forward")}
+    assert driving_commands(_path(0.5), ts)[0] == COMMANDS.index("left")   # 4.5 m to the left after 3 s
+    assert driving_commands(_path(-0.5), ts)[0] == COMMANDS.index("right")
+    assert driving_commands(_path(0.5)[:1], ts[:1])[0] == COMMANDS.index("forward")  # one step: nothing ahead
+
+
+@pytest.mark.parametrize("fraction, level", [(0.0, 1), (0.39, 1), (0.4, 2), (0.6, 3), (0.8, 4), (1.0, 4)])
+def test_visibility_levels_are_nuscenes_bins(fraction, level):
+    assert visibility_level(fraction) == level
+
+
+@pytest.mark.parametrize("field, value", [("frame_every", 0), ("mask_weight", 0.0), ("mask_weight", 1.5),
+                                          ("lidar_max_range_m", -1.0), ("fidelity_every", -1)])
+def test_bad_annotate_settings_are_one_clear_error(field, value):
+    with pytest.raises(OmniscsError, match=field):
+        AnnotateConfig(**{field: value})
