@@ -28,7 +28,8 @@ from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
-from omniscs.scene.store import Scene, gt_path, image_path
+from omniscs.nsg.observations import View
+from omniscs.scene.store import CameraRecord, Scene, gt_path, image_path
 from omniscs.scene.writer import SceneWriter
 
 log = logging.getLogger(__name__)
@@ -117,11 +118,13 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                             ego_xy_yaw: np.ndarray | None = None, solution: dict | None = None,
                             reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
                             progress: Progress = no_progress, annotator: ViewAnnotator | None = None,
-                            members: dict | None = None) -> AnnotatedVariant:
+                            members: dict | None = None, rig: list[CameraRecord] | None = None) -> AnnotatedVariant:
     """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
     when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
     exact image of a frame (procedural scenes) for fidelity; without it only the viewpoint proxy is measured.
-    ``annotator`` and ``members`` (background tracks' Gaussians) may be shared between variants of one graph."""
+    ``annotator`` and ``members`` (background tracks' Gaussians) may be shared between variants of one graph.
+    ``rig`` renders other cameras than the logged ones (e.g. a nuScenes-size rig; no exposure correction for a
+    camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras."""
     started = time.perf_counter()
     if graph.scene_id != scene.scene_id:
         raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
@@ -136,7 +139,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     if vf.n_frames == 0:
         raise OmniscsError(f"variant {variant.get('variant_id')} of {scene.scene_id}: the ego is outside the fitted "
                            "area in every frame; nothing can be rendered")
-    cameras = [graph.camera(c) for c in scene.camera_names if c in {r.name for r in graph.cameras}]
+    cameras = list(rig) if rig is not None else [graph.camera(c) for c in scene.camera_names
+                                                 if c in {r.name for r in graph.cameras}]
     adversary = int(variant.get("adversary", -1))
     moved = {int(k) for k in (variant.get("agents") or {})} & set(graph.agent_ids)
     boxes = vf.boxes.copy()
@@ -163,7 +167,9 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
             depth_views = []
             for cam in cameras:
                 tick = time.perf_counter()
-                view = graph.view(cam.name, f, world_from_ego=vf.world_from_ego[t])
+                view = View(f, vf.world_from_ego[t] @ cam.ego_from_camera, np.array(cam.K, dtype=np.float64),
+                            int(cam.width), int(cam.height),
+                            cam.name if cam.name in {c.name for c in graph.cameras} else None)
                 ann = annotator.annotate(view, vf.node_poses[t], instances)
                 tock = time.perf_counter()
                 render_s += ann_render_seconds(annotator)

@@ -194,6 +194,24 @@ def bench_plan(
     console.print(f"wrote {out / 'plan_bench.json'} and {out / 'plan_bench.png'}")
 
 
+@app.command("dataset")
+def bench_dataset(
+    out: Path = typer.Option(Path("reports"), help="Folder for dataset_bench.json/.md/.png."),
+    workspace: Optional[Path] = typer.Option(None, help="Where the scenes, fits and variants go (and are reused)."),
+    variants: int = typer.Option(2, help="Behaviour variants per scene."),
+) -> None:
+    """Annotated images per second (480x270 x 3 and 1600x900 x 6) and annotated variants per hour after fitting."""
+    from dataclasses import replace
+
+    from omniscs.bench.dataset import DatasetBenchConfig, run_dataset_benchmark
+
+    with progress_bars() as bars:
+        run_dataset_benchmark(out, workspace, replace(DatasetBenchConfig(), variants=variants),
+                              progress=bars.sink("dataset bench"))
+    console.print((out / "dataset_bench.md").read_text())
+    console.print(f"wrote {out / 'dataset_bench.json'}")
+
+
 @app.command("reliability")
 def bench_reliability(
     out: Path = typer.Option(Path("reports"), help="Folder for reliability.json/.md."),
