@@ -119,8 +119,10 @@ class RoadLayout:
 
         return RoadLayout(drivable=tuple(xy(p) for p in self.drivable),
                           lanes=tuple(replace(lane, centreline=xy(lane.centreline)) for lane in self.lanes),
-                          walkways=tuple(xy(p) for p in self.walkways), crossings=tuple(xy(p) for p in self.crossings),
-                          stop_lines=tuple(xy(p) for p in self.stop_lines), junctions=tuple(xy(p) for p in self.junctions))
+                          walkways=tuple(xy(p) for p in self.walkways),
+                          crossings=tuple(xy(p) for p in self.crossings),
+                          stop_lines=tuple(xy(p) for p in self.stop_lines),
+                          junctions=tuple(xy(p) for p in self.junctions))
 
 
 def road_layout_of(scene: Scene) -> RoadLayout | None:
@@ -211,8 +213,9 @@ def _check_fits(scene: Scene, roads: RoadLayout | None, spacing: float) -> None:
         xy.append(roads.points())
     reach = float(np.abs(np.concatenate(xy)).max())
     if reach > spacing / 2 - MAP_MARGIN_M:
+        needed = 2 * (reach + MAP_MARGIN_M)
         raise OmniscsError(f"scene {scene.scene_id} reaches {reach:.0f} m from its first ego pose, more than a "
-                           f"{spacing:g} m grid cell holds; pass a scene spacing above {2 * (reach + MAP_MARGIN_M):.0f} m")
+                           f"{spacing:g} m grid cell holds; pass a scene spacing above {needed:.0f} m")
 
 
 # ----------------------------------------------------------------------------- geometry helpers

@@ -2,7 +2,9 @@
 (``<prefix>_infos_temporal_{train,val}.pkl``) and the motion anchors its motion head loads, in one folder.
 
 Output layout (UniAD's ``data/`` folder): ``nuscenes/`` (the dataroot, ``omniscs.export.nuscenes``), ``infos/``
-(the pickles) and ``others/motion_anchor_infos_mode6.pkl``. Infos are built from the written tables through the
+(the pickles) and ``others/motion_anchor_infos_mode6.pkl``. UniAD's dataset opens the map expansions of all four
+nuScenes locations, so a location that no log names gets an empty (valid) expansion; a location of a recorded
+nuScenes log gets none (copy the real ``maps/expansion`` file there). Infos are built from the written tables through the
 nuscenes-devkit, field by field as ``tools/data_converter/uniad_nuscenes_converter.py`` of OpenDriveLab/UniAD does:
 boxes in the LIDAR_TOP frame of each keyframe, ``gt_velocity`` from ``NuScenes.box_velocity`` turned into that frame
 (NaN, for an agent seen at one keyframe only, becomes 0 as UniAD's loader makes it), ``gt_inds`` the instance table
@@ -38,6 +40,7 @@ UniAD runs on loads what numpy 2 wrote here.
 """
 from __future__ import annotations
 
+import json
 import pickle
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -47,7 +50,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.export.nuscenes import DEFAULT_VERSION, write_nuscenes
-from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M
+from omniscs.export.nuscenes_map import DEFAULT_LOCATION, NUSCENES_LOCATIONS, SCENE_SPACING_M, MapExpansion
 from omniscs.geometry import invert_transform, make_transform
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
@@ -114,11 +117,10 @@ class UniADConfig:
         if self.box_convention not in BOX_CONVENTIONS:
             raise OmniscsError(f"unknown box convention {self.box_convention!r}; use 'v1' (UniAD main) or 'v2' "
                                "(UniAD v2.0)")
-        for name in ("info_prefix", "data_path_prefix"):
-            value = getattr(self, name)
-            if not isinstance(value, str) or not value or "/" in value and name == "info_prefix":
-                raise OmniscsError(f"UniAD {name} must be a non-empty string{' without /' if name == 'info_prefix' else ''}"
-                                   f"; got {value!r}")
+        if not isinstance(self.info_prefix, str) or not self.info_prefix or "/" in self.info_prefix:
+            raise OmniscsError(f"UniAD info_prefix must be a non-empty name without '/'; got {self.info_prefix!r}")
+        if not isinstance(self.data_path_prefix, str) or not self.data_path_prefix:
+            raise OmniscsError(f"UniAD data_path_prefix must be a non-empty path; got {self.data_path_prefix!r}")
         if isinstance(self.val_scenes, str) or not all(isinstance(s, str) for s in self.val_scenes):
             raise OmniscsError(f"val_scenes must be a list of scene ids or names; got {self.val_scenes!r}")
         object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
@@ -150,6 +152,11 @@ def write_uniad(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSION,
     from nuscenes.nuscenes import NuScenes
 
     nusc = NuScenes(version=version, dataroot=str(dataroot), verbose=False)
+    named = {log["location"] for log in nusc.log}
+    for unused in (loc for loc in NUSCENES_LOCATIONS if loc not in named):
+        path = dataroot / "maps" / "expansion" / f"{unused}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(MapExpansion(unused).to_json()))
     val_tokens = _val_scene_tokens(nusc, scenes, config.val_scenes)
     infos = uniad_infos(nusc, config)
     metadata = {"version": version}
@@ -218,8 +225,9 @@ def _sample_info(nusc, helper, sample: dict, frame_idx: int, motion: dict[int, n
     for channel in UNIAD_CAMERAS:
         if channel in sample["data"]:
             cam = _sensor_info(nusc, sample["data"][channel], channel, global_from_lidar, config)
-            cs = nusc.get("calibrated_sensor", nusc.get("sample_data", sample["data"][channel])["calibrated_sensor_token"])
-            cam["cam_intrinsic"] = np.asarray(cs["camera_intrinsic"], np.float64)
+            sd = nusc.get("sample_data", sample["data"][channel])
+            cam["cam_intrinsic"] = np.asarray(nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
+                                              ["camera_intrinsic"], np.float64)
             info["cams"][channel] = cam
     sd = lidar_sd
     while len(info["sweeps"]) < config.max_sweeps and sd["prev"]:

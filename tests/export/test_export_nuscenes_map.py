@@ -189,7 +189,8 @@ def test_a_road_map_without_a_world_gives_lanes_with_inferred_successors(tmp_pat
     from nuscenes.map_expansion.map_api import NuScenesMap
 
     road_map = RoadMap(drivable_polygons=(np.array([[-5.0, -4.0], [60.0, -4.0], [60.0, 4.0], [-5.0, 4.0]]),),
-                       lane_centrelines=(np.array([[0.0, -1.75], [30.0, -1.75]]), np.array([[30.0, -1.75], [55.0, -1.75]]),
+                       lane_centrelines=(np.array([[0.0, -1.75], [30.0, -1.75]]),
+                                         np.array([[30.0, -1.75], [55.0, -1.75]]),
                                          np.array([[55.0, 1.75], [0.0, 1.75]])),
                        extent_min=np.array([-5.0, -4.0]), extent_max=np.array([60.0, 4.0]))
     roads = road_layout_of(SimpleNamespace(world=None, road_map=road_map))

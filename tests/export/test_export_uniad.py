@@ -9,6 +9,7 @@ import pytest
 from omniscs.errors import OmniscsError
 from omniscs.export import export_scenes
 from omniscs.export.common import ego_from_lidar, token
+from omniscs.export.nuscenes_map import NUSCENES_LOCATIONS
 from omniscs.export.uniad import (
     ANCHOR_FILE,
     DETECTION_CLASSES,
@@ -16,9 +17,10 @@ from omniscs.export.uniad import (
     UNIAD_CAMERAS,
     UniADConfig,
     motion_anchors,
+    ego_motion,
     uniad_infos,
 )
-from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform
+from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform, pose_from_xyz_yaw
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene import load_scene
 from tests.conftest import write_tiny_scene
@@ -129,8 +131,8 @@ def test_the_devkit_loads_the_dataroot_and_predict_helper_futures_match_the_info
     from nuscenes.prediction import PredictHelper
 
     helper = PredictHelper(nusc)
-    for location in {log["location"] for log in nusc.log}:
-        NuScenesMap(dataroot=str(out / "nuscenes"), map_name=location)
+    maps = {loc: NuScenesMap(dataroot=str(out / "nuscenes"), map_name=loc) for loc in NUSCENES_LOCATIONS}  # UniAD
+    assert {loc for loc, m in maps.items() if m.drivable_area} == {log["location"] for log in nusc.log}  # opens all 4
     moving = 0
     for info in pickles["train"]["infos"] + pickles["val"]["infos"]:
         for i, instance in enumerate(info["gt_ins_tokens"]):
@@ -150,6 +152,21 @@ def test_can_bus_motion_is_the_finite_difference_of_the_ego_poses(pickles, store
     v_world = (poses[5, :3, 3] - poses[4, :3, 3]) / (t[5] - t[4])
     assert np.allclose(info["can_bus"][13:16], poses[5, :3, :3].T @ v_world, atol=1e-9)
     assert np.linalg.norm(info["can_bus"][13:16]) > 1.0  # the fixture's ego drives
+
+
+def test_can_bus_motion_on_a_circle_is_speed_yaw_rate_and_centripetal_acceleration():
+    speed, yaw_rate, dt = 10.0, 0.2, 0.1  # a left turn of radius 50 m at 10 Hz
+    t = np.arange(12) * dt
+    radius = speed / yaw_rate
+    poses = np.stack([pose_from_xyz_yaw(radius * np.sin(yaw_rate * s), radius * (1 - np.cos(yaw_rate * s)), 0.0,
+                                        yaw_rate * s) for s in t])
+    acc, omega, vel = ego_motion(poses, (t * 1e6).round().astype(np.int64))
+    inner = slice(2, -2)  # central differences
+    assert np.allclose(omega[:, 2], yaw_rate) and np.allclose(omega[:, :2], 0.0)
+    assert np.allclose(vel[inner], [speed, 0.0, 0.0], atol=0.01)
+    assert np.allclose(acc[inner], [0.0, speed * yaw_rate, 0.0], atol=0.01)  # towards the turn's centre (left)
+    acc, omega, vel = ego_motion(poses[:1], np.zeros(1, np.int64))
+    assert not (acc.any() or omega.any() or vel.any())  # one pose: no motion, never NaN
 
 
 def _corners_mmdet3d_lidar_box(box, counter_clockwise):  # [7] -> [8, 3]
@@ -232,7 +249,8 @@ def test_a_scene_with_zero_boxes_gives_empty_arrays(tmp_path):
 def _fake_infos(rng, names, speeds):
     """Infos with straight 12-step futures along +y (agent frame) at the given speeds."""
     steps = np.arange(1, 17) * 0.5
-    fut = np.stack([np.stack([np.zeros(16), v * steps], axis=1) for v in speeds]) + rng.normal(0, 0.01, (len(speeds), 16, 2))
+    fut = np.stack([np.stack([np.zeros(16), v * steps], axis=1) for v in speeds])
+    fut += rng.normal(0, 0.01, fut.shape)
     return [{"gt_names": np.array(names), "gt_velocity": np.stack([np.zeros(len(speeds)), speeds], 1),
              "fut_traj": fut, "fut_traj_valid_mask": np.ones_like(fut)}]
 
