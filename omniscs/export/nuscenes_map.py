@@ -57,6 +57,8 @@ DEFAULT_LANE_WIDTH_M = 3.5
 SUCCESSOR_GAP_M = 0.5
 #: Spacing of the samples that find where two lanes run side by side (metres).
 DIVIDER_SAMPLE_STEP_M = 2.0
+#: Divider polylines keep only the vertices needed to stay within this of the sampled mid line (metres).
+DIVIDER_SIMPLIFY_M = 0.01
 #: Two lanes are neighbours where their centrelines are this close to the sum of their half widths (metres).
 NEIGHBOUR_TOLERANCE_M = 0.3
 #: Radius written for straight arcline paths (the devkit needs a non-zero one; straight pieces never use it).
@@ -314,8 +316,14 @@ def lane_dividers(lanes: tuple[RoadLane, ...]) -> list[tuple[np.ndarray, bool]]:
             edges = np.flatnonzero(np.diff(np.concatenate([[0], side_by_side.astype(int), [0]])))
             for start, stop in zip(edges[::2], edges[1::2]):
                 if stop - start >= 2:
-                    out.append((mid[start:stop], same))
+                    out.append((_simplified(mid[start:stop]), same))
     return out
+
+
+def _simplified(line: np.ndarray) -> np.ndarray:  # [M, 2] -> [K, 2], ends kept, within DIVIDER_SIMPLIFY_M
+    from shapely.geometry import LineString
+
+    return np.asarray(LineString(line).simplify(DIVIDER_SIMPLIFY_M).coords, np.float64)
 
 
 def _junction_cut(polygon: np.ndarray, junctions: tuple[np.ndarray, ...]) -> list[np.ndarray]:
