@@ -183,7 +183,8 @@ def place_scenes(scenes: list[Scene], location: str = DEFAULT_LOCATION, spacing:
                  ) -> list[ScenePlacement]:
     """The placement of every scene of one export (see the module docstring)."""
     check_location(location)
-    if not np.isfinite(spacing) or spacing <= 2 * MAP_MARGIN_M:
+    if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not np.isfinite(spacing) or \
+            spacing <= 2 * MAP_MARGIN_M:
         raise OmniscsError(f"scene spacing must be a number of metres above {2 * MAP_MARGIN_M:g}; got {spacing!r}")
     kept_locations = {s.manifest["location"]: s.scene_id for s in scenes if keeps_its_frame(s)}
     placed_count = sum(not keeps_its_frame(s) for s in scenes)

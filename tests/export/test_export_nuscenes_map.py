@@ -218,6 +218,8 @@ def test_recorded_log_and_procedural_scenes_in_one_location_is_one_clear_error(s
     ({"location": "mars"}, r"unknown nuScenes location 'mars'.*boston-seaport"),
     ({"scene_spacing_m": 300.0}, r"reaches \d+ m from its first ego pose.*pass a scene spacing above"),
     ({"scene_spacing_m": float("nan")}, r"scene spacing must be a number of metres"),
+    ({"scene_spacing_m": "wide"}, r"scene spacing must be a number of metres"),
+    ({"location": None}, r"unknown nuScenes location None"),
 ])
 def test_bad_map_options_are_one_clear_error_and_write_nothing(options, message, stores, tmp_path):
     with pytest.raises(OmniscsError, match=message) as info:
