@@ -8,8 +8,8 @@ sample_annotation per keyframe and box, chained per instance. Tokens are md5 dig
 so exports are reproducible. Coordinates: a recorded log with a nuScenes location keeps its dataset global frame
 (``global_from_world`` of the manifest); every other scene is placed in a grid cell of the chosen nuScenes
 ``location`` and its roads go into that location's map expansion ``maps/expansion/<location>.json`` (placement,
-time shifts and map records: ``omniscs.export.nuscenes_map``). Images are JPEG (quality ``JPEG_QUALITY``); LIDAR_TOP sweeps are float32
-x, y, z, intensity, ring in the LiDAR frame (ring is 0: the store does not keep it).
+time shifts and map records: ``omniscs.export.nuscenes_map``). Images are JPEG (quality ``JPEG_QUALITY``);
+LIDAR_TOP sweeps are float32 x, y, z, intensity, ring in the LiDAR frame (ring is 0: the store does not keep it).
 
 Estimated fields: ``visibility`` from the store's visible pixels over the boxes' image rectangles (v80-100 when the
 store does not know them, or the value a nuScenes reader kept); ``attribute`` from the track's speed (or kept);
@@ -38,8 +38,8 @@ from omniscs.export.common import (
     visible_fraction,
     write_bytes,
 )
-from omniscs.geometry import invert_transform
 from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M, ScenePlacement, map_expansions, place_scenes
+from omniscs.geometry import invert_transform
 from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
