@@ -33,13 +33,13 @@ def variant_store_id(scene_id: str, variant_id: str) -> str:
 def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out_dir: str | Path,
                       solve: Callable[[dict], object] | None = None, reference: Reference | None = None,
                       config: AnnotateConfig = AnnotateConfig(), picture: Callable | None = None,
-                      progress: Progress = no_progress) -> list[AnnotatedVariant]:
+                      describe: Callable | None = None, progress: Progress = no_progress) -> list[AnnotatedVariant]:
     """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
 
     ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
     solved the ego drives it in the rendered frames, else the ego keeps the variant's plan and the variant is kept
     as a test case (``ego_solved`` false). ``picture(variant, solution, png)`` draws the variant's BEV with the
-    solution. Writes ``rows.json`` (samples, annotations, summaries) last."""
+    solution. ``describe(frames) -> world.json`` (procedural sources) goes into each variant's store. Writes ``rows.json`` (samples, annotations, summaries) last."""
     out_dir = Path(out_dir)
     annotator = ViewAnnotator(graph, config)
     members = background_members(graph, background_tracks(scene, graph))
@@ -64,7 +64,7 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
         result = write_annotated_variant(graph, scene, variant, out_dir / store_id, store_id, ego_xy_yaw=ego,
                                          solution=None if solution is None else solution.to_dict(),
                                          reference=reference, config=config, progress=step, annotator=annotator,
-                                         members=members)
+                                         members=members, describe=describe)
         if picture is not None and solution is not None:
             pictures.append(Path(picture(variant, solution, out_dir / f"{store_id}-bev.png")).name)
         results.append(result)

@@ -118,13 +118,16 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                             ego_xy_yaw: np.ndarray | None = None, solution: dict | None = None,
                             reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
                             progress: Progress = no_progress, annotator: ViewAnnotator | None = None,
-                            members: dict | None = None, rig: list[CameraRecord] | None = None) -> AnnotatedVariant:
+                            members: dict | None = None, rig: list[CameraRecord] | None = None,
+                            describe: Callable[[VariantFrames], str] | None = None) -> AnnotatedVariant:
     """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
     when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
     exact image of a frame (procedural scenes) for fidelity; without it only the viewpoint proxy is measured.
     ``annotator`` and ``members`` (background tracks' Gaussians) may be shared between variants of one graph.
     ``rig`` renders other cameras than the logged ones (e.g. a nuScenes-size rig; no exposure correction for a
-    camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras."""
+    camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras.
+    ``describe(frames) -> world.json`` writes the variant's procedural world into its store (synthetic sources:
+    its roads reach the exports' maps)."""
     started = time.perf_counter()
     if graph.scene_id != scene.scene_id:
         raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
@@ -156,6 +159,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
         writer.set_frames(vf.timestamps_us, vf.world_from_ego)
         writer.set_cameras(cameras)
         writer.set_extra(source_scene_id=scene.scene_id, **_location(scene))
+        if describe is not None and rig is None:
+            writer.write_world_json(describe(vf))
         rows_by_frame = {t: g for t, g in boxes.groupby("frame_idx")}
         for t in range(vf.n_frames):
             f = int(vf.scene_frames[t])

@@ -82,7 +82,7 @@ def world_render(
 @app.command("export")
 def world_export(
     scenes: list[Path] = typer.Argument(..., help="Scene stores to export (one dataset holds them all)."),
-    fmt: str = typer.Option(..., "--format", help="nuscenes, kitti or waymo-v2."),
+    fmt: str = typer.Option(..., "--format", help="nuscenes, kitti, waymo-v2 or uniad (nuScenes + UniAD infos)."),
     out: Path = typer.Option(..., help="Dataset root to write (must not exist)."),
     version: str = typer.Option("v1.0-trainval", help="nuScenes: table version folder."),
     keyframe_every: Optional[int] = typer.Option(None, help="nuScenes: frames per keyframe (default: 2 Hz)."),
@@ -95,7 +95,7 @@ def world_export(
     if fmt not in WRITERS:
         raise OmniscsError(f"unknown --format {fmt!r}; use one of {list(WRITERS)}")
     options = {"nuscenes": {"version": version, "keyframe_every": keyframe_every}, "kitti": {"camera": camera},
-               "waymo-v2": {}}[fmt]
+               "waymo-v2": {}, "uniad": {"version": version, "keyframe_every": keyframe_every}}[fmt]
     started = time.perf_counter()
     with progress_bars() as bars:
         export_scenes(scenes, fmt, out, overwrite=overwrite, progress=bars.sink(f"export {fmt}"), **options)

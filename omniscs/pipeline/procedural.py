@@ -57,47 +57,69 @@ def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
                        "(`omniscs ingest`) and pass the scene store it writes")
 
 
+
+def variant_world(world, vf):
+    """The procedural ``world`` as a variant made it: every agent node the variant moved where it was placed in the
+    rendered frames (logged poses elsewhere), the ego where it drove. Same frames as the world."""
+    from omniscs.edits import SetTrajectory
+    from omniscs.geometry import yaw_of
+    from omniscs.world import apply_edits
+
+    def xyz_yaw(T: np.ndarray) -> tuple:
+        return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_of(T[:3, :3]))
+
+    n = world.n_frames
+    moved: dict[int, list] = {}
+    for t, placed in enumerate(vf.node_poses):
+        for tid, T in placed.items():
+            moved.setdefault(tid, [None] * n)[int(vf.scene_frames[t])] = xyz_yaw(T)
+    by_id = {a.track_id: a for a in world.agents}
+    edits = []
+    for tid, waypoints in moved.items():  # frames the variant does not render keep the logged pose
+        agent = by_id[tid]
+        edits.append(SetTrajectory(int(tid), tuple(
+            w if w is not None else (xyz_yaw(agent.poses[f]) if agent.present[f] else None)
+            for f, w in enumerate(waypoints))))
+    edited = apply_edits(world, edits)
+    ego = np.array(edited.ego_poses, dtype=np.float64, copy=True)
+    ego[np.asarray(vf.scene_frames, dtype=np.int64)] = vf.world_from_ego
+    return edited.replace(ego_poses=ego)
+
+
 def world_reference(scene):
-    """For a procedural scene, the exact image of any rendered variant frame (``annotate.variant.Reference``): the
-    world with every moved agent node where the variant placed it and the ego where it drove, ray-cast; None for
-    recorded logs (their fidelity is the viewpoint proxy only). Renderers are kept per variant (by its frames)."""
+    """For a procedural scene, the exact image of any rendered variant frame (``annotate.variant.Reference``):
+    ``variant_world`` ray-cast; None for recorded logs (their fidelity is the viewpoint proxy only). One renderer
+    is kept, for the variant rendered last."""
     world = scene.world
     if world is None:
         return None
-    from omniscs.edits import SetTrajectory
-    from omniscs.geometry import yaw_of
-    from omniscs.world import WorldRenderer, apply_edits
+    from omniscs.world import WorldRenderer
 
-    cache: dict[int, tuple[object, WorldRenderer]] = {}
-
-    def renderer_for(vf) -> WorldRenderer:
-        held = cache.get(id(vf))
-        if held is not None and held[0] is vf:
-            return held[1]
-        n = world.n_frames
-        moved: dict[int, list] = {}
-        for t, placed in enumerate(vf.node_poses):
-            for tid, T in placed.items():
-                moved.setdefault(tid, [None] * n)[int(vf.scene_frames[t])] = (
-                    float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_of(T[:3, :3])))
-        by_id = {a.track_id: a for a in world.agents}
-        edits = []
-        for tid, waypoints in moved.items():  # frames the variant does not render keep the logged pose
-            agent = by_id[tid]
-            full = [w if w is not None else (None if not agent.present[f] else (
-                float(agent.poses[f, 0, 3]), float(agent.poses[f, 1, 3]), float(agent.poses[f, 2, 3]),
-                float(yaw_of(agent.poses[f, :3, :3])))) for f, w in enumerate(waypoints)]
-            edits.append(SetTrajectory(int(tid), tuple(full)))
-        edited = apply_edits(world, edits)
-        ego = np.array(edited.ego_poses, dtype=np.float64, copy=True)
-        ego[np.asarray(vf.scene_frames, dtype=np.int64)] = vf.world_from_ego
-        renderer = WorldRenderer(edited.replace(ego_poses=ego))
-        cache.clear()
-        cache[id(vf)] = (vf, renderer)
-        return renderer
+    held: list = []
 
     def reference(vf, camera: str, t: int):
-        r = renderer_for(vf).render_camera(int(vf.scene_frames[t]), camera)
+        if not held or held[0] is not vf:
+            held[:] = [vf, WorldRenderer(variant_world(world, vf))]
+        r = held[1].render_camera(int(vf.scene_frames[t]), camera)
         return r.rgb, r.instance
 
     return reference
+
+
+def world_description(scene):
+    """For a procedural scene, ``vf -> world.json`` of a rendered variant (``variant_world`` cut to the rendered
+    frames), so a variant's store describes its own roads and traffic like any synthetic store; None otherwise."""
+    world = scene.world
+    if world is None:
+        return None
+
+    def describe(vf) -> str:
+        frames = np.asarray(vf.scene_frames, dtype=np.int64)
+        edited = variant_world(world, vf)
+        agents = tuple(a.__class__(track_id=a.track_id, category=a.category, asset_id=a.asset_id, size=a.size,
+                                   poses=a.poses[frames], present=a.present[frames]) for a in edited.agents)
+        period = int(np.median(np.diff(vf.timestamps_us))) if len(frames) > 1 else edited.frame_period_us
+        return edited.replace(n_frames=len(frames), ego_poses=edited.ego_poses[frames], agents=agents,
+                              frame_period_us=period).to_json()
+
+    return describe

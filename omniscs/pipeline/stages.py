@@ -302,7 +302,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     from omniscs.annotate import AnnotateConfig
     from omniscs.annotate.scene import annotate_variants
     from omniscs.nsg.checkpoint import load_checkpoint
-    from omniscs.pipeline.procedural import world_reference
+    from omniscs.pipeline.procedural import world_description, world_reference
     from omniscs.scs.behavior import traffic_from_scene
     from omniscs.scs.behavior.solution import SolutionConfig, solve_ego, solution_bev_picture
 
@@ -328,7 +328,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
             def make(tmp: Path) -> dict:
                 results = annotate_variants(
                     graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
-                    reference=world_reference(scene), config=config, progress=progress,
+                    reference=world_reference(scene), describe=world_description(scene), config=config,
+                    progress=progress,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png))
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 

@@ -19,7 +19,7 @@ from omniscs.annotate.views import projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, pose_from_xyz_yaw, rotmat_from_euler
 from omniscs.nsg.graph import BACKGROUND, render_view
-from omniscs.pipeline.procedural import world_reference
+from omniscs.pipeline.procedural import world_description, world_reference
 from omniscs.scene import load_scene
 
 K = np.array([[50.0, 0, 48], [0, 50.0, 27], [0, 0, 1]])
@@ -35,7 +35,8 @@ def annotated(fitted, tmp_path_factory):
     scene, graph = fitted
     variant = logged_variant(scene, shift={2: 0.15})
     out = tmp_path_factory.mktemp("variant") / "store"
-    return write_annotated_variant(graph, scene, variant, out, "nsg-test-v000", reference=world_reference(scene))
+    return write_annotated_variant(graph, scene, variant, out, "nsg-test-v000", reference=world_reference(scene),
+                                   describe=world_description(scene))
 
 
 def _iou(a, b) -> float:
@@ -222,3 +223,63 @@ def test_visibility_levels_are_nuscenes_bins(fraction, level):
 def test_bad_annotate_settings_are_one_clear_error(field, value):
     with pytest.raises(OmniscsError, match=field):
         AnnotateConfig(**{field: value})
+
+
+# ----------------------------------------------------------------------------- the store as a dataset: exports
+@pytest.fixture(scope="module")
+def exported(annotated, tmp_path_factory):
+    from omniscs.export import export_scenes
+
+    root = tmp_path_factory.mktemp("export") / "nuscenes"
+    export_scenes([annotated.store], "nuscenes", root, version="v1.0-mini")
+    from nuscenes import NuScenes
+
+    return root, NuScenes(version="v1.0-mini", dataroot=str(root), verbose=False)
+
+
+def test_the_variant_store_describes_its_own_world(annotated):
+    store = load_scene(annotated.store)
+    world = store.world
+    assert world is not None and world.n_frames == store.n_frames
+    np.testing.assert_allclose(world.ego_poses, store.world_from_ego_all)
+    moved = world.agent(2).poses[-1, :3, 3]
+    box = store.boxes[(store.boxes.frame_idx == store.n_frames - 1) & (store.boxes.track_id == 2)].iloc[0]
+    np.testing.assert_allclose(moved, [box.cx, box.cy, box.cz], atol=1e-9)
+
+
+def test_the_nuscenes_export_of_a_variant_loads_with_its_rendered_visibility_and_map(annotated, exported):
+    from nuscenes.map_expansion.map_api import NuScenesMap
+
+    from omniscs.export.common import token
+    from omniscs.scene.sources.common import load_attributes
+
+    root, nusc = exported
+    store = load_scene(annotated.store)
+    levels = {(int(f), int(t)): v for f, t, v in load_attributes(store)[["frame_idx", "track_id", "value"]]
+              .itertuples(index=False)}
+    names = {"1": "v0-40", "2": "v40-60", "3": "v60-80", "4": "v80-100"}
+    checked = 0
+    for (f, tid), level in levels.items():
+        key = token("sample_annotation", store.scene_id, tid, f)
+        if key in nusc._token2ind["sample_annotation"]:
+            assert names[nusc.get("sample_annotation", key)["visibility_token"]] == level
+            checked += 1
+    assert checked == len(nusc.sample_annotation) > 0
+    nusc_map = NuScenesMap(dataroot=str(root), map_name=nusc.log[0]["location"])
+    for pose in nusc.ego_pose:
+        x, y = pose["translation"][:2]
+        assert nusc_map.record_on_point(x, y, "drivable_area"), (x, y)
+
+
+def test_the_uniad_export_of_a_variant_has_finite_boxes_and_commands(annotated, tmp_path):
+    import pickle
+
+    from omniscs.export import export_scenes
+
+    out = export_scenes([annotated.store], "uniad", tmp_path / "uniad")
+    infos = []
+    for path in sorted((out / "infos").glob("*.pkl")):
+        with open(path, "rb") as f:
+            infos += pickle.load(f)["infos"]
+    assert infos and all(np.isfinite(i["gt_boxes"]).all() and np.isfinite(i["can_bus"]).all() for i in infos)
+    assert sum(len(i["gt_boxes"]) for i in infos) > 0
