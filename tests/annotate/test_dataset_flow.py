@@ -1,0 +1,78 @@
+"""generate_dataset with annotate: every stage from ingest to the dataset, catalogued; a rerun reuses everything
+and gives the same dataset id; `omniscs dataset info` and `export` read what was built."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs import catalog
+from omniscs.cli import app
+from omniscs.errors import OmniscsError
+from omniscs.nsg.config import PRESETS
+
+AGENTS = ({"x": 14.0, "y": 0.0, "speed": 4.0, "asset": "sedan-0003"},
+          {"x": 4.0, "y": 3.3, "speed": 9.0, "asset": "sedan-0011"})
+
+
+@pytest.fixture(scope="module")
+def built(prefect_harness, tmp_path_factory):
+    from flows.generate import generate_dataset
+
+    root = tmp_path_factory.mktemp("flow")
+    store = write_nsg_scene(root / "in", nsg_world(agents=AGENTS, n_frames=20, n_cameras=1, width=96, height=54))
+    mp = pytest.MonkeyPatch()
+    mp.setitem(PRESETS, "fast", tiny_fit_config(40))
+    try:
+        kwargs = dict(workspace=str(root / "ws"), previews=False, fit_preset="fast", behavior_variants=1,
+                      behavior_preset="fast", annotate=True)
+        first = generate_dataset([str(store)], run_id="ds1", **kwargs)
+        second = generate_dataset([str(store)], run_id="ds2", **kwargs)
+    finally:
+        mp.undo()
+    return root / "ws", first, second
+
+
+def test_the_flow_builds_a_catalogued_dataset_of_every_variant(built):
+    ws, first, _ = built
+    assert first["dataset_id"].startswith("ds-") and Path(first["dataset_path"]).is_dir()
+    stages = first["scenes"][0]["stages"]
+    assert stages["annotate"]["info"]["n_variants"] == 1 and not stages["annotate"]["skipped"]
+    root = catalog.catalog_root(ws)
+    d = catalog.query(root, "SELECT dataset_id, n_variants, n_samples, n_annotations, fidelity_psnr FROM datasets_by_run "
+                            "WHERE run_id = 'ds1'").to_pylist()
+    assert d and d[0]["dataset_id"] == first["dataset_id"] and d[0]["n_samples"] > 0 and d[0]["fidelity_psnr"] > 10
+    n = catalog.query(root, "SELECT count(*) AS n FROM samples s JOIN variants v USING (scene_id, variant_id)")
+    assert n.to_pylist()[0]["n"] == d[0]["n_samples"]
+    a = catalog.query(root, "SELECT count(*) AS n FROM annotations WHERE dataset_id = "
+                            f"'{first['dataset_id']}'").to_pylist()[0]["n"]
+    assert a == d[0]["n_annotations"] > 0
+
+
+def test_a_rerun_reuses_every_stage_and_gives_the_same_dataset(built):
+    _, first, second = built
+    assert second["dataset_id"] == first["dataset_id"]
+    assert all(r["reused"] for name, r in second["scenes"][0]["stages"].items() if not r["skipped"])
+
+
+def test_dataset_info_and_export_read_what_was_built(built, tmp_path):
+    ws, first, _ = built
+    info = CliRunner().invoke(app, ["dataset", "info", first["dataset_id"], "--workspace", str(ws)])
+    assert info.exit_code == 0, info.output
+    assert first["dataset_id"] in info.output and "preview.png" in info.output
+    out = tmp_path / "nusc"
+    exported = CliRunner().invoke(app, ["dataset", "export", first["dataset_path"], "--format", "nuscenes",
+                                        "--out", str(out)])
+    assert exported.exit_code == 0, exported.output
+    assert (out / "v1.0-trainval" / "sample_annotation.json").is_file()
+
+
+def test_a_dataset_is_refused_without_a_fit_or_variants(prefect_harness, tmp_path):
+    from flows.generate import generate_dataset
+
+    with pytest.raises(OmniscsError, match="fit preset"):
+        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=1, annotate=True)
+    result = CliRunner().invoke(app, ["dataset", "info", "no-such-set", "--workspace", str(tmp_path)])
+    assert isinstance(result.exception, OmniscsError) and "is not a dataset" in str(result.exception)
