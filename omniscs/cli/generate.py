@@ -18,6 +18,9 @@ from omniscs.cli.common import console, print_error, print_table, read_edits
 DEMO_SOURCES = ("syn:straight_parked_truck:3:day", "syn:t_junction:1:dusk", "syn:intersection:2:day",
                 "syn:straight:0:night")
 DEMO_FRAMES = 20
+#: The demo's dataset: one scene (its variants hit the ego head-on with the fast presets), fitted and annotated.
+DEMO_DATASET_SOURCE = "syn:straight_parked_truck:3:day"
+DEMO_DATASET_VARIANTS = 2
 
 
 def run_generate(sources: list[str], workspace: Optional[Path] = None, **parameters) -> dict:
@@ -108,19 +111,27 @@ def generate(
     edit: Optional[str] = typer.Option(None, help="Edits the variants will apply (JSON or @file, see README); "
                                                   "their tracks become nodes in every scene's plan."),
     device: str = typer.Option("cpu", help="Compute device of the scene graph and behaviour optimisation."),
+    annotate: bool = typer.Option(False, help="Render and annotate every variant and gather them as a dataset "
+                                              "(needs --fit-preset and --behavior-variants)."),
+    dataset_id: Optional[str] = typer.Option(None, help="With --annotate: the dataset's id (default ds-<hash>)."),
 ) -> None:
-    """Run the generate_dataset flow: per scene ingest, plan, preview, fit, behaviour variants, catalog."""
+    """Run the generate_dataset flow: per scene ingest, plan, preview, fit, behaviour variants, render + annotate,
+    catalog; with --annotate, the run's dataset."""
     from omniscs.edits import edit_to_dict
 
     result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
                           height=height, previews=previews, fit_preset=fit_preset,
                           behavior_variants=behavior_variants, behavior_preset=behavior_preset,
                           behavior_checkpoint=str(behavior_checkpoint) if behavior_checkpoint else None,
-                          edits=[edit_to_dict(e) for e in read_edits(edit)], device=device)
+                          edits=[edit_to_dict(e) for e in read_edits(edit)], device=device, annotate=annotate,
+                          dataset_id=dataset_id)
     rows = [{"scene_id": s["scene_id"], **{stage: _state(r) for stage, r in s["stages"].items()}}
             for s in result["scenes"]]
     print_table(rows, title=f"run {result['run_id']}")
     console.print(f"run {result['run_id']}: {len(result['scenes'])} scene(s) in {result['workspace']}")
+    if result.get("dataset_path"):
+        console.print(f"dataset {result['dataset_id']}: {result['dataset_path']}  (omniscs dataset info "
+                      f"{result['dataset_id']})")
 
 
 def _state(record: dict) -> str:
@@ -158,4 +169,12 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     console.print(f"plans:        {ws / 'plans'}  (SELECT scene_id, n_agent_nodes, gaussian_budget FROM plans)")
     console.print(f"catalog:      {root}  (try: omniscs catalog query \"SELECT category, count(*) FROM agents GROUP BY 1\""
                   + (f" --workspace {ws}" if workspace else "") + ")")
+    console.print(f"then a small dataset: {DEMO_DATASET_SOURCE}, fast scene graph, {DEMO_DATASET_VARIANTS} behaviour "
+                  "variants rendered and annotated (a few minutes)")
+    built = run_generate([DEMO_DATASET_SOURCE], workspace, n_frames=DEMO_FRAMES, n_cameras=3, width=480, height=270,
+                         previews=False, fit_preset="fast", behavior_variants=DEMO_DATASET_VARIANTS,
+                         behavior_preset="fast", annotate=True)
+    from omniscs.cli.dataset import show
+
+    show(Path(built["dataset_path"]))
     console.print(f"demo finished in {time.perf_counter() - started:.1f} s")
