@@ -283,3 +283,19 @@ def test_the_uniad_export_of_a_variant_has_finite_boxes_and_commands(annotated, 
             infos += pickle.load(f)["infos"]
     assert infos and all(np.isfinite(i["gt_boxes"]).all() and np.isfinite(i["can_bus"]).all() for i in infos)
     assert sum(len(i["gt_boxes"]) for i in infos) > 0
+
+
+def test_the_exported_variant_reads_back_into_a_scene_store(annotated, exported, tmp_path):
+    from omniscs.scene.sources import DatasetSource, read_dataset_scene
+    from tests.dataset_fixtures import box_errors, match_tracks, pose_error
+
+    root, nusc = exported
+    original = load_scene(annotated.store)
+    read = load_scene(read_dataset_scene(DatasetSource("nuscenes", str(root)), tmp_path / "back"))
+    keyframes = [0, 5]
+    frame_map = {j: f for j, f in enumerate(keyframes)}
+    assert read.n_frames == len(keyframes) and pose_error(original, read, frame_map) < 1e-9
+    expected = original.boxes[original.boxes.frame_idx.isin(keyframes)]
+    assert len(read.boxes) == len(expected) > 0
+    err = box_errors(original.boxes, read.boxes, frame_map, match_tracks(original.boxes, read.boxes, frame_map))
+    assert max(err.values()) < 1e-9, err
