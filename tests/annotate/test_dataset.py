@@ -80,3 +80,39 @@ def test_a_dataset_needs_an_annotated_scene_and_a_safe_id(annotated_dir, tmp_pat
     with pytest.raises(OmniscsError, match="dataset id"):
         stages.dataset_stage([_record(scene, out)], tmp_path / "ws", dataset_id="../escape")
     assert not (tmp_path / "escape").exists()
+
+
+def test_a_reader_during_a_rebuild_sees_the_dataset_or_a_clear_error(annotated_dir, tmp_path):
+    import threading
+
+    from omniscs.errors import OmniscsError as Error
+
+    scene, out = annotated_dir
+    ws = tmp_path / "ws"
+    record = stages.dataset_stage([_record(scene, out)], ws)
+    store = Path(record.path) / "scenes" / "nsg-test-v000"
+    expected = load_scene(store).image("CAM_FRONT", 0)
+    done, outcomes = threading.Event(), {"same": 0, "error": 0}
+    failures = []
+
+    def read_loop():
+        while not done.is_set():
+            try:
+                image = load_scene(store).image("CAM_FRONT", 0)
+                assert (image == expected).all()
+                outcomes["same"] += 1
+            except Error:
+                outcomes["error"] += 1
+            except Exception as exc:  # anything else is a failure of the guarantee
+                failures.append(repr(exc))
+
+    reader = threading.Thread(target=read_loop)
+    reader.start()
+    try:
+        for _ in range(3):
+            stages.dataset_stage([_record(scene, out)], ws, reuse=False)
+    finally:
+        done.set()
+        reader.join()
+    assert failures == [] and outcomes["same"] > 0
+    assert (load_scene(store).image("CAM_FRONT", 0) == expected).all()
