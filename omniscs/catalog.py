@@ -175,6 +175,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("fidelity_psnr", pa.float64()),                  # mean over variants; null: no exact reference
         pa.field("fidelity_ssim", pa.float64()),
         pa.field("fidelity_masked_psnr", pa.float64()),
+        pa.field("feature_drift", pa.float64()),                  # mean over variants (recorded logs' proxy too)
         pa.field("card_path", pa.string(), nullable=False),
         pa.field("preview_path", pa.string(), nullable=False),
         pa.field("config_json", pa.string(), nullable=False),
@@ -201,7 +202,9 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("fidelity_ssim", pa.float64()),
         pa.field("fidelity_masked_psnr", pa.float64()),           # over the reference's agent pixels
         pa.field("fidelity_masked_ssim", pa.float64()),
+        pa.field("feature_drift", pa.float64()),                  # vs the unedited render, edits left out (0..1)
         pa.field("variant_fidelity_psnr", pa.float64()),          # mean over the variant's measured frames
+        pa.field("variant_feature_drift", pa.float64()),
         pa.field("ego_solved", pa.bool_()),                       # the ego drives a collision-free solution
     ]),
     "annotations": pa.schema([                                    # one box seen by one camera in one sample

@@ -115,10 +115,12 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
         "fidelity": {"variant_psnr": _stats([v.get("fidelity_psnr") for v in variants]),
                      "variant_ssim": _stats([v.get("fidelity_ssim") for v in variants]),
                      "variant_masked_psnr": _stats([v.get("fidelity_masked_psnr") for v in variants]),
+                     "variant_feature_drift": _stats([v.get("feature_drift") for v in variants]),
                      "max_viewpoint_offset_m": _stats([v.get("max_viewpoint_offset_m") for v in variants])},
         "variants": [{k: v.get(k) for k in ("scene_id", "variant_id", "store_id", "n_frames", "n_images",
                                             "n_annotations", "dropped_frames", "ego_solved", "fidelity_psnr",
-                                            "fidelity_ssim", "fidelity_masked_psnr", "max_viewpoint_offset_m")}
+                                            "fidelity_ssim", "fidelity_masked_psnr", "feature_drift",
+                                            "max_viewpoint_offset_m")}
                      for v in variants],
     }
 
@@ -140,18 +142,20 @@ def card_markdown(card: dict) -> str:
              f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
              f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
              f"- Distance of the rendered ego from the logged path: {stat(fid['max_viewpoint_offset_m'], ' m')}",
+             "- Feature drift against the unedited render of the logged view, edited agents left out (0 = same "
+             f"structure; the proxy for recorded logs): {stat(fid.get('variant_feature_drift'))}",
              f"- Annotations by category: {c['annotations_by_category']}",
              f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
              f"- Samples by driving command: {c['samples_by_command']}", "",
              "## Config", "", "```json", json.dumps(card.get("config"), indent=2, sort_keys=True), "```", "",
-             "## Variants", "", "| scene | variant | frames | images | boxes | ego solved | PSNR dB | masked PSNR dB |",
-             "|---|---|---:|---:|---:|---|---:|---:|"]
+             "## Variants", "", "| scene | variant | frames | images | boxes | ego solved | PSNR dB | masked PSNR dB "
+             "| drift |", "|---|---|---:|---:|---:|---|---:|---:|---:|"]
     for v in card["variants"]:
-        def num(x):
-            return "" if x is None else f"{x:.2f}"
+        def num(x, digits=2):
+            return "" if x is None else f"{x:.{digits}f}"
         lines.append(f"| {v['scene_id']} | {v['variant_id']} | {v['n_frames']} | {v['n_images']} | "
                      f"{v['n_annotations']} | {v['ego_solved']} | {num(v['fidelity_psnr'])} | "
-                     f"{num(v['fidelity_masked_psnr'])} |")
+                     f"{num(v['fidelity_masked_psnr'])} | {num(v.get('feature_drift'), 3)} |")
     return "\n".join(lines) + "\n"
 
 

@@ -20,11 +20,12 @@ import pyarrow.parquet as pq
 import torch
 
 from omniscs.annotate.config import AnnotateConfig, visibility_level
+from omniscs.annotate.fidelity import box_mask, feature_drift, image_fidelity
 from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
-from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
+from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members, projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
-from omniscs.nsg.graph import SceneGraph
+from omniscs.nsg.graph import SceneGraph, render_view
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
@@ -102,18 +103,6 @@ def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: n
     return counts
 
 
-def image_fidelity(rendered: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> dict:
-    """PSNR / SSIM of a rendered frame against its reference, over the image and over ``mask`` (None when empty)."""
-    from omniscs.nsg.metrics import psnr, ssim
-
-    r = torch.from_numpy(rendered.astype(np.float32) / 255.0)
-    g = torch.from_numpy(reference.astype(np.float32) / 255.0)
-    m = torch.from_numpy(mask)
-    return {"psnr": _finite(psnr(r, g)), "ssim": _finite(ssim(r, g)),
-            "masked_psnr": _finite(psnr(r, g, m)) if mask.any() else None,
-            "masked_ssim": _finite(ssim(r, g, m)) if mask.any() else None}
-
-
 def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_dir: str | Path, store_id: str,
                             ego_xy_yaw: np.ndarray | None = None, solution: dict | None = None,
                             reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
@@ -122,7 +111,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                             describe: Callable[[VariantFrames], str] | None = None) -> AnnotatedVariant:
     """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
     when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
-    exact image of a frame (procedural scenes) for fidelity; without it only the viewpoint proxy is measured.
+    exact image of a frame (procedural scenes) for fidelity; on every scene the viewpoint offset and the feature
+    drift against the unedited render of the logged cameras are measured (``omniscs.annotate.fidelity``).
     ``annotator`` and ``members`` (background tracks' Gaussians) may be shared between variants of one graph.
     ``rig`` renders other cameras than the logged ones (e.g. a nuScenes-size rig; no exposure correction for a
     camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras.
@@ -142,8 +132,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     if vf.n_frames == 0:
         raise OmniscsError(f"variant {variant.get('variant_id')} of {scene.scene_id}: the ego is outside the fitted "
                            "area in every frame; nothing can be rendered")
-    cameras = list(rig) if rig is not None else [graph.camera(c) for c in scene.camera_names
-                                                 if c in {r.name for r in graph.cameras}]
+    fitted = {r.name for r in graph.cameras}
+    cameras = list(rig) if rig is not None else [graph.camera(c) for c in scene.camera_names if c in fitted]
     adversary = int(variant.get("adversary", -1))
     moved = {int(k) for k in (variant.get("agents") or {})} & set(graph.agent_ids)
     boxes = vf.boxes.copy()
@@ -174,7 +164,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                 tick = time.perf_counter()
                 view = View(f, vf.world_from_ego[t] @ cam.ego_from_camera, np.array(cam.K, dtype=np.float64),
                             int(cam.width), int(cam.height),
-                            cam.name if cam.name in {c.name for c in graph.cameras} else None)
+                            cam.name if cam.name in fitted else None)
                 ann = annotator.annotate(view, vf.node_poses[t], instances)
                 tock = time.perf_counter()
                 render_s += ann_render_seconds(annotator)
@@ -184,9 +174,15 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                 write_s += time.perf_counter() - tock
                 depth_views.append((ann.depth, cam.K, cam.ego_from_camera))
                 fid = {}
-                if reference is not None and config.fidelity_every and t % config.fidelity_every == 0:
+                measured = bool(config.fidelity_every) and t % config.fidelity_every == 0
+                if measured and reference is not None:
                     ref_rgb, ref_instance = reference(vf, cam.name, t)
                     fid = image_fidelity(ann.rgb, ref_rgb, ref_instance >= 0)
+                if measured and rig is None:
+                    tick = time.perf_counter()
+                    fid["feature_drift"] = unedited_drift(graph, scene, cam.name, f, ann, moved)
+                    render_s += time.perf_counter() - tick
+                if fid:
                     fidelity.append(fid)
                 samples.append(_sample_row(scene, variant, store_id, vf, t, cam.name, ann, fid))
                 for label in ann.labels:
@@ -224,8 +220,31 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
             "commands": [COMMANDS[c] for c in vf.commands], "dropped_frames": list(vf.dropped_frames),
             "summary": summary}, indent=1, allow_nan=False))
     for row in samples:
-        row.update(variant_fidelity_psnr=summary["fidelity_psnr"], ego_solved=summary["ego_solved"])
+        row.update(variant_fidelity_psnr=summary["fidelity_psnr"], variant_feature_drift=summary["feature_drift"],
+                   ego_solved=summary["ego_solved"])
     return AnnotatedVariant(out_dir, samples, annotations, summary)
+
+
+@torch.no_grad()
+def unedited_drift(graph: SceneGraph, scene: Scene, camera: str, frame: int, ann: ViewAnnotation,
+                   moved: set[int]) -> float | None:
+    """``feature_drift`` of a rendered variant view against the graph's unedited render of the same source frame
+    and camera at the logged pose, outside every pixel a moved agent covers in either (its mask, its projected
+    box in the variant, its logged box in the unedited view)."""
+    logged = graph.view(camera, frame)
+    unedited = (render_view(graph, logged).rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    rects = [lab.box2d for lab in ann.labels if lab.track_id in moved and lab.box2d is not None]
+    rows = scene.boxes[(scene.boxes.frame_idx == frame) & scene.boxes.track_id.isin(sorted(moved))]
+    camera_from_world = invert_transform(logged.world_from_camera)
+    for r in rows.itertuples():
+        rect = projected_box(camera_from_world @ _world_from_box(r), np.array([r.length, r.width, r.height]),
+                             logged.K, logged.width, logged.height, graph.settings.near_plane)
+        if rect is not None:
+            rects.append(rect[0])
+    skip = np.isin(ann.instance, sorted(moved)) | box_mask(ann.instance.shape, rects)
+    if unedited.shape != ann.rgb.shape:
+        return None
+    return _finite(feature_drift(ann.rgb, unedited, ~skip))
 
 
 def ann_render_seconds(annotator: ViewAnnotator) -> float:
@@ -267,7 +286,7 @@ def _sample_row(scene: Scene, variant: dict, store_id: str, vf: VariantFrames, t
             "n_boxes": len(ann.labels), "n_visible": sum(lab.mask_pixels > 0 for lab in ann.labels),
             "viewpoint_offset_m": float(vf.viewpoint_offset_m[t]), "fidelity_psnr": fid.get("psnr"),
             "fidelity_ssim": fid.get("ssim"), "fidelity_masked_psnr": fid.get("masked_psnr"),
-            "fidelity_masked_ssim": fid.get("masked_ssim")}
+            "fidelity_masked_ssim": fid.get("masked_ssim"), "feature_drift": fid.get("feature_drift")}
 
 
 def _annotation_row(label, frame_rows: pd.DataFrame, vf: VariantFrames, t: int, camera: str, variant: dict,
@@ -306,6 +325,7 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
             "n_annotations": n_annotations, "dropped_frames": len(vf.dropped_frames),
             "ego_solved": None if solution is None else bool(solution.get("solved")),
             "fidelity_psnr": mean("psnr"), "fidelity_ssim": mean("ssim"), "fidelity_masked_psnr": mean("masked_psnr"),
-            "fidelity_masked_ssim": mean("masked_ssim"), "fidelity_frames": len(fidelity),
+            "fidelity_masked_ssim": mean("masked_ssim"), "feature_drift": mean("feature_drift"),
+            "fidelity_frames": len(fidelity),
             "max_viewpoint_offset_m": float(vf.viewpoint_offset_m.max()),
             "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s, "seconds": seconds}

@@ -89,6 +89,12 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
            format: str = typer.Option(..., "--format", help="nuscenes or uniad."),
            out: Path = typer.Option(..., help="Output folder."),
            overwrite: bool = typer.Option(False, help="Replace --out if omniscs wrote it."),
+           location: str = typer.Option("boston-seaport", help="nuScenes map location of scenes that carry none "
+                                                               "(procedural scenes); recorded logs keep their own."),
+           box_convention: str = typer.Option("v1", help="uniad: gt_boxes as UniAD main writes them (v1: w, l, h, "
+                                                         "-yaw - pi/2) or as UniAD v2.0 does (v2)."),
+           val_scene: list[str] = typer.Option([], help="uniad: a variant scene id for the val pickle (repeat the "
+                                                        "option); the others go to train."),
            workspace: Optional[Path] = workspace_option()) -> None:
     """Export every variant store of a dataset as one nuScenes dataroot (with map expansion) or for UniAD."""
     from omniscs.annotate.dataset import SCENES
@@ -98,7 +104,12 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
         raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes or uniad")
     path = dataset_path(dataset, workspace)
     check_out(out, overwrite)
+    options = {"location": location}
+    if format == "uniad":
+        options.update(box_convention=box_convention, val_scenes=tuple(val_scene))
+    elif box_convention != "v1" or val_scene:
+        raise OmniscsError("--box-convention and --val-scene apply to --format uniad only")
     stores = sorted(p for p in (path / SCENES).iterdir() if p.is_dir())
     with progress_bars() as bars:
-        export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"))
+        export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"), **options)
     console.print(f"{len(stores)} variant store(s) of {path.name} exported as {format} to {out}")

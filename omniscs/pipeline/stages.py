@@ -377,7 +377,8 @@ def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_i
                    "n_scenes": c["scenes"], "n_variants": c["variants"], "n_frames": c["frames"],
                    "n_samples": c["images"], "n_annotations": c["annotations"], "n_ego_solved": c["ego_solved"],
                    "fidelity_psnr": mean(fid["variant_psnr"]), "fidelity_ssim": mean(fid["variant_ssim"]),
-                   "fidelity_masked_psnr": mean(fid["variant_masked_psnr"]), "card_path": str(out / CARD_JSON),
+                   "fidelity_masked_psnr": mean(fid["variant_masked_psnr"]),
+                   "feature_drift": mean(fid.get("variant_feature_drift")), "card_path": str(out / CARD_JSON),
                    "preview_path": str(out / PREVIEW_PNG),
                    "config_json": json.dumps(facts.get("config"), sort_keys=True, default=str)}
     return StageRecord("dataset", dataset_id, str(out), reused=manifest is not None,

@@ -14,7 +14,8 @@ from annotate_fixtures import fitted_scene, logged_variant
 from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.config import visibility_level
 from omniscs.annotate.frames import COMMANDS, driving_commands
-from omniscs.annotate.variant import image_fidelity, write_annotated_variant
+from omniscs.annotate.fidelity import feature_drift, image_fidelity
+from omniscs.annotate.variant import write_annotated_variant
 from omniscs.annotate.views import projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, pose_from_xyz_yaw, rotmat_from_euler
@@ -115,6 +116,51 @@ def test_identical_images_give_the_capped_psnr_and_an_empty_mask_gives_none():
     img = np.full((20, 30, 3), 128, np.uint8)
     fid = image_fidelity(img, img, np.zeros((20, 30), bool))
     assert fid["psnr"] == 100.0 and fid["ssim"] == pytest.approx(1.0) and fid["masked_psnr"] is None
+
+
+def _texture(seed: int = 0) -> np.ndarray:  # uint8 [90, 160, 3]: blobs and edges at several scales
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = np.zeros((90, 160, 3), np.float32)
+    for sigma, weight in ((1.0, 0.05), (3.0, 0.1), (8.0, 0.1)):
+        layer = cv2.GaussianBlur(rng.random((90, 160, 3)).astype(np.float32), (0, 0), sigma)
+        img += weight * (layer - layer.mean()) / layer.std()
+    return (np.clip(img + 0.5, 0, 1) * 255).astype(np.uint8)
+
+
+def test_feature_drift_is_zero_for_the_same_image_and_grows_with_blur_more_than_with_a_small_shift():
+    import cv2
+
+    img = _texture()
+    shifted = np.roll(img, 2, axis=1)
+    blurred = cv2.GaussianBlur(img, (0, 0), 4.0)
+    assert feature_drift(img, img) < 1e-12
+    stripes = np.zeros_like(img)
+    stripes[(np.arange(90) // 6) % 2 == 1] = 200  # another structure: horizontal edges only
+    small, blur, other = feature_drift(img, shifted), feature_drift(img, blurred), feature_drift(img, stripes)
+    assert 0.0 < small < blur and 4 * small < other <= 1.0
+
+
+def test_feature_drift_leaves_out_the_pixels_not_kept_and_stays_finite_on_flat_or_empty_input():
+    img = _texture()
+    edited = img.copy()
+    edited[20:60, 40:100] = 60  # a hole: flat, dark
+    keep = np.ones(img.shape[:2], bool)
+    keep[15:65, 30:110] = False
+    assert feature_drift(img, edited) > 4 * feature_drift(img, np.roll(img, 2, axis=1))
+    assert feature_drift(img, edited, keep) < 1e-9
+    flat = np.full_like(img, 90)
+    assert np.isfinite(feature_drift(flat, flat)) and 0.0 <= feature_drift(flat, img) <= 1.0
+    assert feature_drift(img, edited, np.zeros(img.shape[:2], bool)) is None
+    with pytest.raises(ValueError, match="differ in size"):
+        feature_drift(img, img[:, :100])
+
+
+def test_every_sample_gets_a_finite_feature_drift_against_the_unedited_render(annotated):
+    drifts = [r["feature_drift"] for r in annotated.samples]
+    assert all(d is not None and 0.0 <= d <= 1.0 for d in drifts)
+    assert annotated.summary["feature_drift"] == pytest.approx(np.mean(drifts))
 
 
 def test_the_variant_store_reads_back_with_its_visibility_and_commands(annotated):

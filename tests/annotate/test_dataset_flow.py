@@ -76,3 +76,26 @@ def test_a_dataset_is_refused_without_a_fit_or_variants(prefect_harness, tmp_pat
         generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=1, annotate=True)
     result = CliRunner().invoke(app, ["dataset", "info", "no-such-set", "--workspace", str(tmp_path)])
     assert isinstance(result.exception, OmniscsError) and "is not a dataset" in str(result.exception)
+
+
+def test_dataset_export_for_uniad_takes_location_box_convention_and_val_scenes(built, tmp_path):
+    import pickle
+
+    _, first, _ = built
+    stores = sorted(p.name for p in (Path(first["dataset_path"]) / "scenes").iterdir())
+    out = tmp_path / "uniad"
+    exported = CliRunner().invoke(app, ["dataset", "export", first["dataset_path"], "--format", "uniad",
+                                        "--out", str(out), "--location", "singapore-onenorth",
+                                        "--box-convention", "v2", "--val-scene", stores[0]])
+    assert exported.exit_code == 0, exported.output
+    assert (out / "nuscenes" / "maps" / "expansion" / "singapore-onenorth.json").is_file()
+    with open(out / "infos" / "nuscenes_infos_temporal_val.pkl", "rb") as f:
+        val = pickle.load(f)["infos"]
+    with open(out / "infos" / "nuscenes_infos_temporal_train.pkl", "rb") as f:
+        train = pickle.load(f)["infos"]
+    assert val and len({i["scene_token"] for i in val}) == 1
+    assert len({i["scene_token"] for i in train}) == len(stores) - 1
+    wrong = CliRunner().invoke(app, ["dataset", "export", first["dataset_path"], "--format", "nuscenes",
+                                     "--out", str(tmp_path / "n2"), "--box-convention", "v2"])
+    assert isinstance(wrong.exception, OmniscsError) and "uniad only" in str(wrong.exception)
+    assert not (tmp_path / "n2").exists()

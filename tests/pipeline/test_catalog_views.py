@@ -273,11 +273,12 @@ def test_within_a_run_a_file_named_before_write_times_counts_as_the_oldest(tmp_p
 @pytest.mark.parametrize("table", DATA_TABLES)
 def test_every_data_table_is_deduplicated_by_its_declared_key(tmp_path, clock, table):
     schema, key = catalog.SCHEMAS[table], catalog.KEYS[table]
+    lead = key[0]  # scene_id, or dataset_id for the dataset tables
     column = next(f for f in schema if f.name not in key and not f.nullable
                   and f.type in (pa.string(), pa.int64(), pa.float64()))
 
-    def row(scene, mark):
-        keys = {k: (scene if k == "scene_id" else "k" if schema.field(k).type == pa.string() else 7) for k in key}
+    def row(owner, mark):
+        keys = {k: (owner if k == lead else "k" if schema.field(k).type == pa.string() else 7) for k in key}
         return _row(table, **keys, **{column.name: str(mark) if column.type == pa.string() else mark})
 
     _run(tmp_path, "old", "completed", 1)
@@ -285,10 +286,10 @@ def test_every_data_table_is_deduplicated_by_its_declared_key(tmp_path, clock, t
     catalog.write_rows(tmp_path, table, "old", [row("s1", 1), row("s2", 1)])
     catalog.write_rows(tmp_path, table, "new", [row("s1", 2)])
     catalog.write_rows(tmp_path, table, "new", [row("s1", 3)])  # the same key again, later, in the same run
-    got = catalog.query(tmp_path, f'SELECT run_id, scene_id, "{column.name}" AS v FROM {table} ORDER BY 2')
+    got = catalog.query(tmp_path, f'SELECT run_id, "{lead}" AS owner, "{column.name}" AS v FROM {table} ORDER BY 2')
     cast = str if column.type == pa.string() else type(got.column("v").to_pylist()[0])
-    assert got.to_pylist() == [{"run_id": "new", "scene_id": "s1", "v": cast(3)},
-                               {"run_id": "old", "scene_id": "s2", "v": cast(1)}]
+    assert got.to_pylist() == [{"run_id": "new", "owner": "s1", "v": cast(3)},
+                               {"run_id": "old", "owner": "s2", "v": cast(1)}]
     assert catalog.query(tmp_path, f"SELECT count(*) AS n FROM {table}_by_run").to_pylist() == [{"n": 3}]
     assert catalog.query(tmp_path, f"SELECT count(*) AS n FROM {table}_raw").to_pylist() == [{"n": 4}]
 
