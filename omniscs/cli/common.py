@@ -156,3 +156,21 @@ def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> 
 
 def workspace_option() -> Optional[Path]:
     return typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data).")
+
+
+def show_dataset(path: Path) -> None:
+    """A dataset's card as a table of variants and a few lines: counts, fidelity, where things are."""
+    from omniscs.annotate.dataset import CARD_JSON
+    from omniscs.checks import read_json
+
+    card = read_json(path / CARD_JSON, "the dataset card is damaged; build the dataset again")
+    c = card["counts"]
+    print_table([{k: v for k, v in row.items()} for row in card["variants"]], title=f"dataset {card['dataset_id']}")
+    fid, drift = card["fidelity"]["variant_psnr"], card["fidelity"].get("variant_feature_drift")
+    console.print(f"{c['variants']} variant(s) of {c['scenes']} scene(s): {c['frames']} frames, {c['images']} images, "
+                  f"{c['annotations']} box annotations; ego solved in {c['ego_solved']}; "
+                  + (f"fidelity PSNR mean {fid['mean']:.2f} dB" if fid else "no exact reference")
+                  + (f"; feature drift mean {drift['mean']:.3f}" if drift else ""))
+    console.print(f"folder:  {path}")
+    console.print(f"card:    {path / 'README.md'}")
+    console.print(f"preview: {path / 'preview.png'}  (BEVs with the ego's solution: {path / 'bev'})")

@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from omniscs.cli.common import check_out, console, print_table, progress_bars, workspace_option
+from omniscs.cli.common import check_out, console, progress_bars, show_dataset, workspace_option
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Annotated SCS datasets: build (the generate_dataset flow with render + annotate), "
@@ -29,13 +29,6 @@ def dataset_path(dataset: str, workspace: Optional[Path]) -> Path:
         raise OmniscsError(f"{dataset} is not a dataset (no {CARD_JSON} in {path}); build one with "
                            "`omniscs dataset build` or name its folder")
     return path
-
-
-def read_card(path: Path) -> dict:
-    from omniscs.annotate.dataset import CARD_JSON
-    from omniscs.checks import read_json
-
-    return read_json(path / CARD_JSON, "the dataset card is damaged; build the dataset again")
 
 
 @app.command("build")
@@ -61,27 +54,14 @@ def build(
     result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
                           height=height, previews=False, fit_preset=fit_preset, behavior_variants=behavior_variants,
                           behavior_preset=behavior_preset, device=device, annotate=True, dataset_id=out)
-    show(Path(result["dataset_path"]))
+    show_dataset(Path(result["dataset_path"]))
 
 
 @app.command("info")
 def info(dataset: str = typer.Argument(..., help="Dataset folder or id."),
          workspace: Optional[Path] = workspace_option()) -> None:
     """What a dataset holds: counts, fidelity, variants, where its card and preview are."""
-    show(dataset_path(dataset, workspace))
-
-
-def show(path: Path) -> None:
-    card = read_card(path)
-    c = card["counts"]
-    print_table([{k: v for k, v in row.items()} for row in card["variants"]], title=f"dataset {card['dataset_id']}")
-    fid = card["fidelity"]["variant_psnr"]
-    console.print(f"{c['variants']} variant(s) of {c['scenes']} scene(s): {c['frames']} frames, {c['images']} images, "
-                  f"{c['annotations']} box annotations; ego solved in {c['ego_solved']}; "
-                  + (f"fidelity PSNR mean {fid['mean']:.2f} dB" if fid else "no exact reference"))
-    console.print(f"folder:  {path}")
-    console.print(f"card:    {path / 'README.md'}")
-    console.print(f"preview: {path / 'preview.png'}  (BEVs with the ego's solution: {path / 'bev'})")
+    show_dataset(dataset_path(dataset, workspace))
 
 
 @app.command("export")

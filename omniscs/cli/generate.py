@@ -12,7 +12,7 @@ from typing import Iterator, Optional
 
 import typer
 
-from omniscs.cli.common import console, print_error, print_table, read_edits
+from omniscs.cli.common import console, print_error, print_table, read_edits, show_dataset
 
 #: Sources of the demo run: every road template, the parked-truck scene, and low-light variants.
 DEMO_SOURCES = ("syn:straight_parked_truck:3:day", "syn:t_junction:1:dusk", "syn:intersection:2:day",
@@ -174,7 +174,5 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     built = run_generate([DEMO_DATASET_SOURCE], workspace, n_frames=DEMO_FRAMES, n_cameras=3, width=480, height=270,
                          previews=False, fit_preset="fast", behavior_variants=DEMO_DATASET_VARIANTS,
                          behavior_preset="fast", annotate=True)
-    from omniscs.cli.dataset import show
-
-    show(Path(built["dataset_path"]))
+    show_dataset(Path(built["dataset_path"]))
     console.print(f"demo finished in {time.perf_counter() - started:.1f} s")
