@@ -38,43 +38,43 @@ def _finite(x) -> float | None:
 
 def image_fidelity(rendered: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> dict:
     """PSNR / SSIM of a rendered frame against its reference, over the image and over ``mask`` (None when empty)."""
-    from omniscs.nsg.metrics import psnr, ssim
+    from omniscs.nsg.metrics import psnr, ssim, ssim_map
 
     r = torch.from_numpy(rendered.astype(np.float32) / 255.0)
     g = torch.from_numpy(reference.astype(np.float32) / 255.0)
     m = torch.from_numpy(mask)
-    return {"psnr": _finite(psnr(r, g)), "ssim": _finite(ssim(r, g)),
+    smap = ssim_map(r, g)
+    return {"psnr": _finite(psnr(r, g)), "ssim": _finite(ssim(r, g, smap=smap)),
             "masked_psnr": _finite(psnr(r, g, m)) if mask.any() else None,
-            "masked_ssim": _finite(ssim(r, g, m)) if mask.any() else None}
+            "masked_ssim": _finite(ssim(r, g, m, smap=smap)) if mask.any() else None}
 
 
 def structure_descriptor(rgb: np.ndarray,  # uint8 [H, W, 3]
                          keep: np.ndarray,  # bool [H, W]
                          cells: tuple[int, int] = DRIFT_CELLS) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell of a ``cells`` grid: [DRIFT_BINS + 3] (unit orientation histogram, weighted mean colour) over the
-    kept pixels, and the fraction of the cell's pixels kept. Cells of an image smaller than the grid are empty."""
+    """Per cell of a ``cells`` grid: [DRIFT_BINS + 3] (unit orientation histogram, mean colour) over the kept
+    pixels, and the fraction of the cell's pixels kept. A cell with no pixel kept (or none at all) is zero."""
     img = rgb.astype(np.float32) / 255.0
     grey = img.mean(-1)
     gy, gx = np.gradient(grey)
-    mag = np.hypot(gx, gy) * keep
-    ang = np.mod(np.arctan2(gy, gx), np.pi)
-    bins = np.minimum((ang / np.pi * DRIFT_BINS).astype(np.int64), DRIFT_BINS - 1)
     h, w = grey.shape
     rows, cols = cells
-    ys = np.linspace(0, h, rows + 1).astype(int)
-    xs = np.linspace(0, w, cols + 1).astype(int)
-    out = np.zeros((rows, cols, DRIFT_BINS + 3), np.float64)
-    kept = np.zeros((rows, cols), np.float64)
-    for i in range(rows):
-        for j in range(cols):
-            sl = (slice(ys[i], ys[i + 1]), slice(xs[j], xs[j + 1]))
-            k = keep[sl]
-            if k.size == 0 or not k.any():
-                continue
-            kept[i, j] = k.mean()
-            hist = np.bincount(bins[sl].ravel(), weights=mag[sl].ravel(), minlength=DRIFT_BINS)
-            out[i, j, :DRIFT_BINS] = hist / (np.linalg.norm(hist) + _EPS)
-            out[i, j, DRIFT_BINS:] = DRIFT_COLOUR_WEIGHT * img[sl][k].mean(0)
+    row_of = np.minimum((np.arange(h) * rows) // max(h, 1), rows - 1)
+    col_of = np.minimum((np.arange(w) * cols) // max(w, 1), cols - 1)
+    cell = (row_of[:, None] * cols + col_of[None, :]).ravel()  # [H*W]
+    k = keep.ravel().astype(np.float64)
+    n_cells = rows * cols
+    pixels = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    kept_n = np.bincount(cell, weights=k, minlength=n_cells)
+    ang = np.mod(np.arctan2(gy, gx), np.pi).ravel()
+    bins = np.minimum((ang / np.pi * DRIFT_BINS).astype(np.int64), DRIFT_BINS - 1)
+    hist = np.bincount(cell * DRIFT_BINS + bins, weights=np.hypot(gx, gy).ravel() * k,
+                       minlength=n_cells * DRIFT_BINS).reshape(n_cells, DRIFT_BINS)
+    hist /= np.linalg.norm(hist, axis=1, keepdims=True) + _EPS
+    colour = np.stack([np.bincount(cell, weights=img[..., c].ravel() * k, minlength=n_cells) for c in range(3)], 1)
+    colour /= np.maximum(kept_n, 1.0)[:, None]
+    out = np.concatenate([hist, DRIFT_COLOUR_WEIGHT * colour], 1).reshape(rows, cols, DRIFT_BINS + 3)
+    kept = np.where(pixels > 0, kept_n / np.maximum(pixels, 1.0), 0.0).reshape(rows, cols)
     return out, kept
 
 

@@ -15,6 +15,9 @@ from omniscs.scene.store import BOX_COLUMNS, Scene
 
 #: UniAD's command one-hot order (VAD/UniAD converters): index 0 right, 1 left, 2 forward.
 COMMANDS = ("right", "left", "forward")
+#: An agent counts as moved by the variant when a rendered frame puts it this far (metres) or this much turned
+#: (degrees) from its logged box.
+MOVED_M, MOVED_DEG = 0.05, 1.0
 
 
 @dataclass(frozen=True)
@@ -30,6 +33,7 @@ class VariantFrames:
     commands: np.ndarray         # [T] int: index into COMMANDS
     viewpoint_offset_m: np.ndarray  # [T] distance of the ego from the nearest logged ego position
     dropped_frames: tuple[int, ...]  # scene frames not rendered: the ego left the fitted area there
+    moved: frozenset[int] = frozenset()  # agents the variant puts off their logged pose in a rendered frame
 
     @property
     def n_frames(self) -> int:
@@ -74,7 +78,7 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
                                 config)[picked]
 
     agents = variant.get("agents") or {}
-    rows, node_poses = [], []
+    rows, node_poses, moved = [], [], set()
     for t, (k, f) in enumerate(zip(picked, frames)):
         placed: dict[int, np.ndarray] = {}
         for box in scene.boxes_at(int(f)).itertuples(index=False):
@@ -85,6 +89,9 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
             pose = traj[k] if traj is not None and k < len(traj) else None
             if tid in agent_nodes and pose is not None:
                 x, y, yaw = (float(v) for v in pose)
+                if (np.hypot(x - box.cx, y - box.cy) > MOVED_M
+                        or abs(float(wrap_angle(yaw - box.yaw))) > np.radians(MOVED_DEG)):
+                    moved.add(tid)
                 world_from_agent = pose_from_xyz_yaw(x, y, float(box.cz), yaw)
                 placed[tid] = world_from_agent
                 q = rotmat_to_quat(world_from_agent[:3, :3])
@@ -94,7 +101,7 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
         node_poses.append(placed)
     boxes = pd.DataFrame(rows, columns=BOX_COLUMNS)
     return VariantFrames(frames.astype(np.int64), ts, world_from_ego, boxes, box_velocities(boxes, ts),
-                         tuple(node_poses), commands, offsets, dropped)
+                         tuple(node_poses), commands, offsets, dropped, frozenset(moved))
 
 
 def box_velocities(boxes: pd.DataFrame, timestamps_us: np.ndarray) -> np.ndarray:  # -> [N, 3] m/s, world frame

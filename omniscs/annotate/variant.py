@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -17,7 +18,6 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
-import torch
 
 from omniscs.annotate.config import AnnotateConfig, visibility_level
 from omniscs.annotate.fidelity import box_mask, feature_drift, image_fidelity
@@ -25,7 +25,7 @@ from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
 from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members, projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
-from omniscs.nsg.graph import SceneGraph, render_view
+from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
@@ -36,6 +36,8 @@ from omniscs.scene.writer import SceneWriter
 log = logging.getLogger(__name__)
 
 VARIANT_JSON = "variant.json"
+#: Views waiting for the writer thread at most (PNG and compressed ground truth; both release the GIL).
+WRITE_QUEUE = 8
 #: nuScenes' visibility level names, by level 1..4.
 VISIBILITY_NAMES = {1: "v0-40", 2: "v40-60", 3: "v60-80", 4: "v80-100"}
 #: A reference image for fidelity: (rgb uint8 [H, W, 3], instance int32 [H, W]) of a camera at a rendered frame.
@@ -135,7 +137,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     fitted = {r.name for r in graph.cameras}
     cameras = list(rig) if rig is not None else [graph.camera(c) for c in scene.camera_names if c in fitted]
     adversary = int(variant.get("adversary", -1))
-    moved = {int(k) for k in (variant.get("agents") or {})} & set(graph.agent_ids)
+    moved = set(vf.moved)
     boxes = vf.boxes.copy()
     boxes["visible_pixels"] = 0
     vis_alpha: dict[tuple[int, int], list[tuple[float, float]]] = {}
@@ -145,7 +147,9 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
               "scene_content_hash": scene.content_hash}
     out_dir = Path(out_dir)
     total = vf.n_frames * len(cameras)
-    with SceneWriter(out_dir, store_id, source, overwrite=True) as writer:
+    pending: list[Future] = []  # image and ground-truth files encoded by a writer thread beside the rendering
+    with SceneWriter(out_dir, store_id, source, overwrite=True) as writer, \
+            ThreadPoolExecutor(1, thread_name_prefix="variant-writer") as pool:
         writer.set_frames(vf.timestamps_us, vf.world_from_ego)
         writer.set_cameras(cameras)
         writer.set_extra(source_scene_id=scene.scene_id, **_location(scene))
@@ -169,8 +173,9 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                 tock = time.perf_counter()
                 render_s += ann_render_seconds(annotator)
                 label_s += (tock - tick) - ann_render_seconds(annotator)
-                writer.write_image(cam.name, t, ann.rgb)
-                writer.write_gt(cam.name, t, ann.depth, ann.instance, ann.semantic)
+                pending.append(pool.submit(_write_view, writer, cam.name, t, ann))
+                while len(pending) > WRITE_QUEUE:  # bounded: wait for the oldest (its error surfaces here)
+                    pending.pop(0).result()
                 write_s += time.perf_counter() - tock
                 depth_views.append((ann.depth, cam.K, cam.ego_from_camera))
                 fid = {}
@@ -180,7 +185,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                     fid = image_fidelity(ann.rgb, ref_rgb, ref_instance >= 0)
                 if measured and rig is None:
                     tick = time.perf_counter()
-                    fid["feature_drift"] = unedited_drift(graph, scene, cam.name, f, ann, moved)
+                    fid["feature_drift"] = unedited_drift(annotator, scene, cam.name, f, ann, moved)
                     render_s += time.perf_counter() - tick
                 if fid:
                     fidelity.append(fid)
@@ -201,6 +206,10 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                 sizes = frame_rows[["length", "width", "height"]].to_numpy(np.float64)
                 boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes)
             label_s += time.perf_counter() - tick
+        tick = time.perf_counter()
+        for future in pending:
+            future.result()
+        write_s += time.perf_counter() - tick
         for row in annotations:  # the frame's LiDAR count, known once the frame's cameras are all rendered
             row["num_lidar_points"] = int(boxes.loc[(boxes.frame_idx == row["frame_idx"])
                                                     & (boxes.track_id == row["track_id"]), "num_lidar_points"].iloc[0])
@@ -225,20 +234,23 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     return AnnotatedVariant(out_dir, samples, annotations, summary)
 
 
-@torch.no_grad()
-def unedited_drift(graph: SceneGraph, scene: Scene, camera: str, frame: int, ann: ViewAnnotation,
+def _write_view(writer: SceneWriter, camera: str, t: int, ann: ViewAnnotation) -> None:
+    writer.write_image(camera, t, ann.rgb)
+    writer.write_gt(camera, t, ann.depth, ann.instance, ann.semantic)
+
+
+def unedited_drift(annotator: ViewAnnotator, scene: Scene, camera: str, frame: int, ann: ViewAnnotation,
                    moved: set[int]) -> float | None:
     """``feature_drift`` of a rendered variant view against the graph's unedited render of the same source frame
     and camera at the logged pose, outside every pixel a moved agent covers in either (its mask, its projected
     box in the variant, its logged box in the unedited view)."""
-    logged = graph.view(camera, frame)
-    unedited = (render_view(graph, logged).rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+    logged, unedited = annotator.unedited(camera, frame)
     rects = [lab.box2d for lab in ann.labels if lab.track_id in moved and lab.box2d is not None]
     rows = scene.boxes[(scene.boxes.frame_idx == frame) & scene.boxes.track_id.isin(sorted(moved))]
     camera_from_world = invert_transform(logged.world_from_camera)
     for r in rows.itertuples():
         rect = projected_box(camera_from_world @ _world_from_box(r), np.array([r.length, r.width, r.height]),
-                             logged.K, logged.width, logged.height, graph.settings.near_plane)
+                             logged.K, logged.width, logged.height, annotator.graph.settings.near_plane)
         if rect is not None:
             rects.append(rect[0])
     skip = np.isin(ann.instance, sorted(moved)) | box_mask(ann.instance.shape, rects)

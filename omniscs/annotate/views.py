@@ -31,6 +31,10 @@ MEMBER_MARGIN_M = 0.15
 MEMBER_GROUND_CLEARANCE_M = 0.1
 
 
+#: Unedited renders kept by one annotator for the feature drift of its variants (bytes).
+UNEDITED_CACHE_BYTES = 256 * 2 ** 20
+
+
 @dataclass(frozen=True)
 class Instance:
     """A box that may be drawn in a view, and which Gaussians draw it."""
@@ -92,6 +96,8 @@ class ViewAnnotator:
         self.background = activate(graph.background.detached())
         self.radii = {a.track_id: node_radius(a.gaussians) for a in graph.agents}
         self.local = {a.track_id: activate(a.gaussians.detached()) for a in graph.agents}
+        self._unedited: dict[tuple[str, int], np.ndarray] = {}
+        self._unedited_bytes = 0
         self.last_render_seconds = 0.0
         """Seconds the last ``annotate`` spent in the rasterisation of colour, depth and labels (the rest is
         annotation: masks, boxes, the instances' own alpha)."""
@@ -142,6 +148,20 @@ class ViewAnnotator:
                 if label is not None:
                     results.append(label)
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
+
+    @torch.no_grad()
+    def unedited(self, camera: str, frame: int) -> tuple[View, np.ndarray]:
+        """The logged view of ``camera`` at ``frame`` and the graph's unedited render of it (uint8 [H, W, 3]),
+        rendered once for all the variants this annotator labels (while UNEDITED_CACHE_BYTES has room)."""
+        view = self.graph.view(camera, frame)
+        rgb = self._unedited.get((camera, view.frame_idx))
+        if rgb is None:
+            out = render_view(self.graph, view)
+            rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+            if self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES:
+                self._unedited[(camera, view.frame_idx)] = rgb
+                self._unedited_bytes += rgb.nbytes
+        return view, rgb
 
     def _poses(self, node_poses: dict[int, np.ndarray], frame: int) -> dict[int, NodePose]:
         """The moved agent nodes present in ``frame`` as the renderer's node poses."""

@@ -30,10 +30,16 @@ def psnr(rendered: Tensor, target: Tensor,  # [H, W, 3] in [0, 1]
     return MAX_PSNR_DB if mse <= 10 ** (-MAX_PSNR_DB / 10) else -10.0 * math.log10(mse)
 
 
+def ssim_map(rendered: Tensor, target: Tensor) -> Tensor:  # [H, W, 3] in [0, 1] -> [H, W]
+    """The SSIM of every pixel's window, averaged over the colour channels."""
+    return kornia_ssim(_chw(rendered.clamp(0, 1)), _chw(target), SSIM_WINDOW)[0].mean(0)
+
+
 def ssim(rendered: Tensor, target: Tensor,  # [H, W, 3] in [0, 1]
-         mask: Tensor | None = None) -> float:  # [H, W] bool
+         mask: Tensor | None = None,  # [H, W] bool
+         smap: Tensor | None = None) -> float:  # [H, W] ssim_map of the two, when already computed
     """Mean SSIM over all pixels, or the mean of the SSIM map over ``mask`` (NaN when it is empty)."""
-    smap = kornia_ssim(_chw(rendered.clamp(0, 1)), _chw(target), SSIM_WINDOW)[0].mean(0)  # [H, W]
+    smap = ssim_map(rendered, target) if smap is None else smap
     if mask is not None:
         if not bool(mask.any()):
             return float("nan")

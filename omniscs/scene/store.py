@@ -243,17 +243,21 @@ def load_scene(path: str | os.PathLike) -> Scene:
     root = Path(path)
     if not root.is_dir():
         raise ValidationError(f"{root / MANIFEST}: not a scene store (manifest.json is missing)")
-    manifest = read_manifest(root)
-    frames = _read_table(root / FRAMES, FRAME_SCHEMA)
-    cameras_df = _read_table(root / CAMERAS, CAMERA_SCHEMA)
-    boxes = _read_table(root / BOXES, BOX_SCHEMA)
-    cameras = _camera_records(root / CAMERAS, cameras_df)
-    if manifest["n_frames"] != len(frames):
-        raise ValidationError(f"{root / MANIFEST}: field n_frames is {manifest['n_frames']} but {FRAMES} has "
-                              f"{len(frames)} rows")
-    validate_tables(root, manifest, frames, cameras, boxes)
-    validate_files(root, manifest, len(frames), list(cameras))
-    check_file_sizes(root, manifest)
+    try:
+        manifest = read_manifest(root)
+        frames = _read_table(root / FRAMES, FRAME_SCHEMA)
+        cameras_df = _read_table(root / CAMERAS, CAMERA_SCHEMA)
+        boxes = _read_table(root / BOXES, BOX_SCHEMA)
+        cameras = _camera_records(root / CAMERAS, cameras_df)
+        if manifest["n_frames"] != len(frames):
+            raise ValidationError(f"{root / MANIFEST}: field n_frames is {manifest['n_frames']} but {FRAMES} has "
+                                  f"{len(frames)} rows")
+        validate_tables(root, manifest, frames, cameras, boxes)
+        validate_files(root, manifest, len(frames), list(cameras))
+        check_file_sizes(root, manifest)
+    except OSError as exc:  # e.g. the store was replaced or removed while it was being read
+        raise ValidationError(f"{root}: cannot read the store ({exc.strerror or exc}); it may have been replaced "
+                              "or removed while it was read; open it again") from None
     return Scene(root, manifest, frames, cameras, boxes)
 
 

@@ -184,6 +184,14 @@ def test_moved_agents_are_annotated_where_the_variant_put_them(annotated, fitted
     assert moved.cy == pytest.approx(logged.cy - 0.15 * last)
 
 
+def test_only_the_agents_the_variant_puts_off_their_logged_pose_count_as_moved(annotated):
+    flags = {}
+    for row in annotated.annotations:
+        flags.setdefault(row["track_id"], set()).add(row["moved"])
+    assert flags[2] == {True}  # drifted to the right
+    assert all(f == {False} for tid, f in flags.items() if tid != 2) and len(flags) > 1
+
+
 def test_frames_where_the_ego_leaves_the_fitted_area_are_dropped_and_recorded(fitted, tmp_path):
     scene, graph = fitted
     variant = logged_variant(scene, ego_lateral=lambda f: 0.0 if f < 6 else 9.0)

@@ -108,3 +108,22 @@ def test_the_same_variant_gives_the_same_solution(traffic):
 def test_a_malformed_variant_is_one_clear_error(traffic, change, message):
     with pytest.raises(OmniscsError, match=message):
         solve_ego(_variant(traffic, _cut_in(), **change), traffic, FAST)
+
+
+def test_agents_far_from_the_plans_path_do_not_change_the_search_but_are_still_checked(traffic):
+    far_rows = [[float(r[0]) + 5.0, 40.0, 0.0] for r in _ego(traffic)]  # a parallel road 40 m to the side
+    base = _variant(traffic, _cut_in())
+    with_far = _variant(traffic, _cut_in(), agents={"1": _cut_in(), "2": far_rows},
+                        sizes={**SIZES, "2": [4.5, 1.9]})
+    a, b = solve_ego(base, traffic, FAST), solve_ego(with_far, traffic, FAST)
+    np.testing.assert_array_equal(a.trajectory, b.trajectory)
+    assert b.solved and b.min_gap_m == pytest.approx(a.min_gap_m)
+    # 30 m behind the ego on its own path: an ego that brakes could meet it, so it stays in the search
+    from omniscs.scs.behavior.solution import _near_plan
+
+    plan = np.array(_ego(traffic))[NOW + 1:]
+    follower = np.array([[float(r[0]) - 30.0, float(r[1]), float(r[2])] for r in _ego(traffic)])[None, NOW + 1:]
+    sideways = np.array(far_rows)[None, NOW + 1:]
+    sizes = {"2": (4.5, 1.9)}
+    assert _near_plan(plan, (4.6, 1.9), follower, np.ones(follower.shape[:2], bool), ["2"], sizes, 10.0) == [True]
+    assert _near_plan(plan, (4.6, 1.9), sideways, np.ones(sideways.shape[:2], bool), ["2"], sizes, 10.0) == [False]
