@@ -99,8 +99,10 @@ def lidar_from_depth(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # 
 def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:  # -> [B]
     """How many points lie in each box (ego frame)."""
     counts = np.zeros(len(sizes), dtype=np.int64)
+    xyz = points_ego[:, :3].astype(np.float64)
     for i, (T, size) in enumerate(zip(ego_from_boxes, sizes)):
-        local = transform_points(invert_transform(T), points_ego[:, :3].astype(np.float64))
+        near = np.abs(xyz - T[:3, 3]).max(1) <= 0.5 * float(np.linalg.norm(size))  # the box's bounding cube
+        local = transform_points(invert_transform(T), xyz[near])
         counts[i] = int(np.all(np.abs(local) <= 0.5 * size, axis=1).sum())
     return counts
 
@@ -159,6 +161,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
         for t in range(vf.n_frames):
             f = int(vf.scene_frames[t])
             frame_rows = rows_by_frame.get(t, boxes.iloc[0:0])
+            row_of = {int(r.track_id): r for r in frame_rows.itertuples()}  # track id -> its box row (Index = row)
             instances = [Instance(int(r.track_id), str(r.category), _world_from_box(r),
                                   np.array([r.length, r.width, r.height], dtype=np.float64),
                                   members.get(int(r.track_id)) if int(r.track_id) not in graph.agent_ids else None)
@@ -194,7 +197,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                     key = (t, label.track_id)
                     full = label.own_alpha / label.in_image_fraction if label.in_image_fraction > 0 else 0.0
                     vis_alpha.setdefault(key, []).append((label.visible_alpha, full))
-                    annotations.append(_annotation_row(label, frame_rows, vf, t, cam.name, variant, store_id,
+                    annotations.append(_annotation_row(label, row_of[label.track_id], vf, t, cam.name, variant, store_id,
                                                        adversary, moved, config))
                 progress(t * len(cameras) + cameras.index(cam) + 1, total, f"variant {variant.get('variant_id')}")
             tick = time.perf_counter()
@@ -210,9 +213,10 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
         for future in pending:
             future.result()
         write_s += time.perf_counter() - tick
+        lidar_count = {(int(f), int(k)): int(n) for f, k, n in zip(boxes.frame_idx, boxes.track_id,
+                                                                     boxes.num_lidar_points)}
         for row in annotations:  # the frame's LiDAR count, known once the frame's cameras are all rendered
-            row["num_lidar_points"] = int(boxes.loc[(boxes.frame_idx == row["frame_idx"])
-                                                    & (boxes.track_id == row["track_id"]), "num_lidar_points"].iloc[0])
+            row["num_lidar_points"] = lidar_count[(row["frame_idx"], row["track_id"])]
         pixels = {}
         for row in annotations:
             pixels[(row["frame_idx"], row["track_id"])] = pixels.get((row["frame_idx"], row["track_id"]), 0) \
@@ -301,12 +305,11 @@ def _sample_row(scene: Scene, variant: dict, store_id: str, vf: VariantFrames, t
             "fidelity_masked_ssim": fid.get("masked_ssim"), "feature_drift": fid.get("feature_drift")}
 
 
-def _annotation_row(label, frame_rows: pd.DataFrame, vf: VariantFrames, t: int, camera: str, variant: dict,
+def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant: dict,
                     store_id: str, adversary: int, moved: set[int], config: AnnotateConfig) -> dict:
-    row = frame_rows[frame_rows.track_id == label.track_id].iloc[0]
     world_from_box = _world_from_box(row)
     ego_from_box = invert_transform(vf.world_from_ego[t]) @ world_from_box
-    velocity = vf.velocities[row.name] if row.name < len(vf.velocities) else np.zeros(3)
+    velocity = vf.velocities[row.Index] if row.Index < len(vf.velocities) else np.zeros(3)
     b = label.box2d
     tight = label.box2d_tight
     return {"scene_id": str(variant.get("scene_id")), "variant_id": str(variant.get("variant_id")),

@@ -126,7 +126,8 @@ class ViewAnnotator:
                     labels[agent_key(inst.track_id)] = torch.ones(len(graph.agent(inst.track_id).gaussians), 1) \
                         * torch.nn.functional.one_hot(torch.tensor(e), len(showing)).to(torch.float32)
         tick = time.perf_counter()
-        out = render_view(graph, view, agent_poses=self._poses(node_poses, f), labels=labels)
+        out = render_view(graph, view, agent_poses=self._poses(node_poses, f), labels=labels,
+                          only_agents=self._may_show(view, node_poses))
         self.last_render_seconds = time.perf_counter() - tick
         rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         alpha = out.alpha.cpu().numpy()
@@ -156,12 +157,24 @@ class ViewAnnotator:
         view = self.graph.view(camera, frame)
         rgb = self._unedited.get((camera, view.frame_idx))
         if rgb is None:
-            out = render_view(self.graph, view)
+            out = render_view(self.graph, view, only_agents=self._may_show(view, {}))
             rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
             if self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES:
                 self._unedited[(camera, view.frame_idx)] = rgb
                 self._unedited_bytes += rgb.nbytes
         return view, rgb
+
+    def _may_show(self, view: View, node_poses: dict[int, np.ndarray]) -> list[int]:
+        """The agent nodes present in the view's frame that may reach its image where ``node_poses`` (or the log)
+        puts them; the others are not placed, coloured or projected at all."""
+        f, near = view.frame_idx, self.graph.settings.near_plane
+        out = []
+        for a in self.graph.agents:
+            if a.present[f]:
+                T = node_poses.get(a.track_id, a.world_from_agent[f])
+                if agent_may_show(view, np.asarray(T)[:3, 3], self.radii[a.track_id], near):
+                    out.append(a.track_id)
+        return out
 
     def _poses(self, node_poses: dict[int, np.ndarray], frame: int) -> dict[int, NodePose]:
         """The moved agent nodes present in ``frame`` as the renderer's node poses."""

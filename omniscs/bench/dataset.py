@@ -181,9 +181,12 @@ def markdown(result: dict) -> str:
         f"{sc['scene']} {sc['fit_seconds'] or 0:.0f} s (held-out PSNR {sc['heldout_psnr'] or 0:.1f} dB)"
         for sc in result["scenes"]) + "; behaviour variants " + ", ".join(
         f"{sc['behavior_seconds']:.0f} s" for sc in result["scenes"]) + " (reused from the workspace when 0).",
-        "", "Render = the rasterisation of colour, depth and the per-instance label channels; annotate = masks, "
-        "boxes, each visible instance rendered alone for its own alpha, the ego's solution and simulated LiDAR; "
-        "write = PNG and compressed ground truth. At the nuScenes size there is no exact reference (the world's "
+        "", "Render = the rasterisation of colour, depth and the per-instance label channels (with fidelity, also "
+        "the unedited render of the logged view and the feature drift; one unedited render serves all variants of "
+        "a scene); annotate = masks, boxes, each visible instance rendered alone for its own alpha and simulated "
+        "LiDAR; write = what the rendering waited for the writer thread that encodes PNG and compressed ground "
+        "truth beside it. The rest of a variant's time (\"other\" in the plot) is the ego's solution, the exact "
+        "reference render of the procedural world, PSNR/SSIM and the variant's bookkeeping. At the nuScenes size there is no exact reference (the world's "
         "rig is the logged one), so no fidelity is measured there.", "",
         "Feature drift is the recorded-log proxy (`omniscs.annotate.fidelity`): the variant frame against the scene "
         "graph's unedited render of the logged view, edited agents left out. On these procedural scenes, where the "

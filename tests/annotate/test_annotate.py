@@ -79,6 +79,17 @@ def test_label_channels_leave_the_colours_unchanged(fitted):
     assert float((share - labelled.alpha).max()) <= 1e-4 and float(share.sum()) > 0
 
 
+def test_culling_agents_out_of_view_leaves_every_pixel_as_the_full_render(fitted):
+    from omniscs.annotate.views import ViewAnnotator
+
+    scene, graph = fitted
+    annotator = ViewAnnotator(graph)
+    for cam in scene.camera_names:
+        for f in (0, scene.n_frames - 1):
+            full = (graph.render(graph.view(cam, f)).rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+            np.testing.assert_array_equal(annotator.unedited(cam, f)[1], full)
+
+
 def test_a_car_behind_another_is_less_visible_than_the_car_in_front(tmp_path):
     agents = ({"x": 11.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0003"},
               {"x": 17.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0011"})
