@@ -203,6 +203,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("fidelity_masked_psnr", pa.float64()),           # over the reference's agent pixels
         pa.field("fidelity_masked_ssim", pa.float64()),
         pa.field("feature_drift", pa.float64()),                  # vs the unedited render, edits left out (0..1)
+        pa.field("logged_psnr", pa.float64()),                    # the unedited render vs the logged image
         pa.field("variant_fidelity_psnr", pa.float64()),          # mean over the variant's measured frames
         pa.field("variant_feature_drift", pa.float64()),
         pa.field("ego_solved", pa.bool_()),                       # the ego drives a collision-free solution

@@ -116,6 +116,7 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
                      "variant_ssim": _stats([v.get("fidelity_ssim") for v in variants]),
                      "variant_masked_psnr": _stats([v.get("fidelity_masked_psnr") for v in variants]),
                      "variant_feature_drift": _stats([v.get("feature_drift") for v in variants]),
+                     "variant_logged_psnr": _stats([v.get("logged_psnr") for v in variants]),
                      "max_viewpoint_offset_m": _stats([v.get("max_viewpoint_offset_m") for v in variants])},
         "variants": [{k: v.get(k) for k in ("scene_id", "variant_id", "store_id", "n_frames", "n_images",
                                             "n_annotations", "dropped_frames", "ego_solved", "fidelity_psnr",
@@ -143,7 +144,8 @@ def card_markdown(card: dict) -> str:
              f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
              f"- Distance of the rendered ego from the logged path: {stat(fid['max_viewpoint_offset_m'], ' m')}",
              "- Feature drift against the unedited render of the logged view, edited agents left out (0 = same "
-             f"structure; the proxy for recorded logs): {stat(fid.get('variant_feature_drift'))}",
+             f"structure; the proxy for recorded logs): {stat(fid.get('variant_feature_drift'))}; the unedited render "
+             f"against the logged images: PSNR {stat(fid.get('variant_logged_psnr'), ' dB')}",
              f"- Annotations by category: {c['annotations_by_category']}",
              f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
              f"- Samples by driving command: {c['samples_by_command']}", "",

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
+import torch
 
 from omniscs.annotate.config import AnnotateConfig, visibility_level
 from omniscs.annotate.fidelity import box_mask, feature_drift, image_fidelity
@@ -26,6 +27,7 @@ from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, back
 from omniscs.errors import OmniscsError
 from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
 from omniscs.nsg.graph import SceneGraph
+from omniscs.nsg.metrics import psnr
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
@@ -188,7 +190,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                     fid = image_fidelity(ann.rgb, ref_rgb, ref_instance >= 0)
                 if measured and rig is None:
                     tick = time.perf_counter()
-                    fid["feature_drift"] = unedited_drift(annotator, scene, cam.name, f, ann, moved)
+                    fid.update(unedited_fidelity(annotator, scene, cam.name, f, ann, moved))
                     render_s += time.perf_counter() - tick
                 if fid:
                     fidelity.append(fid)
@@ -243,11 +245,13 @@ def _write_view(writer: SceneWriter, camera: str, t: int, ann: ViewAnnotation) -
     writer.write_gt(camera, t, ann.depth, ann.instance, ann.semantic)
 
 
-def unedited_drift(annotator: ViewAnnotator, scene: Scene, camera: str, frame: int, ann: ViewAnnotation,
-                   moved: set[int]) -> float | None:
-    """``feature_drift`` of a rendered variant view against the graph's unedited render of the same source frame
-    and camera at the logged pose, outside every pixel a moved agent covers in either (its mask, its projected
-    box in the variant, its logged box in the unedited view)."""
+def unedited_fidelity(annotator: ViewAnnotator, scene: Scene, camera: str, frame: int, ann: ViewAnnotation,
+                      moved: set[int]) -> dict:
+    """The proxies of a rendered variant view that need no exact reference, both from the graph's unedited render
+    of the same source frame and camera at the logged pose: ``feature_drift`` of the view against it, outside
+    every pixel a moved agent covers in either (its mask, its projected box in the variant, its logged box in the
+    unedited view): what the edit and the new viewpoint changed; and ``logged_psnr``, the unedited render against
+    the logged image: how well the graph reproduces this frame at all (a view the fit trained on)."""
     logged, unedited = annotator.unedited(camera, frame)
     rects = [lab.box2d for lab in ann.labels if lab.track_id in moved and lab.box2d is not None]
     rows = scene.boxes[(scene.boxes.frame_idx == frame) & scene.boxes.track_id.isin(sorted(moved))]
@@ -258,9 +262,11 @@ def unedited_drift(annotator: ViewAnnotator, scene: Scene, camera: str, frame: i
         if rect is not None:
             rects.append(rect[0])
     skip = np.isin(ann.instance, sorted(moved)) | box_mask(ann.instance.shape, rects)
-    if unedited.shape != ann.rgb.shape:
-        return None
-    return _finite(feature_drift(ann.rgb, unedited, ~skip))
+    logged_image = scene.image(camera, frame)
+    logged_psnr = psnr(torch.from_numpy(unedited.astype(np.float32) / 255.0),
+                       torch.from_numpy(logged_image.astype(np.float32) / 255.0))
+    drift = feature_drift(ann.rgb, unedited, ~skip) if unedited.shape == ann.rgb.shape else None
+    return {"feature_drift": _finite(drift), "logged_psnr": _finite(logged_psnr)}
 
 
 def ann_render_seconds(annotator: ViewAnnotator) -> float:
@@ -302,7 +308,8 @@ def _sample_row(scene: Scene, variant: dict, store_id: str, vf: VariantFrames, t
             "n_boxes": len(ann.labels), "n_visible": sum(lab.mask_pixels > 0 for lab in ann.labels),
             "viewpoint_offset_m": float(vf.viewpoint_offset_m[t]), "fidelity_psnr": fid.get("psnr"),
             "fidelity_ssim": fid.get("ssim"), "fidelity_masked_psnr": fid.get("masked_psnr"),
-            "fidelity_masked_ssim": fid.get("masked_ssim"), "feature_drift": fid.get("feature_drift")}
+            "fidelity_masked_ssim": fid.get("masked_ssim"), "feature_drift": fid.get("feature_drift"),
+            "logged_psnr": fid.get("logged_psnr")}
 
 
 def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant: dict,
@@ -341,6 +348,7 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
             "ego_solved": None if solution is None else bool(solution.get("solved")),
             "fidelity_psnr": mean("psnr"), "fidelity_ssim": mean("ssim"), "fidelity_masked_psnr": mean("masked_psnr"),
             "fidelity_masked_ssim": mean("masked_ssim"), "feature_drift": mean("feature_drift"),
+            "logged_psnr": mean("logged_psnr"),
             "fidelity_frames": len(fidelity),
             "max_viewpoint_offset_m": float(vf.viewpoint_offset_m.max()),
             "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s, "seconds": seconds}

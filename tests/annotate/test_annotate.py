@@ -171,6 +171,7 @@ def test_feature_drift_leaves_out_the_pixels_not_kept_and_stays_finite_on_flat_o
 def test_every_sample_gets_a_finite_feature_drift_against_the_unedited_render(annotated):
     drifts = [r["feature_drift"] for r in annotated.samples]
     assert all(d is not None and 0.0 <= d <= 1.0 for d in drifts)
+    assert all(10.0 < r["logged_psnr"] <= 100.0 for r in annotated.samples)
     assert annotated.summary["feature_drift"] == pytest.approx(np.mean(drifts))
 
 
