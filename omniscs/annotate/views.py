@@ -31,6 +31,9 @@ MEMBER_MARGIN_M = 0.15
 MEMBER_GROUND_CLEARANCE_M = 0.1
 
 
+#: Padding of the projected boxes that decide which instances share an own-alpha rendering: (fraction of the
+#: box's size, pixels) on every side.
+OWN_ALPHA_PAD = (0.1, 4.0)
 #: Unedited renders kept by one annotator for the feature drift of its variants (bytes).
 UNEDITED_CACHE_BYTES = 256 * 2 ** 20
 
@@ -137,15 +140,20 @@ class ViewAnnotator:
         semantic = np.where(alpha >= cfg.depth_alpha, SEMANTIC_UNKNOWN, SEMANTIC_IDS["sky"]).astype(np.uint8)
         results = []
         if showing:
-            shares = out.labels.cpu().numpy()  # [H, W, E]
-            best = shares.argmax(-1)
-            claimed = shares.max(-1) >= cfg.mask_weight
+            shares = np.ascontiguousarray(np.moveaxis(out.labels.cpu().numpy(), -1, 0))  # [E, H, W]
+            best = shares.argmax(0)
+            claimed = shares.max(0) >= cfg.mask_weight
+            totals = shares.reshape(len(showing), -1).sum(1, dtype=np.float64)
+            ids = np.array([inst.track_id for inst in showing], dtype=np.int32)
+            kinds = np.array([SEMANTIC_IDS["vehicle" if inst.category in VEHICLE_CATEGORIES else "obstacle"]
+                              for inst in showing], dtype=np.uint8)
+            instance = np.where(claimed, ids[best], instance).astype(np.int32)
+            semantic = np.where(claimed, kinds[best], semantic).astype(np.uint8)
+            seen = [inst for e, inst in enumerate(showing) if totals[e] > 0.0]
+            own = self._own_alphas(view, seen, node_poses)
             for e, inst in enumerate(showing):
-                mine = claimed & (best == e)
-                instance[mine] = inst.track_id
-                semantic[mine] = SEMANTIC_IDS["vehicle" if inst.category in VEHICLE_CATEGORIES else "obstacle"]
-            for e, inst in enumerate(showing):
-                label = self._label(view, camera_from_world, inst, node_poses, shares[..., e], instance)
+                label = self._label(view, camera_from_world, inst, float(totals[e]), instance,
+                                    own.get(inst.track_id, 0.0))
                 if label is not None:
                     results.append(label)
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
@@ -181,46 +189,107 @@ class ViewAnnotator:
         return {tid: NodePose(torch.from_numpy(rotmat_to_quat(T[:3, :3])), torch.from_numpy(T[:3, 3].copy()))
                 for tid, T in node_poses.items() if tid in self.radii and self.graph.agent(tid).present[frame]}
 
-    def _label(self, view: View, camera_from_world: np.ndarray, inst: Instance, node_poses: dict[int, np.ndarray],
-               share: np.ndarray, instance: np.ndarray) -> InstanceLabel | None:
+    def _label(self, view: View, camera_from_world: np.ndarray, inst: Instance, visible: float,
+               instance: np.ndarray, own: float) -> InstanceLabel | None:
         camera_from_box = camera_from_world @ inst.world_from_box
         rect = projected_box(camera_from_box, inst.size, view.K, view.width, view.height,
                              self.config.min_label_depth_m)
         if rect is None:
             return None
         box2d, in_image = rect
-        visible = float(share.sum())
         mask = instance == inst.track_id
         n_mask = int(mask.sum())
         tight = None
         if n_mask >= self.config.min_mask_pixels:
             ys, xs = np.nonzero(mask)
             tight = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
-        own = self._own_alpha(view, inst, node_poses) if visible > 0.0 else 0.0
+        own = own if visible > 0.0 else 0.0
         fraction = 0.0 if own <= 0.0 else float(np.clip(in_image * min(visible / own, 1.0), 0.0, 1.0))
         return InstanceLabel(inst.track_id, n_mask, visible, own, in_image, fraction, box2d, tight, camera_from_box)
 
-    def _own_alpha(self, view: View, inst: Instance, node_poses: dict[int, np.ndarray]) -> float:
-        """Sum of the instance's alpha over the image when it is rendered alone (nothing in front of it)."""
+    def _alone(self, view: View, inst: Instance, node_poses: dict[int, np.ndarray]) -> tuple[Tensor, ...]:
+        """The instance's activated Gaussians in the world: means, quats, scales, opacities."""
         if inst.members is not None:
-            g = self.background
-            idx = inst.members
-            means, quats, scales, opacities = g.means[idx], g.quats[idx], g.scales[idx], g.opacities[idx]
-        else:
-            node = self.graph.agent(inst.track_id)
-            pose = node_poses.get(inst.track_id, node.world_from_agent[view.frame_idx])
-            placed = place_gaussians(self.local[inst.track_id], pose)
-            means, quats, scales, opacities = placed.means, placed.quats, placed.scales, placed.opacities
-        if len(means) == 0:
-            return 0.0
-        s = self.graph.settings
+            g, idx = self.background, inst.members
+            return g.means[idx], g.quats[idx], g.scales[idx], g.opacities[idx]
+        node = self.graph.agent(inst.track_id)
+        placed = place_gaussians(self.local[inst.track_id],
+                                 node_poses.get(inst.track_id, node.world_from_agent[view.frame_idx]))
+        return placed.means, placed.quats, placed.scales, placed.opacities
+
+    def _own_alphas(self, view: View, instances: list[Instance],
+                    node_poses: dict[int, np.ndarray]) -> dict[int, float]:
+        """Per instance, the sum of its alpha over the image when it is rendered alone (nothing in front of it).
+
+        Instances whose projected boxes (padded by OWN_ALPHA_PAD) do not meet are rendered together, one label
+        channel each. Where a pixel gets a share from one instance only, no other instance touched it, so the
+        share is exactly that instance's alpha alone there; an instance that shares a pixel with another of its
+        group (a Gaussian outside its box) is rendered again alone. Exact either way; fewer rasterisations."""
+        if not instances:
+            return {}
+        parts = [self._alone(view, inst, node_poses) for inst in instances]
+        camera_from_world = invert_transform(view.world_from_camera)
+        rects = []
+        for inst in instances:
+            rect = projected_box(camera_from_world @ inst.world_from_box, inst.size, view.K, view.width, view.height,
+                                 self.graph.settings.near_plane)
+            if rect is not None:
+                x1, y1, x2, y2 = rect[0]
+                px, py = OWN_ALPHA_PAD[0] * (x2 - x1) + OWN_ALPHA_PAD[1], OWN_ALPHA_PAD[0] * (y2 - y1) + OWN_ALPHA_PAD[1]
+                rect = (x1 - px, y1 - py, x2 + px, y2 + py)
+            rects.append(rect)
+        groups: list[list[int]] = []
+        for e in sorted(range(len(instances)), key=lambda i: rects[i] is None):
+            home = None
+            if rects[e] is not None:
+                home = next((g for g in groups if all(rects[o] is not None and not _meet(rects[e], rects[o])
+                                                      for o in g)), None)
+            if home is None:
+                groups.append([e])
+            else:
+                home.append(e)
+        own = {}
+        for group in groups:
+            shares = self._alpha_channels(view, [parts[e] for e in group])  # [H, W, len(group)] or None
+            alone = []
+            if shares is None:
+                alone = []
+                own.update({instances[e].track_id: 0.0 for e in group})
+            elif len(group) == 1:
+                own[instances[group[0]].track_id] = float(shares.sum(dtype=np.float64))
+            else:
+                touched = shares > 0.0
+                multi = touched.sum(-1) >= 2
+                clash = set(np.nonzero(touched[multi].any(0))[0].tolist()) if multi.any() else set()
+                for i, e in enumerate(group):
+                    if i in clash:
+                        alone.append(e)
+                    else:
+                        own[instances[e].track_id] = float(shares[..., i].sum(dtype=np.float64))
+            for e in alone:
+                single = self._alpha_channels(view, [parts[e]])
+                own[instances[e].track_id] = 0.0 if single is None else float(single.sum(dtype=np.float64))
+        return own
+
+    def _alpha_channels(self, view: View, parts: list[tuple[Tensor, ...]]) -> np.ndarray | None:  # [H, W, E]
+        """Rasterise the Gaussians of ``parts`` together, channel e one for part e's Gaussians and 0 elsewhere."""
+        sizes = [len(p[0]) for p in parts]
+        if sum(sizes) == 0:
+            return None
+        means, quats, scales, opacities = (torch.cat([p[i] for p in parts]) for i in range(4))
         on = dict(device=means.device, dtype=means.dtype)
+        channels = torch.repeat_interleave(torch.eye(len(parts), **on), torch.tensor(sizes, device=means.device), 0)
+        s = self.graph.settings
         viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(**on)[None]
         K = torch.from_numpy(view.K).to(**on)[None]
-        _, alphas, _ = rasterize(means, quats, scales, opacities, torch.ones(len(means), 1, **on), viewmat, K,
-                                 view.width, view.height, near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d,
-                                 render_mode="RGB", backend=s.backend, rasterize_mode=s.rasterize_mode)
-        return float(alphas.sum())
+        out, _, _ = rasterize(means, quats, scales, opacities, channels, viewmat, K, view.width, view.height,
+                              near_plane=s.near_plane, far_plane=s.far_plane, eps2d=s.eps2d, render_mode="RGB",
+                              backend=s.backend, rasterize_mode=s.rasterize_mode)
+        return out[0].cpu().numpy()
+
+
+def _meet(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def projected_box(camera_from_box: np.ndarray, size: np.ndarray, K: np.ndarray, width: int, height: int,

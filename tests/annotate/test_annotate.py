@@ -90,6 +90,51 @@ def test_culling_agents_out_of_view_leaves_every_pixel_as_the_full_render(fitted
             np.testing.assert_array_equal(annotator.unedited(cam, f)[1], full)
 
 
+def test_own_alphas_rendered_together_equal_each_instance_rendered_alone(fitted):
+    import torch
+
+    from omniscs.annotate.views import Instance, ViewAnnotator
+    from omniscs.annotate.variant import _world_from_box
+
+    scene, graph = fitted
+    annotator = ViewAnnotator(graph)
+    view = graph.view(scene.camera_names[0], 0)
+    nodes = [Instance(int(r.track_id), str(r.category), _world_from_box(r), np.array([r.length, r.width, r.height]))
+             for r in scene.boxes_at(0).itertuples() if int(r.track_id) in graph.agent_ids]
+    depth = graph.render(view).depth
+    assert nodes and float(depth.max()) > 0
+    some = torch.arange(0, len(graph.background), 7)  # background Gaussians all over the view
+    twins = [Instance(9001, "barrier", np.eye(4), np.ones(3), some), Instance(9002, "barrier", np.eye(4), np.ones(3),
+                                                                                 some)]  # cover the same pixels
+    renders = []
+    count = annotator._alpha_channels
+
+    def counted(*args):
+        renders.append(len(args[1]))
+        return count(*args)
+
+    annotator._alpha_channels = counted
+    means = graph.background.means.detach().numpy()
+    world_from_camera = view.world_from_camera
+    apart = []  # two clumps of background Gaussians well apart in the view, each inside its own 2 m box
+    for k, x in enumerate((-4.0, 4.0)):
+        centre = world_from_camera[:3, :3] @ np.array([x, 1.5, 12.0]) + world_from_camera[:3, 3]  # on the road
+        box = np.eye(4)
+        box[:3, 3] = centre
+        near = np.nonzero(np.abs(means - centre).max(1) < 0.8)[0]
+        apart.append(Instance(9101 + k, "barrier", box, np.full(3, 2.0), torch.from_numpy(near)))
+    assert all(len(a.members) for a in apart)
+    for group in (apart, nodes, nodes + twins):
+        renders.clear()
+        together = annotator._own_alphas(view, group, {})
+        if group is apart:
+            assert renders == [2]  # one rendering gave both: they share no pixel
+        for inst in group:
+            alone = count(view, [annotator._alone(view, inst, {})])
+            assert together[inst.track_id] == pytest.approx(float(alone.sum()), rel=1e-5, abs=1e-3)
+    assert together[9001] == together[9002] > 0.0 and len(renders) >= 3  # the twins overlap: rendered alone
+
+
 def test_a_car_behind_another_is_less_visible_than_the_car_in_front(tmp_path):
     agents = ({"x": 11.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0003"},
               {"x": 17.0, "y": 0.0, "speed": 6.0, "asset": "sedan-0011"})
