@@ -198,7 +198,7 @@ class ViewAnnotator:
             return None
         box2d, in_image = rect
         mask = instance == inst.track_id
-        n_mask = int(mask.sum())
+        n_mask = int(np.count_nonzero(mask))
         tight = None
         if n_mask >= self.config.min_mask_pixels:
             ys, xs = np.nonzero(mask)
@@ -259,13 +259,14 @@ class ViewAnnotator:
                 own[instances[group[0]].track_id] = float(shares.sum(dtype=np.float64))
             else:
                 touched = shares > 0.0
-                multi = touched.sum(-1) >= 2
+                multi = np.count_nonzero(touched, axis=-1) >= 2
                 clash = set(np.nonzero(touched[multi].any(0))[0].tolist()) if multi.any() else set()
+                sums = shares.reshape(-1, len(group)).sum(0, dtype=np.float64)
                 for i, e in enumerate(group):
                     if i in clash:
                         alone.append(e)
                     else:
-                        own[instances[e].track_id] = float(shares[..., i].sum(dtype=np.float64))
+                        own[instances[e].track_id] = float(sums[i])
             for e in alone:
                 single = self._alpha_channels(view, [parts[e]])
                 own[instances[e].track_id] = 0.0 if single is None else float(single.sum(dtype=np.float64))

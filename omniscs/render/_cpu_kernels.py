@@ -336,6 +336,8 @@ def rasterize_forward(
                 if composited > 0:
                     for k in range(FUSED_CHANNELS, n_channels):
                         color = np.float64(colors[g, k])
+                        if color == 0.0:
+                            continue  # adds exactly nothing (weights are finite): sparse channels such as labels
                         for i in range(TILE_SIZE):
                             accumulated[k, ly, i] += weight_row[i] * color
                 live_in_row[ly] -= stopped

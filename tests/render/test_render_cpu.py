@@ -200,6 +200,22 @@ def test_float32_inputs_composite_in_the_order_of_their_float64_depths():
     assert_images_close(cpu, ref)
 
 
+def test_sparse_one_hot_channels_match_reference_and_their_dense_sum():
+    # label channels: each Gaussian is 1 in one channel beyond the fused four and 0 in the others (the kernel skips
+    # the zeros); the result must equal the reference and, summed over the label channels, a dense channel of ones
+    scene = random_scene(300, 40, 30, n_cameras=2, seed=12)
+    gen = torch.Generator().manual_seed(5)
+    owner = torch.randint(0, 6, (300,), generator=gen)
+    labels = torch.nn.functional.one_hot(owner, 6).to(torch.float64)
+    features = torch.cat([torch.rand(300, 4, generator=gen, dtype=torch.float64), labels, torch.ones(300, 1,
+                                                                                                  dtype=torch.float64)], 1)
+    scene = StreetScene(**{**{name: getattr(scene, name) for name in PARAMS + ("viewmats", "Ks")}, "colors": features},
+                        width=scene.width, height=scene.height)
+    (cpu_colors, _, _), (ref_colors, _, _) = render_both(scene)
+    assert_images_close(cpu_colors, ref_colors)
+    torch.testing.assert_close(cpu_colors[..., 4:10].sum(-1), cpu_colors[..., 10], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("n_channels", [1, 2, 6])
 def test_feature_channels_of_any_count_match_reference(n_channels):
     scene = random_scene(300, 40, 30, n_cameras=2, seed=10)
