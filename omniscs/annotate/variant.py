@@ -101,10 +101,15 @@ def lidar_from_depth(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # 
 def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:  # -> [B]
     """How many points lie in each box (ego frame)."""
     counts = np.zeros(len(sizes), dtype=np.int64)
-    xyz = points_ego[:, :3].astype(np.float64)
+    order = np.argsort(points_ego[:, 0], kind="stable")
+    xyz = points_ego[order, :3].astype(np.float64)  # sorted by x: a box's candidates are one slice
     for i, (T, size) in enumerate(zip(ego_from_boxes, sizes)):
-        near = np.abs(xyz - T[:3, 3]).max(1) <= 0.5 * float(np.linalg.norm(size))  # the box's bounding cube
-        local = transform_points(invert_transform(T), xyz[near])
+        reach = 0.5 * float(np.linalg.norm(size))  # the box's bounding cube
+        lo = int(np.searchsorted(xyz[:, 0], T[0, 3] - reach, side="left"))
+        hi = int(np.searchsorted(xyz[:, 0], T[0, 3] + reach, side="right"))
+        cand = xyz[lo:hi]
+        near = np.abs(cand[:, 1:] - T[1:3, 3]).max(1) <= reach if len(cand) else np.zeros(0, bool)
+        local = transform_points(invert_transform(T), cand[near])
         counts[i] = int(np.all(np.abs(local) <= 0.5 * size, axis=1).sum())
     return counts
 

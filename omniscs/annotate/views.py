@@ -258,10 +258,11 @@ class ViewAnnotator:
             elif len(group) == 1:
                 own[instances[group[0]].track_id] = float(shares.sum(dtype=np.float64))
             else:
-                touched = shares > 0.0
-                multi = np.count_nonzero(touched, axis=-1) >= 2
-                clash = set(np.nonzero(touched[multi].any(0))[0].tolist()) if multi.any() else set()
-                sums = shares.reshape(-1, len(group)).sum(0, dtype=np.float64)
+                planes = np.ascontiguousarray(np.moveaxis(shares, -1, 0)).reshape(len(group), -1)  # [G, H*W]
+                touched = planes > 0.0
+                multi = np.add.reduce(touched, axis=0, dtype=np.uint8) >= 2
+                clash = set(np.nonzero(touched[:, multi].any(1))[0].tolist()) if multi.any() else set()
+                sums = planes.sum(1, dtype=np.float64)
                 for i, e in enumerate(group):
                     if i in clash:
                         alone.append(e)

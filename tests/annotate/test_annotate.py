@@ -410,3 +410,23 @@ def test_the_exported_variant_reads_back_into_a_scene_store(annotated, exported,
     assert len(read.boxes) == len(expected) > 0
     err = box_errors(original.boxes, read.boxes, frame_map, match_tracks(original.boxes, read.boxes, frame_map))
     assert max(err.values()) < 1e-9, err
+
+
+def test_lidar_points_per_box_match_a_count_over_every_point():
+    from omniscs.annotate.variant import points_in_boxes
+    from omniscs.geometry import invert_transform, make_transform, transform_points
+
+    rng = np.random.default_rng(4)
+    points = np.zeros((5000, 4), np.float32)
+    points[:, :3] = rng.uniform([-30, -30, -2], [30, 30, 4], (5000, 3))
+    boxes, sizes = [], []
+    for _ in range(12):
+        yaw = rng.uniform(-np.pi, np.pi)
+        R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        boxes.append(make_transform(R, rng.uniform([-25, -25, 0], [25, 25, 1])))
+        sizes.append(rng.uniform([2, 1, 1], [12, 3, 4]))
+    boxes, sizes = np.stack(boxes), np.stack(sizes)
+    brute = [int(np.all(np.abs(transform_points(invert_transform(T), points[:, :3].astype(np.float64)))
+                        <= 0.5 * s, axis=1).sum()) for T, s in zip(boxes, sizes)]
+    assert points_in_boxes(points, boxes, sizes).tolist() == brute and sum(brute) > 0
+    assert points_in_boxes(np.zeros((0, 4), np.float32), boxes, sizes).tolist() == [0] * 12
