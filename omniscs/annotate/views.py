@@ -140,10 +140,10 @@ class ViewAnnotator:
         semantic = np.where(alpha >= cfg.depth_alpha, SEMANTIC_UNKNOWN, SEMANTIC_IDS["sky"]).astype(np.uint8)
         results = []
         if showing:
-            shares = np.ascontiguousarray(np.moveaxis(out.labels.cpu().numpy(), -1, 0))  # [E, H, W]
-            best = shares.argmax(0)
-            claimed = shares.max(0) >= cfg.mask_weight
-            totals = shares.reshape(len(showing), -1).sum(1, dtype=np.float64)
+            top, best = out.labels.max(-1)  # [H, W]: the largest share and whose it is
+            best = best.cpu().numpy()
+            claimed = top.cpu().numpy() >= cfg.mask_weight
+            totals = out.labels.sum((0, 1)).double().cpu().numpy()  # [E] visible alpha per instance
             ids = np.array([inst.track_id for inst in showing], dtype=np.int32)
             kinds = np.array([SEMANTIC_IDS["vehicle" if inst.category in VEHICLE_CATEGORIES else "obstacle"]
                               for inst in showing], dtype=np.uint8)
