@@ -39,12 +39,18 @@ class AnnotateConfig:
     command_lateral_m: float = 2.0
     """Lateral offset (ego frame, metres) at the command horizon beyond which the command is left or right."""
     fidelity_every: int = 1
-    """Compare every Nth rendered frame with the reference (the procedural world's exact render); 0 = never."""
+    """Measure the fidelity of every Nth rendered frame (0 = never): the proxies every scene gets (logged PSNR and
+    feature drift against the graph's unedited render) and, with ``exact_fidelity``, the exact comparison."""
+    exact_fidelity: bool = True
+    """Also compare with the exact render of the variant where the scene has one (procedural scenes: the world is
+    rendered again at every measured frame, then PSNR/SSIM; the costliest part of the stage)."""
 
     def __post_init__(self) -> None:
         for name in ("frame_every", "min_mask_pixels"):
             if int(getattr(self, name)) < 1:
                 raise OmniscsError(f"annotate {name} must be >= 1; got {getattr(self, name)}")
+        if not isinstance(self.exact_fidelity, bool):
+            raise OmniscsError(f"annotate exact_fidelity must be true or false; got {self.exact_fidelity!r}")
         if int(self.fidelity_every) < 0:
             raise OmniscsError(f"annotate fidelity_every must be >= 0; got {self.fidelity_every}")
         for name in ("mask_weight", "depth_alpha"):

@@ -298,7 +298,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                    reuse: bool = True) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
-    ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render."""
+    ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
+    ``config.exact_fidelity`` is off)."""
     from omniscs.annotate import AnnotateConfig
     from omniscs.annotate.scene import annotate_variants
     from omniscs.nsg.checkpoint import load_checkpoint
@@ -328,7 +329,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
             def make(tmp: Path) -> dict:
                 results = annotate_variants(
                     graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
-                    reference=world_reference(scene), describe=world_description(scene), config=config,
+                    reference=world_reference(scene) if config.exact_fidelity else None,
+                    describe=world_description(scene), config=config,
                     progress=progress,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png))
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}

@@ -330,7 +330,8 @@ def test_visibility_levels_are_nuscenes_bins(fraction, level):
 
 
 @pytest.mark.parametrize("field, value", [("frame_every", 0), ("mask_weight", 0.0), ("mask_weight", 1.5),
-                                          ("lidar_max_range_m", -1.0), ("fidelity_every", -1)])
+                                          ("lidar_max_range_m", -1.0), ("fidelity_every", -1),
+                                          ("exact_fidelity", "yes")])
 def test_bad_annotate_settings_are_one_clear_error(field, value):
     with pytest.raises(OmniscsError, match=field):
         AnnotateConfig(**{field: value})

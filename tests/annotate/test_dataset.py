@@ -130,3 +130,5 @@ def test_the_dataset_benchmark_runs_end_to_end_at_thumbnail_size(tmp_path):
     assert s["variants_per_hour"] > 0 and s["images_per_s_nuscenes_size"] > 0
     assert scene["with fidelity"]["psnr_drift_pairs"] and not scene["without fidelity"]["psnr_drift_pairs"]
     assert all(np.isfinite(v) for pair in scene["with fidelity"]["psnr_drift_pairs"] for v in pair)
+    proxies = scene["proxies only"]
+    assert all(p is None for p in proxies["fidelity_psnr"]) and all(d is not None for d in proxies["feature_drift"])
