@@ -32,7 +32,7 @@ DRIFT_COLOUR_WEIGHT = 1.0
 _EPS = 1e-9
 
 
-def _finite(x) -> float | None:
+def finite_or_none(x) -> float | None:
     return None if x is None or not np.isfinite(x) else float(x)
 
 
@@ -44,9 +44,9 @@ def image_fidelity(rendered: np.ndarray, reference: np.ndarray, mask: np.ndarray
     g = torch.from_numpy(reference.astype(np.float32) / 255.0)
     m = torch.from_numpy(mask)
     smap = ssim_map(r, g)
-    return {"psnr": _finite(psnr(r, g)), "ssim": _finite(ssim(r, g, smap=smap)),
-            "masked_psnr": _finite(psnr(r, g, m)) if mask.any() else None,
-            "masked_ssim": _finite(ssim(r, g, m, smap=smap)) if mask.any() else None}
+    return {"psnr": finite_or_none(psnr(r, g)), "ssim": finite_or_none(ssim(r, g, smap=smap)),
+            "masked_psnr": finite_or_none(psnr(r, g, m)) if mask.any() else None,
+            "masked_ssim": finite_or_none(ssim(r, g, m, smap=smap)) if mask.any() else None}
 
 
 def structure_descriptor(rgb: np.ndarray,  # uint8 [H, W, 3]

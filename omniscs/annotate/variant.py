@@ -18,16 +18,14 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
-import torch
 
 from omniscs.annotate.config import AnnotateConfig, visibility_level
-from omniscs.annotate.fidelity import box_mask, feature_drift, image_fidelity
+from omniscs.annotate.fidelity import box_mask, feature_drift, finite_or_none, image_fidelity
 from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
 from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members, projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
 from omniscs.nsg.graph import SceneGraph
-from omniscs.nsg.metrics import psnr
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ATTRIBUTE_SCHEMA, ATTRIBUTES
@@ -54,10 +52,6 @@ class AnnotatedVariant:
     samples: list[dict]
     annotations: list[dict]
     summary: dict
-
-
-def _finite(x) -> float | None:
-    return None if x is None or not np.isfinite(x) else float(x)
 
 
 def _world_from_box(row) -> np.ndarray:  # -> [4, 4]
@@ -257,9 +251,10 @@ def unedited_fidelity(annotator: ViewAnnotator, scene: Scene, camera: str, frame
     every pixel a moved agent covers in either (its mask, its projected box in the variant, its logged box in the
     unedited view): what the edit and the new viewpoint changed; and ``logged_psnr``, the unedited render against
     the logged image: how well the graph reproduces this frame at all (a view the fit trained on)."""
-    logged, unedited = annotator.unedited(camera, frame)
+    logged, unedited, logged_psnr = annotator.unedited(camera, frame, lambda: scene.image(camera, frame))
     rects = [lab.box2d for lab in ann.labels if lab.track_id in moved and lab.box2d is not None]
-    rows = scene.boxes[(scene.boxes.frame_idx == frame) & scene.boxes.track_id.isin(sorted(moved))]
+    rows = scene.boxes_at(frame)
+    rows = rows[rows.track_id.isin(sorted(moved))]
     camera_from_world = invert_transform(logged.world_from_camera)
     for r in rows.itertuples():
         rect = projected_box(camera_from_world @ _world_from_box(r), np.array([r.length, r.width, r.height]),
@@ -267,11 +262,8 @@ def unedited_fidelity(annotator: ViewAnnotator, scene: Scene, camera: str, frame
         if rect is not None:
             rects.append(rect[0])
     skip = np.isin(ann.instance, sorted(moved)) | box_mask(ann.instance.shape, rects)
-    logged_image = scene.image(camera, frame)
-    logged_psnr = psnr(torch.from_numpy(unedited.astype(np.float32) / 255.0),
-                       torch.from_numpy(logged_image.astype(np.float32) / 255.0))
     drift = feature_drift(ann.rgb, unedited, ~skip) if unedited.shape == ann.rgb.shape else None
-    return {"feature_drift": _finite(drift), "logged_psnr": _finite(logged_psnr)}
+    return {"feature_drift": finite_or_none(drift), "logged_psnr": finite_or_none(logged_psnr)}
 
 
 def ann_render_seconds(annotator: ViewAnnotator) -> float:

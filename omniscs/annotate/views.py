@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -17,6 +18,7 @@ from omniscs.gaussians import activate
 from omniscs.geometry import BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, agent_may_show, node_radius, render_view
+from omniscs.nsg.metrics import psnr
 from omniscs.nsg.observations import View
 from omniscs.quaternions import rotmat_to_quat
 from omniscs.render import rasterize
@@ -99,7 +101,7 @@ class ViewAnnotator:
         self.background = activate(graph.background.detached())
         self.radii = {a.track_id: node_radius(a.gaussians) for a in graph.agents}
         self.local = {a.track_id: activate(a.gaussians.detached()) for a in graph.agents}
-        self._unedited: dict[tuple[str, int], np.ndarray] = {}
+        self._unedited: dict[tuple[str, int], tuple[np.ndarray, float | None]] = {}  # rgb, logged PSNR
         self._unedited_bytes = 0
         self.last_render_seconds = 0.0
         """Seconds the last ``annotate`` spent in the rasterisation of colour, depth and labels (the rest is
@@ -159,18 +161,25 @@ class ViewAnnotator:
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
 
     @torch.no_grad()
-    def unedited(self, camera: str, frame: int) -> tuple[View, np.ndarray]:
-        """The logged view of ``camera`` at ``frame`` and the graph's unedited render of it (uint8 [H, W, 3]),
-        rendered once for all the variants this annotator labels (while UNEDITED_CACHE_BYTES has room)."""
+    def unedited(self, camera: str, frame: int, logged_image: Callable[[], np.ndarray] | None = None
+                 ) -> tuple[View, np.ndarray, float | None]:
+        """The logged view of ``camera`` at ``frame``, the graph's unedited render of it (uint8 [H, W, 3]) and,
+        when ``logged_image()`` gives the logged image, that render's PSNR against it; both made once for all the
+        variants this annotator labels (while UNEDITED_CACHE_BYTES has room)."""
         view = self.graph.view(camera, frame)
-        rgb = self._unedited.get((camera, view.frame_idx))
-        if rgb is None:
+        key = (camera, view.frame_idx)
+        rgb, logged_psnr = self._unedited.get(key, (None, None))
+        fresh = rgb is None
+        if fresh:
             out = render_view(self.graph, view, only_agents=self._may_show(view, {}))
             rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
-            if self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES:
-                self._unedited[(camera, view.frame_idx)] = rgb
-                self._unedited_bytes += rgb.nbytes
-        return view, rgb
+        if logged_psnr is None and logged_image is not None:
+            logged_psnr = psnr(torch.from_numpy(rgb.astype(np.float32) / 255.0),
+                               torch.from_numpy(logged_image().astype(np.float32) / 255.0))
+        if not fresh or self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES:
+            self._unedited_bytes += rgb.nbytes if fresh else 0
+            self._unedited[key] = (rgb, logged_psnr)
+        return view, rgb, logged_psnr
 
     def _may_show(self, view: View, node_poses: dict[int, np.ndarray]) -> list[int]:
         """The agent nodes present in the view's frame that may reach its image where ``node_poses`` (or the log)
@@ -253,7 +262,6 @@ class ViewAnnotator:
             shares = self._alpha_channels(view, [parts[e] for e in group])  # [H, W, len(group)] or None
             alone = []
             if shares is None:
-                alone = []
                 own.update({instances[e].track_id: 0.0 for e in group})
             elif len(group) == 1:
                 own[instances[group[0]].track_id] = float(shares.sum(dtype=np.float64))
