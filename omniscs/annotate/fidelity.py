@@ -18,6 +18,9 @@ Two measures, both per frame and camera and summarised per variant:
 """
 from __future__ import annotations
 
+import math
+
+import numba as nb
 import numpy as np
 import torch
 
@@ -53,29 +56,70 @@ def structure_descriptor(rgb: np.ndarray,  # uint8 [H, W, 3]
                          keep: np.ndarray,  # bool [H, W]
                          cells: tuple[int, int] = DRIFT_CELLS) -> tuple[np.ndarray, np.ndarray]:
     """Per cell of a ``cells`` grid: [DRIFT_BINS + 3] (unit orientation histogram, mean colour) over the kept
-    pixels, and the fraction of the cell's pixels kept. A cell with no pixel kept (or none at all) is zero."""
-    img = rgb.astype(np.float32) / 255.0
-    grey = img.mean(-1)
-    gy, gx = np.gradient(grey)
-    h, w = grey.shape
+    pixels, and the fraction of the cell's pixels kept. A cell with no pixel kept (or none at all) is zero.
+    Gradients of the grey image (mean of the channels) by central differences, one-sided at the borders (as
+    ``np.gradient``); one pass over the pixels (``_cell_sums``)."""
     rows, cols = cells
-    row_of = np.minimum((np.arange(h) * rows) // max(h, 1), rows - 1)
-    col_of = np.minimum((np.arange(w) * cols) // max(w, 1), cols - 1)
-    cell = (row_of[:, None] * cols + col_of[None, :]).ravel()  # [H*W]
-    k = keep.ravel().astype(np.float64)
-    n_cells = rows * cols
-    pixels = np.bincount(cell, minlength=n_cells).astype(np.float64)
-    kept_n = np.bincount(cell, weights=k, minlength=n_cells)
-    ang = np.mod(np.arctan2(gy, gx), np.pi).ravel()
-    bins = np.minimum((ang / np.pi * DRIFT_BINS).astype(np.int64), DRIFT_BINS - 1)
-    hist = np.bincount(cell * DRIFT_BINS + bins, weights=np.hypot(gx, gy).ravel() * k,
-                       minlength=n_cells * DRIFT_BINS).reshape(n_cells, DRIFT_BINS)
+    hist, colour, kept_n, pixels = _cell_sums(np.ascontiguousarray(rgb, dtype=np.uint8),
+                                              np.ascontiguousarray(keep, dtype=np.bool_), rows, cols, DRIFT_BINS)
     hist /= np.linalg.norm(hist, axis=1, keepdims=True) + _EPS
-    colour = np.stack([np.bincount(cell, weights=img[..., c].ravel() * k, minlength=n_cells) for c in range(3)], 1)
     colour /= np.maximum(kept_n, 1.0)[:, None]
     out = np.concatenate([hist, DRIFT_COLOUR_WEIGHT * colour], 1).reshape(rows, cols, DRIFT_BINS + 3)
     kept = np.where(pixels > 0, kept_n / np.maximum(pixels, 1.0), 0.0).reshape(rows, cols)
     return out, kept
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell_sums(rgb, keep, rows, cols, bins):  # -> hist [C, bins], colour [C, 3], kept_n [C], pixels [C]
+    """Per cell: magnitude-weighted orientation histogram and colour sums over the kept pixels, kept and total
+    pixel counts."""
+    h, w = keep.shape
+    n_cells = rows * cols
+    hist = np.zeros((n_cells, bins))
+    colour = np.zeros((n_cells, 3))
+    kept_n = np.zeros(n_cells)
+    pixels = np.zeros(n_cells)
+    grey = np.empty((h, w))
+    for y in range(h):
+        for x in range(w):
+            grey[y, x] = (float(rgb[y, x, 0]) + float(rgb[y, x, 1]) + float(rgb[y, x, 2])) / (3.0 * 255.0)
+    col_of = np.empty(w, np.int64)
+    for x in range(w):
+        col_of[x] = min((x * cols) // w, cols - 1)
+    for y in range(h):
+        row = min((y * rows) // h, rows - 1)
+        for x in range(w):
+            c = row * cols + col_of[x]
+            pixels[c] += 1.0
+            if not keep[y, x]:
+                continue
+            kept_n[c] += 1.0
+            for ch in range(3):
+                colour[c, ch] += rgb[y, x, ch] / 255.0
+            if h == 1:
+                gy = 0.0
+            elif y == 0:
+                gy = grey[1, x] - grey[0, x]
+            elif y == h - 1:
+                gy = grey[h - 1, x] - grey[h - 2, x]
+            else:
+                gy = 0.5 * (grey[y + 1, x] - grey[y - 1, x])
+            if w == 1:
+                gx = 0.0
+            elif x == 0:
+                gx = grey[y, 1] - grey[y, 0]
+            elif x == w - 1:
+                gx = grey[y, w - 1] - grey[y, w - 2]
+            else:
+                gx = 0.5 * (grey[y, x + 1] - grey[y, x - 1])
+            ang = math.atan2(gy, gx)
+            if ang < 0.0:
+                ang += math.pi
+            if ang >= math.pi:  # atan2 gives pi for a gradient pointing to -x: unsigned, that is angle 0
+                ang -= math.pi
+            b = min(int(ang / math.pi * bins), bins - 1)
+            hist[c, b] += math.sqrt(gx * gx + gy * gy)
+    return hist, colour, kept_n, pixels
 
 
 def feature_drift(rendered: np.ndarray, unedited: np.ndarray,  # uint8 [H, W, 3] each

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Collection, Mapping
@@ -142,13 +143,19 @@ class SceneGraph:
 
 
 def pixel_directions(view: View, device: torch.device | str = "cpu") -> Tensor:  # [H, W, 3] float32 unit, world
-    """Viewing direction through every pixel centre."""
-    u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
-    K = view.K
-    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-    d = d @ view.world_from_camera[:3, :3].T
+    """Viewing direction through every pixel centre: the camera's unit rays (made once per intrinsics) turned into
+    the world by the view's rotation."""
+    rays = _camera_rays(view.width, view.height, tuple(np.asarray(view.K, np.float64).ravel().tolist()))
+    rotation = torch.from_numpy(np.ascontiguousarray(view.world_from_camera[:3, :3], np.float32))
+    return (rays @ rotation.T).to(device)
+
+
+@functools.lru_cache(maxsize=32)
+def _camera_rays(width: int, height: int, K: tuple[float, ...]) -> Tensor:  # [H, W, 3] float32 unit, camera frame
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d = np.stack([(u - K[2]) / K[0], (v - K[5]) / K[4], np.ones_like(u)], -1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return torch.from_numpy(d.astype(np.float32)).to(device)
+    return torch.from_numpy(d.astype(np.float32))
 
 
 @dataclass(frozen=True)

@@ -198,6 +198,41 @@ def test_feature_drift_is_zero_for_the_same_image_and_grows_with_blur_more_than_
     assert 0.0 < small < blur and 4 * small < other <= 1.0
 
 
+def _descriptor_by_numpy(rgb, keep, cells):
+    """The descriptor written with whole-array numpy (the reference for the one-pass kernel)."""
+    from omniscs.annotate.fidelity import DRIFT_BINS, DRIFT_COLOUR_WEIGHT
+
+    img = rgb.astype(np.float64) / 255.0
+    gy, gx = np.gradient(rgb.astype(np.float64).sum(-1) / 765.0)  # grey rounded as the kernel does: ties stay ties
+    h, w = keep.shape
+    rows, cols = cells
+    cell = ((np.arange(h) * rows // h)[:, None] * cols + (np.arange(w) * cols // w)[None, :]).ravel()
+    k = keep.ravel().astype(np.float64)
+    n = rows * cols
+    pixels, kept_n = np.bincount(cell, minlength=n), np.bincount(cell, weights=k, minlength=n)
+    bins = np.minimum((np.mod(np.arctan2(gy, gx), np.pi) / np.pi * DRIFT_BINS).astype(int), DRIFT_BINS - 1).ravel()
+    hist = np.bincount(cell * DRIFT_BINS + bins, weights=np.hypot(gx, gy).ravel() * k,
+                       minlength=n * DRIFT_BINS).reshape(n, DRIFT_BINS)
+    hist /= np.linalg.norm(hist, axis=1, keepdims=True) + 1e-9
+    colour = np.stack([np.bincount(cell, weights=img[..., c].ravel() * k, minlength=n) for c in range(3)], 1)
+    colour /= np.maximum(kept_n, 1.0)[:, None]
+    out = np.concatenate([hist, DRIFT_COLOUR_WEIGHT * colour], 1).reshape(rows, cols, -1)
+    return out, np.where(pixels > 0, kept_n / np.maximum(pixels, 1), 0.0).reshape(rows, cols)
+
+
+@pytest.mark.parametrize("shape,cells", [((90, 160), (6, 8)), ((7, 5), (6, 8)), ((33, 47), (3, 4))])
+def test_structure_descriptor_matches_its_numpy_formulation(shape, cells):
+    from omniscs.annotate.fidelity import structure_descriptor
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+    keep = rng.random(shape) > 0.3
+    got, got_kept = structure_descriptor(rgb, keep, cells)
+    want, want_kept = _descriptor_by_numpy(rgb, keep, cells)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    np.testing.assert_allclose(got_kept, want_kept, atol=1e-12)
+
+
 def test_feature_drift_leaves_out_the_pixels_not_kept_and_stays_finite_on_flat_or_empty_input():
     img = _texture()
     edited = img.copy()

@@ -168,3 +168,20 @@ def test_eq1_is_exact_for_any_pose_rotation_including_half_turns(q_pose, q_speci
         cov_p = np.einsum("nij,nj,nkj->nik", Rp, s2, Rp)
         R = T[:3, :3]
         assert np.allclose(cov_p, R @ cov_l @ R.T, atol=1e-5)
+
+
+def test_pixel_directions_are_the_unit_rays_through_pixel_centres_turned_into_the_world():
+    from omniscs.nsg.graph import pixel_directions
+
+    rng = np.random.default_rng(5)
+    K = intrinsics_from_fov(37, 23, np.radians(70.0))
+    K[0, 2] += 3.0  # an off-centre principal point
+    for _ in range(3):
+        q = rng.normal(size=4)
+        T = make_transform(quat_to_rotmat(q / np.linalg.norm(q)), rng.normal(size=3) * 10)
+        d = pixel_directions(View(0, T, K, 37, 23)).numpy()
+        u, v = np.meshgrid(np.arange(37) + 0.5, np.arange(23) + 0.5)
+        want = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ T[:3, :3].T
+        want /= np.linalg.norm(want, axis=-1, keepdims=True)
+        assert d.shape == (23, 37, 3) and d.dtype == np.float32
+        np.testing.assert_allclose(d, want, atol=1e-6)
