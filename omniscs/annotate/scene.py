@@ -10,6 +10,7 @@ from typing import Callable
 import numpy as np
 
 from omniscs.annotate.config import AnnotateConfig
+from omniscs.annotate.replay import Replay
 from omniscs.annotate.variant import AnnotatedVariant, Reference, background_tracks, write_annotated_variant
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
@@ -33,15 +34,18 @@ def variant_store_id(scene_id: str, variant_id: str) -> str:
 def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out_dir: str | Path,
                       solve: Callable[[dict], object] | None = None, reference: Reference | None = None,
                       config: AnnotateConfig = AnnotateConfig(), picture: Callable | None = None,
-                      describe: Callable | None = None, progress: Progress = no_progress) -> list[AnnotatedVariant]:
+                      describe: Callable | None = None, progress: Progress = no_progress,
+                      replay: Replay | None = None) -> list[AnnotatedVariant]:
     """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
 
     ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
     solved the ego drives it in the rendered frames, else the ego keeps the variant's plan and the variant is kept
     as a test case (``ego_solved`` false). ``picture(variant, solution, png)`` draws the variant's BEV with the
-    solution. ``describe(frames) -> world.json`` (procedural sources) goes into each variant's store. Writes ``rows.json`` (samples, annotations, summaries) last."""
+    solution. ``describe(frames) -> world.json`` (procedural sources) goes into each variant's store. ``replay`` (the
+    graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies. Writes
+    ``rows.json`` (samples, annotations, summaries) last."""
     out_dir = Path(out_dir)
-    annotator = ViewAnnotator(graph, config)
+    annotator = ViewAnnotator(graph, config, replay)
     members = background_members(graph, background_tracks(scene, graph))
     results, pictures = [], []
     for i, variant in enumerate(variants):

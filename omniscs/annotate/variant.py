@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 from omniscs.annotate.config import AnnotateConfig, visibility_level
 from omniscs.annotate.fidelity import box_mask, feature_drift, finite_or_none, image_fidelity
 from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
-from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members, projected_box
+from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
 from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
 from omniscs.nsg.graph import SceneGraph
@@ -253,14 +253,8 @@ def unedited_fidelity(annotator: ViewAnnotator, scene: Scene, camera: str, frame
     the logged image: how well the graph reproduces this frame at all (a view the fit trained on)."""
     logged, unedited, logged_psnr = annotator.unedited(camera, frame, lambda: scene.image(camera, frame))
     rects = [lab.box2d for lab in ann.labels if lab.track_id in moved and lab.box2d is not None]
-    rows = scene.boxes_at(frame)
-    rows = rows[rows.track_id.isin(sorted(moved))]
-    camera_from_world = invert_transform(logged.world_from_camera)
-    for r in rows.itertuples():
-        rect = projected_box(camera_from_world @ _world_from_box(r), np.array([r.length, r.width, r.height]),
-                             logged.K, logged.width, logged.height, annotator.graph.settings.near_plane)
-        if rect is not None:
-            rects.append(rect[0])
+    logged_rects = annotator.logged_rects(camera, frame, lambda: scene.boxes_at(frame))
+    rects += [logged_rects[t] for t in sorted(moved) if t in logged_rects]
     skip = np.isin(ann.instance, sorted(moved)) | box_mask(ann.instance.shape, rects)
     drift = feature_drift(ann.rgb, unedited, ~skip) if unedited.shape == ann.rgb.shape else None
     return {"feature_drift": finite_or_none(drift), "logged_psnr": finite_or_none(logged_psnr)}

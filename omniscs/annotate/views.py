@@ -10,17 +10,21 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+import pandas as pd
 import torch
 from torch import Tensor
 
 from omniscs.annotate.config import AnnotateConfig
+from omniscs.annotate.replay import Replay
+from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate
-from omniscs.geometry import BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform
+from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform,
+                              make_transform)
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, agent_may_show, node_radius, render_view
 from omniscs.nsg.metrics import psnr
 from omniscs.nsg.observations import View
-from omniscs.quaternions import rotmat_to_quat
+from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
 from omniscs.render import rasterize
 from omniscs.taxonomy import SEMANTIC_IDS, VEHICLE_CATEGORIES
 
@@ -95,14 +99,18 @@ def background_members(graph: SceneGraph, tracks: dict[int, tuple[np.ndarray, np
 class ViewAnnotator:
     """Renders and labels views of one scene graph (background activated once, node radii once)."""
 
-    def __init__(self, graph: SceneGraph, config: AnnotateConfig = AnnotateConfig()) -> None:
+    def __init__(self, graph: SceneGraph, config: AnnotateConfig = AnnotateConfig(),
+                 replay: Replay | None = None) -> None:
         self.graph = graph
         self.config = config
+        self.replay = replay
         self.background = activate(graph.background.detached())
         self.radii = {a.track_id: node_radius(a.gaussians) for a in graph.agents}
         self.local = {a.track_id: activate(a.gaussians.detached()) for a in graph.agents}
+        self.activated = {BACKGROUND: self.background, **{agent_key(t): p for t, p in self.local.items()}}
         self._unedited: dict[tuple[str, int], tuple[np.ndarray, float | None]] = {}  # rgb, logged PSNR
         self._unedited_bytes = 0
+        self._logged_rects: dict[tuple[str, int], dict[int, tuple[float, float, float, float]]] = {}
         self.last_render_seconds = 0.0
         """Seconds the last ``annotate`` spent in the rasterisation of colour, depth and labels (the rest is
         annotation: masks, boxes, the instances' own alpha)."""
@@ -132,7 +140,7 @@ class ViewAnnotator:
                         * torch.nn.functional.one_hot(torch.tensor(e), len(showing)).to(torch.float32)
         tick = time.perf_counter()
         out = render_view(graph, view, agent_poses=self._poses(node_poses, f), labels=labels,
-                          only_agents=self._may_show(view, node_poses))
+                          only_agents=self._may_show(view, node_poses), activated=self.activated)
         self.last_render_seconds = time.perf_counter() - tick
         rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         alpha = out.alpha.cpu().numpy()
@@ -161,25 +169,52 @@ class ViewAnnotator:
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
 
     @torch.no_grad()
-    def unedited(self, camera: str, frame: int, logged_image: Callable[[], np.ndarray] | None = None
-                 ) -> tuple[View, np.ndarray, float | None]:
+    def unedited(self, camera: str, frame: int, logged_image: Callable[[], np.ndarray] | None = None,
+                 keep: bool = True) -> tuple[View, np.ndarray, float | None]:
         """The logged view of ``camera`` at ``frame``, the graph's unedited render of it (uint8 [H, W, 3]) and,
-        when ``logged_image()`` gives the logged image, that render's PSNR against it; both made once for all the
-        variants this annotator labels (while UNEDITED_CACHE_BYTES has room)."""
+        when ``logged_image()`` gives the logged image, that render's PSNR against it: read from the graph's replay
+        when it has the view (``omniscs.annotate.replay``), else rendered; made once for all the variants this
+        annotator labels (while UNEDITED_CACHE_BYTES has room; ``keep=False`` keeps nothing)."""
         view = self.graph.view(camera, frame)
         key = (camera, view.frame_idx)
         rgb, logged_psnr = self._unedited.get(key, (None, None))
         fresh = rgb is None
-        if fresh:
-            out = render_view(self.graph, view, only_agents=self._may_show(view, {}))
+        if fresh and self.replay is not None and key in self.replay:
+            rgb, logged_psnr = self.replay.view(*key)
+            if rgb.shape != (view.height, view.width, 3):
+                raise OmniscsError(f"replay {self.replay.folder} view {key} is {rgb.shape[1]}x{rgb.shape[0]}, "
+                                   f"not the camera's {view.width}x{view.height}")
+        elif fresh:
+            out = render_view(self.graph, view, only_agents=self._may_show(view, {}), activated=self.activated)
             rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         if logged_psnr is None and logged_image is not None:
             logged_psnr = psnr(torch.from_numpy(rgb.astype(np.float32) / 255.0),
                                torch.from_numpy(logged_image().astype(np.float32) / 255.0))
-        if not fresh or self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES:
+        if keep and (not fresh or self._unedited_bytes + rgb.nbytes <= UNEDITED_CACHE_BYTES):
             self._unedited_bytes += rgb.nbytes if fresh else 0
             self._unedited[key] = (rgb, logged_psnr)
         return view, rgb, logged_psnr
+
+    def logged_rects(self, camera: str, frame: int, boxes: Callable[[], pd.DataFrame]
+                     ) -> dict[int, tuple[float, float, float, float]]:
+        """{track id: image rectangle} of the logged boxes (``boxes()``: the frame's rows of the scene's box
+        table) in the logged view of ``camera`` at ``frame``, boxes off the image left out; made once per view."""
+        view = self.graph.view(camera, frame)
+        key = (camera, view.frame_idx)
+        if key not in self._logged_rects:
+            rows = boxes()
+            camera_from_world = invert_transform(view.world_from_camera)
+            world_from_box = make_transform(quat_to_rotmat(rows[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)),
+                                            rows[["cx", "cy", "cz"]].to_numpy(np.float64))
+            sizes = rows[["length", "width", "height"]].to_numpy(np.float64)
+            rects = {}
+            for tid, T, size in zip(rows.track_id.to_numpy(), world_from_box, sizes):
+                rect = projected_box(camera_from_world @ T, size, view.K, view.width, view.height,
+                                     self.graph.settings.near_plane)
+                if rect is not None:
+                    rects[int(tid)] = rect[0]
+            self._logged_rects[key] = rects
+        return self._logged_rects[key]
 
     def _may_show(self, view: View, node_poses: dict[int, np.ndarray]) -> list[int]:
         """The agent nodes present in the view's frame that may reach its image where ``node_poses`` (or the log)

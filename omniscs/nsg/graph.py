@@ -232,7 +232,8 @@ def agent_may_show(view: View, centre_world: np.ndarray, radius: float, near_pla
 def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, absgrad: bool = False,
                 agent_poses: Mapping[int, NodePose] | None = None, static: StaticLayer | None = None,
                 only_agents: Collection[int] | None = None,
-                labels: Mapping[str, Tensor] | None = None) -> RenderOutput:
+                labels: Mapping[str, Tensor] | None = None,
+                activated: Mapping[str, GaussianParams] | None = None) -> RenderOutput:
     """Concatenate the nodes present in ``view.frame_idx`` (agents placed by Eq. 1), rasterise them, show
     the sky where they leave the pixel uncovered, and apply the camera's exposure correction.
 
@@ -245,6 +246,8 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     ``labels`` ({node key: [n_node, E] float}) blends E extra channels with the same weights as the colours: a
     one-hot column per instance gives, per pixel, how much of the pixel each instance covers once what lies in
     front of it is taken off (auto-annotation); nodes without an entry blend zeros. Not with ``static``.
+    ``activated`` ({node key: the node's Gaussians already activated}) spares activating them again when one
+    unchanging graph is rendered many times (no gradients reach the raw parameters through it).
     """
     agent_poses = dict(agent_poses or {})
     if labels is not None and static is not None:
@@ -273,7 +276,9 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     for key, world_from_node, params in nodes:
         if len(params) == 0:
             continue
-        local = activate(params)
+        local = activated.get(key) if activated is not None else None
+        if local is None or len(local) != len(params):
+            local = activate(params)
         dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device, local.means.dtype)
         colours = colors_from_sh(degree, local.sh, dirs[None])[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)

@@ -12,7 +12,7 @@ __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "datase
 
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "behavior": "variants",
-           "annotate": "annotated", "dataset": "datasets"}
+           "replay": "replays", "annotate": "annotated", "dataset": "datasets"}
 
 
 def scenes_dir(workspace: str | Path) -> Path:

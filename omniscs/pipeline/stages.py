@@ -35,6 +35,7 @@ PREVIEW_VERSION = 1
 FIT_VERSION = 1
 BEHAVIOR_VERSION = 1
 ANNOTATE_VERSION = 1
+REPLAY_VERSION = 1
 DATASET_VERSION = 1
 
 #: The plan file in a plan stage's folder.
@@ -293,6 +294,33 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
 
 
 # ----------------------------------------------------------------------------- render + annotate
+def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Path, progress: Progress = no_progress,
+                 reuse: bool = True) -> StageRecord:
+    """Every logged view of the scene rendered through its fitted graph, unedited, with its PSNR against the logged
+    image (``omniscs.annotate.replay``), in ``replays/<scene_id>/replay-<key>/``: made once per graph, read by
+    every annotate run on it for the fidelity proxies."""
+    from omniscs.annotate.replay import write_replay
+    from omniscs.nsg.checkpoint import load_checkpoint
+
+    started = time.perf_counter()
+    scene = load_scene(scene_path)
+    if model is None or model.info.get("status") != "fitted":
+        return StageRecord.skip("replay", scene.scene_id, "no fitted scene graph")
+    key = StageKey.of("replay", REPLAY_VERSION, {"scene": scene.content_hash, "graph": model.key}, {})
+    out = layout.stage_folder(workspace, "replay", scene.scene_id, f"replay-{key.short}")
+    with output_lock(out, _waiting(progress, out)):
+        manifest = reusable(out, key) if reuse else None
+        if manifest is None:
+            graph = load_checkpoint(model.path, scene)
+            manifest = produce(out, key, lambda tmp: write_replay(graph, scene, tmp, progress))
+            reused = False
+        else:
+            reused = True
+    return StageRecord("replay", scene.scene_id, str(out), reused=reused, seconds=time.perf_counter() - started,
+                       key=key.digest, info={k: manifest.get("outputs", {}).get(k)
+                                             for k in ("n_views", "mean_logged_psnr")})
+
+
 def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
                    workspace: str | Path, config=None, progress: Progress = no_progress,
                    reuse: bool = True) -> StageRecord:
@@ -301,6 +329,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
     ``config.exact_fidelity`` is off)."""
     from omniscs.annotate import AnnotateConfig
+    from omniscs.annotate.replay import Replay
     from omniscs.annotate.scene import annotate_variants
     from omniscs.nsg.checkpoint import load_checkpoint
     from omniscs.pipeline.procedural import world_description, world_reference
@@ -324,6 +353,10 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
         if manifest is None:
             variants = json.loads(Path(behavior.path).read_text())
             traffic = traffic_from_scene(scene)
+            replay = None
+            if config.fidelity_every:  # the proxies compare with the unedited logged views: rendered once per graph
+                replayed = replay_stage(scene_path, model, workspace, progress=progress)
+                replay = Replay.open(replayed.path)
             graph = load_checkpoint(model.path, scene)
 
             def make(tmp: Path) -> dict:
@@ -331,7 +364,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
                     reference=world_reference(scene) if config.exact_fidelity else None,
                     describe=world_description(scene), config=config,
-                    progress=progress,
+                    progress=progress, replay=replay,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png))
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 

@@ -466,3 +466,45 @@ def test_lidar_points_per_box_match_a_count_over_every_point():
                         <= 0.5 * s, axis=1).sum()) for T, s in zip(boxes, sizes)]
     assert points_in_boxes(points, boxes, sizes).tolist() == brute and sum(brute) > 0
     assert points_in_boxes(np.zeros((0, 4), np.float32), boxes, sizes).tolist() == [0] * 12
+
+
+def test_a_replay_holds_the_unedited_render_of_every_logged_view_and_annotations_are_the_same_with_it(
+        fitted, annotated, tmp_path):
+    from omniscs.annotate.replay import Replay, write_replay
+    from omniscs.annotate.views import ViewAnnotator
+
+    scene, graph = fitted
+    info = write_replay(graph, scene, tmp_path / "replay")
+    replay = Replay.open(tmp_path / "replay")
+    assert info["n_views"] == len(replay) == scene.n_frames * len(scene.camera_names)
+    annotator = ViewAnnotator(graph)
+    for cam in scene.camera_names:
+        for f in (0, scene.n_frames - 1):
+            rgb, logged_psnr = replay.view(cam, f)
+            _, rendered, want = annotator.unedited(cam, f, lambda c=cam, t=f: scene.image(c, t))
+            np.testing.assert_array_equal(rgb, rendered)
+            assert logged_psnr == pytest.approx(want, abs=1e-9) and 10.0 < logged_psnr < 100.0
+    variant = logged_variant(scene, shift={2: 0.15})
+    again = write_annotated_variant(graph, scene, variant, tmp_path / "store", "nsg-test-v000",
+                                    reference=world_reference(scene), describe=world_description(scene),
+                                    annotator=ViewAnnotator(graph, replay=replay))
+    for key in ("feature_drift", "logged_psnr", "fidelity_psnr", "mask_pixels"):
+        assert [r.get(key) for r in again.samples] == pytest.approx([r.get(key) for r in annotated.samples])
+
+
+def test_a_damaged_replay_is_a_clear_error(fitted, tmp_path):
+    from omniscs.annotate.replay import Replay, write_replay
+    from omniscs.annotate.views import ViewAnnotator
+    from omniscs.errors import ValidationError
+
+    scene, graph = fitted
+    with pytest.raises(ValidationError, match="not a readable replay"):
+        Replay.open(tmp_path / "nothing")
+    write_replay(graph, scene, tmp_path / "replay")
+    cam = scene.camera_names[0]
+    (tmp_path / "replay" / "images" / cam / "000001.png").unlink()
+    replay = Replay.open(tmp_path / "replay")
+    with pytest.raises(ValidationError, match="missing or unreadable"):
+        ViewAnnotator(graph, replay=replay).unedited(cam, 1)
+    with pytest.raises(OmniscsError, match="no view"):
+        replay.view(cam, 10_000)

@@ -185,3 +185,19 @@ def test_pixel_directions_are_the_unit_rays_through_pixel_centres_turned_into_th
         want /= np.linalg.norm(want, axis=-1, keepdims=True)
         assert d.shape == (23, 37, 3) and d.dtype == np.float32
         np.testing.assert_allclose(d, want, atol=1e-6)
+
+
+def test_render_with_nodes_activated_beforehand_is_the_same_image():
+    from omniscs.nsg.graph import BACKGROUND, agent_key, render_view
+
+    graph = _graph(pose_from_xyz_yaw(9.0, 0.0, 1.0, 0.0), _random_params(60, spread=0.8),
+                   background=_random_params(80, seed=1, spread=4.0))
+    activated = {BACKGROUND: activate(graph.background.detached()),
+                 agent_key(7): activate(graph.agent(7).gaussians.detached())}
+    view = graph.view("CAM_FRONT", 1)
+    plain, ready = render_view(graph, view), render_view(graph, view, activated=activated)
+    assert plain.alpha.sum() > 1.0
+    for a, b in ((plain.rgb, ready.rgb), (plain.depth, ready.depth), (plain.alpha, ready.alpha)):
+        assert torch.equal(a, b)
+    stale = {BACKGROUND: activate(_random_params(10, seed=2))}  # not this node's size: ignored
+    assert torch.equal(render_view(graph, view, activated=stale).rgb, plain.rgb)
