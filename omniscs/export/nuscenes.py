@@ -10,6 +10,10 @@ so exports are reproducible. Coordinates: a recorded log with a nuScenes locatio
 ``location`` and its roads go into that location's map expansion ``maps/expansion/<location>.json`` (placement,
 time shifts and map records: ``omniscs.export.nuscenes_map``). Images are JPEG (quality ``JPEG_QUALITY``);
 LIDAR_TOP sweeps are float32 x, y, z, intensity, ring in the LiDAR frame (ring is 0: the store does not keep it).
+The LiDAR frame has nuScenes' axes (x to the ego's right, y forward, z up; ``nuscenes_lidar_mount``): the store's
+LiDAR position with those axes unless its own mount already points x to the right (a recorded nuScenes log keeps
+its calibration). Tools built on nuScenes read directions in that frame: UniAD's driving command is the lateral
+(x) offset of the planned end point, its planning metric draws the ego box along y.
 
 Estimated fields: ``visibility`` from the store's visible pixels over the boxes' image rectangles (v80-100 when the
 store does not know them, or the value a nuScenes reader kept); ``attribute`` from the track's speed (or kept);
@@ -100,6 +104,24 @@ def _attribute_names(label: str, speed: float, track_moves: bool) -> list[str]:
     if label.startswith("human.pedestrian"):
         return ["pedestrian.moving" if moving else "pedestrian.standing"]
     return []
+
+
+#: nuScenes' LIDAR_TOP axes in the ego frame: x to the right, y forward, z up (columns: the LiDAR axes).
+NUSCENES_LIDAR_AXES = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+#: A store's own LiDAR mount is kept when its x axis is within this angle of the ego's right (degrees).
+LIDAR_AXES_TOLERANCE_DEG = 10.0
+
+
+def nuscenes_lidar_mount(ego_from_lidar: np.ndarray) -> np.ndarray:  # [4, 4] -> [4, 4]
+    """The exported LIDAR_TOP mount: ``ego_from_lidar`` as it is when its x axis points to the ego's right (within
+    LIDAR_AXES_TOLERANCE_DEG), else the same position with nuScenes' axes."""
+    mount = np.asarray(ego_from_lidar, np.float64)
+    if float(mount[:3, 0] @ NUSCENES_LIDAR_AXES[:, 0]) >= np.cos(np.radians(LIDAR_AXES_TOLERANCE_DEG)):
+        return mount.copy()
+    out = np.eye(4)
+    out[:3, :3] = NUSCENES_LIDAR_AXES
+    out[:3, 3] = mount[:3, 3]
+    return out
 
 
 def keyframe_indices(timestamps_us: np.ndarray, keyframe_every: int | None) -> np.ndarray:
@@ -194,7 +216,7 @@ def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, key
         sensors[LIDAR_CHANNEL] = None
     calib = {}
     known_sensors = {r["channel"] for r in tables.rows["sensor"]}
-    lidar_mount = ego_from_lidar(scene)
+    lidar_mount = nuscenes_lidar_mount(ego_from_lidar(scene))
     for channel, cam in sensors.items():
         if channel not in known_sensors:
             tables.add("sensor", token=token("sensor", channel), channel=channel,

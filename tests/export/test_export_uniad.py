@@ -9,6 +9,7 @@ import pytest
 from omniscs.errors import OmniscsError
 from omniscs.export import export_scenes
 from omniscs.export.common import ego_from_lidar, token
+from omniscs.export.nuscenes import nuscenes_lidar_mount
 from omniscs.export.nuscenes_map import NUSCENES_LOCATIONS
 from omniscs.export.uniad import (
     ANCHOR_FILE,
@@ -223,7 +224,8 @@ def test_box_conventions_v1_decodes_onto_the_store_boxes_and_v2_only_through_its
             scene_token = token("scene", store.scene_id)
             ours = [i for i in infos if i["scene_token"] == scene_token]
             for keyframe, info in zip((0, 5), ours):
-                lidar_from_world = invert_transform(store.world_from_ego(keyframe) @ ego_from_lidar(store))
+                mount = nuscenes_lidar_mount(ego_from_lidar(store))  # what the export wrote
+                lidar_from_world = invert_transform(store.world_from_ego(keyframe) @ mount)
                 rows = {token("instance", store.scene_id, int(r.track_id)): r
                         for r in store.boxes_at(keyframe).itertuples()}
                 for box, instance in zip(info["gt_boxes"], info["gt_ins_tokens"]):
@@ -301,3 +303,34 @@ def test_a_scene_without_lidar_is_refused_with_what_to_do(tmp_path):
     with pytest.raises(OmniscsError, match=r"has no LiDAR; UniAD infos live in the LIDAR_TOP frame"):
         export_scenes([store], "uniad", tmp_path / "data", version=VERSION)
     assert not (tmp_path / "data").exists()
+
+
+def test_lidar_top_has_nuscenes_axes_so_uniads_planning_targets_point_forward(nusc):
+    """UniAD's planning target is the next LiDAR origin in the current LIDAR_TOP frame, and its command the x
+    (lateral) offset of the last target; with nuScenes' axes the ego driving on moves along +y."""
+    def world_from_lidar(sample):
+        sd = nusc.get("sample_data", sample["data"]["LIDAR_TOP"])
+        cs, pose = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"]), nusc.get("ego_pose", sd["ego_pose_token"])
+        as_T = lambda r: make_transform(quat_to_rotmat(np.array(r["rotation"])), r["translation"])  # noqa: E731
+        return as_T(pose) @ as_T(cs)
+
+    checked = 0
+    for sample in nusc.sample:
+        if not sample["next"]:
+            continue
+        target = invert_transform(world_from_lidar(sample)) @ world_from_lidar(nusc.get("sample", sample["next"]))
+        x, y = target[:2, 3]
+        assert y > 1.0 and abs(x) < y, (x, y)  # forward along +y; UniAD's command (x >= 2: right) is not fooled
+        checked += 1
+    assert checked >= 2
+
+
+def test_a_store_lidar_mount_is_kept_when_it_already_has_nuscenes_axes():
+    tilted = make_transform(quat_to_rotmat(np.array([np.cos(-np.pi / 4), 0.01, 0.0, np.sin(-np.pi / 4)])),
+                            [0.9, 0.0, 1.8])  # nuScenes' mount: x right, a small tilt
+    np.testing.assert_array_equal(nuscenes_lidar_mount(tilted), tilted)
+    forward = make_transform(np.eye(3), [0.94, 0.0, 1.84])  # x forward: turned to nuScenes' axes, same position
+    out = nuscenes_lidar_mount(forward)
+    np.testing.assert_allclose(out[:3, 3], [0.94, 0.0, 1.84])
+    np.testing.assert_allclose(out[:3, :3] @ [1, 0, 0], [0, -1, 0], atol=1e-12)  # x: the ego's right
+    np.testing.assert_allclose(out[:3, :3] @ [0, 1, 0], [1, 0, 0], atol=1e-12)   # y: forward
