@@ -1,0 +1,85 @@
+"""``omniscs eval detection / planning``: nuScenes detection metrics and UniAD's planning metrics of a results file
+against a nuScenes dataroot (an export of a generated dataset, or the real dataset)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from omniscs.cli.common import console
+
+app = typer.Typer(help="Evaluate driving-model outputs on a nuScenes dataroot: detection (mAP, NDS) and planning "
+                       "(L2, collision rate).", no_args_is_help=True)
+
+DATAROOT = typer.Option(..., help="nuScenes dataroot (holds VERSION/ with the tables).")
+VERSION = typer.Option("v1.0-mini", help="Table version folder under the dataroot.")
+SCENES = typer.Option([], "--scene", help="Evaluate these scenes only (names or tokens; repeat; default all).")
+
+
+@app.command("detection")
+def detection(
+    dataroot: Path = DATAROOT,
+    version: str = VERSION,
+    results: Path = typer.Option(..., help="Results in the nuScenes detection results format (JSON)."),
+    scene: list[str] = SCENES,
+    classes: list[str] = typer.Option([], "--class", help="Average mAP and NDS over these classes only (repeat; "
+                                                          "default the ten nuScenes classes, absent ones AP 0)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the metrics as one JSON object."),
+) -> None:
+    """mAP, the true-positive errors and NDS by the nuScenes protocol (centre distance 0.5/1/2/4 m)."""
+    from omniscs.eval.detection import DETECTION_NAMES, DetectionConfig
+    from omniscs.eval.nuscenes_io import evaluate_detection_results
+
+    config = DetectionConfig(class_names=tuple(classes) or DETECTION_NAMES)
+    metrics, info = evaluate_detection_results(dataroot, version, results, scenes=scene or None, config=config)
+    out = {**metrics.to_dict(), "n_samples": info["n_samples"]}
+    if as_json:
+        print(json.dumps(out))
+        return
+    from rich.table import Table
+
+    table = Table(title=f"detection: mAP {out['mAP']:.4f}  NDS {out['NDS']:.4f}  ({info['n_samples']} samples)")
+    for col in ("class", "GT", "pred", *(f"AP@{t:g}" for t in config.dist_ths), "AP", "ATE", "ASE", "AOE", "AVE",
+                "AAE"):
+        table.add_column(col, justify="left" if col == "class" else "right")
+    for name, c in out["classes"].items():
+        errs = [c["tp_errors"][m] for m in ("trans_err", "scale_err", "orient_err", "vel_err", "attr_err")]
+        table.add_row(name, str(c["n_gt"]), str(c["n_pred"]), *(f"{v:.3f}" for v in c["AP"].values()),
+                      f"{c['mean_AP']:.3f}", *("n/a" if e is None else f"{e:.3f}" for e in errs))
+    console.print(table)
+
+
+@app.command("planning")
+def planning(
+    dataroot: Path = DATAROOT,
+    version: str = VERSION,
+    results: Path = typer.Option(..., help="Planned trajectories: {'results': {sample_token: {'trajectory': "
+                                           "[[x, y] x 6]}}} in UniAD's frame (x right, y forward, at the LiDAR)."),
+    scene: list[str] = SCENES,
+    convention: Optional[str] = typer.Option(None, help="Print only this horizon convention: uniad (the value at "
+                                                        "1/2/3 s) or stp3 (the mean up to it); default both."),
+    as_json: bool = typer.Option(False, "--json", help="Print the metrics as one JSON object."),
+) -> None:
+    """L2 and collision rate (obj_box_col) at 1/2/3 s, as UniAD computes them."""
+    from omniscs.eval.nuscenes_io import evaluate_planning_results
+    from omniscs.eval.planning import CONVENTIONS, HORIZONS
+
+    if convention is not None and convention not in CONVENTIONS:
+        raise typer.BadParameter(f"one of {', '.join(CONVENTIONS)}", param_hint="--convention")
+    out = evaluate_planning_results(dataroot, version, results, scenes=scene or None)
+    if as_json:
+        print(json.dumps(out))
+        return
+    from rich.table import Table
+
+    table = Table(title=f"planning: {out['n_samples']} keyframes ({out['n_short_future']} without a full future "
+                        "left out)")
+    table.add_column("metric")
+    for h in HORIZONS:
+        table.add_column(h, justify="right")
+    for conv in [convention] if convention else CONVENTIONS:
+        table.add_row(f"L2 (m), {conv}", *(f"{v:.3f}" for v in out[conv]["L2"].values()))
+        table.add_row(f"collision (%), {conv}", *(f"{100 * v:.2f}" for v in out[conv]["obj_box_col"].values()))
+    console.print(table)

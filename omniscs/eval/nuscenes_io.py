@@ -1,0 +1,348 @@
+"""Reading what the nuScenes tools read: the tables of a dataroot (the factory's exports or the real dataset) as
+evaluation ground truth, and detection results in the nuScenes results format, with clear errors for what the
+protocol does not accept. Plain JSON reading (no ``NuScenes`` object, no official split names): any scene set of
+any dataroot can be evaluated."""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from omniscs.errors import ValidationError
+from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig
+
+#: nuScenes category -> detection class (the devkit's ``category_to_detection_name``).
+CATEGORY_TO_DETECTION: dict[str, str] = {
+    "movable_object.barrier": "barrier", "vehicle.bicycle": "bicycle", "vehicle.bus.bendy": "bus",
+    "vehicle.bus.rigid": "bus", "vehicle.car": "car", "vehicle.construction": "construction_vehicle",
+    "vehicle.motorcycle": "motorcycle", "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
+    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
+    "movable_object.trafficcone": "traffic_cone", "vehicle.trailer": "trailer", "vehicle.truck": "truck",
+}
+BIKE_RACK = "static_object.bicycle_rack"
+#: Largest time between an annotation and its neighbour for a velocity (s; doubled across both neighbours).
+MAX_VELOCITY_DT_S = 1.5
+REFERENCE_CHANNEL = "LIDAR_TOP"
+
+
+@dataclass
+class NuScenesTables:
+    """The tables of one dataroot version, indexed by token."""
+
+    root: Path
+    version: str
+    tables: dict[str, dict[str, dict]]
+
+    @classmethod
+    def load(cls, dataroot: str | Path, version: str) -> "NuScenesTables":
+        folder = Path(dataroot) / version
+        if not folder.is_dir():
+            raise ValidationError(f"no nuScenes tables at {folder} (dataroot {dataroot}, version {version})")
+        tables = {}
+        for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation",
+                     "instance", "category", "attribute"):
+            path = folder / f"{name}.json"
+            try:
+                rows = json.loads(path.read_text())
+            except (OSError, ValueError) as e:
+                raise ValidationError(f"{path} is missing or not JSON ({e})") from e
+            if not isinstance(rows, list):
+                raise ValidationError(f"{path} must hold a list of records")
+            tables[name] = {r["token"]: r for r in rows}
+        return cls(Path(dataroot), version, tables)
+
+    def __getitem__(self, name: str) -> dict[str, dict]:
+        return self.tables[name]
+
+    def scene_samples(self, scenes: list[str] | None = None) -> list[str]:
+        """Sample tokens of the named scenes (names or tokens; all scenes when None), scene by scene in time order."""
+        by_name = {s["name"]: s for s in self["scene"].values()}
+        chosen = list(self["scene"].values()) if not scenes else []
+        for s in scenes or ():
+            rec = by_name.get(s) or self["scene"].get(s)
+            if rec is None:
+                raise ValidationError(f"unknown scene {s!r} in {self.root / self.version}; it has "
+                                      f"{sorted(by_name)[:8]}{' ...' if len(by_name) > 8 else ''}")
+            chosen.append(rec)
+        tokens = []
+        for scene in chosen:
+            t = scene["first_sample_token"]
+            while t:
+                tokens.append(t)
+                t = self["sample"][t]["next"]
+        return tokens
+
+    def reference_pose(self, sample_token: str) -> dict:
+        """The ego pose of the sample's LIDAR_TOP keyframe."""
+        return self["ego_pose"][self.reference_data(sample_token)["ego_pose_token"]]
+
+    def reference_data(self, sample_token: str) -> dict:
+        if not hasattr(self, "_keyframes"):
+            channel = {t: self["sensor"][c["sensor_token"]]["channel"] for t, c in self["calibrated_sensor"].items()}
+            self._keyframes = {sd["sample_token"]: sd for sd in self["sample_data"].values()
+                               if sd.get("is_key_frame") and channel.get(sd["calibrated_sensor_token"]) ==
+                               REFERENCE_CHANNEL}
+        rec = self._keyframes.get(sample_token)
+        if rec is None:
+            raise ValidationError(f"sample {sample_token} has no {REFERENCE_CHANNEL} keyframe: the protocol measures "
+                                  "distances from its ego pose")
+        return rec
+
+    def box_velocity(self, ann: dict) -> np.ndarray:
+        """[3] m/s from the neighbouring annotations' centres (NaN without a neighbour or over too long a gap)."""
+        prev, nxt = ann["prev"], ann["next"]
+        if not prev and not nxt:
+            return np.full(3, np.nan)
+        first = self["sample_annotation"][prev] if prev else ann
+        last = self["sample_annotation"][nxt] if nxt else ann
+        dt = 1e-6 * (self["sample"][last["sample_token"]]["timestamp"]
+                     - self["sample"][first["sample_token"]]["timestamp"])
+        if dt > MAX_VELOCITY_DT_S * (2 if prev and nxt else 1) or dt <= 0:
+            return np.full(3, np.nan)
+        return (np.asarray(last["translation"], np.float64) - np.asarray(first["translation"], np.float64)) / dt
+
+
+def load_ground_truth(tables: NuScenesTables, samples: list[str]) -> tuple[Boxes, dict[str, np.ndarray]]:
+    """The evaluated boxes of ``samples`` (detection classes only, with their ego distance, point count and
+    velocity) and each sample's bicycle racks (world_from_rack with the size folded in, for ``filter_boxes``)."""
+    anns_by_sample: dict[str, list[dict]] = {}
+    for ann in tables["sample_annotation"].values():
+        anns_by_sample.setdefault(ann["sample_token"], []).append(ann)
+    records, ego_dist, num_pts, racks = [], [], [], {}
+    for token in samples:
+        ego = np.asarray(tables.reference_pose(token)["translation"], np.float64)
+        for ann in anns_by_sample.get(token, []):
+            category = tables["category"][tables["instance"][ann["instance_token"]]["category_token"]]["name"]
+            if category == BIKE_RACK:
+                racks.setdefault(token, []).append(_unit_frame(ann))
+            name = CATEGORY_TO_DETECTION.get(category)
+            if name is None:
+                continue
+            attrs = ann.get("attribute_tokens", [])
+            if len(attrs) > 1:
+                raise ValidationError(f"annotation {ann['token']} has {len(attrs)} attributes; the protocol allows one")
+            records.append({"sample_token": token, "translation": ann["translation"], "size": ann["size"],
+                            "rotation": ann["rotation"], "velocity": tables.box_velocity(ann)[:2],
+                            "detection_name": name,
+                            "attribute_name": tables["attribute"][attrs[0]]["name"] if attrs else ""})
+            ego_dist.append(float(np.hypot(*(np.asarray(ann["translation"][:2]) - ego[:2]))))
+            num_pts.append(int(ann.get("num_lidar_pts", 0)) + int(ann.get("num_radar_pts", 0)))
+    return (Boxes.from_records(records, ego_dist, num_pts),
+            {k: np.stack(v) for k, v in racks.items()})
+
+
+def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
+    from omniscs.quaternions import quat_to_rotmat
+
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(np.asarray(ann["rotation"], np.float64)) @ np.diag(
+        np.asarray(ann["size"], np.float64)[[1, 0, 2]])  # nuScenes sizes are w, l, h; the box's x is its length
+    T[:3, 3] = ann["translation"]
+    return T
+
+
+def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
+                 config: DetectionConfig = DetectionConfig()) -> tuple[Boxes, dict]:
+    """Predictions of a results file (``{"meta": {...}, "results": {sample_token: [box, ...]}}``) for exactly the
+    evaluated ``samples``, with their ego distance; and its meta. Unknown or missing sample tokens, more than
+    ``max_boxes_per_sample`` boxes, unknown classes or attributes, non-finite numbers (a NaN velocity is allowed:
+    no velocity) and non-positive sizes are refused with the first offending entry named."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValidationError(f"results {path} is missing or not JSON ({e})") from e
+    if not isinstance(data, dict) or not isinstance(data.get("results"), dict):
+        raise ValidationError(f"results {path} must be an object with a 'results' object (sample token -> boxes)")
+    results, wanted = data["results"], set(samples)
+    unknown = sorted(set(results) - wanted)
+    if unknown:
+        known = unknown[0] in tables["sample"]
+        raise ValidationError(f"results {path} name {len(unknown)} sample(s) "
+                              f"{'outside the evaluated scenes' if known else 'unknown to the dataroot'}, "
+                              f"e.g. {unknown[0]!r}")
+    missing = [t for t in samples if t not in results]
+    if missing:
+        raise ValidationError(f"results {path} lack {len(missing)} of the {len(samples)} evaluated samples, e.g. "
+                              f"{missing[0]!r} (the protocol needs every sample, an empty list where nothing is seen)")
+    records, ego_dist = [], []
+    for token in samples:
+        boxes = results[token]
+        if not isinstance(boxes, list):
+            raise ValidationError(f"results[{token!r}] must be a list of boxes")
+        if len(boxes) > config.max_boxes_per_sample:
+            raise ValidationError(f"results[{token!r}] has {len(boxes)} boxes; at most "
+                                  f"{config.max_boxes_per_sample} per sample are allowed")
+        ego = np.asarray(tables.reference_pose(token)["translation"], np.float64)
+        for i, box in enumerate(boxes):
+            rec = _checked_box(box, f"results[{token!r}][{i}]")
+            if rec["sample_token"] != token:
+                raise ValidationError(f"results[{token!r}][{i}] names sample {rec['sample_token']!r}")
+            records.append(rec)
+            ego_dist.append(float(np.hypot(rec["translation"][0] - ego[0], rec["translation"][1] - ego[1])))
+    return Boxes.from_records(records, ego_dist), data.get("meta", {})
+
+
+def _checked_box(box, where: str) -> dict:
+    if not isinstance(box, dict):
+        raise ValidationError(f"{where} must be an object")
+    try:
+        rec = {"sample_token": str(box["sample_token"]), "translation": [float(x) for x in box["translation"]],
+               "size": [float(x) for x in box["size"]], "rotation": [float(x) for x in box["rotation"]],
+               "velocity": [float(x) for x in box.get("velocity", (math.nan, math.nan))][:2],
+               "detection_name": str(box["detection_name"]), "detection_score": float(box["detection_score"]),
+               "attribute_name": str(box.get("attribute_name", ""))}
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValidationError(f"{where} is not a nuScenes detection box ({type(e).__name__}: {e})") from e
+    if len(rec["translation"]) != 3 or len(rec["size"]) != 3 or len(rec["rotation"]) != 4 or len(rec["velocity"]) != 2:
+        raise ValidationError(f"{where}: translation, size, rotation and velocity need 3, 3, 4 and 2 numbers")
+    if not all(math.isfinite(x) for x in rec["translation"] + rec["size"] + rec["rotation"] + [rec["detection_score"]]):
+        raise ValidationError(f"{where}: translation, size, rotation and detection_score must be finite")
+    if min(rec["size"]) <= 0 or not any(rec["rotation"]):
+        raise ValidationError(f"{where}: sizes must be positive and the rotation a non-zero quaternion")
+    if rec["detection_name"] not in DETECTION_NAMES:
+        raise ValidationError(f"{where}: unknown detection_name {rec['detection_name']!r}; one of {DETECTION_NAMES}")
+    allowed = CLASS_ATTRIBUTES[rec["detection_name"]]
+    if rec["attribute_name"] and rec["attribute_name"] not in allowed:
+        raise ValidationError(f"{where}: attribute {rec['attribute_name']!r} does not belong to "
+                              f"{rec['detection_name']} (one of {allowed or 'none'})")
+    return rec
+
+
+def evaluate_detection_results(dataroot: str | Path, version: str, results: str | Path,
+                               scenes: list[str] | None = None, config: DetectionConfig = DetectionConfig()):
+    """The protocol end to end: ground truth of ``scenes`` (all when None) of a dataroot, the results file's
+    predictions for exactly those samples, both filtered, then ``detection.evaluate``."""
+    from omniscs.eval.detection import evaluate, filter_boxes
+
+    tables = NuScenesTables.load(dataroot, version)
+    samples = tables.scene_samples(scenes)
+    if not samples:
+        raise ValidationError(f"{Path(dataroot) / version} has no samples to evaluate")
+    gt, racks = load_ground_truth(tables, samples)
+    pred, meta = load_results(results, tables, samples, config)
+    metrics = evaluate(filter_boxes(gt, config, racks), filter_boxes(pred, config, racks), config)
+    return metrics, {"n_samples": len(samples), "meta": meta}
+
+
+# ----------------------------------------------------------------------------- planning
+#: UniAD's planning frame (x right, y forward) in the ego frame (x forward, y left): ego = R @ planning.
+EGO_FROM_PLANNING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+#: How far keyframes may be from the metrics' 0.5 s spacing (s).
+STEP_TOLERANCE_S = 0.1
+
+
+def _transform(record: dict) -> np.ndarray:
+    from omniscs.quaternions import quat_to_rotmat
+
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(np.asarray(record["rotation"], np.float64))
+    T[:3, 3] = record["translation"]
+    return T
+
+
+def world_from_planning(tables: NuScenesTables, sample_token: str) -> np.ndarray:
+    """UniAD's planning frame of a keyframe: origin at the LIDAR_TOP sensor, x to the ego's right, y forward."""
+    sd = tables.reference_data(sample_token)
+    world_from_ego = _transform(tables["ego_pose"][sd["ego_pose_token"]])
+    world_from_lidar = world_from_ego @ _transform(tables["calibrated_sensor"][sd["calibrated_sensor_token"]])
+    T = np.eye(4)
+    T[:3, :3] = world_from_ego[:3, :3] @ EGO_FROM_PLANNING
+    T[:3, 3] = world_from_lidar[:3, 3]
+    return T
+
+
+def load_planning_samples(tables: NuScenesTables, samples: list[str], steps: int | None = None):
+    """The evaluated keyframes of ``samples``: those with ``steps`` future keyframes in their scene, each with the
+    true future of the LiDAR origin and the vehicle boxes at each step in its planning frame. Returns the samples
+    and how many keyframes had too short a future."""
+    from omniscs.eval.planning import STEP_S, STEPS, PlanningSample
+
+    steps = STEPS if steps is None else steps
+    anns_by_sample: dict[str, list[dict]] = {}
+    for ann in tables["sample_annotation"].values():
+        anns_by_sample.setdefault(ann["sample_token"], []).append(ann)
+    out, short = [], 0
+    for token in samples:
+        future, t = [], tables["sample"][token]["next"]
+        while t and len(future) < steps:
+            future.append(t)
+            t = tables["sample"][t]["next"]
+        if len(future) < steps:
+            short += 1
+            continue
+        stamps = np.array([tables["sample"][s]["timestamp"] for s in [token, *future]], np.float64) * 1e-6
+        gaps = np.diff(stamps)
+        if np.any(np.abs(gaps - STEP_S) > STEP_TOLERANCE_S):
+            raise ValidationError(f"keyframes after {token} are {gaps.round(3).tolist()} s apart; the planning metrics "
+                                  f"take one waypoint every {STEP_S} s (export with keyframes at 2 Hz)")
+        planning_from_world = np.linalg.inv(world_from_planning(tables, token))
+        trajectory, vehicles = [], []
+        for s in future:
+            trajectory.append((planning_from_world @ world_from_planning(tables, s)[:, 3])[:2])
+            boxes = []
+            for ann in anns_by_sample.get(s, []):
+                cat = tables["category"][tables["instance"][ann["instance_token"]]["category_token"]]["name"]
+                if not cat.startswith("vehicle."):
+                    continue
+                box = planning_from_world @ _transform(ann)
+                w, length = ann["size"][0], ann["size"][1]
+                boxes.append([box[0, 3], box[1, 3], length, w, np.arctan2(box[1, 0], box[0, 0])])
+            vehicles.append(np.array(boxes, np.float64).reshape(-1, 5))
+        out.append(PlanningSample(token, np.array(trajectory), np.ones(steps, bool), tuple(vehicles)))
+    return out, short
+
+
+def load_planning_results(path: str | Path, samples: list[str], steps: int | None = None,
+                          allowed: list[str] | None = None) -> dict[str, np.ndarray]:
+    """Planned trajectories: ``{"results": {sample_token: {"trajectory": [[x, y], ...]}}}`` (or the token mapped
+    straight to the waypoints), in the planning frame; every evaluated sample must be there, and no token outside
+    ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there)."""
+    from omniscs.eval.planning import STEPS
+
+    steps = STEPS if steps is None else steps
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValidationError(f"planning results {path} are missing or not JSON ({e})") from e
+    results = data.get("results") if isinstance(data, dict) else None
+    if not isinstance(results, dict):
+        raise ValidationError(f"planning results {path} must be an object with a 'results' object "
+                              "(sample token -> {'trajectory': [[x, y], ...]})")
+    unknown = sorted(set(results) - set(samples if allowed is None else allowed))
+    if unknown:
+        raise ValidationError(f"planning results {path} name {len(unknown)} sample(s) not evaluated here, e.g. "
+                              f"{unknown[0]!r}")
+    out = {}
+    for token in samples:
+        entry = results.get(token)
+        if entry is None:
+            raise ValidationError(f"planning results {path} lack sample {token!r}")
+        traj = entry.get("trajectory") if isinstance(entry, dict) else entry
+        try:
+            arr = np.asarray(traj, np.float64)
+        except (TypeError, ValueError) as e:
+            raise ValidationError(f"results[{token!r}] is not a list of (x, y) waypoints ({e})") from e
+        if arr.ndim != 2 or arr.shape[1] < 2 or arr.shape[0] < steps or not np.isfinite(arr[:steps, :2]).all():
+            raise ValidationError(f"results[{token!r}] must hold at least {steps} finite (x, y) waypoints; got shape "
+                                  f"{arr.shape}")
+        out[token] = arr[:steps, :2]
+    return out
+
+
+def evaluate_planning_results(dataroot: str | Path, version: str, results: str | Path,
+                              scenes: list[str] | None = None) -> dict:
+    """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future."""
+    from omniscs.eval.planning import evaluate_planning
+
+    tables = NuScenesTables.load(dataroot, version)
+    keyframes = tables.scene_samples(scenes)
+    samples, short = load_planning_samples(tables, keyframes)
+    if not samples:
+        raise ValidationError(f"no keyframe of {Path(dataroot) / version} has the full future the metrics need")
+    predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes)
+    out = evaluate_planning(samples, predictions)
+    out["n_short_future"] = short
+    return out

@@ -1,0 +1,189 @@
+"""Detection evaluation of a results file against an exported dataroot: the same mAP, errors and NDS as the
+nuScenes devkit's own loading, filtering and metrics on the same files, and clear errors for bad results."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from omniscs.errors import ValidationError
+from omniscs.eval.detection import TP_METRICS, DetectionConfig
+from omniscs.eval.nuscenes_io import NuScenesTables, evaluate_detection_results
+from omniscs.export import export_scenes
+from tests.dataset_fixtures import synthetic_store
+
+VERSION = "v1.0-mini"
+
+
+@pytest.fixture(scope="module")
+def dataroot(tmp_path_factory):
+    store = synthetic_store(tmp_path_factory)
+    return export_scenes([store], "nuscenes", tmp_path_factory.mktemp("evalroot") / "nuscenes", version=VERSION)
+
+
+def _noisy_results(dataroot, path, seed: int = 0, drop: float = 0.25) -> dict:
+    """Predictions made from the ground truth with errors of every kind, misses and false positives."""
+    from omniscs.eval.nuscenes_io import CATEGORY_TO_DETECTION
+
+    rng = np.random.default_rng(seed)
+    tables = NuScenesTables.load(dataroot, VERSION)
+    results = {t: [] for t in tables.scene_samples()}
+    for ann in tables["sample_annotation"].values():
+        cat = tables["category"][tables["instance"][ann["instance_token"]]["category_token"]]["name"]
+        name = CATEGORY_TO_DETECTION.get(cat)
+        if name is None or rng.random() < drop:
+            continue
+        attrs = [tables["attribute"][a]["name"] for a in ann["attribute_tokens"]]
+        yaw = rng.normal(0, 0.3)
+        q = np.array(ann["rotation"])
+        turn = np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])
+        w1, x1, y1, z1 = q
+        w2, x2, y2, z2 = turn
+        rot = [w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+               w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2]
+        results[ann["sample_token"]].append({
+            "sample_token": ann["sample_token"], "translation": list(np.array(ann["translation"]) + rng.normal(0, 0.6, 3)),
+            "size": list(np.array(ann["size"]) * rng.uniform(0.8, 1.2, 3)), "rotation": rot,
+            "velocity": list(rng.normal(0, 1.0, 2)), "detection_name": name,
+            "detection_score": float(np.round(rng.uniform(0.05, 1.0), 2)),
+            "attribute_name": attrs[0] if attrs and rng.random() < 0.8 else ""})
+    for token, boxes in results.items():  # a false positive per sample
+        boxes.append({"sample_token": token, "translation": [*rng.uniform(-20, 20, 2) + tables.reference_pose(token)
+                      ["translation"][:2], 0.8], "size": [1.8, 4.4, 1.5], "rotation": [1, 0, 0, 0],
+                      "velocity": [0, 0], "detection_name": "car", "detection_score": 0.3,
+                      "attribute_name": "vehicle.parked"})
+    data = {"meta": {"use_camera": True, "use_lidar": False, "use_radar": False, "use_map": False,
+                     "use_external": False}, "results": results}
+    path.write_text(json.dumps(data))
+    return data
+
+
+def _devkit_metrics(dataroot, results_path):
+    """The devkit's load_gt steps (without its official split names), its loaders' filters and its metrics."""
+    from nuscenes.eval.common.data_classes import EvalBoxes
+    from nuscenes.eval.common.loaders import add_center_dist, filter_eval_boxes, load_prediction
+    from nuscenes.eval.common.utils import center_distance
+    from nuscenes.eval.detection import algo
+    from nuscenes.eval.detection.config import config_factory
+    from nuscenes.eval.detection.data_classes import DetectionBox, DetectionMetrics
+    from nuscenes.eval.detection.utils import category_to_detection_name
+    from nuscenes.nuscenes import NuScenes
+
+    cfg = config_factory("detection_cvpr_2019")
+    nusc = NuScenes(version=VERSION, dataroot=str(dataroot), verbose=False)
+    gt = EvalBoxes()
+    for sample in nusc.sample:
+        boxes = []
+        for token in sample["anns"]:
+            ann = nusc.get("sample_annotation", token)
+            name = category_to_detection_name(ann["category_name"])
+            if name is None:
+                continue
+            attrs = ann["attribute_tokens"]
+            boxes.append(DetectionBox(sample_token=sample["token"], translation=ann["translation"], size=ann["size"],
+                                      rotation=ann["rotation"], velocity=nusc.box_velocity(token)[:2],
+                                      num_pts=ann["num_lidar_pts"] + ann["num_radar_pts"], detection_name=name,
+                                      detection_score=-1.0,
+                                      attribute_name=nusc.get("attribute", attrs[0])["name"] if attrs else ""))
+        gt.add_boxes(sample["token"], boxes)
+    pred, _ = load_prediction(str(results_path), cfg.max_boxes_per_sample, DetectionBox, verbose=False)
+    gt = filter_eval_boxes(nusc, add_center_dist(nusc, gt), cfg.class_range)
+    pred = filter_eval_boxes(nusc, add_center_dist(nusc, pred), cfg.class_range)
+    metrics = DetectionMetrics(cfg)
+    for name in cfg.class_names:
+        for th in cfg.dist_ths:
+            metrics.add_label_ap(name, th, algo.calc_ap(algo.accumulate(gt, pred, name, center_distance, th),
+                                                        cfg.min_recall, cfg.min_precision))
+        md = algo.accumulate(gt, pred, name, center_distance, cfg.dist_th_tp)
+        for m in TP_METRICS:
+            undefined = (name == "traffic_cone" and m in ("attr_err", "vel_err", "orient_err")) or \
+                        (name == "barrier" and m in ("attr_err", "vel_err"))
+            metrics.add_label_tp(name, m, np.nan if undefined else algo.calc_tp(md, cfg.min_recall, m))
+    return metrics
+
+
+def test_map_errors_and_nds_agree_with_the_devkit_on_an_exported_dataroot(dataroot, tmp_path):
+    path = tmp_path / "results.json"
+    _noisy_results(dataroot, path)
+    ours, info = evaluate_detection_results(dataroot, VERSION, path)
+    want = _devkit_metrics(dataroot, path)
+    assert info["n_samples"] > 0 and sum(ours.n_gt.values()) >= 10
+    assert ours.mean_ap == pytest.approx(want.mean_ap, abs=1e-6) and 0.05 < ours.mean_dist_aps["car"] < 1.0
+    assert ours.nd_score == pytest.approx(want.nd_score, abs=1e-6)
+    for name in ours.config.class_names:
+        for th in ours.config.dist_ths:
+            assert ours.label_aps[name][th] == pytest.approx(want.get_label_ap(name, th), abs=1e-6)
+    for m in TP_METRICS:
+        assert ours.tp_errors[m] == pytest.approx(want.tp_errors[m], abs=1e-6)
+
+
+def test_ground_truth_as_predictions_scores_one_on_the_classes_present(dataroot, tmp_path):
+    path = tmp_path / "perfect.json"
+    _noisy_results(dataroot, path, drop=0.0)
+    data = json.loads(path.read_text())
+    tables = NuScenesTables.load(dataroot, VERSION)
+    from omniscs.eval.detection import filter_boxes
+    from omniscs.eval.nuscenes_io import load_ground_truth
+
+    gt, racks = load_ground_truth(tables, tables.scene_samples())
+    gt = filter_boxes(gt, DetectionConfig(), racks)  # what is evaluated (boxes without points would be false positives)
+    present = tuple(sorted(set(gt.name.tolist())))
+    perfect = {t: [] for t in data["results"]}
+    for i in range(len(gt)):
+        perfect[gt.sample_token[i]].append({
+            "sample_token": gt.sample_token[i], "translation": gt.translation[i].tolist(), "size": gt.size[i].tolist(),
+            "rotation": gt.rotation[i].tolist(), "velocity": np.nan_to_num(gt.velocity[i]).tolist(),
+            "detection_name": gt.name[i], "detection_score": 0.5, "attribute_name": gt.attribute[i]})
+    path.write_text(json.dumps({"meta": {}, "results": perfect}))
+    m, _ = evaluate_detection_results(dataroot, VERSION, path, config=DetectionConfig(class_names=present))
+    assert m.mean_ap == pytest.approx(1.0)
+    assert all(m.tp_errors[k] == pytest.approx(0.0, abs=1e-9) for k in ("trans_err", "scale_err", "orient_err"))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["results"].update({"not-a-token": []}), "unknown to the dataroot"),
+    (lambda d: d["results"].pop(next(iter(d["results"]))), "lack 1 of the"),
+    (lambda d: next(b for v in d["results"].values() for b in v).update(detection_score=float("nan")), "finite"),
+    (lambda d: next(b for v in d["results"].values() for b in v).update(detection_name="ufo"), "unknown detection_name"),
+    (lambda d: next(b for v in d["results"].values() for b in v).update(size=[0, 1, 1]), "positive"),
+    (lambda d: next(b for v in d["results"].values() for b in v).pop("translation"), "not a nuScenes detection box"),
+    (lambda d: d.pop("results"), "must be an object with a 'results'"),
+])
+def test_bad_results_are_one_clear_error(dataroot, tmp_path, edit, message):
+    path = tmp_path / "results.json"
+    data = _noisy_results(dataroot, path)
+    edit(data)
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValidationError, match=message):
+        evaluate_detection_results(dataroot, VERSION, path)
+
+
+def test_unknown_scene_or_missing_tables_are_clear_errors(dataroot, tmp_path):
+    path = tmp_path / "results.json"
+    _noisy_results(dataroot, path)
+    with pytest.raises(ValidationError, match="unknown scene"):
+        evaluate_detection_results(dataroot, VERSION, path, scenes=["nope"])
+    with pytest.raises(ValidationError, match="no nuScenes tables"):
+        evaluate_detection_results(tmp_path, VERSION, path)
+
+
+def test_the_eval_detection_command_prints_the_protocols_json_and_refuses_bad_results_in_one_line(dataroot, tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "results.json"
+    _noisy_results(dataroot, path)
+    args = [sys.executable, "-c", "from omniscs.cli import main; main()", "eval", "detection", "--dataroot",
+            str(dataroot), "--version", VERSION, "--results", str(path)]
+    proc = subprocess.run([*args, "--json"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    ours, _ = evaluate_detection_results(dataroot, VERSION, path)
+    assert out["mAP"] == pytest.approx(ours.mean_ap) and out["NDS"] == pytest.approx(ours.nd_score)
+    assert set(out["classes"]["car"]["AP"]) == {"0.5", "1", "2", "4"} and "mean_AP" in out["classes"]["car"]
+    table = subprocess.run([*args, "--class", "car"], capture_output=True, text=True, timeout=120)
+    assert table.returncode == 0 and "NDS" in table.stdout and "car" in table.stdout
+    path.write_text(json.dumps({"results": {"unknown-token": []}}))
+    bad = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "unknown to the dataroot" in bad.stderr
