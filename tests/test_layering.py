@@ -6,7 +6,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ROOT / "omniscs"
 #: Model packages (present and future): they may not import the procedural world.
-MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate")
+MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate", "eval")
 #: Top floors that start flows or serve requests; everything else in omniscs/ is Prefect-free.
 TOP_FLOORS = ("cli",)
 
