@@ -52,17 +52,22 @@ def ego_cells() -> np.ndarray:  # [M, 2] int (row, column) with the ego's waypoi
 
 
 def occupancy(boxes: np.ndarray) -> np.ndarray:  # [B, 5] x, y, length, width, yaw (rad from +x) -> bool [GRID, GRID]
-    """Cells whose centres lie inside any box footprint (planning frame)."""
-    grid = np.zeros((GRID, GRID), bool)
+    """Cells of UniAD's grid whose centres lie inside any box footprint (planning frame)."""
     centres = GRID_MIN + (np.arange(GRID) + 0.5) * CELL
+    return footprints_on_grid(boxes, centres, centres)
+
+
+def footprints_on_grid(boxes: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:  # -> bool [len(ys), len(xs)]
+    """Cells (centres ``xs`` along columns, ``ys`` along rows, both increasing) inside any box footprint."""
+    grid = np.zeros((len(ys), len(xs)), bool)
     for x, y, length, width, yaw in np.asarray(boxes, np.float64).reshape(-1, 5):
         reach = 0.5 * np.hypot(length, width)
-        cols = np.flatnonzero(np.abs(centres - x) <= reach)
-        rows = np.flatnonzero(np.abs(centres - y) <= reach)
+        cols = np.flatnonzero(np.abs(xs - x) <= reach)
+        rows = np.flatnonzero(np.abs(ys - y) <= reach)
         if not len(cols) or not len(rows):
             continue
-        dx = centres[cols][None, :] - x
-        dy = centres[rows][:, None] - y
+        dx = xs[cols][None, :] - x
+        dy = ys[rows][:, None] - y
         c, s = np.cos(yaw), np.sin(yaw)
         along, across = c * dx + s * dy, -s * dx + c * dy
         inside = (np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)

@@ -1,0 +1,222 @@
+"""The embedded proxy planner: a small network, trained here on 2 cores, that plans 6 waypoints at 0.5 s from a
+bird's-eye view. A stand-in for UniAD's planner (it sees boxes, not images), so that the paper's planning protocol
+(base vs fine-tuned with behaviour-SCS data) runs end to end on this machine; real stacks run as external jobs.
+
+Input (``features``), in UniAD's planning frame (x right, y forward; ``omniscs.eval.scenarios``):
+  - a raster of ``GRID_W`` x ``GRID_H`` cells of ``CELL_M`` (x in [-20, 20) m, y in [-10, 30) m) with channels:
+    vehicles now, vehicles ``HISTORY_S`` before (their motion), other road users now, drivable area (0 where the
+    scene has no map);
+  - a state vector: speed / 10, yaw rate, the driving command one-hot (right, left, forward), whether a map is there.
+Output: 6 waypoints as offsets from driving on straight at the current speed.
+Network: four stride-2 3x3 convolutions (16, 32, 64, 64 channels, ReLU) over the raster, flattened, joined with the
+state, two fully connected layers (256, ReLU) to 12 numbers. Loss: mean L1 distance of the waypoints.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from omniscs.errors import ValidationError
+from omniscs.eval.planning import STEP_S, STEPS, footprints_on_grid
+from omniscs.eval.scenarios import COMMANDS, PlanningExample
+from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_directory, atomic_write_json
+
+CELL_M = 0.5
+X_RANGE = (-20.0, 20.0)
+Y_RANGE = (-10.0, 30.0)
+GRID_W = int(round((X_RANGE[1] - X_RANGE[0]) / CELL_M))
+GRID_H = int(round((Y_RANGE[1] - Y_RANGE[0]) / CELL_M))
+CHANNELS = ("vehicles", "vehicles_past", "others", "drivable")
+STATE = ("speed_10", "yaw_rate", *(f"command_{c}" for c in COMMANDS), "has_map")
+WEIGHTS = "planner.safetensors"
+CONFIG = "planner_config.json"
+TRAINING = "training.json"
+#: The planner shipped with the package (trained by ``omniscs bench downstream --train-base``; see its training.json).
+DEFAULT_PLANNER = Path(__file__).parent / "checkpoints" / "planner"
+
+_XS = X_RANGE[0] + (np.arange(GRID_W) + 0.5) * CELL_M
+_YS = Y_RANGE[0] + (np.arange(GRID_H) + 0.5) * CELL_M
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    widths: tuple[int, ...] = (16, 32, 64, 64)
+    hidden: int = 256
+
+    def __post_init__(self):
+        if len(self.widths) < 1 or min(self.widths) < 1 or self.hidden < 1:
+            raise ValidationError("planner widths and hidden size must be positive")
+        object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    epochs: int = 30
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    seed: int = 0
+    mirror: bool = True
+    """Add every example mirrored left-right (x -> -x, commands swapped)."""
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.batch_size < 1 or not (self.lr > 0) or self.weight_decay < 0:
+            raise ValidationError("epochs and batch_size must be >= 1, lr > 0, weight_decay >= 0")
+
+
+class ProxyPlanner(nn.Module):
+    def __init__(self, config: PlannerConfig = PlannerConfig()) -> None:
+        super().__init__()
+        self.config = config
+        layers, c = [], len(CHANNELS)
+        for w in config.widths:
+            layers += [nn.Conv2d(c, w, 3, stride=2, padding=1), nn.ReLU()]
+            c = w
+        self.encoder = nn.Sequential(*layers)
+        h, w = GRID_H, GRID_W
+        for _ in config.widths:
+            h, w = (h + 1) // 2, (w + 1) // 2
+        self.head = nn.Sequential(nn.Linear(c * h * w + len(STATE), config.hidden), nn.ReLU(),
+                                  nn.Linear(config.hidden, config.hidden), nn.ReLU(),
+                                  nn.Linear(config.hidden, STEPS * 2))
+
+    def forward(self, raster: torch.Tensor, state: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        # [B, C, H, W], [B, S], [B, STEPS, 2] -> [B, STEPS, 2]
+        z = self.encoder(raster).flatten(1)
+        return base + self.head(torch.cat([z, state], 1)).view(-1, STEPS, 2)
+
+
+def features(example: PlanningExample, with_map: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(raster float32 [C, H, W], state float32 [S], straight-ahead base [STEPS, 2]) of one example."""
+    inp = example.inputs
+    raster = np.zeros((len(CHANNELS), GRID_H, GRID_W), np.float32)
+    now, past = inp.boxes_now, inp.boxes_past
+    raster[0] = footprints_on_grid(now[now[:, 5] > 0, :5], _XS, _YS)
+    raster[1] = footprints_on_grid(past[past[:, 5] > 0, :5], _XS, _YS)
+    raster[2] = footprints_on_grid(now[now[:, 5] == 0, :5], _XS, _YS)
+    drivable = example.scenario.drivable if with_map else None
+    if drivable is not None:
+        gx, gy = np.meshgrid(_XS, _YS)
+        frame = inp.world_from_frame
+        world = np.stack([gx.ravel(), gy.ravel()], 1) @ frame[:2, :2].T + frame[:2, 2]
+        raster[3] = np.asarray(drivable.is_drivable(world), np.float32).reshape(GRID_H, GRID_W)
+    onehot = [1.0 if inp.command == c else 0.0 for c in COMMANDS]
+    state = np.array([inp.speed / 10.0, inp.yaw_rate, *onehot, 1.0 if drivable is not None else 0.0], np.float32)
+    base = np.stack([np.zeros(STEPS), inp.speed * STEP_S * np.arange(1, STEPS + 1)], 1).astype(np.float32)
+    return raster, state, base
+
+
+def _tensors(examples: list[PlanningExample], progress: Progress = no_progress):
+    rasters, states, bases, targets = [], [], [], []
+    for i, ex in enumerate(examples):
+        r, s, b = features(ex)
+        rasters.append(r)
+        states.append(s)
+        bases.append(b)
+        targets.append(ex.sample.trajectory.astype(np.float32))
+        progress(i + 1, len(examples), "rasterising")
+    return (torch.from_numpy(np.stack(rasters)), torch.from_numpy(np.stack(states)), torch.from_numpy(np.stack(bases)),
+            torch.from_numpy(np.stack(targets)))
+
+
+def _mirror(raster, state, base, target):
+    r = torch.flip(raster, dims=[-1])  # x -> -x (columns run along x)
+    s = state.clone()
+    s[:, 2], s[:, 3] = state[:, 3], state[:, 2]  # right <-> left
+    s[:, 1] = -state[:, 1]
+    flip = torch.tensor([-1.0, 1.0])
+    return r, s, base * flip, target * flip
+
+
+def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainConfig(),
+                  init: ProxyPlanner | None = None, planner_config: PlannerConfig = PlannerConfig(),
+                  progress: Progress = no_progress) -> tuple[ProxyPlanner, dict]:
+    """Fit a planner (from ``init``'s weights when given: fine-tuning) on ``examples``; returns it and a record of
+    the training (config, example count, loss per epoch, seconds)."""
+    if not examples:
+        raise ValidationError("no planning examples to train on")
+    started = time.perf_counter()
+    torch.manual_seed(config.seed)
+    data = _tensors(examples)
+    if config.mirror:
+        data = tuple(torch.cat([a, b]) for a, b in zip(data, _mirror(*data)))
+    model = ProxyPlanner(init.config if init is not None else planner_config)
+    if init is not None:
+        model.load_state_dict(init.state_dict())
+    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    steps_per_epoch = max(1, (len(data[0]) + config.batch_size - 1) // config.batch_size)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.epochs * steps_per_epoch)
+    gen = torch.Generator().manual_seed(config.seed)
+    losses = []
+    model.train()
+    for epoch in range(config.epochs):
+        order = torch.randperm(len(data[0]), generator=gen)
+        total = 0.0
+        for i in range(0, len(order), config.batch_size):
+            idx = order[i:i + config.batch_size]
+            raster, state, base, target = (d[idx] for d in data)
+            pred = model(raster, state, base)
+            loss = (pred - target).norm(dim=-1).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += float(loss) * len(idx)
+        losses.append(total / len(order))
+        progress(epoch + 1, config.epochs, f"epoch loss {losses[-1]:.3f} m")
+    model.eval()
+    record = {"train_config": asdict(config), "planner_config": asdict(model.config), "n_examples": len(examples),
+              "n_trained": int(len(data[0])), "epoch_loss_m": losses, "seconds": time.perf_counter() - started,
+              "fine_tuned": init is not None}
+    return model, record
+
+
+@torch.no_grad()
+def plan(model: ProxyPlanner, examples: list[PlanningExample], batch_size: int = 256) -> dict[str, np.ndarray]:
+    """{sample token: [STEPS, 2] planned waypoints} for ``examples``."""
+    model.eval()
+    out = {}
+    for i in range(0, len(examples), batch_size):
+        chunk = examples[i:i + batch_size]
+        raster, state, base, _ = _tensors(chunk)
+        pred = model(raster, state, base).numpy().astype(np.float64)
+        out.update({ex.sample.token: p for ex, p in zip(chunk, pred)})
+    return out
+
+
+def save_planner(model: ProxyPlanner, out_dir: str | Path, training: dict, overwrite: bool = False) -> Path:
+    """Weights (safetensors), network config and training record, written atomically."""
+    from safetensors.torch import save_file
+
+    with atomic_directory(Path(out_dir), overwrite=overwrite) as tmp:
+        save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(tmp / WEIGHTS))
+        atomic_write_json(tmp / CONFIG, asdict(model.config))
+        atomic_write_json(tmp / TRAINING, training)
+    return Path(out_dir)
+
+
+def load_planner(path: str | Path | None = None) -> ProxyPlanner:
+    """A saved planner (default: the shipped one); a clear error when the folder is not one."""
+    from safetensors.torch import load_file
+
+    path = Path(path) if path is not None else DEFAULT_PLANNER
+    try:
+        config = PlannerConfig(**json.loads((path / CONFIG).read_text()))
+        state = load_file(str(path / WEIGHTS))
+    except (OSError, ValueError, TypeError) as e:
+        raise ValidationError(f"{path} is not a proxy planner checkpoint ({e}); train one with "
+                              "`omniscs bench downstream --train-base` or name its folder") from e
+    model = ProxyPlanner(config)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValidationError(f"{path}: the weights do not fit the network of {CONFIG} ({e})") from e
+    model.eval()
+    return model
