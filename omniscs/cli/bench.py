@@ -212,6 +212,27 @@ def bench_dataset(
     console.print(f"wrote {out / 'dataset_bench.json'}")
 
 
+@app.command("downstream")
+def bench_downstream(
+    out: Path = typer.Option(Path("reports"), help="Folder for downstream_bench.json/.md/.png."),
+    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark's variants and solutions go (and are "
+                                                        "reused)."),
+    train_base: bool = typer.Option(False, "--train-base", help="Train the base proxy planner again on the train "
+                                                                "logs and write it into the package (its shipped "
+                                                                "weights)."),
+    quick: bool = typer.Option(False, "--quick", help="A few scenes and epochs (a smoke run, not a measurement)."),
+) -> None:
+    """The planning protocol (base vs fine-tuned with behaviour-SCS data; L2 and collision rate on a behaviour-SCS
+    and the original test set) with the embedded proxy planner."""
+    from omniscs.bench.downstream import DownstreamBenchConfig, quick_config, run_downstream_benchmark
+
+    with progress_bars() as bars:
+        run_downstream_benchmark(out, workspace, quick_config() if quick else DownstreamBenchConfig(),
+                                 train_base=train_base, progress=bars.sink("downstream bench"))
+    console.print((out / "downstream_bench.md").read_text())
+    console.print(f"wrote {out / 'downstream_bench.json'}")
+
+
 @app.command("reliability")
 def bench_reliability(
     out: Path = typer.Option(Path("reports"), help="Folder for reliability.json/.md."),

@@ -1,0 +1,256 @@
+"""``omniscs bench downstream``: the paper's planning protocol (its Table 7) on this machine, with the embedded
+proxy planner (``omniscs.eval.planner``) standing in for UniAD.
+
+Data, all procedural and made without rendering (the proxy planner sees boxes and the map, not images):
+  - logs: ``procedural_traffic`` of each scene (templates in turn; train seeds from ``train_seed``, held-out test
+    seeds from ``test_seed``; no other benchmark or test uses them), one planning example every 0.5 s;
+  - behaviour-SCS: ``variants`` behaviour variants per scene (the shipped traffic model, ``behavior_preset``), the
+    ego on its solution (``solve_ego``: comfortable, collision-free, near the plan); one example per solved
+    variant, at its now step (the 3 s after it are the variant's future). Unsolved variants are left out and counted.
+Models: *base* is the shipped planner (trained on the train logs only; ``--train-base`` trains it again and writes
+it into the package with its training record); *fine-tuned* starts from base and trains on the train scenes'
+behaviour-SCS examples mixed with their log examples. Both are evaluated on the held-out scenes: the behaviour-SCS
+test set and the original test set (their logs), by UniAD's planning metrics (``omniscs.eval.planning``: L2 and
+``obj_box_col`` at 1 / 2 / 3 s, "uniad" convention). Driving straight on at the current speed is shown for scale.
+Variants and solutions are kept in the workspace (``bench-downstream/``) and reused by the next run.
+
+The detection half of the protocol (Tables 3 and 6) needs appearance-level SCS and the proxy detector; neither
+exists yet, and the report says so."""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.eval.planner import TrainConfig
+from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_write_json, workspace_root
+
+log = logging.getLogger(__name__)
+
+TEMPLATES = ("straight", "t_junction", "intersection", "straight_parked_truck")
+
+
+@dataclass(frozen=True)
+class DownstreamBenchConfig:
+    """Scenes, variants and training of the planning protocol."""
+
+    train_scenes: int = 48
+    test_scenes: int = 16
+    train_seed: int = 300_000
+    test_seed: int = 310_000
+    n_frames: int = 100
+    variants: int = 6
+    behavior_preset: str = "fast"
+    base: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=40, seed=0))
+    finetune: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=15, lr=1e-3, seed=1))
+    scs_share: float = 0.5
+    """Share of the fine-tuning examples that are behaviour-SCS (they are repeated to reach it; the rest are the
+    train logs, so the planner keeps what it knew)."""
+    collision_reduction_target: float = 0.10
+    """Fine-tuned must collide this much less (relative) on the behaviour-SCS test set."""
+    l2_regression_limit_m: float = 0.05
+    """... and lose at most this much L2 (3 s) on the original test set."""
+
+    def scenes(self, split: str) -> list[tuple[str, int]]:
+        n, first = (self.train_scenes, self.train_seed) if split == "train" else (self.test_scenes, self.test_seed)
+        return [(TEMPLATES[k % len(TEMPLATES)], first + k) for k in range(n)]
+
+
+def scene_examples(template: str, seed: int, config: DownstreamBenchConfig, cache: Path) -> dict:
+    """Log and behaviour-SCS planning examples of one procedural scene (variants and solutions cached)."""
+    from omniscs.eval.scenarios import planning_examples, scenario_from_traffic, scenario_from_variant
+    from omniscs.pipeline.procedural import procedural_traffic
+    from omniscs.scs.behavior import adversarial_preset
+    from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
+    from omniscs.scs.behavior.generation import generate_variants
+    from omniscs.scs.behavior.solution import solve_ego
+    from omniscs.scs.behavior.variants import variant_spec
+
+    traffic = procedural_traffic(template, seed, config.n_frames, scene_id=f"syn-{template}-s{seed}")
+    logs = planning_examples(scenario_from_traffic(traffic))
+    folder = cache / f"{template}-s{seed}-{config.n_frames}f-{config.variants}v-{config.behavior_preset}"
+    path = folder / "variants.json"
+    if path.is_file():
+        stored = json.loads(path.read_text())
+    else:
+        results = generate_variants(traffic, load_checkpoint(DEFAULT_CHECKPOINT), config.variants,
+                                    adversarial_preset(config.behavior_preset), None, None)
+        specs = [variant_spec(v) for v in results]
+        stored = [{"variant": s, "solution": solve_ego(s, traffic).to_dict()} for s in specs]
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(path, stored)
+    categories = dict(zip(traffic.track_ids.tolist(), traffic.categories))
+    scs, unsolved = [], 0
+    for entry in stored:
+        v, sol = entry["variant"], entry["solution"]
+        if not (v.get("success") and sol.get("solved")):
+            unsolved += 1
+            continue
+        scenario = scenario_from_variant(v, categories, ego=np.asarray(sol["trajectory"]), drivable=traffic.map)
+        scs += [e for e in planning_examples(scenario, start=int(v["now_step"])) if e.step == int(v["now_step"])]
+    return {"logs": logs, "scs": scs, "variants": len(stored), "unsolved": unsolved}
+
+
+def _gather(split: str, config: DownstreamBenchConfig, cache: Path, progress: Progress) -> dict:
+    out = {"logs": [], "scs": [], "variants": 0, "unsolved": 0, "skipped": []}
+    scenes = config.scenes(split)
+    for i, (template, seed) in enumerate(scenes):
+        progress(i, len(scenes), f"{split} scene {template}:{seed}")
+        try:
+            got = scene_examples(template, seed, config, cache)
+        except Exception as exc:  # a seed whose world or variants cannot be built: counted, not fatal
+            from omniscs.errors import OmniscsError
+
+            if not isinstance(exc, OmniscsError):
+                raise
+            out["skipped"].append(f"{template}:{seed}: {exc}")
+            continue
+        for k in ("logs", "scs"):
+            out[k] += got[k]
+        out["variants"] += got["variants"]
+        out["unsolved"] += got["unsolved"]
+    progress(len(scenes), len(scenes), f"{split} scenes")
+    return out
+
+
+def _metrics(examples, plans) -> dict:
+    from omniscs.eval.planning import evaluate_planning
+
+    out = evaluate_planning([e.sample for e in examples], plans)
+    return {"n": out["n_samples"], "L2": out["uniad"]["L2"], "collision": out["uniad"]["obj_box_col"],
+            "L2_stp3": out["stp3"]["L2"], "collision_stp3": out["stp3"]["obj_box_col"]}
+
+
+def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
+                             config: DownstreamBenchConfig = DownstreamBenchConfig(), train_base: bool = False,
+                             progress: Progress = no_progress) -> dict:
+    from omniscs.eval.planner import DEFAULT_PLANNER, features, load_planner, plan, save_planner, train_planner
+
+    machine = machine_info()
+    cache = workspace_root(workspace) / "bench-downstream"
+    started = time.perf_counter()
+    train = _gather("train", config, cache, progress)
+    test = _gather("test", config, cache, progress)
+    data_s = time.perf_counter() - started
+    if train_base:
+        progress(0, None, "training the base planner on the train logs")
+        base, record = train_planner(train["logs"], config.base, progress=progress)
+        record.update(command="omniscs bench downstream --train-base", data={
+            "templates": list(TEMPLATES), "train_seeds": [config.train_seed, config.train_seed + config.train_scenes - 1],
+            "n_frames": config.n_frames, "source": "procedural logs (procedural_traffic), no SCS"})
+        save_planner(base, DEFAULT_PLANNER, record, overwrite=True)
+    base = load_planner()
+    base_record = json.loads((DEFAULT_PLANNER / "training.json").read_text())
+    progress(0, None, "fine-tuning on behaviour-SCS + logs")
+    repeat = 1
+    if train["scs"] and 0.0 < config.scs_share < 1.0:
+        repeat = max(1, int(round(config.scs_share / (1 - config.scs_share) * len(train["logs"]) / len(train["scs"]))))
+    tuned, tune_record = train_planner(train["scs"] * repeat + train["logs"], config.finetune, init=base,
+                                       progress=progress)
+    tune_record["scs_repeat"] = repeat
+    sets = {"behaviour-SCS test": test["scs"], "original test": test["logs"]}
+    rows = {}
+    for name, examples in sets.items():
+        straight = {e.sample.token: features(e)[2].astype(np.float64) for e in examples}
+        rows[name] = {"straight on": _metrics(examples, straight), "base": _metrics(examples, plan(base, examples)),
+                      "fine-tuned": _metrics(examples, plan(tuned, examples))}
+    scs, orig = rows["behaviour-SCS test"], rows["original test"]
+    col_b, col_f = np.mean(list(scs["base"]["collision"].values())), np.mean(list(scs["fine-tuned"]["collision"].values()))
+    reduction = (col_b - col_f) / col_b if col_b > 0 else None
+    l2_change = orig["fine-tuned"]["L2"]["3s"] - orig["base"]["L2"]["3s"]
+    summary = {"collision_reduction": reduction, "scs_collision_base": col_b, "scs_collision_finetuned": col_f,
+               "original_l2_change_3s": l2_change,
+               "meets_collision_target": reduction is not None and reduction >= config.collision_reduction_target,
+               "meets_l2_limit": l2_change <= config.l2_regression_limit_m}
+    result = {"config": asdict(config), "machine": finish(machine), "rows": rows, "summary": summary,
+              "data": {split: {"log_examples": len(d["logs"]), "scs_examples": len(d["scs"]), "variants": d["variants"],
+                               "unsolved": d["unsolved"], "skipped": d["skipped"]}
+                       for split, d in (("train", train), ("test", test))},
+              "seconds": {"data": data_s, "base_training": base_record.get("seconds"),
+                          "finetune": tune_record["seconds"]},
+              "base_training": {k: base_record.get(k) for k in ("command", "data", "n_examples", "train_config")},
+              "finetune_training": {k: tune_record[k] for k in ("n_examples", "train_config", "epoch_loss_m",
+                                                                 "scs_repeat")}}
+    write_report(out_dir, "downstream_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    return result
+
+
+def markdown(r: dict) -> str:
+    c, s, d = r["config"], r["summary"], r["data"]
+    lines = ["# Downstream benchmark: the planning protocol with the proxy planner", "", load_line(r["machine"]), "",
+             "The planner is the embedded **proxy** (`omniscs.eval.planner`: a small bird's-eye-view network trained "
+             "here), not UniAD: these numbers show the protocol running end to end on this machine, not what UniAD "
+             "would do. UniAD itself runs as an external job (`omniscs.eval.external`).", "",
+             f"Data: {c['train_scenes']} train and {c['test_scenes']} held-out test procedural scenes "
+             f"({', '.join(TEMPLATES)} in turn; seeds {c['train_seed']}+ and {c['test_seed']}+), {c['n_frames']} "
+             f"frames each; {c['variants']} behaviour variants per scene ({c['behavior_preset']} preset), the ego on "
+             "its solution. Examples: train "
+             f"{d['train']['log_examples']} log / {d['train']['scs_examples']} behaviour-SCS "
+             f"({d['train']['unsolved']} of {d['train']['variants']} variants unsolved or unsuccessful, left out); test "
+             f"{d['test']['log_examples']} log / {d['test']['scs_examples']} behaviour-SCS "
+             f"({d['test']['unsolved']} of {d['test']['variants']} left out). Base: trained on the train logs only "
+             f"(`{r['base_training'].get('command')}`); fine-tuned: from base on the train scenes' behaviour-SCS "
+             f"examples (each repeated {r['finetune_training']['scs_repeat']} times, {100 * c['scs_share']:.0f} % of "
+             "the mix) and their log examples. Metrics: UniAD's (L2 in m, collision rate `obj_box_col` in %, value at each horizon).", ""]
+    red = s["collision_reduction"]
+    lines += [f"**Collision rate on the behaviour-SCS test set (mean of 1/2/3 s): {100 * s['scs_collision_base']:.2f} % "
+              f"base, {100 * s['scs_collision_finetuned']:.2f} % fine-tuned: "
+              + ("n/a (base never collides)" if red is None else f"{100 * red:.0f} % lower")
+              + f" (target >= {100 * c['collision_reduction_target']:.0f} %: "
+              f"{'met' if s['meets_collision_target'] else 'not met'}). L2 at 3 s on the original test set changes by "
+              f"{s['original_l2_change_3s']:+.3f} m (limit +{c['l2_regression_limit_m']:.2f} m: "
+              f"{'met' if s['meets_l2_limit'] else 'not met'}).**", "",
+              "| test set | planner | n | L2 1s | L2 2s | L2 3s | col 1s % | col 2s % | col 3s % |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, models in r["rows"].items():
+        for model, m in models.items():
+            lines.append(f"| {name} | {model} | {m['n']} | " + " | ".join(f"{m['L2'][h]:.3f}" for h in ("1s", "2s", "3s"))
+                         + " | " + " | ".join(f"{100 * m['collision'][h]:.2f}" for h in ("1s", "2s", "3s")) + " |")
+    sec = r["seconds"]
+    lines += ["", f"Time: data {sec['data']:.0f} s (variants and solutions reused from the workspace when made "
+              f"before), base training {sec['base_training'] or 0:.0f} s (when it was trained), fine-tuning "
+              f"{sec['finetune']:.0f} s.", "",
+              "Not run: the detection half (base vs fine-tuned with appearance-SCS data, mAP on an appearance-SCS "
+              "test set and the original one) needs appearance-level SCS and the proxy detector, which do not exist "
+              "yet."]
+    return "\n".join(lines) + "\n"
+
+
+def _plot(r: dict, f) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    models = ["straight on", "base", "fine-tuned"]
+    colours = ["#bbbbbb", "#4c72b0", "#dd8452"]
+    for ax, key, unit, scale in ((axes[0], "collision", "collision rate, %", 100.0), (axes[1], "L2", "L2, m", 1.0)):
+        x = np.arange(6)
+        labels = []
+        for j, model in enumerate(models):
+            vals = [scale * r["rows"][name][model][key][h] for name in r["rows"] for h in ("1s", "2s", "3s")]
+            ax.bar(x + (j - 1) * 0.27, vals, 0.27, label=model, color=colours[j])
+        for name in r["rows"]:
+            labels += [f"{name.replace(' test', '')}\n{h}" for h in ("1s", "2s", "3s")]
+        ax.set_xticks(x, labels, fontsize=7)
+        ax.set_ylabel(unit)
+        ax.legend(fontsize=8)
+    axes[0].set_title("collision (obj_box_col) by test set and horizon")
+    axes[1].set_title("L2 by test set and horizon")
+    fig.suptitle("planning protocol with the proxy planner (not UniAD)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+
+
+def quick_config() -> DownstreamBenchConfig:
+    """A small set-up for tests (few scenes, few epochs)."""
+    return replace(DownstreamBenchConfig(), train_scenes=4, test_scenes=2, variants=2,
+                   base=TrainConfig(epochs=2), finetune=TrainConfig(epochs=1, lr=1e-3, seed=1))
