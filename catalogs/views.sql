@@ -3,13 +3,13 @@
 SET VARIABLE omniscs_catalog = 'omniscs-data/catalog';
 CREATE OR REPLACE VIEW runs_raw AS
   SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
-    CAST("flow" AS VARCHAR) AS "flow", CAST("status" AS VARCHAR) AS "status", CAST("started_at_us" AS BIGINT) AS "started_at_us", CAST("finished_at_us" AS BIGINT) AS "finished_at_us", CAST("n_scenes" AS INTEGER) AS "n_scenes", CAST("config_json" AS VARCHAR) AS "config_json", CAST("omniscs_version" AS VARCHAR) AS "omniscs_version", CAST("error" AS VARCHAR) AS "error",
+    CAST("flow" AS VARCHAR) AS "flow", CAST("status" AS VARCHAR) AS "status", CAST("started_at_us" AS BIGINT) AS "started_at_us", CAST("finished_at_us" AS BIGINT) AS "finished_at_us", CAST("n_scenes" AS INTEGER) AS "n_scenes", CAST("config_json" AS VARCHAR) AS "config_json", CAST("omniscs_version" AS VARCHAR) AS "omniscs_version", CAST("error" AS VARCHAR) AS "error", CAST("flow_run_id" AS VARCHAR) AS "flow_run_id",
     filename AS file
   FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/runs/run_id=*/*.parquet',
           filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
-        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "flow", NULL::VARCHAR AS "status", NULL::BIGINT AS "started_at_us", NULL::BIGINT AS "finished_at_us", NULL::INTEGER AS "n_scenes", NULL::VARCHAR AS "config_json", NULL::VARCHAR AS "omniscs_version", NULL::VARCHAR AS "error" WHERE false);
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "flow", NULL::VARCHAR AS "status", NULL::BIGINT AS "started_at_us", NULL::BIGINT AS "finished_at_us", NULL::INTEGER AS "n_scenes", NULL::VARCHAR AS "config_json", NULL::VARCHAR AS "omniscs_version", NULL::VARCHAR AS "error", NULL::VARCHAR AS "flow_run_id" WHERE false);
 CREATE OR REPLACE VIEW runs AS
-  SELECT run_id, "flow", "status", "started_at_us", "finished_at_us", "n_scenes", "config_json", "omniscs_version", "error"
+  SELECT run_id, "flow", "status", "started_at_us", "finished_at_us", "n_scenes", "config_json", "omniscs_version", "error", "flow_run_id"
   FROM runs_raw
   QUALIFY row_number() OVER (PARTITION BY run_id
     ORDER BY finished_at_us DESC, regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
@@ -175,4 +175,40 @@ CREATE OR REPLACE VIEW annotations AS
   SELECT b.run_id, b."dataset_id", b."scene_id", b."variant_id", b."store_id", b."frame_idx", b."camera", b."track_id", b."category", b."is_adversary", b."moved", b."cx", b."cy", b."cz", b."length", b."width", b."height", b."yaw", b."ego_x", b."ego_y", b."ego_z", b."ego_yaw", b."cam_x", b."cam_y", b."cam_z", b."x1", b."y1", b."x2", b."y2", b."tight_x1", b."tight_y1", b."tight_x2", b."tight_y2", b."mask_pixels", b."visible_fraction", b."visibility_level", b."in_image_fraction", b."num_lidar_points", b."vx", b."vy", b."vz"
   FROM annotations_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."dataset_id", b."store_id", b."frame_idx", b."camera", b."track_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW downstream_models_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("model_id" AS VARCHAR) AS "model_id", CAST("kind" AS VARCHAR) AS "kind", CAST("base_model_id" AS VARCHAR) AS "base_model_id", CAST("dataset_ids" AS VARCHAR[]) AS "dataset_ids", CAST("status" AS VARCHAR) AS "status", CAST("path" AS VARCHAR) AS "path", CAST("n_examples" AS BIGINT) AS "n_examples", CAST("train_seconds" AS DOUBLE) AS "train_seconds", CAST("command" AS VARCHAR) AS "command", CAST("log_path" AS VARCHAR) AS "log_path", CAST("error" AS VARCHAR) AS "error", CAST("config_json" AS VARCHAR) AS "config_json",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/downstream_models/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "kind", NULL::VARCHAR AS "base_model_id", NULL::VARCHAR[] AS "dataset_ids", NULL::VARCHAR AS "status", NULL::VARCHAR AS "path", NULL::BIGINT AS "n_examples", NULL::DOUBLE AS "train_seconds", NULL::VARCHAR AS "command", NULL::VARCHAR AS "log_path", NULL::VARCHAR AS "error", NULL::VARCHAR AS "config_json" WHERE false);
+CREATE OR REPLACE VIEW downstream_models_by_run AS
+  SELECT run_id, "model_id", "kind", "base_model_id", "dataset_ids", "status", "path", "n_examples", "train_seconds", "command", "log_path", "error", "config_json"
+  FROM downstream_models_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "model_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW downstream_models AS
+  SELECT b.run_id, b."model_id", b."kind", b."base_model_id", b."dataset_ids", b."status", b."path", b."n_examples", b."train_seconds", b."command", b."log_path", b."error", b."config_json"
+  FROM downstream_models_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."model_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW evaluations_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("eval_id" AS VARCHAR) AS "eval_id", CAST("model_id" AS VARCHAR) AS "model_id", CAST("dataset_id" AS VARCHAR) AS "dataset_id", CAST("task" AS VARCHAR) AS "task", CAST("split" AS VARCHAR) AS "split", CAST("metric" AS VARCHAR) AS "metric", CAST("class_name" AS VARCHAR) AS "class_name", CAST("horizon" AS VARCHAR) AS "horizon", CAST("convention" AS VARCHAR) AS "convention", CAST("value" AS DOUBLE) AS "value", CAST("n" AS BIGINT) AS "n", CAST("status" AS VARCHAR) AS "status", CAST("error" AS VARCHAR) AS "error",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/evaluations/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "eval_id", NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "dataset_id", NULL::VARCHAR AS "task", NULL::VARCHAR AS "split", NULL::VARCHAR AS "metric", NULL::VARCHAR AS "class_name", NULL::VARCHAR AS "horizon", NULL::VARCHAR AS "convention", NULL::DOUBLE AS "value", NULL::BIGINT AS "n", NULL::VARCHAR AS "status", NULL::VARCHAR AS "error" WHERE false);
+CREATE OR REPLACE VIEW evaluations_by_run AS
+  SELECT run_id, "eval_id", "model_id", "dataset_id", "task", "split", "metric", "class_name", "horizon", "convention", "value", "n", "status", "error"
+  FROM evaluations_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "eval_id", "split", "metric", "class_name", "horizon", "convention"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW evaluations AS
+  SELECT b.run_id, b."eval_id", b."model_id", b."dataset_id", b."task", b."split", b."metric", b."class_name", b."horizon", b."convention", b."value", b."n", b."status", b."error"
+  FROM evaluations_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."eval_id", b."split", b."metric", b."class_name", b."horizon", b."convention"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;

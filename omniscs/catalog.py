@@ -36,6 +36,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("config_json", pa.string(), nullable=False),
         pa.field("omniscs_version", pa.string(), nullable=False),
         pa.field("error", pa.string()),
+        pa.field("flow_run_id", pa.string()),                     # Prefect's flow run (what its events name)
     ]),
     "scenes": pa.schema([
         pa.field("scene_id", pa.string(), nullable=False),
@@ -231,6 +232,35 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("num_lidar_points", pa.int64(), nullable=False),  # simulated from the rendered depth, whole frame
         *[pa.field(c, pa.float64(), nullable=False) for c in ("vx", "vy", "vz")],  # world frame, m/s
     ]),
+    "downstream_models": pa.schema([                              # driving models trained on generated datasets
+        pa.field("model_id", pa.string(), nullable=False),        # proxy-planner-<hash> | external-<hash>
+        pa.field("kind", pa.string(), nullable=False),            # proxy_planner | external
+        pa.field("base_model_id", pa.string()),                   # what it was fine-tuned from
+        pa.field("dataset_ids", pa.list_(pa.string()), nullable=False),  # trained on
+        pa.field("status", pa.string(), nullable=False),          # trained | failed
+        pa.field("path", pa.string()),                            # checkpoint folder (proxy) or work dir (external)
+        pa.field("n_examples", pa.int64()),
+        pa.field("train_seconds", pa.float64()),
+        pa.field("command", pa.string()),                         # the external job's command line
+        pa.field("log_path", pa.string()),
+        pa.field("error", pa.string()),                           # why it failed (exit code, timeout, bad input)
+        pa.field("config_json", pa.string(), nullable=False),
+    ]),
+    "evaluations": pa.schema([                                    # one number of one evaluation
+        pa.field("eval_id", pa.string(), nullable=False),
+        pa.field("model_id", pa.string(), nullable=False),
+        pa.field("dataset_id", pa.string()),                      # null: a dataroot or the external job's own set
+        pa.field("task", pa.string(), nullable=False),            # planning | detection
+        pa.field("split", pa.string(), nullable=False),           # behaviour-SCS | original | ... (what was tested)
+        pa.field("metric", pa.string(), nullable=False),          # L2 | collision | mAP | NDS | AP | trans_err ...
+        pa.field("class_name", pa.string(), nullable=False),      # detection metrics per class; '' = all classes
+        pa.field("horizon", pa.string(), nullable=False),         # 1s | 2s | 3s (planning); '' = none
+        pa.field("convention", pa.string(), nullable=False),      # uniad | stp3 (planning); '' = none
+        pa.field("value", pa.float64()),                          # null when undefined or failed
+        pa.field("n", pa.int64()),                                # examples or samples evaluated
+        pa.field("status", pa.string(), nullable=False),          # ok | failed
+        pa.field("error", pa.string()),
+    ]),
 }
 
 #: The columns that identify one logical row of each table. The default view ``<table>`` shows each value once,
@@ -247,6 +277,8 @@ KEYS: dict[str, tuple[str, ...]] = {
     "datasets": ("dataset_id",),
     "samples": ("dataset_id", "store_id", "frame_idx", "camera"),
     "annotations": ("dataset_id", "store_id", "frame_idx", "camera", "track_id"),
+    "downstream_models": ("model_id",),
+    "evaluations": ("eval_id", "split", "metric", "class_name", "horizon", "convention"),
 }
 
 #: The run status whose rows win over those of other ended runs (failed, cancelled) in the default views.

@@ -64,5 +64,7 @@ def catalog_scene(run_id: str, workspace: str, scene_id: str, records: list[Stag
 @task(name="catalog-run")
 def catalog_run(run_id: str, workspace: str, flow: str, status: str, started_at_us: int, finished_at_us: int,
                 n_scenes: int, config: dict, error: str | None = None) -> str:
+    from prefect.runtime import flow_run
+
     return stages.catalog_run_stage(run_id, workspace, flow, status, started_at_us, finished_at_us, n_scenes, config,
-                                    error)
+                                    error, flow_run_id=flow_run.get_id())

@@ -62,7 +62,7 @@ def scenario_from_variant(variant: dict, categories: dict[int, str], ego: np.nda
     solution) replaces the variant's ego plan; ``categories`` names each track's class (from its scene)."""
     plan = np.asarray(ego if ego is not None else variant["ego"], np.float64)
     ids = sorted(int(k) for k in variant["agents"])
-    agents = np.stack([np.asarray(variant["agents"][str(k)], np.float64) for k in ids]) if ids \
+    agents = np.stack([_poses(variant["agents"][str(k)], len(plan)) for k in ids]) if ids \
         else np.zeros((0, len(plan), 3))
     sizes = np.array([variant["sizes"][str(k)][:2] for k in ids], np.float64).reshape(-1, 2)
     unknown = [k for k in ids if k not in categories]
@@ -70,6 +70,14 @@ def scenario_from_variant(variant: dict, categories: dict[int, str], ego: np.nda
         raise ValidationError(f"variant {variant.get('variant_id')}: no category for track(s) {unknown}")
     return Scenario(f"{variant.get('scene_id')}/{variant.get('variant_id')}", float(variant["dt"]), plan,
                     np.array(ids, np.int64), tuple(categories[k] for k in ids), sizes, agents, drivable)
+
+
+def _poses(rows: list, n: int) -> np.ndarray:  # [n, 3], NaN where a step is null (the agent is absent)
+    out = np.full((n, 3), np.nan)
+    for i, r in enumerate(rows[:n]):
+        if r is not None and len(r) >= 3 and all(v is not None for v in r[:3]):
+            out[i] = np.asarray(r[:3], np.float64)
+    return out
 
 
 def waypoint_frames(ego: np.ndarray) -> np.ndarray:  # [S, 3] box centres -> [S, 3, 3] world_from_planning (2D)

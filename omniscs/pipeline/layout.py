@@ -8,11 +8,12 @@ from pathlib import Path
 from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
-__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder"]
+__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder"]
 
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "behavior": "variants",
-           "replay": "replays", "annotate": "annotated", "dataset": "datasets"}
+           "replay": "replays", "annotate": "annotated", "dataset": "datasets",
+           "downstream": "downstream"}
 
 
 def scenes_dir(workspace: str | Path) -> Path:
@@ -33,3 +34,8 @@ def stage_folder(workspace: str | Path, stage: str, scene_id: str, name: str) ->
 def dataset_folder(workspace: str | Path, dataset_id: str) -> Path:
     """``<workspace>/datasets/<dataset_id>``: one assembled dataset."""
     return Path(workspace) / FOLDERS["dataset"] / check_id("dataset id", dataset_id)
+
+
+def downstream_folder(workspace: str | Path, model_id: str) -> Path:
+    """``<workspace>/downstream/<model_id>``: one downstream model (a fine-tuned checkpoint, an external job)."""
+    return Path(workspace) / FOLDERS["downstream"] / check_id("downstream model id", model_id)

@@ -464,14 +464,16 @@ def catalog_scene_stage(run_id: str, workspace: str | Path, records: list[StageR
 
 
 def catalog_run_stage(run_id: str, workspace: str | Path, flow: str, status: str, started_at_us: int,
-                      finished_at_us: int, n_scenes: int, config: dict, error: str | None = None) -> str:
-    """The run's row in ``runs`` (written last, so a run row means the run ended, well or not)."""
+                      finished_at_us: int, n_scenes: int, config: dict, error: str | None = None,
+                      flow_run_id: str | None = None) -> str:
+    """The run's row in ``runs`` (written last, so a run row means the run ended, well or not); ``flow_run_id``:
+    the orchestrator's id of the run (what its events name), when there is one."""
     import omniscs
 
     path = catalog.write_rows(layout.catalog_root(workspace), "runs", run_id, [{
         "flow": flow, "status": status, "started_at_us": started_at_us, "finished_at_us": finished_at_us,
         "n_scenes": n_scenes, "config_json": json.dumps(config, sort_keys=True, default=str),
-        "omniscs_version": omniscs.__version__, "error": error}], writer="run")
+        "omniscs_version": omniscs.__version__, "error": error, "flow_run_id": flow_run_id}], writer="run")
     return str(path)
 
 

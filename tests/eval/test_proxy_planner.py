@@ -104,3 +104,16 @@ def test_the_planner_learns_braking_and_turning_better_than_driving_straight_on(
         load_planner(tmp_path / "nowhere")
     with pytest.raises(ValidationError, match="no planning examples"):
         train_planner([])
+
+
+def test_a_variant_with_absent_steps_reads_them_as_nan():
+    from omniscs.eval.scenarios import scenario_from_variant
+
+    ego = [[float(i), 0.0, 0.0] for i in range(40)]
+    variant = {"variant_id": "v0", "scene_id": "s", "dt": 0.1, "now_step": 9, "ego": ego,
+               "agents": {"3": [None] * 5 + [[float(i), 3.5, 0.0] for i in range(5, 40)]},
+               "sizes": {"3": [4.5, 1.9, 1.6], "ego": [4.6, 1.9, 1.6]}}
+    sc = scenario_from_variant(variant, {3: "car"})
+    assert np.isnan(sc.agents[0, :5]).all() and np.isfinite(sc.agents[0, 5:]).all()
+    with pytest.raises(ValidationError, match="no category"):
+        scenario_from_variant(variant, {})

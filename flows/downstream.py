@@ -1,0 +1,113 @@
+"""The downstream flows: what driving models make of generated datasets.
+
+``finetune_evaluate``: the proxy planner fine-tuned on datasets, then the shipped base and the fine-tuned planner
+evaluated on test datasets (behaviour-SCS and original examples); or an external job (UniAD) on the datasets, its
+printed metrics read back. ``evaluate``: one planner on datasets. Both write ``downstream_models`` and
+``evaluations`` rows and a ``runs`` row; the datasets may be named, or found from the ``generate_dataset`` flow run
+that made them (``upstream_flow_run``: what a deployment trigger on its ``prefect.flow-run.Completed`` passes).
+"""
+from __future__ import annotations
+
+import time
+
+from prefect import flow, get_run_logger
+
+from omniscs.errors import OmniscsError, ValidationError
+from omniscs.pipeline import downstream as d
+from omniscs.pipeline.records import StageRecord, new_run_id
+from omniscs.pipeline.validate import check_run_id
+from omniscs.storage import workspace_root
+from tasks import downstream as t
+from tasks import stages as ts
+
+MODELS = ("proxy", "external")
+
+
+def _now_us() -> int:
+    return int(time.time() * 1e6)
+
+
+def _datasets(ws: str, dataset_ids: list[str] | None, upstream_flow_run: str | None) -> list[str]:
+    if dataset_ids:
+        return list(dataset_ids)
+    if upstream_flow_run:
+        return d.datasets_of_flow_run(ws, upstream_flow_run)
+    raise ValidationError("name the datasets (dataset_ids) or the generate_dataset flow run that made them "
+                          "(upstream_flow_run)")
+
+
+@flow(name="finetune_evaluate", log_prints=False)
+def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy",
+                      test_dataset_ids: list[str] | None = None, workspace: str | None = None,
+                      run_id: str | None = None, upstream_flow_run: str | None = None,
+                      external_template: str | None = None, external_values: dict | None = None,
+                      external_timeout_s: float = 6 * 3600.0, external_export: str | None = "uniad") -> dict:
+    """Fine-tune and evaluate on ``dataset_ids`` (or the datasets of ``upstream_flow_run``). ``model="proxy"``:
+    the embedded proxy planner, evaluated before (base) and after fine-tuning on ``test_dataset_ids`` (default: the
+    training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
+    ``external_template`` run as a job (``omniscs.eval.external``) on the exported datasets. Returns the run id,
+    model records and evaluation ids; a model that fails is recorded failed and the run ends failed."""
+    ws = str(workspace_root(workspace))
+    run_id = check_run_id(run_id) or new_run_id()
+    started = _now_us()
+    config = {"dataset_ids": dataset_ids, "model": model, "test_dataset_ids": test_dataset_ids,
+              "upstream_flow_run": upstream_flow_run, "external_template": external_template}
+    records: list[StageRecord] = []
+    try:
+        if model not in MODELS:
+            raise ValidationError(f"model must be one of {MODELS}; got {model!r}")
+        datasets = _datasets(ws, dataset_ids, upstream_flow_run)
+        d.dataset_paths(ws, datasets)
+        if model == "proxy":
+            tests = list(test_dataset_ids or datasets)
+            tuned = t.finetune(datasets, ws)
+            records.append(tuned)
+            records.append(t.evaluate(None, tests, ws, "base"))
+            if tuned.info.get("status") == "trained":
+                records.append(t.evaluate(tuned, tests, ws, tuned.info["model_id"]))
+        else:
+            if not external_template:
+                raise ValidationError("model='external' needs external_template (a command with placeholders)")
+            records.append(t.external(external_template, datasets, ws, external_values or {}, external_timeout_s,
+                                      external_export))
+        t.catalog(run_id, ws, records)
+    except BaseException as exc:
+        status = "failed" if isinstance(exc, Exception) else "cancelled"
+        ts.catalog_run.fn(run_id, ws, "finetune_evaluate", status, started, _now_us(), 0, config,
+                          error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        raise
+    failed = [r.info.get("error") or "no model to evaluate" for r in records if r.info.get("status") == "failed"]
+    ts.catalog_run(run_id, ws, "finetune_evaluate", "failed" if failed else "completed", started, _now_us(), 0, config,
+                   error="; ".join(failed) or None)
+    if failed:
+        get_run_logger().error("downstream model failed: %s", "; ".join(failed))
+        raise OmniscsError(f"run {run_id}: " + "; ".join(failed))
+    return {"run_id": run_id, "workspace": ws, "datasets": datasets, "models": [r.info for r in records]}
+
+
+@flow(name="evaluate", log_prints=False)
+def evaluate(model: str, dataset_ids: list[str], workspace: str | None = None, run_id: str | None = None) -> dict:
+    """Evaluate one planner on datasets: ``model`` is ``proxy-planner-base`` (the shipped proxy) or the id of a
+    fine-tuned proxy planner in the workspace (``downstream/<id>/``)."""
+    from omniscs.pipeline import layout
+
+    ws = str(workspace_root(workspace))
+    run_id = check_run_id(run_id) or new_run_id()
+    started = _now_us()
+    config = {"model": model, "dataset_ids": dataset_ids}
+    try:
+        if model == d.BASE_MODEL_ID:
+            record = None
+        else:
+            path = layout.downstream_folder(ws, model) / "planner"
+            if not path.is_dir():
+                raise ValidationError(f"no downstream model {model} in {ws} (see the downstream_models table)")
+            record = StageRecord("finetune", "-", str(path), info={"model_id": model, "status": "trained"})
+        result = t.evaluate(record, dataset_ids, ws, model)
+        t.catalog(run_id, ws, [result])
+    except BaseException as exc:
+        ts.catalog_run.fn(run_id, ws, "evaluate", "failed" if isinstance(exc, Exception) else "cancelled", started,
+                          _now_us(), 0, config, error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        raise
+    ts.catalog_run(run_id, ws, "evaluate", "completed", started, _now_us(), 0, config)
+    return {"run_id": run_id, "eval_id": result.info["eval_id"], "model_id": result.info["model_id"]}

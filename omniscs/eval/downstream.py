@@ -1,0 +1,129 @@
+"""Driving models on generated datasets: planning examples from a dataset's variants (the ego on its solution) and
+from the logs they came from, fine-tuning the proxy planner on them, evaluating a planner on them, and the rows of
+the ``downstream_models`` and ``evaluations`` catalog tables.
+
+A dataset (``datasets/<id>/``) holds one scene store per behaviour variant with ``variant.json`` (the variant and
+the ego's solution). A solved variant gives one example at its now step (the 3 s after it are the variant's
+future); an unsolved one is a test case without a planning target and gives none. The logs are the source scene
+stores the dataset names (``scene_ids``), read from the workspace."""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from omniscs.errors import ValidationError
+from omniscs.eval.scenarios import PlanningExample, planning_examples, scenario_from_traffic, scenario_from_variant
+
+log = logging.getLogger(__name__)
+
+VARIANT_JSON = "variant.json"
+CARD_JSON = "dataset.json"
+
+
+def dataset_card(dataset_path: str | Path) -> dict:
+    path = Path(dataset_path) / CARD_JSON
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValidationError(f"{dataset_path} is not a dataset ({CARD_JSON}: {e})") from e
+
+
+def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], dict]:
+    """The behaviour-SCS examples of a dataset (one per solved variant long enough for a 3 s future) and counts."""
+    from omniscs.scene import load_scene
+    from omniscs.scs.behavior import traffic_from_scene
+
+    root = Path(dataset_path)
+    card = dataset_card(root)
+    out, counts = [], {"variants": 0, "unsolved": 0, "too_short": 0}
+    for v in card.get("variants", []):
+        counts["variants"] += 1
+        store_path = root / "scenes" / v["store_id"]
+        try:
+            meta = json.loads((store_path / VARIANT_JSON).read_text())
+        except (OSError, ValueError) as e:
+            raise ValidationError(f"dataset {card.get('dataset_id')}: {store_path / VARIANT_JSON} unreadable ({e})") from e
+        solution = meta.get("ego_solution") or {}
+        if not solution.get("solved"):
+            counts["unsolved"] += 1
+            continue
+        store = load_scene(store_path)
+        categories = {int(t): str(c) for t, c in store.boxes.groupby("track_id").category.first().items()}
+        spec = meta["variant"]
+        missing = [int(k) for k in spec["agents"] if int(k) not in categories]
+        categories.update({k: "car" for k in missing})  # tracks the variant added without a box in the store
+        scenario = scenario_from_variant(spec, categories, ego=np.asarray(solution["trajectory"], np.float64),
+                                         drivable=traffic_from_scene(store).map)
+        now = int(spec["now_step"])
+        got = [e for e in planning_examples(scenario, start=now) if e.step == now]
+        counts["too_short"] += 0 if got else 1
+        out += got
+    return out, counts
+
+
+def log_examples(scene_paths: list[str | Path]) -> list[PlanningExample]:
+    """Planning examples of logs (scene stores), one every 0.5 s."""
+    from omniscs.scene import load_scene
+    from omniscs.scs.behavior import traffic_from_scene
+
+    out = []
+    for path in scene_paths:
+        out += planning_examples(scenario_from_traffic(traffic_from_scene(load_scene(path))))
+    return out
+
+
+def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str, metrics: dict) -> list[dict]:
+    """``evaluations`` rows of one planning evaluation (``omniscs.eval.planning.evaluate_planning``'s output)."""
+    rows = []
+    for convention in ("uniad", "stp3"):
+        for metric, key in (("L2", "L2"), ("collision", "obj_box_col")):
+            for horizon, value in metrics[convention][key].items():
+                rows.append({"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": "planning",
+                             "split": split, "metric": metric, "class_name": "", "horizon": horizon,
+                             "convention": convention, "value": float(value) if np.isfinite(value) else None,
+                             "n": int(metrics["n_samples"]), "status": "ok", "error": None})
+    return rows
+
+
+def failed_row(eval_id: str, model_id: str, dataset_id: str | None, task: str, split: str, error: str) -> dict:
+    return {"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": task, "split": split,
+            "metric": "run", "class_name": "", "horizon": "", "convention": "", "value": None, "n": None,
+            "status": "failed", "error": error}
+
+
+def external_rows(eval_id: str, model_id: str, dataset_id: str | None, parsed: dict) -> list[dict]:
+    """``evaluations`` rows of what an external UniAD evaluation printed (``external.parse_uniad_output``)."""
+    rows = []
+
+    def row(task, split, metric, value, class_name="", horizon="", convention=""):
+        rows.append({"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": task, "split": split,
+                     "metric": metric, "class_name": class_name, "horizon": horizon, "convention": convention,
+                     "value": float(value) if value is not None and np.isfinite(value) else None, "n": None,
+                     "status": "ok", "error": None})
+
+    det = parsed.get("detection")
+    if det:
+        for name in ("mAP", "NDS", "mATE", "mASE", "mAOE", "mAVE", "mAAE"):
+            if name in det:
+                row("detection", "external", name, det[name])
+        for cls, values in det.get("classes", {}).items():
+            for name, value in values.items():
+                row("detection", "external", name, value, class_name=cls)
+    plan = parsed.get("planning")
+    if plan:
+        names = {"L2": "L2", "obj_box_col": "collision", "obj_col": "collision_point"}
+        for key, values in plan["per_step"].items():
+            for step, value in zip(plan["steps"], values):
+                row("planning", "external", names.get(key, key), value, horizon=step,
+                    convention=plan["convention"] or "")
+    return rows
+
+
+def content_id(prefix: str, parts: dict) -> str:
+    """``<prefix>-<12 hex>`` of a JSON value: the same inputs name the same thing."""
+    digest = hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+    return f"{prefix}-{digest[:12]}"

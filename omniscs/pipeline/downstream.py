@@ -1,0 +1,224 @@
+"""The downstream stages (Prefect-free, like ``stages.py``): fine-tune the proxy planner on generated datasets,
+evaluate a planner on datasets, run an external job (UniAD or any stack) and read its metrics back. Each returns a
+``StageRecord`` whose rows go to the ``downstream_models`` and ``evaluations`` tables; a failure of the model
+(a crash, a timeout, a dataset with nothing to learn from) is a ``failed`` row with its reason, not a lost run.
+
+Folders: ``downstream/<model_id>/`` (a fine-tuned checkpoint, reused by the one reuse contract: the same datasets,
+base and config give the same model) and ``downstream/<model_id>/`` for an external job (its log and work dir)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from omniscs.errors import OmniscsError, ValidationError
+from omniscs.locks import output_lock
+from omniscs.pipeline import layout
+from omniscs.pipeline.records import StageRecord
+from omniscs.pipeline.reuse import StageKey, produce, reusable
+from omniscs.progress import Progress, no_progress
+
+FINETUNE_VERSION = 1
+#: Share of the fine-tuning examples that are behaviour-SCS (repeated to reach it; the rest are the logs).
+SCS_SHARE = 0.5
+BASE_MODEL_ID = "proxy-planner-base"
+
+
+def dataset_paths(workspace: str | Path, dataset_ids: list[str]) -> list[Path]:
+    """The folders of ``dataset_ids`` in the workspace; a clear error for an unknown one."""
+    from omniscs.eval.downstream import CARD_JSON
+
+    if not dataset_ids:
+        raise ValidationError("no dataset ids given")
+    out = []
+    for d in dataset_ids:
+        path = layout.dataset_folder(workspace, d)
+        if not (path / CARD_JSON).is_file():
+            raise ValidationError(f"dataset {d} is not in workspace {workspace} (no {path / CARD_JSON})")
+        out.append(path)
+    return out
+
+
+def _source_scenes(workspace: str | Path, datasets: list[Path]) -> list[Path]:
+    from omniscs.eval.downstream import dataset_card
+
+    ids = sorted({v["scene_id"] for d in datasets for v in dataset_card(d).get("variants", [])})
+    paths = [layout.scene_folder(workspace, "ingest", sid) for sid in ids]
+    return [p for p in paths if (p / "manifest.json").is_file()]
+
+
+def _planner(model: StageRecord | None):
+    from omniscs.eval.planner import load_planner
+
+    return load_planner(None if model is None else model.path)
+
+
+def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, base: str | Path | None = None,
+                   progress: Progress = no_progress, reuse: bool = True) -> StageRecord:
+    """The proxy planner fine-tuned from ``base`` (default: the shipped one) on the datasets' behaviour-SCS
+    examples mixed with their source logs' examples (SCS_SHARE of them SCS)."""
+    from omniscs.eval.downstream import content_id, dataset_card, log_examples, variant_examples
+    from omniscs.eval.planner import DEFAULT_PLANNER, TrainConfig, load_planner, save_planner, train_planner
+
+    started = time.perf_counter()
+    config = config or TrainConfig(epochs=15, lr=1e-3, seed=1)
+    datasets = dataset_paths(workspace, dataset_ids)
+    base_path = Path(base) if base is not None else DEFAULT_PLANNER
+    base_hash = _folder_hash(base_path)
+    inputs = {"datasets": {d.name: dataset_card(d).get("counts") for d in datasets}, "base": base_hash}
+    settings = {"train": dataclasses.asdict(config), "scs_share": SCS_SHARE}
+    key = StageKey.of("finetune", FINETUNE_VERSION, inputs, settings)
+    model_id = content_id("proxy-planner", {"key": key.digest})
+    out = layout.downstream_folder(workspace, model_id)
+    row = {"model_id": model_id, "kind": "proxy_planner", "base_model_id": BASE_MODEL_ID if base is None
+           else str(base), "dataset_ids": list(dataset_ids), "path": str(out), "command": None, "log_path": None,
+           "config_json": json.dumps(settings, sort_keys=True)}
+    with output_lock(out):
+        manifest = reusable(out, key) if reuse else None
+        reused = manifest is not None
+        if manifest is None:
+            scs, logs, counts = [], log_examples(_source_scenes(workspace, datasets)), []
+            for d in datasets:
+                got, c = variant_examples(d)
+                scs += got
+                counts.append(c)
+            if not scs:
+                return StageRecord("finetune", "-", None, seconds=time.perf_counter() - started, key=key.digest,
+                                   rows={"downstream_models": [dict(row, status="failed", n_examples=0,
+                                                                    train_seconds=None, path=None,
+                                                                    error="the datasets hold no solved variant with a "
+                                                                          "3 s future to learn from")]},
+                                   info={"status": "failed", "model_id": model_id})
+            repeat = max(1, int(round(SCS_SHARE / (1 - SCS_SHARE) * len(logs) / len(scs)))) if logs else 1
+            base_model = load_planner(base_path)
+
+            def make(tmp: Path) -> dict:
+                model, record = train_planner(scs * repeat + logs, config, init=base_model, progress=progress)
+                record.update(datasets=list(dataset_ids), scs_examples=len(scs), log_examples=len(logs),
+                              scs_repeat=repeat, base=str(base_path), counts=counts)
+                save_planner(model, tmp / "planner", record)
+                return {"n_examples": record["n_examples"], "train_seconds": record["seconds"]}
+
+            manifest = produce(out, key, make)
+    outputs = manifest.get("outputs", {})
+    return StageRecord("finetune", "-", str(out / "planner"), reused=reused,
+                       seconds=time.perf_counter() - started, key=key.digest,
+                       rows={"downstream_models": [dict(row, status="trained", n_examples=outputs.get("n_examples"),
+                                                        train_seconds=outputs.get("train_seconds"), error=None)]},
+                       info={"status": "trained", "model_id": model_id})
+
+
+def _folder_hash(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted(p for p in Path(path).glob("*") if p.is_file()):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def evaluate_stage(model: StageRecord | None, dataset_ids: list[str], workspace: str | Path,
+                   eval_id: str | None = None) -> StageRecord:
+    """A planner (``model``: a fine-tune stage's record; None: the shipped base) on each dataset's behaviour-SCS
+    examples and on its source logs ("original"), by UniAD's planning metrics; rows for ``evaluations``."""
+    from omniscs.eval.downstream import content_id, failed_row, log_examples, planner_rows, variant_examples
+    from omniscs.eval.planner import plan
+    from omniscs.eval.planning import evaluate_planning
+
+    started = time.perf_counter()
+    model_id = BASE_MODEL_ID if model is None else model.info["model_id"]
+    eval_id = eval_id or content_id("eval", {"model": model_id, "datasets": sorted(dataset_ids)})
+    planner = _planner(model)
+    rows = []
+    for path in dataset_paths(workspace, dataset_ids):
+        did = path.name
+        scs, _ = variant_examples(path)
+        logs = log_examples(_source_scenes(workspace, [path]))
+        for split, examples in (("behaviour-SCS", scs), ("original", logs)):
+            if not examples:
+                rows.append(failed_row(eval_id, model_id, did, "planning", split,
+                                       f"dataset {did} has no {split} example with a 3 s future"))
+                continue
+            rows += planner_rows(eval_id, model_id, did, split,
+                                 evaluate_planning([e.sample for e in examples], plan(planner, examples)))
+    return StageRecord("evaluate", "-", None, seconds=time.perf_counter() - started,
+                       rows={"evaluations": rows}, info={"eval_id": eval_id, "model_id": model_id,
+                                                         "failed": sum(r["status"] == "failed" for r in rows)})
+
+
+def external_stage(template: str, dataset_ids: list[str], workspace: str | Path, values: dict | None = None,
+                   timeout_s: float = 6 * 3600.0, export: str | None = "uniad",
+                   on_line=None) -> StageRecord:
+    """An external job on the datasets: exported (``export``: uniad or nuscenes, or None) into the job's folder,
+    the template filled (``{dataset_root}``, ``{info_train}``, ``{info_val}``, ``{work_dir}`` and ``values``), run
+    to its end or its timeout, its printed metrics read back. A crash or timeout is a failed model row."""
+    from omniscs.eval.downstream import content_id, external_rows, failed_row
+    from omniscs.eval.external import job_argv, run_job
+    from omniscs.export import export_scenes
+
+    started = time.perf_counter()
+    datasets = dataset_paths(workspace, dataset_ids)
+    model_id = content_id("external", {"template": template, "datasets": sorted(dataset_ids), "values": values,
+                                       "at": time.time_ns()})
+    out = layout.downstream_folder(workspace, model_id)
+    out.mkdir(parents=True, exist_ok=True)
+    filled = {"work_dir": str(out / "work"), **(values or {})}
+    if export is not None:
+        stores = [s for d in datasets for s in sorted((d / "scenes").iterdir()) if s.is_dir()]
+        root = export_scenes(stores, export, out / "data")
+        filled.update(dataset_root=str(root), info_train=str(root / "infos" / "nuscenes_infos_temporal_train.pkl"),
+                      info_val=str(root / "infos" / "nuscenes_infos_temporal_val.pkl"))
+    argv = job_argv(template, filled)  # a bad template is the user's error: raised, not a failed row
+    result = run_job(argv, out / "job.log", timeout_s, on_line=on_line)
+    eval_id = content_id("eval", {"model": model_id})
+    row = {"model_id": model_id, "kind": "external", "base_model_id": None, "dataset_ids": list(dataset_ids),
+           "path": str(out), "n_examples": None, "train_seconds": result.seconds,
+           "command": " ".join(argv), "log_path": result.log_path, "config_json": json.dumps(
+               {"template": template, "values": values, "timeout_s": timeout_s, "export": export}, sort_keys=True)}
+    if not result.ok:
+        return StageRecord("external", "-", str(out), seconds=time.perf_counter() - started,
+                           rows={"downstream_models": [dict(row, status="failed", error=result.reason)],
+                                 "evaluations": [failed_row(eval_id, model_id, None, "external", "external",
+                                                            result.reason)]},
+                           info={"status": "failed", "model_id": model_id, "error": result.reason})
+    from omniscs.eval.external import parse_uniad_output
+
+    rows = external_rows(eval_id, model_id, None, parse_uniad_output(Path(result.log_path).read_text()))
+    if not rows:
+        rows = [failed_row(eval_id, model_id, None, "external", "external",
+                           "the job ended well but printed no metrics UniAD's evaluation prints")]
+    return StageRecord("external", "-", str(out), seconds=time.perf_counter() - started,
+                       rows={"downstream_models": [dict(row, status="trained", error=None)], "evaluations": rows},
+                       info={"status": "trained", "model_id": model_id, "eval_id": eval_id})
+
+
+def datasets_of_flow_run(workspace: str | Path, flow_run_id: str) -> list[str]:
+    """The datasets a ``generate_dataset`` run made, found by the orchestrator's flow run id (what a
+    ``prefect.flow-run.Completed`` event names: ``prefect.flow-run.<id>`` or the bare id)."""
+    from omniscs import catalog
+
+    fid = str(flow_run_id).removeprefix("prefect.flow-run.")
+    if not fid or "'" in fid:
+        raise ValidationError(f"not a flow run id: {flow_run_id!r}")
+    rows = catalog.query(layout.catalog_root(workspace),
+                         "SELECT DISTINCT d.dataset_id FROM datasets_by_run d JOIN runs r ON r.run_id = d.run_id "
+                         f"WHERE r.flow_run_id = '{fid}' ORDER BY 1").to_pylist()
+    if not rows:
+        raise OmniscsError(f"flow run {fid} made no dataset in workspace {workspace} (a run without --annotate, "
+                           "or another workspace)")
+    return [r["dataset_id"] for r in rows]
+
+
+def catalog_records_stage(run_id: str, workspace: str | Path, records: list[StageRecord], writer: str) -> list[str]:
+    """One Parquet file per table for the rows of ``records`` (downstream models, evaluations)."""
+    from omniscs import catalog
+
+    tables: dict[str, list[dict]] = {}
+    for r in records:
+        for table, rows in r.rows.items():
+            tables.setdefault(table, []).extend(rows)
+    root = layout.catalog_root(workspace)
+    written = [catalog.write_rows(root, table, run_id, rows, writer=writer) for table, rows in tables.items() if rows]
+    return [str(p) for p in written if p is not None]

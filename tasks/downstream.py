@@ -1,0 +1,29 @@
+"""Prefect tasks of the downstream flows: one line each over ``omniscs.pipeline.downstream``."""
+from __future__ import annotations
+
+from prefect import task
+
+from omniscs.pipeline import downstream as d
+from omniscs.pipeline.records import StageRecord
+from tasks.progress import artifact_progress
+
+
+@task(name="finetune-proxy-planner")
+def finetune(dataset_ids: list[str], workspace: str) -> StageRecord:
+    return d.finetune_stage(dataset_ids, workspace, progress=artifact_progress("fine-tune the proxy planner"))
+
+
+@task(name="evaluate-planner", task_run_name="evaluate-{label}")
+def evaluate(model: StageRecord | None, dataset_ids: list[str], workspace: str, label: str) -> StageRecord:
+    return d.evaluate_stage(model, dataset_ids, workspace)
+
+
+@task(name="external-job")
+def external(template: str, dataset_ids: list[str], workspace: str, values: dict, timeout_s: float,
+             export: str | None) -> StageRecord:
+    return d.external_stage(template, dataset_ids, workspace, values, timeout_s, export)
+
+
+@task(name="catalog-downstream")
+def catalog(run_id: str, workspace: str, records: list[StageRecord]) -> list[str]:
+    return d.catalog_records_stage(run_id, workspace, records, writer="downstream")
