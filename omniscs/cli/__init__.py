@@ -23,6 +23,7 @@ app.add_typer(scene.app, name="scene")
 app.add_typer(catalog.app, name="catalog")
 app.add_typer(dataset.app, name="dataset")
 app.add_typer(evaluation.app, name="eval")
+app.command("finetune")(evaluation.finetune)
 app.add_typer(bench.app, name="bench")
 
 

@@ -83,3 +83,44 @@ def planning(
         table.add_row(f"L2 (m), {conv}", *(f"{v:.3f}" for v in out[conv]["L2"].values()))
         table.add_row(f"collision (%), {conv}", *(f"{100 * v:.2f}" for v in out[conv]["obj_box_col"].values()))
     console.print(table)
+
+
+def finetune(
+    datasets: list[str] = typer.Argument(..., help="Ids of generated datasets in the workspace (train data)."),
+    model: str = typer.Option("proxy", help="proxy (the embedded proxy planner) or external (a job command)."),
+    test_dataset: list[str] = typer.Option([], "--test-dataset", help="Evaluate on these datasets (repeat; default "
+                                                                      "the training datasets: a fit, not a test)."),
+    external_template: Optional[str] = typer.Option(None, help="external: the job's command with {placeholders} "
+                                                                "({dataset_root}, {info_train}, {info_val}, "
+                                                                "{work_dir}, {gpu_ids}, ...)."),
+    gpu_ids: str = typer.Option("0", help="external: value of {gpu_ids}."),
+    timeout_s: float = typer.Option(6 * 3600.0, help="external: stop the job after this many seconds."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
+    run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+) -> None:
+    """Fine-tune on generated datasets and evaluate (the finetune_evaluate flow); results go to the catalog
+    (downstream_models, evaluations)."""
+    import os
+
+    from omniscs.cli.prefect_api import prefect_api
+    from omniscs.pipeline.downstream import dataset_paths
+    from omniscs.storage import workspace_path
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    if model not in ("proxy", "external"):
+        raise typer.BadParameter("proxy or external", param_hint="--model")
+    if model == "external" and not external_template:
+        raise typer.BadParameter("needed with --model external", param_hint="--external-template")
+    ws = workspace_path(workspace)
+    dataset_paths(ws, list(datasets) + list(test_dataset))  # unknown ids fail here, before Prefect starts
+    from flows.downstream import finetune_evaluate
+
+    with prefect_api():
+        out = finetune_evaluate(list(datasets), model=model, test_dataset_ids=list(test_dataset) or None,
+                                workspace=str(ws), run_id=run_id, external_template=external_template,
+                                external_values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
+                                external_timeout_s=timeout_s)
+    console.print(f"run {out['run_id']}: " + ", ".join(f"{m.get('model_id')} ({m.get('status', 'evaluated')})"
+                                                    for m in out["models"]))
+    console.print(f"see: omniscs catalog query \"SELECT model_id, split, metric, horizon, value FROM evaluations "
+                  f"WHERE run_id = '{out['run_id']}'\"")

@@ -168,7 +168,7 @@ def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainCo
             loss.backward()
             opt.step()
             sched.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
         losses.append(total / len(order))
         progress(epoch + 1, config.epochs, f"epoch loss {losses[-1]:.3f} m")
     model.eval()

@@ -153,7 +153,8 @@ def external_stage(template: str, dataset_ids: list[str], workspace: str | Path,
                    on_line=None) -> StageRecord:
     """An external job on the datasets: exported (``export``: uniad or nuscenes, or None) into the job's folder,
     the template filled (``{dataset_root}``, ``{info_train}``, ``{info_val}``, ``{work_dir}`` and ``values``), run
-    to its end or its timeout, its printed metrics read back. A crash or timeout is a failed model row."""
+    to its end or its timeout, its printed metrics read back. Without export, ``{dataset_root}`` is the dataset's
+    own folder (one dataset only). A crash or timeout is a failed model row."""
     from omniscs.eval.downstream import content_id, external_rows, failed_row
     from omniscs.eval.external import job_argv, run_job
     from omniscs.export import export_scenes
@@ -165,7 +166,11 @@ def external_stage(template: str, dataset_ids: list[str], workspace: str | Path,
     out = layout.downstream_folder(workspace, model_id)
     out.mkdir(parents=True, exist_ok=True)
     filled = {"work_dir": str(out / "work"), **(values or {})}
-    if export is not None:
+    if export is None and len(datasets) == 1:
+        filled.setdefault("dataset_root", str(datasets[0]))
+    elif export is None:
+        raise ValidationError("several datasets go to an external job only exported into one dataroot (export)")
+    else:
         stores = [s for d in datasets for s in sorted((d / "scenes").iterdir()) if s.is_dir()]
         root = export_scenes(stores, export, out / "data")
         filled.update(dataset_root=str(root), info_train=str(root / "infos" / "nuscenes_infos_temporal_train.pkl"),

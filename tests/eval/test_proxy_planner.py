@@ -117,3 +117,17 @@ def test_a_variant_with_absent_steps_reads_them_as_nan():
     assert np.isnan(sc.agents[0, :5]).all() and np.isfinite(sc.agents[0, 5:]).all()
     with pytest.raises(ValidationError, match="no category"):
         scenario_from_variant(variant, {})
+
+
+def test_the_shipped_planner_loads_and_says_how_it_was_made():
+    import json
+
+    from omniscs.eval.planner import DEFAULT_PLANNER
+
+    model = load_planner()
+    record = json.loads((DEFAULT_PLANNER / "training.json").read_text())
+    assert record["command"] == "omniscs bench downstream --train-base" and not record["fine_tuned"]
+    assert record["data"]["train_seeds"][0] == 300_000 and record["n_examples"] > 100
+    assert record["epoch_loss_m"][-1] < record["epoch_loss_m"][0]
+    held = planning_examples(_scenario(7, lead_gap=12.0))
+    assert all(np.isfinite(p).all() for p in plan(model, held).values())

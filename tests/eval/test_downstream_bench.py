@@ -1,0 +1,21 @@
+"""The downstream benchmark end to end on a few scenes (slow: it generates variants and solves the ego)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+
+@pytest.mark.slow
+def test_the_quick_protocol_writes_its_report_with_both_test_sets(tmp_path):
+    from omniscs.bench.downstream import quick_config, run_downstream_benchmark
+
+    result = run_downstream_benchmark(tmp_path / "reports", tmp_path / "ws", quick_config())
+    report = json.loads((tmp_path / "reports" / "downstream_bench.json").read_text())
+    assert (tmp_path / "reports" / "downstream_bench.png").stat().st_size > 10_000
+    assert set(report["rows"]) == {"behaviour-SCS test", "original test"}
+    for models in result["rows"].values():
+        for m in models.values():
+            assert m["n"] > 0 and all(np.isfinite(v) for v in (*m["L2"].values(), *m["collision"].values()))
+    assert "proxy" in (tmp_path / "reports" / "downstream_bench.md").read_text()
