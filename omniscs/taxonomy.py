@@ -27,3 +27,13 @@ SEMANTIC_CLASSES: dict[int, str] = {
     10: "terrain",
 }
 SEMANTIC_IDS: dict[str, int] = {name: i for i, name in SEMANTIC_CLASSES.items()}
+
+#: nuScenes category -> nuScenes detection class (the devkit's ``category_to_detection_name``, which mmdet3d's
+#: ``NuScenesDataset.NameMapping`` repeats).
+NUSCENES_DETECTION_CLASS: dict[str, str] = {
+    "movable_object.barrier": "barrier", "vehicle.bicycle": "bicycle", "vehicle.bus.bendy": "bus",
+    "vehicle.bus.rigid": "bus", "vehicle.car": "car", "vehicle.construction": "construction_vehicle",
+    "vehicle.motorcycle": "motorcycle", "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
+    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
+    "movable_object.trafficcone": "traffic_cone", "vehicle.trailer": "trailer", "vehicle.truck": "truck",
+}

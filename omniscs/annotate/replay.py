@@ -12,16 +12,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import cv2
 import numpy as np
 import pandas as pd
 
-from omniscs.annotate.config import AnnotateConfig
 from omniscs.errors import OmniscsError, ValidationError
-from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
-from omniscs.scene.store import Scene
 
 VIEWS_PARQUET = "views.parquet"
 IMAGES = "images"
@@ -31,26 +29,20 @@ def _png(root: Path, camera: str, frame: int) -> Path:
     return root / IMAGES / camera / f"{frame:06d}.png"
 
 
-def write_replay(graph: SceneGraph, scene: Scene, out_dir: str | Path, progress: Progress = no_progress) -> dict:
-    """Render every logged view of ``scene`` through ``graph`` unedited into ``out_dir`` (layout above); returns
-    {n_views, mean logged PSNR}."""
-    from omniscs.annotate.views import ViewAnnotator
-
-    if graph.scene_id != scene.scene_id:
-        raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
+def write_replay(out_dir: str | Path, views: Iterable[tuple[str, int, np.ndarray, float | None]],
+                 total: int | None = None, progress: Progress = no_progress) -> dict:
+    """Write ``views`` ((camera, frame, uint8 [H, W, 3] unedited render, logged PSNR or None) each) into
+    ``out_dir`` (layout above); returns {n_views, mean logged PSNR}. ``annotate.scene.replay_scene`` renders them."""
     out = Path(out_dir)
-    annotator = ViewAnnotator(graph, AnnotateConfig())
-    views = [(cam, f) for f in range(scene.n_frames) for cam in scene.camera_names]
     rows = []
-    for i, (cam, f) in enumerate(views):
-        view, rgb, logged_psnr = annotator.unedited(cam, f, lambda c=cam, t=f: scene.image(c, t), keep=False)
-        path = _png(out, cam, view.frame_idx)
+    for i, (cam, frame, rgb, logged_psnr) in enumerate(views):
+        path = _png(out, cam, frame)
         path.parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
             raise OmniscsError(f"could not write {path}")
-        rows.append({"camera": cam, "frame_idx": int(view.frame_idx),
+        rows.append({"camera": cam, "frame_idx": int(frame),
                      "logged_psnr": None if logged_psnr is None or not np.isfinite(logged_psnr) else logged_psnr})
-        progress(i + 1, len(views), "logged views replayed")
+        progress(i + 1, total, "logged views replayed")
     table = pd.DataFrame(rows, columns=["camera", "frame_idx", "logged_psnr"]).astype(
         {"camera": str, "frame_idx": "int64", "logged_psnr": "float64"})
     table.to_parquet(out / VIEWS_PARQUET, index=False)

@@ -87,3 +87,21 @@ def read_rows(out_dir: str | Path) -> dict:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as exc:
         raise OmniscsError(f"{path}: cannot read the annotate stage's rows ({exc}); run the stage again") from None
+
+
+def replay_scene(graph: SceneGraph, scene: Scene, out_dir: str | Path, progress: Progress = no_progress) -> dict:
+    """Every logged view of ``scene`` rendered through ``graph`` unedited, with its PSNR against the logged image,
+    written as a replay (``omniscs.annotate.replay``) into ``out_dir``."""
+    from omniscs.annotate.replay import write_replay
+
+    if graph.scene_id != scene.scene_id:
+        raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
+    annotator = ViewAnnotator(graph)
+    views = [(cam, f) for f in range(scene.n_frames) for cam in scene.camera_names]
+
+    def rendered():
+        for cam, f in views:
+            view, rgb, logged_psnr = annotator.unedited(cam, f, lambda c=cam, t=f: scene.image(c, t), keep=False)
+            yield cam, view.frame_idx, rgb, logged_psnr
+
+    return write_replay(out_dir, rendered(), len(views), progress)

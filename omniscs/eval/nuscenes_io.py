@@ -13,15 +13,10 @@ import numpy as np
 
 from omniscs.errors import ValidationError
 from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig
+from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
 
 #: nuScenes category -> detection class (the devkit's ``category_to_detection_name``).
-CATEGORY_TO_DETECTION: dict[str, str] = {
-    "movable_object.barrier": "barrier", "vehicle.bicycle": "bicycle", "vehicle.bus.bendy": "bus",
-    "vehicle.bus.rigid": "bus", "vehicle.car": "car", "vehicle.construction": "construction_vehicle",
-    "vehicle.motorcycle": "motorcycle", "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
-    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
-    "movable_object.trafficcone": "traffic_cone", "vehicle.trailer": "trailer", "vehicle.truck": "truck",
-}
+CATEGORY_TO_DETECTION: dict[str, str] = NUSCENES_DETECTION_CLASS
 BIKE_RACK = "static_object.bicycle_rack"
 #: Largest time between an annotation and its neighbour for a velocity (s; doubled across both neighbours).
 MAX_VELOCITY_DT_S = 1.5

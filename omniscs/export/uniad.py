@@ -54,6 +54,7 @@ from omniscs.export.nuscenes_map import DEFAULT_LOCATION, NUSCENES_LOCATIONS, SC
 from omniscs.geometry import invert_transform, make_transform
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
+from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
 
 #: The camera channels UniAD reads, in its order (a scene without one of them simply leaves it out).
 UNIAD_CAMERAS: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
@@ -61,14 +62,8 @@ UNIAD_CAMERAS: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEF
 #: UniAD's detection classes, in its config's order.
 DETECTION_CLASSES: tuple[str, ...] = ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier",
                                       "motorcycle", "bicycle", "pedestrian", "traffic_cone")
-#: nuScenes category -> detection class (the facts of mmdet3d's NuScenesDataset.NameMapping).
-NAME_MAPPING: dict[str, str] = {
-    "movable_object.barrier": "barrier", "vehicle.bicycle": "bicycle", "vehicle.bus.bendy": "bus",
-    "vehicle.bus.rigid": "bus", "vehicle.car": "car", "vehicle.construction": "construction_vehicle",
-    "vehicle.motorcycle": "motorcycle", "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
-    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
-    "movable_object.trafficcone": "traffic_cone", "vehicle.trailer": "trailer", "vehicle.truck": "truck",
-}
+#: nuScenes category -> detection class (mmdet3d's NuScenesDataset.NameMapping).
+NAME_MAPPING: dict[str, str] = NUSCENES_DETECTION_CLASS
 #: UniAD's motion class groups (its ``group_id_list`` over DETECTION_CLASSES), in its order.
 ANCHOR_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("vehicle", ("car", "truck", "construction_vehicle", "bus", "trailer")),

@@ -299,7 +299,7 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
     """Every logged view of the scene rendered through its fitted graph, unedited, with its PSNR against the logged
     image (``omniscs.annotate.replay``), in ``replays/<scene_id>/replay-<key>/``: made once per graph, read by
     every annotate run on it for the fidelity proxies."""
-    from omniscs.annotate.replay import write_replay
+    from omniscs.annotate.scene import replay_scene
     from omniscs.nsg.checkpoint import load_checkpoint
 
     started = time.perf_counter()
@@ -312,7 +312,7 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
             graph = load_checkpoint(model.path, scene)
-            manifest = produce(out, key, lambda tmp: write_replay(graph, scene, tmp, progress))
+            manifest = produce(out, key, lambda tmp: replay_scene(graph, scene, tmp, progress))
             reused = False
         else:
             reused = True

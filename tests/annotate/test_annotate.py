@@ -470,11 +470,12 @@ def test_lidar_points_per_box_match_a_count_over_every_point():
 
 def test_a_replay_holds_the_unedited_render_of_every_logged_view_and_annotations_are_the_same_with_it(
         fitted, annotated, tmp_path):
-    from omniscs.annotate.replay import Replay, write_replay
+    from omniscs.annotate.replay import Replay
+    from omniscs.annotate.scene import replay_scene
     from omniscs.annotate.views import ViewAnnotator
 
     scene, graph = fitted
-    info = write_replay(graph, scene, tmp_path / "replay")
+    info = replay_scene(graph, scene, tmp_path / "replay")
     replay = Replay.open(tmp_path / "replay")
     assert info["n_views"] == len(replay) == scene.n_frames * len(scene.camera_names)
     annotator = ViewAnnotator(graph)
@@ -493,14 +494,15 @@ def test_a_replay_holds_the_unedited_render_of_every_logged_view_and_annotations
 
 
 def test_a_damaged_replay_is_a_clear_error(fitted, tmp_path):
-    from omniscs.annotate.replay import Replay, write_replay
+    from omniscs.annotate.replay import Replay
+    from omniscs.annotate.scene import replay_scene
     from omniscs.annotate.views import ViewAnnotator
     from omniscs.errors import ValidationError
 
     scene, graph = fitted
     with pytest.raises(ValidationError, match="not a readable replay"):
         Replay.open(tmp_path / "nothing")
-    write_replay(graph, scene, tmp_path / "replay")
+    replay_scene(graph, scene, tmp_path / "replay")
     cam = scene.camera_names[0]
     (tmp_path / "replay" / "images" / cam / "000001.png").unlink()
     replay = Replay.open(tmp_path / "replay")
