@@ -1,0 +1,1 @@
+"""Agents: Gaussian assets of traffic participants (calibration, import and export)."""
