@@ -1,8 +1,8 @@
 """Coordinate calibration: the box axes of a model are recovered whatever rotation it came in (vehicles of the
 world's asset library, sampled surfaces under random rotations), and degenerate clouds are clear errors.
 
-Front/back and up/down are decided by templates and colours, which is not yet reliable; see the module docstring
-and the issue's notes. These tests hold what is: the axes (up to their signs)."""
+Front/back and up/down come from templates, a roof-up cue and tail lights (see the module docstring); the axes are
+tested on their own, then the heading with its signs."""
 from __future__ import annotations
 
 import zlib
@@ -61,3 +61,23 @@ def test_templates_fill_their_box():
     for category in ("car", "truck", "bus", "trailer", "pedestrian"):
         t = category_template(category, size)
         assert np.all(np.abs(t) <= size / 2 + 1e-9) and np.allclose(t.max(0) - t.min(0), size, atol=0.05)
+
+
+def test_the_heading_of_turned_vehicles_is_recovered_within_2_degrees_for_most():
+    """Front/back and up/down too: template, roof-up and tail-light cues (30 vehicles of every kind, colours linear
+    as the assets give them; over all 172 vehicle assets this was 95.9 %, 97.7 % with sRGB colours)."""
+    from omniscs.world.assets import build_asset, list_asset_ids
+
+    rng = np.random.default_rng(2026)
+    ids = [a for k in ("sedan", "suv", "van", "pickup", "box_truck", "bus", "trailer") for a in list_asset_ids(k)]
+    errors = []
+    for aid in [ids[i] for i in rng.choice(len(ids), 30, replace=False)]:
+        asset = build_asset(aid)
+        pts, face = trimesh.sample.sample_surface(asset.mesh, 4000, seed=int(rng.integers(1 << 30)))
+        R = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+        cal = calibrate_points(pts @ R.T, asset.category, np.asarray(asset.surface.face_colour)[face])
+        M = cal.rotation @ R
+        heading = np.degrees(np.arctan2(M[1, 0], M[0, 0]))
+        tilt = np.degrees(np.arccos(np.clip(M[2, 2], -1, 1)))
+        errors.append(max(abs(heading), tilt))
+    assert np.mean(np.array(errors) <= 2.0) >= 0.9, np.round(errors, 1)
