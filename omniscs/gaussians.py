@@ -130,3 +130,20 @@ def params_from_values(means: Tensor,     # [N, 3]
                           torch.log(scales.to(dtype).clamp_min(MIN_SCALE)).contiguous(),
                           torch.log(o / (1.0 - o)).contiguous(), rgb_to_sh_dc(rgb.to(dtype)).contiguous(),
                           torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, dtype=dtype, device=means.device))
+
+
+def rigidly_moved(params: GaussianParams, rotation, translation) -> GaussianParams:
+    """``params`` moved by p -> R p + t: means and orientations turn, and so do the view-dependent colours (every SH
+    band turned with the rotation: the Gaussians look from R d as they looked from d); scales and opacities stay."""
+    from omniscs.quaternions import quat_multiply, rotmat_to_quat
+    from omniscs.render.sh import rotate_sh
+
+    R = torch.as_tensor(rotation, dtype=torch.float64)
+    t = torch.as_tensor(translation, dtype=torch.float64)
+    dtype = params.means.dtype
+    q = torch.as_tensor(rotmat_to_quat(R.numpy()), dtype=dtype)
+    sh = rotate_sh(params.sh.double(), R).to(dtype)
+    return GaussianParams((params.means.double() @ R.T + t).to(dtype), quat_multiply(q.expand_as(params.quats),
+                                                                                     params.quats),
+                          params.log_scales.clone(), params.opacity_logits.clone(), sh[:, 0].contiguous(),
+                          sh[:, 1:].contiguous())

@@ -78,3 +78,26 @@ def colors_from_sh_at_cameras(degree: int,
 def rgb_to_sh_dc(rgb: Tensor) -> Tensor:  # [..., 3] in [0, 1] -> [..., 3] band-0 coefficient
     """The DC coefficient whose view-independent colour is ``rgb`` (inverse of the degree-0 colour)."""
     return (rgb - SH_COLOR_OFFSET) / SH_C0
+
+
+def sh_rotation(degree: int, R) -> Tensor:  # [3, 3] rotation -> [K, K] float64, K = (degree+1)^2
+    """The matrix M that turns coefficients with a rigid rotation: the function f'(d) = f(R^T d) has coefficients
+    M @ c. Each band is closed under rotation, so fitting M on more directions than coefficients is exact."""
+    k = num_sh_bases(degree)
+    n = max(4 * k, 64)
+    i = torch.arange(n, dtype=torch.float64) + 0.5  # a Fibonacci sphere: well-spread directions
+    z = 1.0 - 2.0 * i / n
+    phi = torch.pi * (1.0 + 5.0 ** 0.5) * i
+    r = torch.sqrt(1.0 - z * z)
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+    R = torch.as_tensor(R, dtype=torch.float64)
+    Y = sh_basis(degree, dirs)            # [n, K]
+    Y_turned = sh_basis(degree, dirs @ R)  # rows: R^T d
+    return torch.linalg.lstsq(Y, Y_turned).solution  # [K, K]
+
+
+def rotate_sh(coeffs: Tensor, R) -> Tensor:  # [N, K, 3], [3, 3] -> [N, K, 3]
+    """SH coefficients of Gaussians turned by ``R`` (their colour seen from R d equals the old one seen from d)."""
+    degree = int(round(coeffs.shape[1] ** 0.5)) - 1
+    M = sh_rotation(degree, R).to(coeffs.dtype).to(coeffs.device)
+    return torch.einsum("kj,njc->nkc", M, coeffs)

@@ -1,0 +1,150 @@
+"""The model pool: 360-degree Gaussian models of road users in their vehicle frame (+x heading, y left, z up, origin at
+the centre of the box, metres), gathered from meshes, imported splat files and well-observed scene tracks.
+
+On disk (``<pool>/``): ``models/<model_id>/`` holds ``gaussians.safetensors`` (the raw parameters) and
+``model.json`` (category, box size, provenance, source, quality, version, what calibration did); ``index/`` holds
+one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table. The id is a content hash of the
+parameters and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
+folder is written whole (a temporary sibling renamed into place) before its index row, and each row is its own
+file, so two writers adding at once never lose or half-write an entry, and a reader never sees a row without its
+model. Keyframes and re-ID embeddings join each entry when the pool builder and MSNet are built (issue 13)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from omniscs.errors import ValidationError
+from omniscs.gaussians import GaussianParams, rigidly_moved
+from omniscs.ids import check_id
+from omniscs.storage import atomic_directory, atomic_write_bytes
+from omniscs.taxonomy import CATEGORIES
+
+POOL_VERSION = 1
+MODELS, INDEX = "models", "index"
+GAUSSIANS, META = "gaussians.safetensors", "model.json"
+PROVENANCES = ("mesh", "imported", "scene_track")
+INDEX_COLUMNS = ("model_id", "category", "length", "width", "height", "n_gaussians", "sh_degree", "provenance",
+                 "source", "quality", "version", "added_at_us")
+
+
+def model_id_of(params: GaussianParams, category: str) -> str:
+    """``pm-<12 hex>`` of the parameters' bytes and the category."""
+    h = hashlib.sha256(category.encode())
+    for name, t in params.as_dict().items():
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().astype(np.float32).tobytes())
+    return f"pm-{h.hexdigest()[:12]}"
+
+
+@dataclass(frozen=True)
+class PoolModel:
+    model_id: str
+    params: GaussianParams
+    meta: dict
+
+
+class Pool:
+    """A pool folder (created on the first add)."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            raise ValidationError(f"pool {self.root} is a file, not a folder")
+
+    def add(self, params: GaussianParams, category: str, provenance: str, source: str,
+            quality: float | None = None, calibration: dict | None = None) -> str:
+        """Put a model (already in its vehicle frame) into the pool; returns its id (the same model: the same id,
+        nothing written twice)."""
+        if category not in CATEGORIES:
+            raise ValidationError(f"unknown category {category!r}; one of {list(CATEGORIES)}")
+        if provenance not in PROVENANCES:
+            raise ValidationError(f"provenance must be one of {PROVENANCES}; got {provenance!r}")
+        if len(params) == 0:
+            raise ValidationError("a pool model needs at least one Gaussian")
+        if not params.is_finite():
+            raise ValidationError("a pool model's parameters must be finite")
+        params = params.detached()
+        model_id = model_id_of(params, category)
+        folder = self.root / MODELS / model_id
+        means = params.means.double().numpy()
+        size = means.max(0) - means.min(0)
+        meta = {"model_id": model_id, "category": category, "size": size.tolist(), "n_gaussians": len(params),
+                "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
+                "quality": None if quality is None or not np.isfinite(quality) else float(quality),
+                "version": POOL_VERSION, "calibration": calibration, "added_at_us": int(time.time() * 1e6)}
+        if not (folder / META).is_file():
+            from safetensors.torch import save_file
+
+            try:
+                with atomic_directory(folder) as tmp:
+                    save_file({k: v.contiguous() for k, v in params.as_dict().items()}, str(tmp / GAUSSIANS))
+                    (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True))
+            except Exception:
+                if not (folder / META).is_file():  # another writer may have put the same model there first
+                    raise
+        row = pd.DataFrame([{"model_id": model_id, "category": category, "length": float(size[0]),
+                             "width": float(size[1]), "height": float(size[2]), "n_gaussians": len(params),
+                             "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
+                             "quality": meta["quality"], "version": POOL_VERSION,
+                             "added_at_us": meta["added_at_us"]}], columns=list(INDEX_COLUMNS))
+        index = self.root / INDEX / f"{model_id}.parquet"
+        if not index.is_file():
+            index.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(index, row.to_parquet(index=False))
+        return model_id
+
+    def table(self) -> pd.DataFrame:
+        """One row per model (``INDEX_COLUMNS``), by id; empty when the pool is."""
+        files = sorted((self.root / INDEX).glob("pm-*.parquet"))
+        if not files:
+            return pd.DataFrame(columns=list(INDEX_COLUMNS))
+        return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True).sort_values("model_id",
+                                                                                            ignore_index=True)
+
+    def get(self, model_id: str) -> PoolModel:
+        from safetensors.torch import load_file
+
+        check_id("pool model id", model_id)
+        folder = self.root / MODELS / model_id
+        if not (folder / META).is_file():
+            raise ValidationError(f"pool {self.root} has no model {model_id}")
+        try:
+            tensors = load_file(str(folder / GAUSSIANS))
+            return PoolModel(model_id, GaussianParams.from_dict(tensors), json.loads((folder / META).read_text()))
+        except Exception as e:  # safetensors raises its own error type for a damaged file
+            raise ValidationError(f"pool model {model_id} in {self.root} is damaged ({type(e).__name__}: {e})") from e
+
+    def import_ply(self, path: str | Path, category: str, calibrate: bool = True) -> str:
+        """A 3D Gaussian splatting PLY (e.g. an image-to-3D generator's output) into the pool: read, turned and
+        moved into the vehicle frame (``calibrate``; else taken as it is), added; returns its id."""
+        from omniscs.agents.ply import read_gaussian_ply
+
+        params = read_gaussian_ply(path)
+        calibration = None
+        if calibrate:
+            params, calibration = calibrated(params, category)
+        return self.add(params, category, "imported", str(Path(path).name), calibration=calibration)
+
+    def export_ply(self, model_id: str, path: str | Path) -> Path:
+        from omniscs.agents.ply import write_gaussian_ply
+
+        return write_gaussian_ply(self.get(model_id).params, path)
+
+
+def calibrated(params: GaussianParams, category: str) -> tuple[GaussianParams, dict]:
+    """``params`` moved into their vehicle frame by ``calibrate_points`` on the Gaussian centres (with their base
+    colours), and what the calibration found."""
+    from omniscs.agents.calibrate import calibrate_points
+    from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
+
+    colours = np.clip(SH_COLOR_OFFSET + SH_C0 * params.sh_dc.detach().double().numpy(), 0.0, 1.0)
+    cal = calibrate_points(params.means.detach().double().numpy(), category, colours)
+    moved = rigidly_moved(params, cal.rotation, cal.translation)
+    return moved, {"rotation": np.round(cal.rotation, 9).tolist(), "translation": np.round(cal.translation, 9).tolist(),
+                   "fitness": cal.fitness, "heading_by": cal.heading_by}

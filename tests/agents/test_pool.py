@@ -1,0 +1,144 @@
+"""The model pool: content-addressed entries (the same model added twice is one entry), exact storage, a turned
+splat file imported into its vehicle frame and exported again, two writers at once, clear errors; and rigid motion
+of Gaussians with their view-dependent colours."""
+from __future__ import annotations
+
+import multiprocessing as mp
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from omniscs.agents.pool import Pool, calibrated, model_id_of
+from omniscs.errors import ValidationError
+from omniscs.gaussians import params_from_values, rigidly_moved
+
+
+def _model(seed: int = 0, n: int = 300, degree: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    p = params_from_values(torch.randn(n, 3, generator=g) * torch.tensor([2.0, 0.9, 0.7]), torch.full((n, 3), 0.05),
+                           torch.full((n,), 0.8), torch.rand(n, 3, generator=g), degree,
+                           quats=torch.randn(n, 4, generator=g))
+    return type(p)(p.means, p.quats, p.log_scales, p.opacity_logits, p.sh_dc,
+                   0.2 * torch.randn(p.sh_rest.shape, generator=g))
+
+
+def test_a_model_added_twice_is_one_entry_stored_exactly(tmp_path):
+    pool = Pool(tmp_path / "pool")
+    params = _model()
+    a = pool.add(params, "car", "mesh", "sedan-0001", quality=31.5)
+    b = pool.add(params, "car", "mesh", "sedan-0001", quality=31.5)
+    assert a == b == model_id_of(params, "car") and a.startswith("pm-")
+    assert pool.add(_model(1), "car", "mesh", "sedan-0002") != a
+    table = pool.table()
+    assert sorted(table.model_id) == sorted({a, model_id_of(_model(1), "car")}) and len(table) == 2
+    got = pool.get(a)
+    for name, t in params.as_dict().items():
+        assert torch.equal(getattr(got.params, name), t), name
+    assert got.meta["category"] == "car" and got.meta["quality"] == 31.5 and got.meta["sh_degree"] == 1
+    assert table.set_index("model_id").loc[a, "length"] == pytest.approx(float(np.ptp(params.means[:, 0].numpy())))
+
+
+def test_rigid_motion_turns_positions_orientations_and_view_dependent_colour():
+    from omniscs.render.sh import sh_basis
+
+    params = _model(degree=3)
+    R = Rotation.random(random_state=4).as_matrix()
+    t = np.array([1.0, -2.0, 0.5])
+    moved = rigidly_moved(params, R, t)
+    np.testing.assert_allclose(moved.means.numpy(), params.means.numpy() @ R.T + t, atol=1e-5)
+    d = torch.nn.functional.normalize(torch.randn(50, 3, dtype=torch.float64), dim=-1)
+    new = torch.einsum("dk,nkc->ndc", sh_basis(3, d @ torch.as_tensor(R).T), moved.sh.double())  # seen from R d
+    old = torch.einsum("dk,nkc->ndc", sh_basis(3, d), params.sh.double())                       # seen from d
+    torch.testing.assert_close(new, old, atol=1e-5, rtol=1e-5)
+
+
+def test_a_turned_splat_file_is_imported_in_its_vehicle_frame_and_exported_exactly(tmp_path):
+    from omniscs.agents.ply import read_gaussian_ply, write_gaussian_ply
+    from omniscs.world.assets import build_asset
+
+    asset = build_asset("sedan-0003")
+    pts, face = trimesh.sample.sample_surface(asset.mesh, 3000, seed=3)
+    colours = np.clip(np.asarray(asset.surface.face_colour)[face] ** (1 / 2.2), 0, 1)  # roughly sRGB
+    car = params_from_values(torch.as_tensor(pts, dtype=torch.float32), torch.full((len(pts), 3), 0.03),
+                             torch.full((len(pts),), 0.9), torch.as_tensor(colours, dtype=torch.float32), 0)
+    R = Rotation.random(random_state=9).as_matrix()
+    turned = rigidly_moved(car, R, [3.0, -1.0, 7.0])  # as a generator might hand it over: any frame
+    write_gaussian_ply(turned, tmp_path / "car.ply")
+    pool = Pool(tmp_path / "pool")
+    model_id = pool.import_ply(tmp_path / "car.ply", "car")
+    got = pool.get(model_id)
+    assert got.meta["provenance"] == "imported" and got.meta["calibration"]["heading_by"] in ("shape", "colour", "tie")
+    err = np.linalg.norm(got.params.means.numpy() - pts, axis=1)
+    assert np.percentile(err, 95) < 0.05, np.percentile(err, 95)  # back where the asset had them
+    np.testing.assert_allclose(np.asarray(got.meta["size"]), asset.size, atol=0.08)
+    pool.export_ply(model_id, tmp_path / "out.ply")
+    back = read_gaussian_ply(tmp_path / "out.ply")
+    assert all(torch.equal(getattr(back, k), v) for k, v in got.params.as_dict().items())
+
+
+def _add_in_process(root: str, seeds: list[int]) -> list[str]:
+    pool = Pool(root)
+    return [pool.add(_model(s), "car", "mesh", f"seed-{s}") for s in seeds]
+
+
+def test_two_writers_at_once_lose_nothing_and_write_nothing_twice(tmp_path):
+    root = str(tmp_path / "pool")
+    with mp.get_context("spawn").Pool(2) as workers:
+        a, b = workers.starmap(_add_in_process, [(root, [0, 1, 2, 3]), (root, [2, 3, 4, 5])])
+    table = Pool(root).table()
+    assert sorted(table.model_id) == sorted(set(a) | set(b)) and len(table) == 6
+    for model_id in table.model_id:
+        assert len(Pool(root).get(model_id).params) == 300
+    assert not [p for p in (tmp_path / "pool" / "models").iterdir() if not p.name.startswith("pm-")]
+
+
+def test_bad_models_and_ids_are_clear_errors(tmp_path):
+    pool = Pool(tmp_path / "pool")
+    with pytest.raises(ValidationError, match="unknown category"):
+        pool.add(_model(), "spaceship", "mesh", "x")
+    with pytest.raises(ValidationError, match="provenance"):
+        pool.add(_model(), "car", "dream", "x")
+    bad = _model()
+    bad.means[0, 0] = float("nan")
+    with pytest.raises(ValidationError, match="finite"):
+        pool.add(bad, "car", "mesh", "x")
+    with pytest.raises(ValidationError, match="at least one"):
+        pool.add(_model().select(torch.zeros(300, dtype=torch.bool)), "car", "mesh", "x")
+    with pytest.raises(ValidationError, match="has no model"):
+        pool.get("pm-000000000000")
+    model_id = pool.add(_model(), "car", "mesh", "x")
+    (tmp_path / "pool" / "models" / model_id / "gaussians.safetensors").write_bytes(b"garbage")
+    with pytest.raises(ValidationError, match="damaged"):
+        pool.get(model_id)
+    assert len(Pool(tmp_path / "empty").table()) == 0
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValidationError, match="is a file"):
+        Pool(tmp_path / "file")
+    with pytest.raises(ValidationError):
+        calibrated(_model(n=5), "car")
+
+
+def test_the_pool_commands_import_list_and_export_with_the_id_alone_on_the_last_line(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from omniscs.agents.ply import read_gaussian_ply, write_gaussian_ply
+
+    write_gaussian_ply(_model(), tmp_path / "m.ply")
+    cli = [sys.executable, "-c", "from omniscs.cli import main; main()", "pool"]
+    run = lambda *a: subprocess.run(cli + list(a), capture_output=True, text=True, timeout=120)  # noqa: E731
+    imported = run("import", str(tmp_path / "m.ply"), "--category", "car", "--pool", str(tmp_path / "pool"),
+                   "--no-calibrate")
+    assert imported.returncode == 0, imported.stderr
+    model_id = imported.stdout.strip().splitlines()[-1]
+    assert model_id == model_id_of(read_gaussian_ply(tmp_path / "m.ply"), "car")
+    listed = run("list", str(tmp_path / "pool"), "--json")
+    assert [json.loads(line)["model_id"] for line in listed.stdout.splitlines()] == [model_id]
+    assert run("export", model_id, "--out", str(tmp_path / "out.ply"), "--pool", str(tmp_path / "pool")).returncode == 0
+    assert torch.equal(read_gaussian_ply(tmp_path / "out.ply").means, read_gaussian_ply(tmp_path / "m.ply").means)
+    bad = run("import", str(tmp_path / "m.ply"), "--category", "ufo", "--pool", str(tmp_path / "pool"))
+    assert bad.returncode == 2 and "unknown category" in bad.stderr and bad.stderr.strip().count("\n") == 0
