@@ -3,11 +3,12 @@ the centre of the box, metres), gathered from meshes, imported splat files and w
 
 On disk (``<pool>/``): ``models/<model_id>/`` holds ``gaussians.safetensors`` (the raw parameters) and
 ``model.json`` (category, box size, provenance, source, quality, version, what calibration did); ``index/`` holds
-one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table. The id is a content hash of the
+one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table, and ``keyframes.npz`` (30 RGBA
+views around the model at 12 degrees of azimuth, rendered when it joins). The id is a content hash of the
 parameters and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
 folder is written whole (a temporary sibling renamed into place) before its index row, and each row is its own
 file, so two writers adding at once never lose or half-write an entry, and a reader never sees a row without its
-model. Keyframes and re-ID embeddings join each entry when the pool builder and MSNet are built (issue 13)."""
+model. Re-ID embeddings join each entry when MSNet is built (issue 13)."""
 from __future__ import annotations
 
 import hashlib
@@ -27,7 +28,7 @@ from omniscs.taxonomy import CATEGORIES
 
 POOL_VERSION = 1
 MODELS, INDEX = "models", "index"
-GAUSSIANS, META = "gaussians.safetensors", "model.json"
+GAUSSIANS, META, KEYFRAMES = "gaussians.safetensors", "model.json", "keyframes.npz"
 PROVENANCES = ("mesh", "imported", "scene_track")
 INDEX_COLUMNS = ("model_id", "category", "length", "width", "height", "n_gaussians", "sh_degree", "provenance",
                  "source", "quality", "version", "added_at_us")
@@ -81,9 +82,13 @@ class Pool:
         if not (folder / META).is_file():
             from safetensors.torch import save_file
 
+            from omniscs.agents.mesh import keyframes
+
+            views = keyframes(params, np.maximum(size, 1e-3))
             try:
                 with atomic_directory(folder) as tmp:
                     save_file({k: v.contiguous() for k, v in params.as_dict().items()}, str(tmp / GAUSSIANS))
+                    np.savez_compressed(tmp / KEYFRAMES, rgba=views)
                     (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True))
             except Exception:
                 if not (folder / META).is_file():  # another writer may have put the same model there first
@@ -119,6 +124,12 @@ class Pool:
             return PoolModel(model_id, GaussianParams.from_dict(tensors), json.loads((folder / META).read_text()))
         except Exception as e:  # safetensors raises its own error type for a damaged file
             raise ValidationError(f"pool model {model_id} in {self.root} is damaged ({type(e).__name__}: {e})") from e
+
+    def keyframes(self, model_id: str) -> np.ndarray:
+        """uint8 [30, H, W, 4] RGBA views of the model around it at 12 degree steps (``agents.mesh.keyframes``)."""
+        self.get(model_id)
+        with np.load(self.root / MODELS / model_id / KEYFRAMES) as z:
+            return z["rgba"]
 
     def import_ply(self, path: str | Path, category: str, calibrate: bool = True) -> str:
         """A 3D Gaussian splatting PLY (e.g. an image-to-3D generator's output) into the pool: read, turned and
