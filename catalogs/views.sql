@@ -176,6 +176,24 @@ CREATE OR REPLACE VIEW annotations AS
   FROM annotations_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."dataset_id", b."store_id", b."frame_idx", b."camera", b."track_id"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW pool_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("pool_path" AS VARCHAR) AS "pool_path", CAST("model_id" AS VARCHAR) AS "model_id", CAST("category" AS VARCHAR) AS "category", CAST("length" AS DOUBLE) AS "length", CAST("width" AS DOUBLE) AS "width", CAST("height" AS DOUBLE) AS "height", CAST("n_gaussians" AS BIGINT) AS "n_gaussians", CAST("provenance" AS VARCHAR) AS "provenance", CAST("source" AS VARCHAR) AS "source", CAST("quality" AS DOUBLE) AS "quality", CAST("new" AS BOOLEAN) AS "new", CAST("seconds" AS DOUBLE) AS "seconds",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/pool/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "pool_path", NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "category", NULL::DOUBLE AS "length", NULL::DOUBLE AS "width", NULL::DOUBLE AS "height", NULL::BIGINT AS "n_gaussians", NULL::VARCHAR AS "provenance", NULL::VARCHAR AS "source", NULL::DOUBLE AS "quality", NULL::BOOLEAN AS "new", NULL::DOUBLE AS "seconds" WHERE false);
+CREATE OR REPLACE VIEW pool_by_run AS
+  SELECT run_id, "pool_path", "model_id", "category", "length", "width", "height", "n_gaussians", "provenance", "source", "quality", "new", "seconds"
+  FROM pool_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "pool_path", "model_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW pool AS
+  SELECT b.run_id, b."pool_path", b."model_id", b."category", b."length", b."width", b."height", b."n_gaussians", b."provenance", b."source", b."quality", b."new", b."seconds"
+  FROM pool_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."pool_path", b."model_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
 CREATE OR REPLACE VIEW downstream_models_raw AS
   SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
     CAST("model_id" AS VARCHAR) AS "model_id", CAST("kind" AS VARCHAR) AS "kind", CAST("base_model_id" AS VARCHAR) AS "base_model_id", CAST("dataset_ids" AS VARCHAR[]) AS "dataset_ids", CAST("status" AS VARCHAR) AS "status", CAST("path" AS VARCHAR) AS "path", CAST("n_examples" AS BIGINT) AS "n_examples", CAST("train_seconds" AS DOUBLE) AS "train_seconds", CAST("command" AS VARCHAR) AS "command", CAST("log_path" AS VARCHAR) AS "log_path", CAST("error" AS VARCHAR) AS "error", CAST("config_json" AS VARCHAR) AS "config_json",

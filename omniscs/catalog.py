@@ -232,6 +232,20 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("num_lidar_points", pa.int64(), nullable=False),  # simulated from the rendered depth, whole frame
         *[pa.field(c, pa.float64(), nullable=False) for c in ("vx", "vy", "vz")],  # world frame, m/s
     ]),
+    "pool": pa.schema([                                           # models added to a pool (build_pool)
+        pa.field("pool_path", pa.string(), nullable=False),
+        pa.field("model_id", pa.string(), nullable=False),        # pm-<content hash>
+        pa.field("category", pa.string(), nullable=False),
+        pa.field("length", pa.float64(), nullable=False),
+        pa.field("width", pa.float64(), nullable=False),
+        pa.field("height", pa.float64(), nullable=False),
+        pa.field("n_gaussians", pa.int64(), nullable=False),
+        pa.field("provenance", pa.string(), nullable=False),      # mesh | imported | scene_track
+        pa.field("source", pa.string(), nullable=False),          # asset id, file name or scene/track
+        pa.field("quality", pa.float64()),                        # PSNR (dB) on held-out views; null: not scored
+        pa.field("new", pa.bool_(), nullable=False),              # false: the same model was already there
+        pa.field("seconds", pa.float64(), nullable=False),        # to build it
+    ]),
     "downstream_models": pa.schema([                              # driving models trained on generated datasets
         pa.field("model_id", pa.string(), nullable=False),        # proxy-planner-<hash> | external-<hash>
         pa.field("kind", pa.string(), nullable=False),            # proxy_planner | external
@@ -277,6 +291,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "datasets": ("dataset_id",),
     "samples": ("dataset_id", "store_id", "frame_idx", "camera"),
     "annotations": ("dataset_id", "store_id", "frame_idx", "camera", "track_id"),
+    "pool": ("pool_path", "model_id"),
     "downstream_models": ("model_id",),
     "evaluations": ("eval_id", "split", "metric", "class_name", "horizon", "convention"),
 }

@@ -1,0 +1,32 @@
+"""The pool stage (Prefect-free): one asset of the world's library made into a pool model and added, with its
+``pool`` catalog row."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from omniscs.pipeline.records import StageRecord
+
+
+def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, refine_steps: int = 100) -> StageRecord:
+    """``asset_id`` (a mesh of the asset library) as a pool model of ``pool`` (added once: the same model again is
+    the same entry, ``new`` false)."""
+    from omniscs.agents.mesh import model_from_mesh
+    from omniscs.agents.pool import Pool, model_id_of
+    from omniscs.world.assets import build_asset
+
+    started = time.perf_counter()
+    asset = build_asset(asset_id)
+    s = asset.surface
+    params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps)
+    p = Pool(pool)
+    existed = model_id_of(params, asset.category) in set(p.table().model_id)
+    model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"])
+    meta = p.get(model_id).meta
+    length, width, height = meta["size"]
+    row = {"pool_path": str(Path(pool).resolve()), "model_id": model_id, "category": asset.category,
+           "length": length, "width": width, "height": height, "n_gaussians": meta["n_gaussians"],
+           "provenance": "mesh", "source": asset_id, "quality": meta["quality"], "new": not existed,
+           "seconds": time.perf_counter() - started}
+    return StageRecord("pool", asset_id, str(Path(pool) / "models" / model_id), reused=existed,
+                       seconds=row["seconds"], rows={"pool": [row]}, info={"model_id": model_id})
