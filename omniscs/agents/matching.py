@@ -1,0 +1,164 @@
+"""Matching degraded road users to pool models: the degradations a scene's agents suffer, the embedders that map a
+crop to a vector (hand-made baselines here; the trained MSNet plugs in through the same ``Embedder`` interface),
+ranking against the pool's keyframes, and the one-to-one assignment (Hungarian, scipy) gated by category.
+
+A pool model is represented by its 30 keyframes; a query's similarity to a model is the best cosine similarity
+over that model's keyframes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from omniscs.errors import ValidationError
+
+CROP = 64  # embedders see square crops of this many pixels
+
+
+@dataclass(frozen=True)
+class Degradation:
+    """How badly a crop is seen: downsampling factor, illumination gain and gamma, occluded share of the crop,
+    blur sigma (px), noise sigma (0..255), JPEG quality (None: no compression)."""
+
+    downsample: float = 1.0
+    gain: float = 1.0
+    gamma: float = 1.0
+    occlusion: float = 0.0
+    blur: float = 0.0
+    noise: float = 0.0
+    jpeg: int | None = None
+
+    def __post_init__(self):
+        if not (self.downsample >= 1 and self.gain > 0 and self.gamma > 0 and 0 <= self.occlusion < 1
+                and self.blur >= 0 and self.noise >= 0 and (self.jpeg is None or 1 <= self.jpeg <= 100)):
+            raise ValidationError(f"bad degradation {self}")
+
+
+def degrade(rgb: np.ndarray, d: Degradation, rng: np.random.Generator) -> np.ndarray:  # uint8 [H, W, 3] -> same
+    """``rgb`` as a distant, badly lit, partly hidden, blurred, noisy, compressed observation (same size)."""
+    h, w = rgb.shape[:2]
+    img = rgb.astype(np.float32) / 255.0
+    if d.downsample > 1:
+        small = cv2.resize(img, (max(1, round(w / d.downsample)), max(1, round(h / d.downsample))),
+                           interpolation=cv2.INTER_AREA)
+        img = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    img = np.clip(d.gain * np.power(np.clip(img, 0, 1), d.gamma), 0, 1)
+    if d.blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), d.blur)
+    if d.occlusion > 0:  # a block of another colour over one side (what a parked car in front hides)
+        side = rng.integers(4)
+        frac = d.occlusion
+        fill = rng.uniform(0.1, 0.6, 3).astype(np.float32)
+        if side == 0:
+            img[:, :round(w * frac)] = fill
+        elif side == 1:
+            img[:, w - round(w * frac):] = fill
+        elif side == 2:
+            img[h - round(h * frac):] = fill
+        else:
+            img[:round(h * frac)] = fill
+    if d.noise > 0:
+        img = img + rng.normal(0, d.noise / 255.0, img.shape).astype(np.float32)
+    out = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if d.jpeg is not None:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(d.jpeg)])
+        out = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if ok else out
+    return out
+
+
+def crop_square(rgb: np.ndarray, alpha: np.ndarray | None = None, size: int = CROP) -> np.ndarray:
+    """The object's square crop (its alpha's bounding box, or the whole image), resized to ``size``."""
+    if alpha is not None and (alpha > 0.5).any():
+        ys, xs = np.nonzero(alpha > 0.5)
+        cy, cx = 0.5 * (ys.min() + ys.max()), 0.5 * (xs.min() + xs.max())
+        half = 0.5 * max(ys.max() - ys.min(), xs.max() - xs.min()) + 2
+        y0, y1 = int(max(0, cy - half)), int(min(rgb.shape[0], cy + half + 1))
+        x0, x1 = int(max(0, cx - half)), int(min(rgb.shape[1], cx + half + 1))
+        rgb = rgb[y0:y1, x0:x1]
+    return cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA)
+
+
+class Embedder(Protocol):
+    name: str
+
+    def embed(self, crops: np.ndarray) -> np.ndarray:  # uint8 [N, CROP, CROP, 3] -> float32 [N, D] unit rows
+        ...
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+class ColourHistogram:
+    """HSV histogram (8 hue x 4 saturation x 4 value bins), square-rooted."""
+
+    name = "colour histogram"
+
+    def embed(self, crops: np.ndarray) -> np.ndarray:
+        out = []
+        for c in crops:
+            hsv = cv2.cvtColor(c, cv2.COLOR_RGB2HSV)
+            hist = cv2.calcHist([hsv], [0, 1, 2], None, [8, 4, 4], [0, 180, 0, 256, 0, 256]).ravel()
+            out.append(np.sqrt(hist / max(hist.sum(), 1.0)))
+        return _unit(np.stack(out))
+
+
+class HOG:
+    """OpenCV's HOG on the grey crop (16 px cells, 9 orientations)."""
+
+    name = "HOG"
+
+    def __init__(self) -> None:
+        self._hog = cv2.HOGDescriptor((CROP, CROP), (16, 16), (8, 8), (8, 8), 9)
+
+    def embed(self, crops: np.ndarray) -> np.ndarray:
+        return _unit(np.stack([self._hog.compute(cv2.cvtColor(c, cv2.COLOR_RGB2GRAY)).ravel() for c in crops]))
+
+
+class RawPixels:
+    """The crop at 16 x 16, mean-removed."""
+
+    name = "raw pixels"
+
+    def embed(self, crops: np.ndarray) -> np.ndarray:
+        small = np.stack([cv2.resize(c, (16, 16), interpolation=cv2.INTER_AREA) for c in crops]).astype(np.float32)
+        flat = small.reshape(len(small), -1)
+        return _unit(flat - flat.mean(1, keepdims=True))
+
+
+def model_scores(query: np.ndarray, gallery: np.ndarray, gallery_model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[Q, M] best cosine similarity of each query to each model's keyframes, and the model ids' order [M]."""
+    models = np.unique(gallery_model)
+    sim = query @ gallery.T  # [Q, G]
+    scores = np.full((len(query), len(models)), -np.inf, np.float32)
+    for j, m in enumerate(models):
+        scores[:, j] = sim[:, gallery_model == m].max(1)
+    return scores, models
+
+
+def top_k_accuracy(scores: np.ndarray, models: np.ndarray, truth: np.ndarray, ks=(1, 5)) -> dict[int, float]:
+    """Share of queries whose true model is among the ``k`` best scored."""
+    order = np.argsort(-scores, axis=1)
+    ranked = models[order]
+    return {k: float(np.mean([t in row[:k] for t, row in zip(truth, ranked)])) for k in ks}
+
+
+def assign(scores: np.ndarray, query_categories: list[str], model_categories: list[str]) -> list[int | None]:
+    """One pool model per query (index into the models), each model used at most once, only within a category
+    (Hungarian on 1 - similarity); None where no model of the query's category is left."""
+    from scipy.optimize import linear_sum_assignment
+
+    if scores.shape != (len(query_categories), len(model_categories)):
+        raise ValidationError("scores must be [queries, models] and match the category lists")
+    big = 1e6
+    cost = np.where(np.array(query_categories)[:, None] == np.array(model_categories)[None, :], 1.0 - scores, big)
+    cost = np.nan_to_num(cost, nan=big, posinf=big, neginf=big)
+    rows, cols = linear_sum_assignment(cost)
+    out: list[int | None] = [None] * len(query_categories)
+    for r, c in zip(rows, cols):
+        if cost[r, c] < big:
+            out[r] = int(c)
+    return out
