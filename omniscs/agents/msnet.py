@@ -1,0 +1,160 @@
+"""MSNet: an omni-scale re-identification network (after OSNet, Zhou et al. 2019), written here and trained from
+scratch on pool keyframes with degradations, that maps a crop of a road user to a unit vector; the same model
+seen from near and far, lit differently, partly hidden, lands close.
+
+Architecture (x0.25 widths, 64 x 64 input): a 3x3 stride-2 stem (16), then three stages of omni-scale bottlenecks
+(``OSBlock``: 1x1 down to a quarter of the width, four streams of 1 to 4 stacked depthwise-separable 3x3 convolutions
+(receptive fields 3 to 9), a shared channel gate (global pooling, two 1x1 convolutions, sigmoid) that weighs each
+stream before they are summed, 1x1 back up, a residual connection) with 2x2 average pooling between stages (16,
+32, 48, 64 channels), global average pooling, a linear layer to ``dim``, L2 normalisation.
+Loss ``L_om``: batch-hard triplet loss with margin alpha: for each anchor the hardest positive (the farthest crop of
+the same model) is pulled in and the hardest negative (the nearest crop of another model) pushed out,
+mean(max(0, alpha + max_pos d - min_neg d)). (The paper's printed equation swaps max and min; this is the intended
+form.)
+
+Where it stands: no weights are shipped yet. A first run (300 steps, 78 s on this machine, 86 vehicle assets'
+keyframes with five degradations) reached top-1 27 % on clean views of 40 held-out assets and 5 % at 4x
+downsampling + 40 % occlusion + an illumination shift, below the colour-histogram baseline (99.7 % and 22 %): it
+needs far longer training and a larger pool before it can meet the issue's 95 %."""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from omniscs.errors import ValidationError
+from omniscs.progress import Progress, no_progress
+
+
+class _Light3x3(nn.Module):  # depthwise-separable 3x3: 1x1 then depthwise 3x3, BN, ReLU
+    def __init__(self, c: int) -> None:
+        super().__init__()
+        self.pw = nn.Conv2d(c, c, 1, bias=False)
+        self.dw = nn.Conv2d(c, c, 3, padding=1, groups=c, bias=False)
+        self.bn = nn.BatchNorm2d(c)
+
+    def forward(self, x):
+        return torch.relu(self.bn(self.dw(self.pw(x))))
+
+
+class OSBlock(nn.Module):
+    def __init__(self, c_in: int, c_out: int) -> None:
+        super().__init__()
+        mid = max(4, c_out // 4)
+        self.down = nn.Sequential(nn.Conv2d(c_in, mid, 1, bias=False), nn.BatchNorm2d(mid), nn.ReLU())
+        self.streams = nn.ModuleList([nn.Sequential(*[_Light3x3(mid) for _ in range(t)]) for t in range(1, 5)])
+        self.gate = nn.Sequential(nn.AdaptiveAvgPool2d(1), nn.Conv2d(mid, max(2, mid // 4), 1), nn.ReLU(),
+                                  nn.Conv2d(max(2, mid // 4), mid, 1), nn.Sigmoid())
+        self.up = nn.Sequential(nn.Conv2d(mid, c_out, 1, bias=False), nn.BatchNorm2d(c_out))
+        self.skip = nn.Identity() if c_in == c_out else nn.Sequential(nn.Conv2d(c_in, c_out, 1, bias=False),
+                                                                       nn.BatchNorm2d(c_out))
+
+    def forward(self, x):
+        z = self.down(x)
+        mixed = 0
+        for stream in self.streams:  # each scale weighed by the shared gate, then summed
+            y = stream(z)
+            mixed = mixed + y * self.gate(y)
+        return torch.relu(self.up(mixed) + self.skip(x))
+
+
+@dataclass(frozen=True)
+class MSNetConfig:
+    widths: tuple[int, ...] = (16, 32, 48, 64)
+    dim: int = 128
+
+
+class MSNet(nn.Module):
+    def __init__(self, config: MSNetConfig = MSNetConfig()) -> None:
+        super().__init__()
+        w = config.widths
+        self.config = config
+        layers = [nn.Conv2d(3, w[0], 3, stride=2, padding=1, bias=False), nn.BatchNorm2d(w[0]), nn.ReLU()]
+        for a, b in zip(w[:-1], w[1:]):
+            layers += [OSBlock(a, b), OSBlock(b, b), nn.AvgPool2d(2)]
+        self.features = nn.Sequential(*layers)
+        self.head = nn.Linear(w[-1], config.dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:  # [B, 3, H, W] in 0..1 -> [B, dim] unit
+        z = self.features(x).mean((2, 3))
+        return nn.functional.normalize(self.head(z), dim=1)
+
+
+def batch_hard_triplet(emb: torch.Tensor, labels: torch.Tensor, margin: float) -> torch.Tensor:
+    """mean over anchors of max(0, margin + farthest same-label distance - nearest other-label distance); anchors
+    with no positive or no negative in the batch are left out."""
+    d = torch.cdist(emb, emb)
+    same = labels[:, None] == labels[None, :]
+    eye = torch.eye(len(labels), dtype=torch.bool, device=emb.device)
+    pos = torch.where(same & ~eye, d, torch.full_like(d, -1.0)).max(1).values
+    neg = torch.where(~same, d, torch.full_like(d, float("inf"))).min(1).values
+    ok = (pos >= 0) & torch.isfinite(neg)
+    if not ok.any():
+        return emb.sum() * 0.0
+    return torch.relu(margin + pos[ok] - neg[ok]).mean()
+
+
+@dataclass(frozen=True)
+class MSNetTrainConfig:
+    steps: int = 600
+    models_per_batch: int = 16
+    views_per_model: int = 4
+    lr: float = 2e-3
+    margin: float = 0.3
+    seed: int = 0
+
+
+def _tensor(crops: np.ndarray) -> torch.Tensor:
+    return torch.as_tensor(crops, dtype=torch.float32).permute(0, 3, 1, 2) / 255.0
+
+
+def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSNetTrainConfig = MSNetTrainConfig(),
+                net: MSNet | None = None, progress: Progress = no_progress) -> tuple[MSNet, dict]:
+    """Train on ``crops`` (uint8 [N, 64, 64, 3]) of models ``labels`` [N]; each batch takes ``models_per_batch``
+    models with ``views_per_model`` crops each, every crop degraded by one of ``degradations`` at random."""
+    from omniscs.agents.matching import degrade
+
+    labels = np.asarray(labels)
+    models = np.unique(labels)
+    if len(models) < 2 or len(crops) != len(labels):
+        raise ValidationError("MSNet needs crops of at least two models, one label per crop")
+    rng = np.random.default_rng(config.seed)
+    torch.manual_seed(config.seed)
+    net = net or MSNet()
+    opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=5e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps)
+    by_model = {m: np.flatnonzero(labels == m) for m in models}
+    started, losses = time.perf_counter(), []
+    net.train()
+    for step in range(config.steps):
+        chosen = rng.choice(models, min(config.models_per_batch, len(models)), replace=False)
+        idx = np.concatenate([rng.choice(by_model[m], config.views_per_model) for m in chosen])
+        batch = np.stack([degrade(crops[i], degradations[rng.integers(len(degradations))], rng) for i in idx])
+        loss = batch_hard_triplet(net(_tensor(batch)), torch.as_tensor(labels[idx]), config.margin)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses.append(float(loss.detach()))
+        progress(step + 1, config.steps, f"triplet loss {np.mean(losses[-20:]):.3f}")
+    net.eval()
+    return net, {"config": asdict(config), "loss_first": float(np.mean(losses[:20])),
+                 "loss_last": float(np.mean(losses[-20:])), "seconds": time.perf_counter() - started,
+                 "n_crops": int(len(crops)), "n_models": int(len(models))}
+
+
+class MSNetEmbedder:
+    """The ``Embedder`` interface over a trained MSNet."""
+
+    name = "MSNet"
+
+    def __init__(self, net: MSNet) -> None:
+        self.net = net.eval()
+
+    @torch.no_grad()
+    def embed(self, crops: np.ndarray) -> np.ndarray:
+        out = [self.net(_tensor(crops[i:i + 256])).numpy() for i in range(0, len(crops), 256)]
+        return np.concatenate(out).astype(np.float32)
