@@ -8,8 +8,6 @@ that made them (``upstream_flow_run``: what a deployment trigger on its ``prefec
 """
 from __future__ import annotations
 
-import time
-
 from prefect import flow, get_run_logger
 
 from omniscs.errors import OmniscsError, ValidationError
@@ -17,14 +15,11 @@ from omniscs.pipeline import downstream as d
 from omniscs.pipeline.records import StageRecord, new_run_id
 from omniscs.pipeline.validate import check_run_id
 from omniscs.storage import workspace_root
+from flows.generate import _now_us, one_line
 from tasks import downstream as t
 from tasks import stages as ts
 
 MODELS = ("proxy", "external")
-
-
-def _now_us() -> int:
-    return int(time.time() * 1e6)
 
 
 def _datasets(ws: str, dataset_ids: list[str] | None, upstream_flow_run: str | None) -> list[str]:
@@ -74,7 +69,7 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
     except BaseException as exc:
         status = "failed" if isinstance(exc, Exception) else "cancelled"
         ts.catalog_run.fn(run_id, ws, "finetune_evaluate", status, started, _now_us(), 0, config,
-                          error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+                          error=one_line(exc))
         raise
     failed = [r.info.get("error") or "no model to evaluate" for r in records if r.info.get("status") == "failed"]
     ts.catalog_run(run_id, ws, "finetune_evaluate", "failed" if failed else "completed", started, _now_us(), 0, config,
@@ -107,7 +102,7 @@ def evaluate(model: str, dataset_ids: list[str], workspace: str | None = None, r
         t.catalog(run_id, ws, [result])
     except BaseException as exc:
         ts.catalog_run.fn(run_id, ws, "evaluate", "failed" if isinstance(exc, Exception) else "cancelled", started,
-                          _now_us(), 0, config, error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+                          _now_us(), 0, config, error=one_line(exc))
         raise
     ts.catalog_run(run_id, ws, "evaluate", "completed", started, _now_us(), 0, config)
     return {"run_id": run_id, "eval_id": result.info["eval_id"], "model_id": result.info["model_id"]}

@@ -24,6 +24,6 @@ def external(template: str, dataset_ids: list[str], workspace: str, values: dict
     return d.external_stage(template, dataset_ids, workspace, values, timeout_s, export)
 
 
-@task(name="catalog-downstream")
-def catalog(run_id: str, workspace: str, records: list[StageRecord]) -> list[str]:
-    return d.catalog_records_stage(run_id, workspace, records, writer="downstream")
+@task(name="catalog-records", task_run_name="catalog-{writer}")
+def catalog(run_id: str, workspace: str, records: list[StageRecord], writer: str = "downstream") -> list[str]:
+    return d.catalog_records_stage(run_id, workspace, records, writer=writer)

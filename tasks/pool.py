@@ -11,9 +11,3 @@ from omniscs.pipeline.records import StageRecord
 def add_asset(asset_id: str, pool_path: str, gaussians: int, refine_steps: int) -> StageRecord:
     return pool.pool_asset_stage(asset_id, pool_path, gaussians, refine_steps)
 
-
-@task(name="catalog-pool")
-def catalog(run_id: str, workspace: str, records: list[StageRecord]) -> list[str]:
-    from omniscs.pipeline.downstream import catalog_records_stage
-
-    return catalog_records_stage(run_id, workspace, records, writer="pool")

@@ -121,17 +121,9 @@ def category_template(category: str, size: np.ndarray, n: int = 1500, seed: int 
     return _boxes(parts, n, np.random.default_rng(seed)) * np.asarray(size, np.float64)
 
 
-def _principal_frame(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(centre [3], axes [3, 3] rows = principal directions by falling spread, extents [3])."""
-    centre = points.mean(0)
-    q = points - centre
-    eigval, eigvec = np.linalg.eigh(q.T @ q / len(q))
-    order = np.argsort(eigval)[::-1]
-    axes = eigvec[:, order].T
-    if np.linalg.det(axes) < 0:
-        axes[2] = -axes[2]
-    extents = np.sqrt(np.maximum(eigval[order], 0.0))
-    return centre, axes, extents
+def _principal_extents(points: np.ndarray) -> np.ndarray:  # [3] spread along the principal axes, falling
+    q = points - points.mean(0)
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(q.T @ q / len(q))[::-1], 0.0))
 
 
 #: Tail-light red, in linear or sRGB 0..1: red above the first, green and blue below the second and below red / 4.
@@ -210,7 +202,7 @@ def calibrate_points(points: np.ndarray, category: str, colours: np.ndarray | No
     keep = rng.choice(len(points), MAX_POINTS, replace=False) if len(points) > MAX_POINTS else np.arange(len(points))
     pts = points[keep]
     col = None if colours is None else np.asarray(colours, np.float64).reshape(-1, 3)[keep]
-    _, _, extents = _principal_frame(pts)
+    extents = _principal_extents(pts)
     if extents[1] <= DEGENERATE_RATIO * extents[0]:
         raise ValidationError(f"calibration points are collinear (principal extents {extents.round(4).tolist()})")
     if extents[2] <= DEGENERATE_RATIO * extents[0]:

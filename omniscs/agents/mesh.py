@@ -22,6 +22,7 @@ import torch
 
 from omniscs.errors import ValidationError
 from omniscs.gaussians import GaussianParams, activate, params_from_values
+from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
 #: Light for shading the mesh colours: a direction (towards the light) and the ambient share.
 LIGHT_DIRECTION = np.array([0.35, 0.45, 0.82])
@@ -151,7 +152,7 @@ def _render(params: GaussianParams, cameras: list[Camera]) -> tuple[torch.Tensor
     g = activate(params)
     view = torch.stack([torch.as_tensor(np.linalg.inv(c.world_from_camera), dtype=torch.float32) for c in cameras])
     K = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
-    colours = (0.5 + 0.28209479177387814 * g.sh[:, 0]).clamp(0.0, 1.0)
+    colours = (SH_COLOR_OFFSET + SH_C0 * g.sh[:, 0]).clamp(0.0, 1.0)
     rgb, alpha, _ = rasterize(g.means, g.quats, g.scales, g.opacities, colours, view, K, cameras[0].width,
                               cameras[0].height)
     return rgb, alpha[..., 0]

@@ -30,10 +30,9 @@ from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.eval.planner import TrainConfig
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_write_json, workspace_root
+from omniscs.world.layouts import TEMPLATES
 
 log = logging.getLogger(__name__)
-
-TEMPLATES = ("straight", "t_junction", "intersection", "straight_parked_truck")
 
 
 @dataclass(frozen=True)

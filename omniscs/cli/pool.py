@@ -75,21 +75,14 @@ def pool_build(
 ) -> None:
     """Pool models from the asset library's meshes (Gaussians on the surface, refined against ray-cast views,
     scored on held-out views); prints one line per model and the seconds each took."""
-    from omniscs.agents.mesh import model_from_mesh
-    from omniscs.agents.pool import Pool
     from omniscs.errors import ValidationError
-    from omniscs.world.assets import ASSET_KINDS, build_asset, list_asset_ids
+    from omniscs.pipeline.pool import asset_ids, pool_asset_stage
 
-    ids = []
-    for item in (a.strip() for a in assets.split(",") if a.strip()):
-        ids += list_asset_ids(item) if item in ASSET_KINDS else [item]
-    if not ids or gaussians < 10 or refine_steps < 0:
-        raise ValidationError("give at least one asset id or kind, --gaussians >= 10 and --refine-steps >= 0")
-    pool = Pool(out)
+    ids = asset_ids(assets.split(","))
+    if gaussians < 10 or refine_steps < 0:
+        raise ValidationError("--gaussians must be >= 10 and --refine-steps >= 0")
     for aid in ids:
-        asset = build_asset(aid)
-        s = asset.surface
-        params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps)
-        model_id = pool.add(params, asset.category, "mesh", aid, quality=info["quality_psnr"])
-        console.print(f"{model_id}  {aid:<18} {asset.category:<22} {info['quality_psnr']:.1f} dB  "
-                      f"{info['seconds']:.1f} s")
+        row = pool_asset_stage(aid, out, gaussians, refine_steps).rows["pool"][0]
+        quality = "n/a" if row["quality"] is None else f"{row['quality']:.1f} dB"
+        console.print(f"{row['model_id']}  {aid:<18} {row['category']:<22} {quality}  {row['seconds']:.1f} s"
+                      + ("" if row["new"] else "  (already in the pool)"))

@@ -15,13 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from omniscs.annotate.dataset import CARD_JSON
+from omniscs.annotate.variant import VARIANT_JSON
 from omniscs.errors import ValidationError
 from omniscs.eval.scenarios import PlanningExample, planning_examples, scenario_from_traffic, scenario_from_variant
 
 log = logging.getLogger(__name__)
-
-VARIANT_JSON = "variant.json"
-CARD_JSON = "dataset.json"
 
 
 def dataset_card(dataset_path: str | Path) -> dict:

@@ -130,12 +130,8 @@ def load_ground_truth(tables: NuScenesTables, samples: list[str]) -> tuple[Boxes
 
 
 def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
-    from omniscs.quaternions import quat_to_rotmat
-
-    T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(np.asarray(ann["rotation"], np.float64)) @ np.diag(
-        np.asarray(ann["size"], np.float64)[[1, 0, 2]])  # nuScenes sizes are w, l, h; the box's x is its length
-    T[:3, 3] = ann["translation"]
+    T = _transform(ann)
+    T[:3, :3] = T[:3, :3] @ np.diag(np.asarray(ann["size"], np.float64)[[1, 0, 2]])  # sizes are w, l, h; x: length
     return T
 
 
@@ -229,13 +225,11 @@ EGO_FROM_PLANNING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]
 STEP_TOLERANCE_S = 0.1
 
 
-def _transform(record: dict) -> np.ndarray:
+def _transform(record: dict) -> np.ndarray:  # a record's translation + rotation -> [4, 4]
+    from omniscs.geometry import make_transform
     from omniscs.quaternions import quat_to_rotmat
 
-    T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(np.asarray(record["rotation"], np.float64))
-    T[:3, 3] = record["translation"]
-    return T
+    return make_transform(quat_to_rotmat(np.asarray(record["rotation"], np.float64)), record["translation"])
 
 
 def world_from_planning(tables: NuScenesTables, sample_token: str) -> np.ndarray:

@@ -112,7 +112,6 @@ class PlanningInput:
     speed: float             # m/s
     yaw_rate: float          # rad/s
     command: str
-    drivable: np.ndarray | None  # bool [H, W] on the planner's own grid, or None (made by the planner on request)
     world_from_frame: np.ndarray  # [3, 3]
 
 
@@ -164,6 +163,6 @@ def planning_examples(scenario: Scenario, start: int = 0, stride_s: float = STEP
             if back else 0.0
         command = command_of(trajectory)
         sample = PlanningSample(f"{scenario.scenario_id}@{t}", trajectory, np.ones(STEPS, bool), vehicles, command)
-        out.append(PlanningExample(sample, PlanningInput(now, past, speed, yaw_rate, command, None, frame),
+        out.append(PlanningExample(sample, PlanningInput(now, past, speed, yaw_rate, command, frame),
                                    scenario, t))
     return out

@@ -5,7 +5,19 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from omniscs.errors import ValidationError
 from omniscs.pipeline.records import StageRecord
+
+
+def asset_ids(items: list[str]) -> list[str]:
+    """Asset ids of ``items`` (ids or kinds of the world's asset library: a kind stands for all its instances)."""
+    from omniscs.world.assets import ASSET_KINDS, list_asset_ids
+
+    ids = [a for item in items if item.strip() for a in (list_asset_ids(item.strip()) if item.strip() in ASSET_KINDS
+                                                          else [item.strip()])]
+    if not ids:
+        raise ValidationError("give at least one asset id or kind of the asset library")
+    return ids
 
 
 def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, refine_steps: int = 100) -> StageRecord:
