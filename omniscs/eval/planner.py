@@ -8,7 +8,7 @@ Input (``features``), in UniAD's planning frame (x right, y forward; ``omniscs.e
     scene has no map);
   - a state vector: speed / 10, yaw rate, the driving command one-hot (right, left, forward), whether a map is there.
 Output: 6 waypoints as offsets from driving on straight at the current speed.
-Network: four stride-2 3x3 convolutions (16, 32, 64, 64 channels, ReLU) over the raster, flattened, joined with the
+Network: five stride-2 3x3 convolutions (16, 32, 64, 64, 64 channels, ReLU) over the raster, flattened, joined with the
 state, two fully connected layers (256, ReLU) to 12 numbers. Loss: mean L1 distance of the waypoints.
 """
 from __future__ import annotations
@@ -47,7 +47,7 @@ _YS = Y_RANGE[0] + (np.arange(GRID_H) + 0.5) * CELL_M
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    widths: tuple[int, ...] = (16, 32, 64, 64)
+    widths: tuple[int, ...] = (16, 32, 64, 64, 64)
     hidden: int = 256
 
     def __post_init__(self):
