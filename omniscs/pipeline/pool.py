@@ -10,14 +10,28 @@ from omniscs.pipeline.records import StageRecord
 
 
 def asset_ids(items: list[str]) -> list[str]:
-    """Asset ids of ``items`` (ids or kinds of the world's asset library: a kind stands for all its instances)."""
-    from omniscs.world.assets import ASSET_KINDS, list_asset_ids
+    """Asset ids of ``items``: ids of the asset library, kinds (``sedan``: the kind's world split), a split's
+    vehicles (``pool``, ``world``) or a split of one kind (``pool:sedan``)."""
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+    from omniscs.world.assets import ASSET_KINDS, SPLITS, asset_category, list_asset_ids
 
-    ids = [a for item in items if item.strip() for a in (list_asset_ids(item.strip()) if item.strip() in ASSET_KINDS
-                                                          else [item.strip()])]
+    ids: list[str] = []
+    for item in (i.strip() for i in items):
+        split, _, kind = item.rpartition(":")
+        if not item:
+            continue
+        if item in SPLITS:
+            ids += [a for a in list_asset_ids(split=item) if asset_category(a) in VEHICLE_CATEGORIES]
+        elif kind in ASSET_KINDS:
+            if split and split not in SPLITS:
+                raise ValidationError(f"unknown asset split {split!r} in {item!r}; use one of {list(SPLITS)}")
+            ids += list_asset_ids(kind, split or "world")
+        else:
+            asset_category(item)  # a clear error for an unknown id
+            ids.append(item)
     if not ids:
-        raise ValidationError("give at least one asset id or kind of the asset library")
-    return ids
+        raise ValidationError("give at least one asset id, kind or split (world, pool) of the asset library")
+    return list(dict.fromkeys(ids))
 
 
 def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, refine_steps: int = 100) -> StageRecord:

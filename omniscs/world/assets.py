@@ -639,29 +639,36 @@ def _build_debris(b: MeshBuilder, p: dict) -> None:
 # ----------------------------------------------------------------------------- library
 @dataclass(frozen=True)
 class AssetKind:
-    """One family of assets: how many instances, which taxonomy category, how to make them."""
+    """One family of assets: how many instances, which taxonomy category, how to make them.
+
+    Instances ``0 .. count-1`` are the *world* split (what procedural worlds place); the next ``pool_count``
+    are the *pool* split, made only into pool models, so that benchmark worlds hold vehicles no pool model
+    was built from. The world split is the library as it was before the pool split existed: every world is
+    unchanged by it."""
 
     count: int
     category: str
     make_params: object  # Callable[[np.random.Generator], dict]
     build: object  # Callable[[MeshBuilder, dict], None]
+    pool_count: int = 0
 
 
-def _car_kind(kind: str, count: int) -> AssetKind:
-    return AssetKind(count, "car", lambda rng: _car_params(rng, kind), lambda b, p: _build_car(b, p, kind))
+def _car_kind(kind: str, count: int, pool_count: int) -> AssetKind:
+    return AssetKind(count, "car", lambda rng: _car_params(rng, kind), lambda b, p: _build_car(b, p, kind), pool_count)
 
 
-#: The asset families and their instance counts (ids run from ``<kind>-0000`` to ``<kind>-<count-1>``).
+#: The asset families and their instance counts (world ids run from ``<kind>-0000`` to ``<kind>-<count-1>``,
+#: pool ids on from there: ``<kind>-<count>`` to ``<kind>-<count+pool_count-1>``).
 ASSET_KINDS: dict[str, AssetKind] = {
-    "sedan": _car_kind("sedan", 45),
-    "suv": _car_kind("suv", 35),
-    "van": _car_kind("van", 25),
-    "pickup": _car_kind("pickup", 20),
-    "box_truck": AssetKind(20, "truck", _box_truck_params, _build_box_truck),
-    "bus": AssetKind(12, "bus", _bus_params, _build_bus),
-    "trailer": AssetKind(15, "trailer", _trailer_params, _build_trailer),
-    "excavator": AssetKind(8, "construction_vehicle", _excavator_params, _build_excavator),
-    "wheel_loader": AssetKind(8, "construction_vehicle", _loader_params, _build_wheel_loader),
+    "sedan": _car_kind("sedan", 45, 250),
+    "suv": _car_kind("suv", 35, 200),
+    "van": _car_kind("van", 25, 120),
+    "pickup": _car_kind("pickup", 20, 100),
+    "box_truck": AssetKind(20, "truck", _box_truck_params, _build_box_truck, 60),
+    "bus": AssetKind(12, "bus", _bus_params, _build_bus, 40),
+    "trailer": AssetKind(15, "trailer", _trailer_params, _build_trailer, 40),
+    "excavator": AssetKind(8, "construction_vehicle", _excavator_params, _build_excavator, 12),
+    "wheel_loader": AssetKind(8, "construction_vehicle", _loader_params, _build_wheel_loader, 12),
     "traffic_cone": AssetKind(12, "traffic_cone", _cone_params, _build_cone),
     "barrier": AssetKind(12, "barrier", _barrier_params, _build_barrier),
     "debris": AssetKind(18, "debris", _debris_params, _build_debris),
@@ -696,18 +703,37 @@ def _parse_id(asset_id: str) -> tuple[str, int]:
     if kind not in ASSET_KINDS or not index.isdigit() or len(index) != 4:
         raise OmniscsError(f"unknown asset id {asset_id!r}; kinds are {sorted(ASSET_KINDS)}, ids look like 'sedan-0007'")
     i = int(index)
-    if i >= ASSET_KINDS[kind].count:
-        raise OmniscsError(f"asset id {asset_id!r} is out of range; {kind} has {ASSET_KINDS[kind].count} "
-                           f"instances ({kind}-0000..{kind}-{ASSET_KINDS[kind].count - 1:04d})")
+    total = ASSET_KINDS[kind].count + ASSET_KINDS[kind].pool_count
+    if i >= total:
+        raise OmniscsError(f"asset id {asset_id!r} is out of range; {kind} has {total} "
+                           f"instances ({kind}-0000..{kind}-{total - 1:04d})")
     return kind, i
 
 
-def list_asset_ids(kind: str | None = None) -> list[str]:
-    """Every asset id (or those of one kind), in a stable order."""
+#: The library's splits: 'world' (what procedural worlds place), 'pool' (only ever made into pool models), 'all'.
+SPLITS = ("world", "pool", "all")
+
+
+def list_asset_ids(kind: str | None = None, split: str = "world") -> list[str]:
+    """Every asset id of a split (or those of one kind), in a stable order."""
     if kind is not None and kind not in ASSET_KINDS:
         raise OmniscsError(f"unknown asset kind {kind!r}; use one of {sorted(ASSET_KINDS)}")
+    if split not in SPLITS:
+        raise OmniscsError(f"unknown asset split {split!r}; use one of {list(SPLITS)}")
     kinds = [kind] if kind else list(ASSET_KINDS)
-    return [f"{k}-{i:04d}" for k in kinds for i in range(ASSET_KINDS[k].count)]
+    ids = []
+    for k in kinds:
+        world, pool = ASSET_KINDS[k].count, ASSET_KINDS[k].pool_count
+        lo = world if split == "pool" else 0
+        hi = world if split == "world" else world + pool
+        ids += [f"{k}-{i:04d}" for i in range(lo, hi)]
+    return ids
+
+
+def asset_split(asset_id: str) -> str:
+    """'world' or 'pool': which split of the library an asset id belongs to."""
+    kind, index = _parse_id(asset_id)
+    return "world" if index < ASSET_KINDS[kind].count else "pool"
 
 
 def asset_category(asset_id: str) -> str:

@@ -93,3 +93,33 @@ def test_bad_asset_ids_raise_a_domain_error(bad):
 def test_unknown_kind_listing_raises():
     with pytest.raises(OmniscsError):
         list_asset_ids("hovercraft")
+
+
+def test_pool_split_is_disjoint_from_the_world_split_and_holds_over_800_vehicles():
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+    from omniscs.world.assets import asset_category, asset_split
+
+    world, pool, every = list_asset_ids(), list_asset_ids(split="pool"), list_asset_ids(split="all")
+    assert not set(world) & set(pool)
+    assert sorted(every) == sorted(world + pool)
+    vehicles = [a for a in every if asset_category(a) in VEHICLE_CATEGORIES]
+    assert len(vehicles) >= 1000
+    assert {asset_split(a) for a in world} == {"world"} and {asset_split(a) for a in pool} == {"pool"}
+    # pool instances are new, distinct parameter draws of the same families
+    sample = pool[::40]
+    params = {json.dumps(asset_params(i), sort_keys=True, default=lambda a: np.round(a, 6).tolist())
+              for i in sample + world[::10]}
+    assert len(params) == len(sample) + len(world[::10])
+    with pytest.raises(OmniscsError, match="out of range"):
+        build_asset("sedan-9999")
+    with pytest.raises(OmniscsError, match="unknown asset split"):
+        list_asset_ids(split="train")
+
+
+def test_worlds_place_only_world_split_assets():
+    from omniscs.world import generate_world
+    from omniscs.world.assets import asset_split
+
+    for template, seed in (("straight", 3), ("t_junction", 8)):
+        world = generate_world(template, seed)
+        assert {asset_split(a.asset_id) for a in world.agents} == {"world"}
