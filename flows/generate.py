@@ -1,8 +1,8 @@
 """The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
-Per scene (DESIGN.md): ingest → plan → preview → fit NSG → behaviour variants → render + annotate → catalog;
+Per scene (DESIGN.md): ingest → plan → preview → fit NSG → agents (360° models) → behaviour variants → render + annotate → catalog;
 then, once every scene is done, the run's annotated variants become one dataset (``datasets/<id>/``, catalogued).
-Stages the scene's plan does not need are skipped; stages not built yet (agents, background) slot in between.
+Stages the scene's plan does not need are skipped; stages not built yet (background) slot in between.
 A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
 """
 from __future__ import annotations
@@ -40,6 +40,10 @@ def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: s
     model = t.fit(scene, plan, request, workspace) if stages["fit_nsg"] else None
     if model is not None:
         records.append(model)
+    if model is not None and stages["agent_models"]:
+        completed = t.agents(scene, plan, model, request, workspace)
+        records.append(completed)
+        model = completed if not completed.skipped else model
     variants = t.behavior(scene, plan, model, request, workspace) if stages["behavior_variants"] else None
     if variants is not None:
         records.append(variants)
@@ -67,7 +71,7 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
                      previews: bool = True, fit_preset: str | None = None, behavior_variants: int = 0,
                      behavior_preset: str = "balanced", behavior_checkpoint: str | None = None,
                      edits: list[dict] | None = None, device: str = "cpu", annotate: bool = False,
-                     dataset_id: str | None = None) -> dict:
+                     dataset_id: str | None = None, pool: str | None = None) -> dict:
     """Run the scene pipeline on every source and catalogue the run.
 
     Sources: ``syn:TEMPLATE:SEED[:LIGHTING]`` (procedural log of ``n_frames`` frames, ``n_cameras`` cameras at
@@ -76,8 +80,9 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ``behavior_variants`` > 0 makes that many behaviour-level SCS variants per scene (``variants`` table;
     ``behavior_checkpoint`` defaults to the shipped traffic model, ``behavior_preset`` is fast, balanced or
     accurate), with L_app rendered by the scene graph when one is fitted. ``edits`` (edit dicts, see README)
-    are the edits the variants will apply: the plan makes their tracks nodes. Each scene's plan is in the
-    ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
+    are the edits the variants will apply: the plan makes their tracks nodes; tracks they turn off their observed
+    views get 360-degree models in the ``agents`` stage (the dual strategy, with the model pool ``pool`` when given;
+    ``agent_models`` table). Each scene's plan is in the ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
     avoiding solution, and gathers them into the dataset ``dataset_id`` (default ``ds-<content hash>``;
     ``datasets``, ``samples`` and ``annotations`` tables). Every input is checked before any scene starts (a bad one fails the run with one line in its
     ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and
@@ -90,12 +95,12 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     config = run_config(sources, n_frames, n_cameras, width, height, fit_preset=fit_preset,
                         behavior_variants=behavior_variants, behavior_preset=behavior_preset,
                         behavior_checkpoint=behavior_checkpoint, edits=edits or (), previews=previews, device=device,
-                        annotate=annotate, dataset_id=dataset_id)
+                        annotate=annotate, dataset_id=dataset_id, pool=pool)
     try:  # every input checked before any scene starts; a bad one is the run's one-line error
         request = check_request(SceneRequest(
             fit_preset=fit_preset, behavior_variants=behavior_variants, behavior_preset=behavior_preset,
             behavior_checkpoint=behavior_checkpoint, edits=tuple(edits or ()), previews=previews, device=device,
-            annotate=annotate))
+            annotate=annotate, pool=pool))
         scenes, repeats = check_sources(sources, n_frames, n_cameras, width, height)
         dataset_id = check_id("dataset id", dataset_id) if dataset_id is not None else None
     except OmniscsError as exc:

@@ -246,6 +246,23 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("new", pa.bool_(), nullable=False),              # false: the same model was already there
         pa.field("seconds", pa.float64(), nullable=False),        # to build it
     ]),
+    "agent_models": pa.schema([                                   # the dual strategy's choice per agent node (agents stage)
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("model_id", pa.string(), nullable=False),        # the completed graph (agents-<key>)
+        pa.field("fit_model_id", pa.string(), nullable=False),    # the fitted graph it completed
+        pa.field("track_id", pa.int64(), nullable=False),
+        pa.field("strategy", pa.string(), nullable=False),        # fitted | online | pool
+        pa.field("reason", pa.string(), nullable=False),
+        pa.field("needs_360", pa.bool_(), nullable=False),        # an edit turns it off its observed views
+        pa.field("pool_path", pa.string()),                       # null: no pool given
+        pa.field("pool_model_id", pa.string()),                   # the matched pool model ('pool')
+        pa.field("distance", pa.float64()),                       # its matching distance
+        pa.field("clarity", pa.float64()),                        # 0..1; null where not scored ('fitted')
+        pa.field("coverage", pa.float64()),                       # azimuth share seen, mirror images included
+        pa.field("mirrored", pa.bool_(), nullable=False),         # unseen side filled by mirror symmetry
+        pa.field("added_to_pool", pa.string()),                   # pool model id when the track grew the pool
+        pa.field("n_gaussians", pa.int64(), nullable=False),
+    ]),
     "downstream_models": pa.schema([                              # driving models trained on generated datasets
         pa.field("model_id", pa.string(), nullable=False),        # proxy-planner-<hash> | external-<hash>
         pa.field("kind", pa.string(), nullable=False),            # proxy_planner | external
@@ -292,6 +309,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "samples": ("dataset_id", "store_id", "frame_idx", "camera"),
     "annotations": ("dataset_id", "store_id", "frame_idx", "camera", "track_id"),
     "pool": ("pool_path", "model_id"),
+    "agent_models": ("scene_id", "model_id", "track_id"),
     "downstream_models": ("model_id",),
     "evaluations": ("eval_id", "split", "metric", "class_name", "horizon", "convention"),
 }

@@ -147,3 +147,13 @@ def rigidly_moved(params: GaussianParams, rotation, translation) -> GaussianPara
                                                                                      params.quats),
                           params.log_scales.clone(), params.opacity_logits.clone(), sh[:, 0].contiguous(),
                           sh[:, 1:].contiguous())
+
+
+def with_sh_degree(params: GaussianParams, degree: int) -> GaussianParams:
+    """The same colours with ``degree`` bands (missing bands are zero; extra bands are dropped)."""
+    k = num_sh_bases(degree) - 1
+    rest = params.sh_rest
+    if rest.shape[1] < k:
+        rest = torch.cat([rest, rest.new_zeros(len(params), k - rest.shape[1], 3)], 1)
+    return GaussianParams(params.means, params.quats, params.log_scales, params.opacity_logits, params.sh_dc,
+                          rest[:, :k].contiguous())

@@ -4,6 +4,7 @@ from __future__ import annotations
 from prefect import task
 
 from omniscs.pipeline import stages
+from omniscs.pipeline.agents import agents_stage
 from omniscs.pipeline.records import SceneRequest, StageRecord
 from tasks.progress import artifact_progress
 
@@ -28,6 +29,13 @@ def fit(scene: StageRecord, plan: StageRecord, request: SceneRequest, workspace:
     return stages.fit_stage(scene.path, stages.load_plan(plan), request.fit_preset, workspace,
                             progress=artifact_progress(f"fit scene graph of {scene.scene_id} ({request.fit_preset})"),
                             **stages.device_overrides(request))
+
+
+@task(name="agents", task_run_name="agents-{scene.scene_id}")
+def agents(scene: StageRecord, plan: StageRecord, model: StageRecord, request: SceneRequest,
+           workspace: str) -> StageRecord:
+    return agents_stage(scene.path, stages.load_plan(plan), model, workspace, request.pool,
+                        progress=artifact_progress(f"360-degree agents of {scene.scene_id}"))
 
 
 @task(name="behavior", task_run_name="behavior-{scene.scene_id}")

@@ -159,3 +159,21 @@ def calibrated(params: GaussianParams, category: str) -> tuple[GaussianParams, d
     moved = rigidly_moved(params, cal.rotation, cal.translation)
     return moved, {"rotation": np.round(cal.rotation, 9).tolist(), "translation": np.round(cal.translation, 9).tolist(),
                    "fitness": cal.fitness, "heading_by": cal.heading_by}
+
+
+def model_resolver(pool: str | Path, fallback=None):
+    """An edit's asset-id resolver (``omniscs.nsg.edit.ModelResolver``) for pool model ids (``pm-...``) of ``pool``;
+    other ids go to ``fallback`` (e.g. the graph's own ``nsg:<track>`` nodes)."""
+    from omniscs.nsg.edit import AgentModel
+
+    p = Pool(pool)
+
+    def resolve(asset_id: str):
+        if isinstance(asset_id, str) and asset_id.startswith("pm-"):
+            model = p.get(asset_id)
+            return AgentModel(model.params, np.maximum(np.asarray(model.meta["size"], np.float64), 1e-3),
+                              model.meta["category"])
+        if fallback is None:
+            raise ValidationError(f"asset {asset_id!r} is not a pool model id (pm-...) of {p.root}")
+        return fallback(asset_id)
+    return resolve

@@ -212,6 +212,25 @@ def bench_dataset(
     console.print(f"wrote {out / 'dataset_bench.json'}")
 
 
+@app.command("agents")
+def bench_agents(
+    out: Path = typer.Option(Path("reports"), help="Folder for agents_bench.json/.md/.png."),
+    workspace: Optional[Path] = typer.Option(None, help="Where the scenes, fits and the benchmark pool go (and are "
+                                                        "reused)."),
+    quick: bool = typer.Option(False, "--quick", help="One small scene, the fast preset, a small pool (a smoke run, "
+                                                      "not a measurement)."),
+) -> None:
+    """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
+    (naive / online / pool / dual / dual in-pool after translate, rotate and overturn) on held-out worlds."""
+    from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark
+
+    with progress_bars() as bars:
+        run_agents_benchmark(out, workspace, quick_config() if quick else AgentsBenchConfig(),
+                             progress=bars.sink("agents bench"))
+    console.print((out / "agents_bench.md").read_text())
+    console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
+
+
 @app.command("downstream")
 def bench_downstream(
     out: Path = typer.Option(Path("reports"), help="Folder for downstream_bench.json/.md/.png."),

@@ -114,6 +114,8 @@ def generate(
     annotate: bool = typer.Option(False, help="Render and annotate every variant and gather them as a dataset "
                                               "(needs --fit-preset and --behavior-variants)."),
     dataset_id: Optional[str] = typer.Option(None, help="With --annotate: the dataset's id (default ds-<hash>)."),
+    pool: Optional[Path] = typer.Option(None, help="Model pool for the agents stage: tracks the edits turn off their "
+                                                   "observed views get a 360-degree model from it or online."),
 ) -> None:
     """Run the generate_dataset flow: per scene ingest, plan, preview, fit, behaviour variants, render + annotate,
     catalog; with --annotate, the run's dataset."""
@@ -124,7 +126,7 @@ def generate(
                           behavior_variants=behavior_variants, behavior_preset=behavior_preset,
                           behavior_checkpoint=str(behavior_checkpoint) if behavior_checkpoint else None,
                           edits=[edit_to_dict(e) for e in read_edits(edit)], device=device, annotate=annotate,
-                          dataset_id=dataset_id)
+                          dataset_id=dataset_id, pool=str(pool) if pool is not None else None)
     rows = [{"scene_id": s["scene_id"], **{stage: _state(r) for stage, r in s["stages"].items()}}
             for s in result["scenes"]]
     print_table(rows, title=f"run {result['run_id']}")

@@ -25,6 +25,10 @@ def fit(
     device: str = typer.Option("cpu", help="Compute device: cpu or cuda."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root for the plan (default $OMNISCS_HOME or "
                                                         "./omniscs-data)."),
+    pool: Optional[Path] = typer.Option(None, help="Model pool for the dual strategy: tracks the edits turn off their "
+                                                   "observed views get a 360-degree model (online or pool); --out "
+                                                   "then holds the completed graph (the fit itself stays in the "
+                                                   "workspace)."),
 ) -> None:
     """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
     from omniscs.edits import edit_to_dict
@@ -47,20 +51,40 @@ def fit(
     fit_preset(preset, **overrides)
     request = check_request(SceneRequest(fit_preset=preset, behavior_variants=behavior_variants, device=device,
                                          edits=tuple(edit_to_dict(e) for e in read_edits(edit))))
+    if pool is not None and not pool.is_dir():
+        raise OmniscsError(f"--pool {pool} is not a pool folder (omniscs pool build / import make one)")
     check_out(out, overwrite=True)  # an existing --out must be a folder omniscs wrote (reused or replaced)
-    planned = plan_stage(scene_path, request, usable_workspace(workspace))
+    ws = usable_workspace(workspace)
+    planned = plan_stage(scene_path, request, ws)
+    plan = load_plan(planned)
     console.print(f"plan: {planned.info['summary']}")
+    complete = pool is not None and plan.stages.get("agent_models")
     with progress_bars() as bars:
-        record = fit_stage(scene_path, load_plan(planned), preset, out_dir=out, replace=overwrite,
+        record = fit_stage(scene_path, plan, preset, workspace=ws if complete else None,
+                           out_dir=None if complete else out, replace=overwrite,
                            progress=bars.sink(f"fit {planned.scene_id} ({preset})"), **overrides)
-    if record.info["status"] != "fitted":
-        raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")
+        if record.info["status"] != "fitted":
+            raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")
+        if complete:
+            from omniscs.pipeline.agents import agents_stage
+
+            if out.exists() and not overwrite:
+                raise OmniscsError(f"{out} already exists; pass --overwrite to replace it")
+            agents = agents_stage(scene_path, plan, record, ws, pool, out_dir=out,
+                                  progress=bars.sink(f"agents of {planned.scene_id}"))
+            for row in agents.rows["agent_models"]:
+                if row["needs_360"]:
+                    model = f" -> {row['pool_model_id']}" if row["pool_model_id"] else ""
+                    console.print(f"track {row['track_id']}: {row['strategy']}{model} ({row['reason']})")
+    if not complete and pool is not None:
+        console.print("no edit turns an agent off its observed views: the pool was not needed")
     m = record.info["metrics"]
     print_table([{"Gaussians": m["n_gaussians"], "agent nodes": m["n_agent_nodes"], "fit s": m["fit_seconds"],
                   "train PSNR": m["train_psnr"], "held-out PSNR": m["heldout_psnr"], "held-out SSIM": m["heldout_ssim"],
                   "held-out views": m["heldout_views"]}], title=f"{record.scene_id} ({preset})")
-    verb = "reused" if record.reused else "wrote"
-    console.print(f"{verb} {out} (plan.json, graph.json, gaussians.safetensors, metrics.json)")
+    verb = "reused" if record.reused and not complete else "wrote"
+    console.print(f"{verb} {out} (plan.json, graph.json, gaussians.safetensors, metrics.json"
+                  + (", decisions.json)" if complete else ")"))
 
 
 def render(
@@ -70,6 +94,8 @@ def render(
     edit: Optional[str] = typer.Option(None, help="Edit list as JSON, or @file.json (see README)."),
     ego_pose: Optional[str] = typer.Option(None, help="Render from another ego pose: 'x,y,z,yaw' (world frame, m, rad)."),
     depth: bool = typer.Option(False, help="Append the expected depth beside the image (near is bright)."),
+    pool: Optional[Path] = typer.Option(None, help="Model pool whose model ids (pm-...) the edits' replace_model and "
+                                                   "insert may name."),
 ) -> None:
     """Render a fitted (optionally edited) scene graph from a logged camera, at a logged or any ego pose."""
     import numpy as np
@@ -91,7 +117,13 @@ def render(
         world_from_ego = pose_from_xyz_yaw(*values)
     graph = load_checkpoint(checkpoint)
     if edits:
-        graph = apply_graph_edits(graph, edits)
+        resolve = None
+        if pool is not None:
+            from omniscs.agents.pool import model_resolver
+            from omniscs.nsg.edit import node_model_resolver
+
+            resolve = model_resolver(pool, node_model_resolver(graph))
+        graph = apply_graph_edits(graph, edits, resolve)
     result = graph.render(graph.view(camera, frame, world_from_ego))
     image = (result.rgb.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
     if depth:

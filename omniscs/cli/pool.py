@@ -86,3 +86,41 @@ def pool_build(
         quality = "n/a" if row["quality"] is None else f"{row['quality']:.1f} dB"
         console.print(f"{row['model_id']}  {aid:<18} {row['category']:<22} {quality}  {row['seconds']:.1f} s"
                       + ("" if row["new"] else "  (already in the pool)"))
+
+
+@app.command("match")
+def pool_match(
+    scene_path: Path = typer.Argument(..., help="A scene store."),
+    pool: Path = POOL,
+    tracks: str = typer.Option("", help="Track ids, comma-separated (default: every vehicle track)."),
+    views: int = typer.Option(4, help="Largest views per track used as its query crops."),
+) -> None:
+    """Each track's pool model (Hungarian over appearance and box shape, within its category): JSON
+    {track: {model_id, distance, category}}; tracks without a view or a model of their category map to null."""
+    from omniscs.agents.dual import DualConfig, match_tracks, scene_query_crops, track_views
+    from omniscs.agents.pool import Pool
+    from omniscs.cli.common import comma_list
+    from omniscs.errors import ValidationError
+    from omniscs.nsg.agent import track_poses
+    from omniscs.scene import load_scene
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+
+    if not pool.is_dir():
+        raise ValidationError(f"--pool {pool} is not a pool folder")
+    scene = load_scene(scene_path)
+    boxes = scene.boxes
+    ids = comma_list(tracks, int, "--tracks", "1,2") if tracks.strip() else sorted(
+        int(t) for t in boxes[boxes.category.isin(VEHICLE_CATEGORIES)].track_id.unique())
+    unknown = sorted(set(ids) - set(int(t) for t in boxes.track_id.unique()))
+    if unknown:
+        raise ValidationError(f"scene {scene.scene_id} has no track(s) {unknown}")
+    config = DualConfig()
+    frames = range(scene.n_frames)
+    queries, sizes, cats = {}, {}, {}
+    for t in ids:
+        queries[t] = scene_query_crops(scene, t, track_views(scene, t, frames, config.min_view_pixels), views)
+        sizes[t] = track_poses(boxes, t, scene.n_frames)[2]
+        cats[t] = str(boxes[boxes.track_id == t].category.iloc[0])
+    matches = match_tracks(queries, sizes, cats, Pool(pool), size_weight=config.size_weight)
+    print(json.dumps({str(t): ({"model_id": matches[t][0], "distance": round(matches[t][1], 4), "category": cats[t]}
+                               if t in matches else None) for t in ids}, indent=1))

@@ -56,6 +56,14 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OmniscsError(f"{out_dir} already exists; choose another checkpoint folder or overwrite it")
+    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+        write_checkpoint_files(graph, tmp, plan, config, metrics)
+    return out_dir
+
+
+def write_checkpoint_files(graph: SceneGraph, folder: Path, plan: ScenePlan | None = None, config: dict | None = None,
+                           metrics: dict | None = None) -> None:
+    """The checkpoint's files written into ``folder`` (a temporary folder its caller renames into place whole)."""
     meta = {
         "kind": KIND, "version": CHECKPOINT_VERSION, "scene_id": graph.scene_id, "content_hash": graph.content_hash,
         "sh_degree": graph.sh_degree, "settings": graph.settings.__dict__,
@@ -65,15 +73,13 @@ def save_checkpoint(graph: SceneGraph, out_dir: str | Path, plan: ScenePlan | No
                    for a in graph.agents],
         "exposure_cameras": list(graph.exposure), "n_gaussians": graph.n_gaussians, "config": config,
     }
-    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
-        save_file(_graph_tensors(graph), str(tmp / TENSORS))
-        meta[TENSORS_RECORD] = {"bytes": (tmp / TENSORS).stat().st_size, "sha256": file_sha256(tmp / TENSORS)}
-        atomic_write_json(tmp / GRAPH_JSON, meta)
-        if plan is not None:
-            (tmp / PLAN_JSON).write_text(plan.to_json() + "\n")
-        if metrics is not None:
-            atomic_write_json(tmp / METRICS_JSON, metrics)
-    return out_dir
+    save_file(_graph_tensors(graph), str(folder / TENSORS))
+    meta[TENSORS_RECORD] = {"bytes": (folder / TENSORS).stat().st_size, "sha256": file_sha256(folder / TENSORS)}
+    atomic_write_json(folder / GRAPH_JSON, meta)
+    if plan is not None:
+        (folder / PLAN_JSON).write_text(plan.to_json() + "\n")
+    if metrics is not None:
+        atomic_write_json(folder / METRICS_JSON, metrics)
 
 
 #: graph.json field with the tensor file's size and sha256 (checkpoints written before it lack it).

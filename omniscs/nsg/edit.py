@@ -11,7 +11,7 @@ import torch
 from omniscs.edits import Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, local_motion, parse_edits, \
     poses_from_waypoints, resting_tilt
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import GaussianParams
+from omniscs.gaussians import GaussianParams, with_sh_degree
 from omniscs.geometry import make_transform
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.graph import SceneGraph
@@ -38,8 +38,8 @@ def node_model_resolver(graph: SceneGraph) -> ModelResolver:
     """Resolve ``nsg:<track_id>`` in ``graph`` and ``nsg:<track_id>@<ckpt>`` in another checkpoint."""
     def resolve(asset_id: str) -> AgentModel:
         if not asset_id.startswith(NODE_ASSET_PREFIX):
-            raise OmniscsError(f"asset {asset_id!r} is not a fitted agent node; until the model pool exists, "
-                               f"name one as {NODE_ASSET_PREFIX}<track_id> or {NODE_ASSET_PREFIX}<track_id>@<checkpoint>")
+            raise OmniscsError(f"asset {asset_id!r} is not a fitted agent node: name one as {NODE_ASSET_PREFIX}<track_id> "
+                               f"or {NODE_ASSET_PREFIX}<track_id>@<checkpoint>, or a pool model (pm-...) with a pool")
         ref = asset_id[len(NODE_ASSET_PREFIX):]
         track, _, ckpt = ref.partition("@")
         try:
@@ -107,7 +107,8 @@ def apply_graph_edits(graph: SceneGraph, edits, resolve: ModelResolver | None = 
             del nodes[tid]
         elif isinstance(edit, ReplaceModel):
             model = resolve(edit.asset_id)
-            gaussians = scale_to_box(model.gaussians.to(graph.device), model.size, node.size)
+            gaussians = scale_to_box(with_sh_degree(model.gaussians, graph.sh_degree).to(graph.device), model.size,
+                                     node.size)
             nodes[tid] = node.with_changes(gaussians=gaussians, category=model.category)
         elif isinstance(edit, SetTrajectory):
             poses, present = poses_from_waypoints(edit.waypoints, graph.n_frames)
@@ -139,4 +140,4 @@ def _inserted_node(graph: SceneGraph, edit: Insert, resolve: ModelResolver) -> A
     poses = poses @ make_transform(R, np.zeros(3))
     poses[:, 2, 3] += lift
     return AgentNode(int(edit.track_id), edit.category, size, poses, present,
-                     scale_to_box(model.gaussians.to(graph.device), model.size, size))
+                     scale_to_box(with_sh_degree(model.gaussians, graph.sh_degree).to(graph.device), model.size, size))

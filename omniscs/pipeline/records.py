@@ -39,6 +39,9 @@ class SceneRequest:
     annotate: bool = False
     """Render and annotate every variant through the scene graph (a dataset's frames and ground truth); needs
     ``fit_preset`` and ``behavior_variants`` > 0."""
+    pool: str | None = None
+    """Model pool folder for the agents stage (360-degree models of tracks the edits turn); None: such tracks
+    get their online model (the fitted node, mirrored) only."""
 
     def __post_init__(self) -> None:
         if self.fit_preset is not None and self.fit_preset not in PRESET_NAMES:
@@ -57,6 +60,8 @@ class SceneRequest:
             raise OmniscsError(f"unknown device {self.device!r}; use cpu or cuda")
         if isinstance(self.edits, (str, bytes, dict)) or not all(isinstance(e, dict) for e in self.edits):
             raise OmniscsError(f"edits must be a list of edit objects (JSON dicts, see README); got {self.edits!r}")
+        if self.pool is not None and not isinstance(self.pool, str):
+            object.__setattr__(self, "pool", str(self.pool))
         if self.behavior_checkpoint is not None and not isinstance(self.behavior_checkpoint, str):
             object.__setattr__(self, "behavior_checkpoint", str(self.behavior_checkpoint))
         object.__setattr__(self, "edits", tuple(dict(e) for e in self.edits))

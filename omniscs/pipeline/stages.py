@@ -502,6 +502,12 @@ def run_scene(source, request: SceneRequest, workspace: str | Path, run_id: str 
         fitted = fit_stage(ingested.path, plan, request.fit_preset, workspace, progress=sink("fit"),
                            **device_overrides(request))
         records.append(fitted)
+        if plan.stages.get("agent_models"):
+            from omniscs.pipeline.agents import agents_stage
+
+            completed = agents_stage(ingested.path, plan, fitted, workspace, request.pool, progress=sink("agents"))
+            records.append(completed)
+            fitted = completed if not completed.skipped else fitted
     behaved = None
     if plan.stages.get("behavior_variants"):
         behaved = behavior_stage(ingested.path, plan, request.behavior_variants, workspace,

@@ -4,9 +4,10 @@ refuses it before Prefect starts, and the flow records it in its ``runs`` row be
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from omniscs.checks import is_int
-from omniscs.errors import OmniscsError
+from omniscs.errors import OmniscsError, ValidationError
 from omniscs.ids import check_id
 from omniscs.pipeline.records import SceneRequest
 
@@ -106,6 +107,8 @@ def check_request(request: SceneRequest | dict) -> SceneRequest:
         raise OmniscsError(f"behavior_variants must be at most {MAX_BEHAVIOR_VARIANTS}; got "
                            f"{request.behavior_variants}")
     request.parsed_edits()
+    if request.pool is not None and not Path(request.pool).is_dir():
+        raise ValidationError(f"pool {request.pool} is not a folder (make one with omniscs pool build or import)")
     if request.behavior_variants > 0 or request.behavior_checkpoint is not None:
         from omniscs.scs.behavior.checkpoint import load_checkpoint
 

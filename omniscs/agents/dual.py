@@ -1,0 +1,578 @@
+"""The dual strategy for agents (the paper's self-improving dual-strategy agent reconstruction): per track, a clarity
+score from its observations decides between the *online* model (the scene's own fitted node, its unseen side filled
+by mirror symmetry across the vehicle's x-z plane) and the matched *pool* model (a 360-degree model scaled to the
+box, its colours adapted to what the cameras saw). Only tracks whose edits turn them off their observed views need
+either (the plan's ``needs_360``); every other node keeps what the fit made.
+
+Scene-agnostic: works from a scene store (boxes, cameras, logged images) and a fitted scene graph; the procedural
+world is never read."""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from omniscs.agents.matching import CROP, ColourHistogram, Embedder, assign, crop_square
+from omniscs.agents.pool import Pool
+from omniscs.errors import OmniscsError
+from omniscs.gaussians import GaussianParams, with_sh_degree
+from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
+from omniscs.nsg.agent import track_poses
+from omniscs.nsg.edit import scale_to_box
+from omniscs.nsg.graph import SceneGraph, agent_key, render_view
+from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rotate_sh
+from omniscs.storage import atomic_write_bytes
+
+STRATEGIES = ("fitted", "online", "pool")
+MIRROR_Y = np.diag([1.0, -1.0, 1.0])  # the vehicle's x-z plane
+
+
+@dataclass(frozen=True)
+class DualConfig:
+    """Thresholds of the dual strategy (what makes a track clear, what makes it well covered)."""
+
+    min_view_pixels: int = 300
+    """A view counts as an observation when the track's box projects onto at least this many pixels."""
+    good_pixels: float = 5000.0
+    """Median projected area (pixels) at which the area term of the clarity reaches 1."""
+    sharp_reference: float = 60.0
+    """Variance of the Laplacian (grey levels²) of the track's crops at which the sharpness term reaches 1."""
+    azimuth_bins: int = 12
+    """Azimuth bins (around the vehicle) for angular coverage."""
+    min_clarity: float = 0.5
+    """Clarity (0..1) a track needs for the online model."""
+    min_coverage: float = 0.75
+    """Share of azimuth bins seen (mirror images included) a track needs for the online model."""
+    box_margin_m: float = 0.3
+    """Node Gaussians whose centre lies further outside the track's box than this are dropped (strays)."""
+    match_views: int = 4
+    """Views (the largest) whose crops stand for a track when it is matched to the pool."""
+    colour_views: int = 6
+    """Views used to fit the pool model's colour correction."""
+    colour_steps: int = 40
+    """Steps of the pool model's colour refinement against those views (0: the correction alone)."""
+    pool_keeps_observed: bool = True
+    """A clear track given a pool model keeps its fitted Gaussians on the sides the cameras saw (and their mirror
+    images): the pool model, inset slightly (``pool_inset``), shows only where those leave the node transparent."""
+    pool_inset: float = 0.95
+    """Scale of the pool model inside the box when it completes a fitted node."""
+    size_weight: float = 1.0
+    """Weight of the box-shape mismatch (mean |log size ratio|) against appearance similarity in matching."""
+
+    def __post_init__(self) -> None:
+        if not (self.min_view_pixels >= 1 and self.good_pixels > 0 and self.sharp_reference > 0
+                and self.azimuth_bins >= 4 and 0 <= self.min_clarity <= 1 and 0 <= self.min_coverage <= 1
+                and self.box_margin_m >= 0 and self.match_views >= 1 and self.colour_views >= 1 and self.colour_steps >= 0
+                and self.size_weight >= 0):
+            raise OmniscsError(f"bad dual-strategy settings {self}")
+
+
+@dataclass(frozen=True)
+class TrackView:
+    """One camera image in which a track's box shows."""
+
+    frame_idx: int
+    camera: str
+    rect: tuple[int, int, int, int]  # x0, y0, x1, y1 (pixels, clipped to the image)
+    pixels: float                    # area of the clipped rectangle
+    azimuth_deg: float               # direction of the camera seen from the vehicle (0 = ahead, 90 = its left)
+
+
+@dataclass(frozen=True)
+class Clarity:
+    """How well a track is observed; ``score`` (0..1) is the geometric mean of the area, visibility and
+    sharpness terms; coverage is the share of azimuth bins seen, without and with mirror images."""
+
+    track_id: int
+    category: str
+    n_views: int
+    pixels: float
+    visible: float | None
+    sharpness: float | None
+    coverage: float
+    coverage_mirrored: float
+    score: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the dual strategy chose for one track, and why."""
+
+    track_id: int
+    strategy: str                  # one of STRATEGIES
+    reason: str
+    clarity: Clarity | None
+    model_id: str | None = None    # the pool model, for 'pool'
+    distance: float | None = None  # its matching distance (1 - similarity + shape term)
+    mirrored: bool = False         # the online model's unseen side came from mirror symmetry
+    colour: list | None = None     # the pool model's colour correction [3, 4] (A | b)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["clarity"] = None if self.clarity is None else self.clarity.to_dict()
+        return d
+
+
+# ----------------------------------------------------------------------------- observations
+def track_views(scene, track_id: int, frames, min_pixels: int) -> list[TrackView]:
+    """The (frame, camera) images in ``frames`` where the track's whole box lies in front of the camera and its
+    projected rectangle covers at least ``min_pixels``."""
+    poses, present, size = track_poses(scene.boxes, track_id, scene.n_frames)
+    out = []
+    for f in frames:
+        f = int(f)
+        if not present[f]:
+            continue
+        corners = box_corners_from_pose(poses[f], size)
+        for cam in scene.camera_names:
+            world_from_cam = scene.world_from_camera(cam, f)
+            pts = transform_points(invert_transform(world_from_cam), corners)
+            if np.any(pts[:, 2] < 0.5):
+                continue
+            K = scene.intrinsics(cam)
+            uv = pts[:, :2] / pts[:, 2:] @ K[:2, :2].T + K[:2, 2]
+            w, h = scene.image_size(cam)
+            x0, y0 = np.clip(np.floor(uv.min(0)), 0, [w, h]).astype(int)
+            x1, y1 = np.clip(np.ceil(uv.max(0)), 0, [w, h]).astype(int)
+            pixels = float(max(x1 - x0, 0) * max(y1 - y0, 0))
+            if pixels < min_pixels:
+                continue
+            eye = transform_points(invert_transform(poses[f]), world_from_cam[None, :3, 3])[0]
+            out.append(TrackView(f, cam, (int(x0), int(y0), int(x1), int(y1)), pixels,
+                                 float(np.degrees(np.arctan2(eye[1], eye[0])) % 360.0)))
+    return out
+
+
+def azimuth_coverage(azimuths_deg, bins: int, mirrored: bool) -> float:
+    """Share of ``bins`` equal azimuth sectors holding an observation (with ``mirrored``, also its mirror image
+    across the x-z plane: a view from azimuth a shows what a view from -a would see, mirrored)."""
+    a = np.asarray(list(azimuths_deg), dtype=np.float64) % 360.0
+    if mirrored:
+        a = np.concatenate([a, (-a) % 360.0])
+    if a.size == 0:
+        return 0.0
+    return float(len(np.unique(np.floor(a / (360.0 / bins)).astype(int) % bins)) / bins)
+
+
+def sharpness(image: np.ndarray, rect: tuple[int, int, int, int]) -> float:
+    """Variance of the Laplacian of the grey crop (grey levels²): low for blurred or featureless observations."""
+    x0, y0, x1, y1 = rect
+    crop = image[y0:y1, x0:x1]
+    if crop.shape[0] < 3 or crop.shape[1] < 3:
+        return 0.0
+    return float(cv2.Laplacian(cv2.cvtColor(crop, cv2.COLOR_RGB2GRAY), cv2.CV_64F).var())
+
+
+def clarity(scene, track_id: int, frames, config: DualConfig = DualConfig()) -> Clarity:
+    """The track's clarity over the images of ``frames`` (the fit's training frames: held-out views stay unseen)."""
+    rows = scene.boxes[scene.boxes.track_id == int(track_id)]
+    if rows.empty:
+        raise OmniscsError(f"track {track_id} has no boxes in scene {scene.scene_id}")
+    category = str(rows["category"].iloc[0])
+    views = track_views(scene, track_id, frames, config.min_view_pixels)
+    if not views:
+        return Clarity(int(track_id), category, 0, 0.0, None, None, 0.0, 0.0, 0.0)
+    pixels = float(np.median([v.pixels for v in views]))
+    area_term = float(np.clip(np.log1p(pixels) / np.log1p(config.good_pixels), 0.0, 1.0))
+    # visibility: the scene's visible pixels per frame against the box rectangles of that frame (a box's
+    # silhouette fills about 70 % of its rectangle); unknown (-1) in logs without instance masks
+    by_frame = rows.set_index("frame_idx")["visible_pixels"]
+    ratios = []
+    for f in {v.frame_idx for v in views}:
+        vis = float(by_frame.get(f, -1))
+        if vis >= 0:
+            ratios.append(min(vis / (0.7 * sum(v.pixels for v in views if v.frame_idx == f)), 1.0))
+    visible = float(np.median(ratios)) if ratios else None
+    largest = sorted(views, key=lambda v: -v.pixels)[:config.match_views]
+    sharp = float(np.median([sharpness(scene.image(v.camera, v.frame_idx), v.rect) for v in largest]))
+    terms = [area_term, float(np.clip(sharp / config.sharp_reference, 0.0, 1.0))]
+    if visible is not None:
+        terms.append(visible)
+    score = float(np.prod(np.maximum(terms, 1e-6)) ** (1.0 / len(terms)))
+    az = [v.azimuth_deg for v in views]
+    return Clarity(int(track_id), category, len(views), pixels, visible, sharp,
+                   azimuth_coverage(az, config.azimuth_bins, False), azimuth_coverage(az, config.azimuth_bins, True),
+                   score)
+
+
+def choose(c: Clarity, needs_360: bool, pool_has_category: bool, config: DualConfig = DualConfig()) -> tuple[str, str]:
+    """(strategy, reason) for one track: see the module docstring."""
+    if not needs_360:
+        return "fitted", "no edit turns it off its observed views: the fitted node is kept"
+    clear = c.score >= config.min_clarity
+    covered = c.coverage_mirrored >= config.min_coverage
+    seen = (f"clarity {c.score:.2f} (min {config.min_clarity:.2f}), seen from {c.coverage_mirrored:.0%} of azimuths "
+            f"with mirror images (min {config.min_coverage:.0%}), {c.n_views} view(s)")
+    if clear and covered:
+        return "online", f"clear and well covered: {seen}"
+    why = "unclear" if not clear else "too few sides seen"
+    if pool_has_category:
+        return "pool", f"{why}: {seen}"
+    return "online", f"{why} ({seen}), but the pool has no {c.category} model: the fitted node, mirrored"
+
+
+# ----------------------------------------------------------------------------- models
+def mirrored(params: GaussianParams) -> GaussianParams:
+    """The Gaussians reflected across the x-z plane (y -> -y): means, orientations and view-dependent colours."""
+    M = torch.as_tensor(MIRROR_Y, dtype=params.means.dtype, device=params.means.device)
+    q = params.quats
+    quats = torch.stack([q[:, 0], -q[:, 1], q[:, 2], -q[:, 3]], 1)  # M R M for R of q: a proper rotation again
+    sh = rotate_sh(params.sh, MIRROR_Y) if params.sh_degree > 0 else params.sh
+    return GaussianParams(params.means @ M, quats, params.log_scales, params.opacity_logits, sh[:, 0], sh[:, 1:])
+
+
+def mirror_completed(params: GaussianParams, seen_side: float) -> GaussianParams:
+    """The half on the ``seen_side`` (sign of y: +1 the vehicle's left, -1 its right) kept, plus its mirror
+    image in place of the other half."""
+    side = torch.sign(params.means[:, 1]) * float(np.sign(seen_side) or 1.0)
+    keep = params.select(side >= 0)
+    return _concat(keep, mirrored(params.select(side > 0)))
+
+
+def _concat(a: GaussianParams, b: GaussianParams) -> GaussianParams:
+    return GaussianParams(**{k: torch.cat([getattr(a, k), getattr(b, k)]) for k in a.as_dict()})
+
+
+def cropped_to_box(params: GaussianParams, size: np.ndarray, margin_m: float) -> GaussianParams:
+    """Only the Gaussians whose centre lies inside the box grown by ``margin_m`` (an empty result keeps all)."""
+    half = torch.as_tensor(0.5 * np.asarray(size, dtype=np.float64) + margin_m, dtype=params.means.dtype,
+                           device=params.means.device)
+    inside = (params.means.abs() <= half).all(1)
+    return params.select(inside) if bool(inside.any()) else params
+
+
+def colour_corrected(params: GaussianParams, affine: np.ndarray) -> GaussianParams:
+    """Colours c(d) turned into A c(d) + b (``affine`` = [A | b], [3, 4]) exactly, through the SH coefficients."""
+    A = torch.as_tensor(affine[:, :3], dtype=params.sh_dc.dtype, device=params.sh_dc.device)
+    b = torch.as_tensor(affine[:, 3], dtype=params.sh_dc.dtype, device=params.sh_dc.device)
+    dc = params.sh_dc @ A.T + (SH_COLOR_OFFSET * A.sum(1) + b - SH_COLOR_OFFSET) / SH_C0
+    return GaussianParams(params.means, params.quats, params.log_scales, params.opacity_logits, dc,
+                          params.sh_rest @ A.T)
+
+
+def seen_side(views: list[TrackView]) -> float:
+    """+1 when the track's left side (azimuths 0..180) was seen over more pixels than its right, else -1."""
+    left = sum(v.pixels * np.sin(np.radians(v.azimuth_deg)) for v in views)
+    return 1.0 if left >= 0 else -1.0
+
+
+def _visible_coverage(graph: SceneGraph, track_id: int, view) -> tuple[np.ndarray, np.ndarray]:
+    """The graph's render of ``view`` and how much of each pixel the track's node covers once whatever lies in
+    front of it is taken off: rgb [H, W, 3], coverage [H, W]."""
+    node = graph.agent(track_id)
+    out = render_view(graph, view, labels={agent_key(track_id): torch.ones(len(node.gaussians), 1)})
+    return out.rgb.numpy(), out.labels[..., 0].numpy()
+
+
+def _colour_samples(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView]):
+    """Per view: the candidate node rendered alone ([H, W, 3] tensor, differentiable in its colours when they
+    carry gradients), the logged image before the camera's exposure correction and the weight of every pixel
+    (how much of it the fitted track covers once what lies in front is taken off)."""
+    out = []
+    for v in views:
+        view = graph.view(v.camera, v.frame_idx)
+        _, seen = _visible_coverage(graph, track_id, view)
+        if (seen > 0.5).sum() < 20:
+            continue
+        target = scene.image(v.camera, v.frame_idx).astype(np.float32) / 255.0
+        affine = graph.exposure.get(v.camera)
+        if affine is not None:  # the logged colour before this camera's exposure correction
+            E = affine.double().numpy()
+            target = np.linalg.solve(E[:, :3], (target.reshape(-1, 3) - E[:, 3]).T).T.reshape(target.shape)
+        out.append((view, torch.from_numpy(target.astype(np.float32)), torch.from_numpy(np.clip(seen, 0, 1))))
+    return out
+
+
+def _alone(graph: SceneGraph, track_id: int, params: GaussianParams) -> SceneGraph:
+    """The graph holding only the track's node (with ``params``), no background, no exposure correction."""
+    from omniscs.gaussians import empty_params
+
+    node = graph.agent(track_id).with_changes(gaussians=params)
+    return graph.replace(background=empty_params(graph.sh_degree).to(graph.device), agents=(node,), exposure={})
+
+
+def fit_colour_correction(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView],
+                          ridge: float = 0.02) -> np.ndarray:
+    """The colour map [A | b] (per channel: A diagonal) that makes ``candidate`` (in the track's node) look like the
+    logged images where the fitted track is what the camera saw: weighted least squares, pulled towards identity."""
+    identity = np.hstack([np.eye(3), np.zeros((3, 1))])
+    samples = _colour_samples(graph, scene, track_id, candidate, views)
+    if not samples:
+        return identity
+    alone = _alone(graph, track_id, candidate)
+    xs, ys, ws = [], [], []
+    with torch.no_grad():
+        for view, target, weight in samples:
+            out = render_view(alone, view)
+            m = (weight > 0.5) & (out.alpha > 0.9)
+            xs.append(out.rgb[m].double().numpy())
+            ys.append(target[m].double().numpy())
+            ws.append(weight[m].double().numpy())
+    X, Y, w = np.concatenate(xs), np.concatenate(ys), np.concatenate(ws)
+    if len(X) < 20:
+        return identity
+    affine = identity.copy()
+    lam = ridge * w.sum()
+    for c in range(3):
+        Xh = np.stack([X[:, c], np.ones(len(X))], 1)
+        G = Xh.T @ (Xh * w[:, None]) + lam * np.eye(2)
+        gain, bias = np.linalg.solve(G, Xh.T @ (Y[:, c] * w) + lam * np.array([1.0, 0.0]))
+        affine[c, c], affine[c, 3] = np.clip(gain, 0.1, 10.0), np.clip(bias, -1.0, 1.0)
+    return affine if np.all(np.isfinite(affine)) else identity
+
+
+def refine_colours(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView],
+                   steps: int = 40, lr: float = 0.02) -> GaussianParams:
+    """``candidate``'s colours (view-independent band) fitted for ``steps`` Adam steps to the logged images, only
+    where the fitted track is what the camera saw *and* the candidate covers the pixel (a silhouette the two
+    share, eroded by 2 pixels, so that no background colour leaks onto the model's rim); Gaussians no such pixel
+    sees keep their colours."""
+    samples = []
+    alone = _alone(graph, track_id, candidate)
+    kernel = np.ones((5, 5), np.uint8)
+    with torch.no_grad():
+        for view, target, weight in _colour_samples(graph, scene, track_id, candidate, views):
+            covered = render_view(alone, view).alpha.numpy() > 0.9
+            shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
+            if shared.sum() >= 20:
+                samples.append((view, target, torch.from_numpy(shared)))
+    if not samples or steps <= 0:
+        return candidate
+    dc = candidate.sh_dc.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([dc], lr=lr)
+    for step in range(steps):
+        view, target, mask = samples[step % len(samples)]
+        params = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits, dc,
+                                candidate.sh_rest)
+        out = render_view(_alone(graph, track_id, params), view)
+        loss = (out.rgb - target).abs().sum(-1)[mask].mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    dc = dc.detach()
+    if not bool(torch.isfinite(dc).all()):
+        return candidate
+    return GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits, dc,
+                          candidate.sh_rest)
+
+
+# ----------------------------------------------------------------------------- matching
+def query_crops(graph: SceneGraph, scene, track_id: int, views: list[TrackView], n: int) -> np.ndarray:
+    """uint8 [k, CROP, CROP, 3] crops of the track in its ``n`` largest logged views: the logged pixels the fitted
+    node covers (others black, as in the pool's keyframes), cut to the covered area."""
+    crops = []
+    for v in sorted(views, key=lambda v: -v.pixels)[:n]:
+        _, cover = _visible_coverage(graph, track_id, graph.view(v.camera, v.frame_idx))
+        if (cover > 0.5).sum() < 16:
+            continue
+        image = scene.image(v.camera, v.frame_idx) * (cover > 0.5)[..., None]
+        crops.append(crop_square(image.astype(np.uint8), cover))
+    return np.stack(crops) if crops else np.zeros((0, CROP, CROP, 3), np.uint8)
+
+
+def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> np.ndarray:
+    """Crops like ``query_crops`` without a fitted graph: the track's ground-truth instance mask where the scene has
+    one, else its box rectangle (the logged pixels around it included)."""
+    crops = []
+    for v in sorted(views, key=lambda v: -v.pixels)[:n]:
+        image = scene.image(v.camera, v.frame_idx)
+        instance = scene.instance_mask(v.camera, v.frame_idx) if scene.has_gt else None
+        if instance is not None:
+            mask = instance == int(track_id)
+            if mask.sum() < 16:
+                continue
+            crops.append(crop_square((image * mask[..., None]).astype(np.uint8), mask.astype(np.float32)))
+        else:
+            x0, y0, x1, y1 = v.rect
+            crops.append(crop_square(np.ascontiguousarray(image[y0:y1, x0:x1])))
+    return np.stack(crops) if crops else np.zeros((0, CROP, CROP, 3), np.uint8)
+
+
+def pool_gallery(pool: Pool, embedder: Embedder) -> tuple[np.ndarray, np.ndarray, "object"]:
+    """The pool's keyframe embeddings [G, D], the model id of each [G] and the pool table; computed once per pool
+    content and embedder, cached under ``<pool>/embeddings/``."""
+    import hashlib
+
+    table = pool.table()
+    if table.empty:
+        return np.zeros((0, 1), np.float32), np.zeros(0, dtype=object), table
+    ids = sorted(table.model_id)
+    digest = hashlib.sha256(("\n".join(ids) + "|" + embedder.name).encode()).hexdigest()[:16]
+    cache = pool.root / "embeddings" / f"{embedder.name.replace(' ', '_')}-{digest}.npz"
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            return z["emb"], z["model"].astype(object), table
+    embs, owners = [], []
+    for mid in ids:
+        rgba = pool.keyframes(mid)
+        crops = np.stack([crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0) for k in rgba])
+        embs.append(embedder.embed(crops))
+        owners += [mid] * len(crops)
+    emb, model = np.concatenate(embs).astype(np.float32), np.array(owners)
+    import io
+    buf = io.BytesIO()
+    np.savez(buf, emb=emb, model=model.astype(str))
+    atomic_write_bytes(cache, buf.getvalue())
+    return emb, model.astype(object), table
+
+
+def match_tracks(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], categories: dict[int, str],
+                 pool: Pool, embedder: Embedder | None = None, size_weight: float = 1.0) -> dict[int, tuple[str, float]]:
+    """Each track (its crops, box size and category) assigned to its own pool model: similarity = mean over the
+    track's crops of the best keyframe cosine similarity, less ``size_weight`` x mean |log size ratio|; one model per
+    track, within its category (Hungarian). Tracks without crops or without a model of their category are left
+    out. Returns track -> (model id, distance = 1 - similarity)."""
+    embedder = embedder or ColourHistogram()
+    gallery, owner, table = pool_gallery(pool, embedder)
+    tracks = [t for t in queries if len(queries[t])]
+    if not tracks or table.empty:
+        return {}
+    table = table.set_index("model_id")
+    models = np.array(sorted(table.index))
+    model_size = table.loc[models, ["length", "width", "height"]].to_numpy(np.float64)
+    scores = np.zeros((len(tracks), len(models)))
+    for i, t in enumerate(tracks):
+        sim = embedder.embed(queries[t]) @ gallery.T  # [k, G]
+        best = np.full((sim.shape[0], len(models)), -1.0)
+        index = {m: j for j, m in enumerate(models)}
+        cols = np.array([index[m] for m in owner])
+        np.maximum.at(best.T, cols, sim.T)
+        shape = np.abs(np.log(np.maximum(model_size, 1e-3) / np.maximum(sizes[t], 1e-3)[None])).mean(1)
+        scores[i] = best.mean(0) - size_weight * shape
+    picked = assign(scores, [categories[t] for t in tracks], list(table.loc[models, "category"]))
+    return {t: (str(models[j]), float(1.0 - scores[i, j])) for i, (t, j) in enumerate(zip(tracks, picked))
+            if j is not None}
+
+
+# ----------------------------------------------------------------------------- the stage's work
+def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Pool | None = None,
+                    config: DualConfig = DualConfig(), embedder: Embedder | None = None,
+                    force: str | None = None) -> tuple[SceneGraph, list[Decision]]:
+    """The graph with every agent node cut to its box (strays dropped) and each track of ``needs_360`` given a
+    360-degree model by the dual strategy; one Decision per agent node. ``force`` ('online' or 'pool') overrides
+    the choice for the tracks that need a model (the benchmark's single-strategy arms)."""
+    if force not in (None, "online", "pool"):
+        raise OmniscsError(f"force must be None, 'online' or 'pool'; got {force!r}")
+    need = {int(t) for t in needs_360}
+    unknown = sorted(need - set(graph.agent_ids))
+    if unknown:
+        raise OmniscsError(f"track(s) {unknown} need a 360-degree model but are not agent nodes of the graph")
+    table = pool.table() if pool is not None else None
+    pool_categories = set(table.category) if table is not None and not table.empty else set()
+    nodes = {a.track_id: a.with_changes(gaussians=cropped_to_box(a.gaussians, a.size, config.box_margin_m))
+             for a in graph.agents}
+    cropped = graph.replace(agents=tuple(nodes.values()))
+    decisions: dict[int, Decision] = {}
+    views: dict[int, list[TrackView]] = {}
+    for tid in sorted(nodes):
+        if tid not in need:
+            decisions[tid] = Decision(tid, "fitted", choose(None, False, False, config)[1], None)  # type: ignore[arg-type]
+            continue
+        c = clarity(scene, tid, train_frames, config)
+        views[tid] = track_views(scene, tid, train_frames, config.min_view_pixels)
+        strategy, reason = choose(c, True, c.category in pool_categories, config)
+        if force is not None and force != strategy:
+            if force == "pool" and c.category not in pool_categories:
+                reason = f"pool forced, but the pool has no {c.category} model: the fitted node, mirrored"
+                strategy = "online"
+            else:
+                strategy, reason = force, f"{force} forced ({reason})"
+        decisions[tid] = Decision(tid, strategy, reason, c)
+    # the pool's tracks matched together (one model each)
+    to_match = [t for t, d in decisions.items() if d.strategy == "pool"]
+    matches = {}
+    if to_match:
+        queries = {}
+        for t in to_match:  # the fitted node's own pixels; where it covers too little, the scene's masks or boxes
+            queries[t] = query_crops(cropped, scene, t, views[t], config.match_views)
+            if not len(queries[t]):
+                queries[t] = scene_query_crops(scene, t, views[t], config.match_views)
+        matches = match_tracks(queries, {t: np.asarray(nodes[t].size) for t in to_match},
+                               {t: nodes[t].category for t in to_match}, pool, embedder, config.size_weight)
+    for tid in sorted(need):
+        d = decisions[tid]
+        node = nodes[tid]
+        if d.strategy == "pool" and tid in matches:
+            model_id, distance = matches[tid]
+            model = pool.get(model_id)
+            size = np.asarray(model.meta["size"], dtype=np.float64)
+            g = with_sh_degree(model.params, graph.sh_degree).to(graph.device)
+            g = scale_to_box(g, np.maximum(size, 1e-3), node.size)
+            colour_views = sorted(views[tid], key=lambda v: -v.pixels)[:config.colour_views]
+            affine = fit_colour_correction(cropped, scene, tid, g, colour_views)
+            g = refine_colours(cropped, scene, tid, colour_corrected(g, affine), colour_views, config.colour_steps)
+            keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity
+            if keep:  # the seen sides (and their mirror images) from the fit, the rest from the pool model
+                seen = node.gaussians
+                if d.clarity.coverage < config.min_coverage:
+                    seen = mirror_completed(seen, seen_side(views[tid]))
+                g = _concat(seen, scale_to_box(g, node.size, np.asarray(node.size) * config.pool_inset))
+            nodes[tid] = node.with_changes(gaussians=g)
+            decisions[tid] = Decision(tid, "pool", d.reason + ("; the fitted Gaussians kept on the seen sides" if keep
+                                                               else ""), d.clarity, model_id, distance, False,
+                                      np.round(affine, 5).tolist())
+            continue
+        reason = d.reason if d.strategy == "online" else f"{d.reason}; no pool model matched: the fitted node, mirrored"
+        mirror = d.clarity is not None and d.clarity.coverage < config.min_coverage
+        g = mirror_completed(node.gaussians, seen_side(views[tid])) if mirror else node.gaussians
+        nodes[tid] = node.with_changes(gaussians=g)
+        decisions[tid] = Decision(tid, "online", reason, d.clarity, mirrored=bool(mirror))
+    return graph.replace(agents=tuple(nodes.values())), [decisions[t] for t in sorted(decisions)]
+
+
+def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: int = 300) -> float | None:
+    """PSNR (dB) of the graph's renders against the logged images over the pixels the track covers (once what lies
+    in front is taken off), over the track's views in ``frames`` (held out of the fit); None without such views."""
+    errors, weights = 0.0, 0.0
+    for v in track_views(scene, track_id, frames, min_pixels):
+        rgb, cover = _visible_coverage(graph, track_id, graph.view(v.camera, v.frame_idx))
+        m = cover > 0.5
+        if m.sum() < 20:
+            continue
+        target = scene.image(v.camera, v.frame_idx).astype(np.float64)[m] / 255.0
+        errors += float(((np.clip(rgb[m], 0, 1) - target) ** 2).sum())
+        weights += 3.0 * m.sum()
+    if weights == 0:
+        return None
+    return float(10.0 * np.log10(1.0 / max(errors / weights, 1e-10)))
+
+
+def grow_pool(graph: SceneGraph, scene, decisions: list[Decision], heldout_frames, pool: Pool,
+              min_psnr: float) -> dict[int, tuple[str | None, float | None]]:
+    """Each track the dual strategy modelled online because it is clear and well covered, scored on the held-out
+    views; those at ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>').
+    Returns track -> (pool model id or None, held-out PSNR)."""
+    out = {}
+    for d in decisions:
+        if d.strategy != "online" or not d.reason.startswith("clear and well covered"):
+            continue
+        quality = heldout_psnr(graph, scene, d.track_id, heldout_frames)
+        model_id = None
+        if quality is not None and quality >= min_psnr:
+            node = graph.agent(d.track_id)
+            model_id = pool.add(node.gaussians.detached().to("cpu"), node.category, "scene_track",
+                                f"{scene.scene_id}/track-{d.track_id}", quality=quality)
+        out[d.track_id] = (model_id, quality)
+    return out
+
+
+def write_decisions(path: str | Path, decisions: list[Decision]) -> None:
+    from omniscs.storage import atomic_write_json
+
+    atomic_write_json(Path(path), {"tracks": [d.to_dict() for d in decisions]})
+
+
+def read_decisions(path: str | Path) -> list[dict]:
+    return json.loads(Path(path).read_text())["tracks"]
+
+
+__all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",
+           "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected", "fit_colour_correction", "query_crops",
+           "match_tracks", "pool_gallery", "complete_agents", "azimuth_coverage"]

@@ -1,0 +1,229 @@
+"""The dual strategy: mirror symmetry, colour correction, clarity and coverage, matching to the pool, and the graph it
+completes (issue 13)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from omniscs.agents.dual import (DualConfig, azimuth_coverage, choose, clarity, colour_corrected, complete_agents,
+                                 cropped_to_box, match_tracks, mirror_completed, mirrored, track_views)
+from omniscs.agents.pool import Pool
+from omniscs.errors import OmniscsError
+from omniscs.gaussians import GaussianParams
+from omniscs.quaternions import quat_to_rotmat
+from omniscs.render.sh import colors_from_sh
+from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+
+
+def _random_params(n: int, degree: int = 3, seed: int = 0) -> GaussianParams:
+    g = torch.Generator().manual_seed(seed)
+    k = (degree + 1) ** 2
+    return GaussianParams(torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g), torch.randn(n, 3, generator=g),
+                          torch.randn(n, generator=g), torch.randn(n, 3, generator=g),
+                          torch.randn(n, k - 1, 3, generator=g))
+
+
+def _unit(q):
+    q = q.double().numpy()
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def test_mirror_reflects_positions_orientations_and_view_dependent_colours():
+    p = _random_params(50)
+    m = mirrored(p)
+    M = np.diag([1.0, -1.0, 1.0])
+    assert torch.allclose(m.means, p.means * torch.tensor([1.0, -1.0, 1.0]))
+    R, R2 = quat_to_rotmat(_unit(p.quats)), quat_to_rotmat(_unit(m.quats))
+    assert np.allclose(M @ R @ M, R2, atol=1e-6)
+    assert np.allclose(np.linalg.det(R2), 1.0, atol=1e-6)  # still a rotation: the renderer takes it as is
+    dirs = torch.randn(4, 50, 3, generator=torch.Generator().manual_seed(1))
+    seen = colors_from_sh(3, p.sh, dirs)
+    seen_in_mirror = colors_from_sh(3, m.sh, dirs * torch.tensor([1.0, -1.0, 1.0]))
+    assert torch.allclose(seen, seen_in_mirror, atol=1e-4)
+    assert torch.allclose(mirrored(m).means, p.means)
+
+
+def test_mirror_completion_keeps_the_seen_half_and_replaces_the_other_by_its_image():
+    p = _random_params(200)
+    left = mirror_completed(p, +1.0)
+    n_left = int((p.means[:, 1] >= 0).sum())
+    assert len(left) == n_left + int((p.means[:, 1] > 0).sum())
+    kept = left.means[:n_left]
+    assert bool((kept[:, 1] >= 0).all()) and bool((left.means[n_left:, 1] < 0).all())
+    right = mirror_completed(p, -1.0)
+    assert bool((right.means[: int((p.means[:, 1] <= 0).sum()), 1] <= 0).all())
+
+
+def test_colour_correction_is_the_exact_affine_map_of_every_view_dependent_colour():
+    p = _random_params(30, seed=2)
+    p = GaussianParams(p.means, p.quats, p.log_scales, p.opacity_logits, p.sh_dc * 0.1 + 0.5, p.sh_rest * 0.02)
+    affine = np.array([[0.8, 0.1, 0.0, 0.05], [0.0, 1.2, 0.0, -0.02], [0.05, 0.0, 0.9, 0.1]])
+    out = colour_corrected(p, affine)
+    dirs = torch.randn(3, 30, 3, generator=torch.Generator().manual_seed(3))
+    before, after = colors_from_sh(3, p.sh, dirs), colors_from_sh(3, out.sh, dirs)
+    assert bool((before > 0).all())  # no clamping in the way of the comparison
+    expect = before @ torch.as_tensor(affine[:, :3], dtype=torch.float32).T + torch.as_tensor(affine[:, 3],
+                                                                                              dtype=torch.float32)
+    assert torch.allclose(after, expect.clamp_min(0), atol=1e-5)
+
+
+def test_strays_far_from_the_box_are_cut_but_an_empty_cut_keeps_the_node():
+    p = _random_params(100)
+    means = p.means.clone()
+    means[:5] = torch.tensor([25.0, 0.0, 0.0])  # strays 25 m away (what fast fits leave)
+    p = GaussianParams(means, p.quats, p.log_scales, p.opacity_logits, p.sh_dc, p.sh_rest)
+    size = np.array([4.5, 1.9, 1.6])
+    cut = cropped_to_box(p, size, 0.3)
+    assert len(cut) < len(p) and float(cut.means.abs().max(0).values[0]) <= 2.25 + 0.3
+    assert len(cropped_to_box(p.select(torch.arange(5)), size, 0.3)) == 5
+
+
+def test_azimuth_coverage_counts_sectors_and_their_mirror_images():
+    assert azimuth_coverage([], 12, True) == 0.0
+    assert azimuth_coverage([5.0, 7.0], 12, False) == pytest.approx(1 / 12)
+    assert azimuth_coverage([45.0], 12, True) == pytest.approx(2 / 12)  # 45 and its mirror 315
+    assert azimuth_coverage(np.arange(0, 360, 30) + 1.0, 12, False) == 1.0
+
+
+def _clarity(score, coverage, category="car"):
+    from omniscs.agents.dual import Clarity
+
+    return Clarity(1, category, 10, 4000.0, 0.9, 80.0, coverage / 2, coverage, score)
+
+
+def test_the_choice_follows_clarity_coverage_and_what_the_pool_holds():
+    config = DualConfig()
+    assert choose(_clarity(0.9, 0.9), False, True, config)[0] == "fitted"
+    assert choose(_clarity(0.9, 0.9), True, True, config)[0] == "online"
+    strategy, reason = choose(_clarity(0.9, 0.3), True, True, config)
+    assert strategy == "pool" and "too few sides" in reason
+    strategy, reason = choose(_clarity(0.2, 0.9), True, True, config)
+    assert strategy == "pool" and reason.startswith("unclear")
+    strategy, reason = choose(_clarity(0.2, 0.3, "bus"), True, False, config)
+    assert strategy == "online" and "no bus model" in reason
+    with pytest.raises(OmniscsError):
+        DualConfig(min_coverage=1.5)
+
+
+# ----------------------------------------------------------------------------- with a scene and a pool
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from omniscs.scene import load_scene
+
+    return load_scene(write_nsg_scene(tmp_path_factory.mktemp("dual") / "scene", nsg_world(n_frames=6)))
+
+
+@pytest.fixture(scope="module")
+def graph(scene):
+    from omniscs.nsg.init import initial_graph
+    from omniscs.nsg.observations import Observations
+    from omniscs.plan import make_plan
+
+    config = tiny_fit_config()
+    return initial_graph(scene, make_plan(scene, None, config.plan), config, Observations(scene))
+
+
+@pytest.fixture(scope="module")
+def pool(tmp_path_factory):
+    """Three small models from the library's pool split: two cars and a truck."""
+    from omniscs.agents.mesh import model_from_mesh
+    from omniscs.world.assets import build_asset
+
+    p = Pool(tmp_path_factory.mktemp("pool") / "pool")
+    for aid in ("sedan-0045", "suv-0035", "box_truck-0020"):
+        a = build_asset(aid)
+        params, info = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1500, 0)
+        p.add(params, a.category, "mesh", aid, info["quality_psnr"])
+    return p
+
+
+def test_clarity_of_tracks_seen_and_unseen_is_finite(scene):
+    frames = range(scene.n_frames)
+    c = clarity(scene, 1, frames)
+    assert c.n_views > 0 and 0 < c.score <= 1 and 0 < c.coverage <= c.coverage_mirrored <= 1
+    assert all(np.isfinite(v) for v in (c.score, c.pixels, c.coverage, c.coverage_mirrored, c.sharpness))
+    # the car ahead is seen from behind only: the front and sides are not covered
+    assert c.coverage_mirrored < DualConfig().min_coverage
+    none = clarity(scene, 1, [])  # no frames at all: zero, never NaN
+    assert none.n_views == 0 and none.score == 0.0 and none.coverage == 0.0
+    with pytest.raises(OmniscsError, match="no boxes"):
+        clarity(scene, 99, frames)
+    far = track_views(scene, 1, frames, min_pixels=10**9)
+    assert far == []
+
+
+def test_matching_picks_the_model_a_query_was_made_from_within_its_category(pool):
+    from omniscs.agents.matching import crop_square
+
+    table = pool.table().set_index("source")
+    queries, sizes, cats = {}, {}, {}
+    for t, aid in ((1, "suv-0035"), (2, "sedan-0045"), (3, "box_truck-0020")):
+        mid = table.loc[aid, "model_id"]
+        rgba = pool.keyframes(mid)[::5]
+        queries[t] = np.stack([crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0) for k in rgba])
+        sizes[t] = table.loc[aid, ["length", "width", "height"]].to_numpy(np.float64)
+        cats[t] = table.loc[aid, "category"]
+    got = match_tracks(queries, sizes, cats, pool)
+    assert {t: m for t, (m, _) in got.items()} == {1: table.loc["suv-0035", "model_id"],
+                                                   2: table.loc["sedan-0045", "model_id"],
+                                                   3: table.loc["box_truck-0020", "model_id"]}
+    assert all(np.isfinite(d) for _, d in got.values())
+    # a category the pool lacks, a track without crops, an empty pool: left out, no error
+    got = match_tracks({4: queries[1], 5: queries[2][:0]}, {4: sizes[1], 5: sizes[2]}, {4: "bus", 5: "car"}, pool)
+    assert got == {}
+    assert match_tracks(queries, sizes, cats, Pool(pool.root.parent / "empty")) == {}
+
+
+def test_the_dual_strategy_completes_only_the_tracks_that_need_it(scene, graph, pool):
+    frames = range(scene.n_frames)
+    before = {a.track_id: a.gaussians.means.clone() for a in graph.agents}
+    completed, decisions = complete_agents(graph, scene, [1], frames, pool)
+    by = {d.track_id: d for d in decisions}
+    assert by[2].strategy == "fitted" and by[1].strategy == "pool"
+    assert by[1].model_id in set(pool.table().model_id) and np.isfinite(by[1].distance)
+    assert "fitted Gaussians kept" in by[1].reason  # clear but seen from behind only: pool completes the fit
+    assert len(completed.agent(1).gaussians) > len(graph.agent(1).gaussians)
+    assert completed.agent(1).gaussians.is_finite()
+    out = completed.render(completed.view(scene.camera_names[0], 2))
+    assert bool(torch.isfinite(out.rgb).all())
+    # without a pool the track gets the online model: the fitted node, its unseen side mirrored
+    online, decisions = complete_agents(graph, scene, [1], frames, None)
+    d = {d.track_id: d for d in decisions}[1]
+    assert d.strategy == "online" and d.mirrored and "pool has no car model" in d.reason
+    assert len(online.agent(1).gaussians) > 0 and online.agent(1).gaussians.is_finite()
+    # forced arms, bad input
+    assert {x.track_id: x.strategy for x in complete_agents(graph, scene, [1], frames, pool, force="online")[1]}[1] \
+        == "online"
+    with pytest.raises(OmniscsError, match="not agent nodes"):
+        complete_agents(graph, scene, [7], frames, pool)
+    with pytest.raises(OmniscsError, match="force"):
+        complete_agents(graph, scene, [1], frames, pool, force="both")
+    # the source graph is a value: unchanged
+    assert all(torch.equal(graph.agent(t).gaussians.means, m) for t, m in before.items())
+
+
+def test_a_pool_of_one_model_of_another_category_falls_back_to_online(scene, graph, tmp_path, pool):
+    single = Pool(tmp_path / "single")
+    truck = pool.table().set_index("source").loc["box_truck-0020", "model_id"]
+    m = pool.get(truck)
+    single.add(m.params, "truck", "mesh", "box_truck-0020")
+    _, decisions = complete_agents(graph, scene, [1], range(scene.n_frames), single)
+    d = {d.track_id: d for d in decisions}[1]
+    assert d.strategy == "online" and "no car model" in d.reason
+
+
+def test_pool_model_ids_are_valid_assets_of_replace_and_insert_edits(graph, pool):
+    from omniscs.agents.pool import model_resolver
+    from omniscs.nsg.edit import apply_graph_edits, node_model_resolver
+
+    mid = pool.table().model_id.iloc[0]
+    resolve = model_resolver(pool.root, node_model_resolver(graph))
+    edited = apply_graph_edits(graph, [{"op": "replace_model", "track_id": 2, "asset_id": mid},
+                                       {"op": "insert", "track_id": 40, "asset_id": mid, "category": "car",
+                                        "pose": [20.0, -3.0, 0.8, 0.0]},
+                                       {"op": "replace_model", "track_id": 1, "asset_id": "nsg:2"}], resolve)
+    assert edited.agent(2).gaussians.sh_degree == graph.sh_degree  # the pool's degree-0 model padded
+    assert np.allclose(edited.agent(40).size, pool.get(mid).meta["size"], atol=1e-3)
+    with pytest.raises(Exception, match="no model"):
+        apply_graph_edits(graph, [{"op": "replace_model", "track_id": 2, "asset_id": "pm-000000000000"}], resolve)
