@@ -194,6 +194,24 @@ CREATE OR REPLACE VIEW pool AS
   FROM pool_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."pool_path", b."model_id"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW agent_models_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("scene_id" AS VARCHAR) AS "scene_id", CAST("model_id" AS VARCHAR) AS "model_id", CAST("fit_model_id" AS VARCHAR) AS "fit_model_id", CAST("track_id" AS BIGINT) AS "track_id", CAST("strategy" AS VARCHAR) AS "strategy", CAST("reason" AS VARCHAR) AS "reason", CAST("needs_360" AS BOOLEAN) AS "needs_360", CAST("pool_path" AS VARCHAR) AS "pool_path", CAST("pool_model_id" AS VARCHAR) AS "pool_model_id", CAST("distance" AS DOUBLE) AS "distance", CAST("clarity" AS DOUBLE) AS "clarity", CAST("coverage" AS DOUBLE) AS "coverage", CAST("mirrored" AS BOOLEAN) AS "mirrored", CAST("added_to_pool" AS VARCHAR) AS "added_to_pool", CAST("n_gaussians" AS BIGINT) AS "n_gaussians",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/agent_models/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "scene_id", NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "fit_model_id", NULL::BIGINT AS "track_id", NULL::VARCHAR AS "strategy", NULL::VARCHAR AS "reason", NULL::BOOLEAN AS "needs_360", NULL::VARCHAR AS "pool_path", NULL::VARCHAR AS "pool_model_id", NULL::DOUBLE AS "distance", NULL::DOUBLE AS "clarity", NULL::DOUBLE AS "coverage", NULL::BOOLEAN AS "mirrored", NULL::VARCHAR AS "added_to_pool", NULL::BIGINT AS "n_gaussians" WHERE false);
+CREATE OR REPLACE VIEW agent_models_by_run AS
+  SELECT run_id, "scene_id", "model_id", "fit_model_id", "track_id", "strategy", "reason", "needs_360", "pool_path", "pool_model_id", "distance", "clarity", "coverage", "mirrored", "added_to_pool", "n_gaussians"
+  FROM agent_models_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "scene_id", "model_id", "track_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW agent_models AS
+  SELECT b.run_id, b."scene_id", b."model_id", b."fit_model_id", b."track_id", b."strategy", b."reason", b."needs_360", b."pool_path", b."pool_model_id", b."distance", b."clarity", b."coverage", b."mirrored", b."added_to_pool", b."n_gaussians"
+  FROM agent_models_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."scene_id", b."model_id", b."track_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
 CREATE OR REPLACE VIEW downstream_models_raw AS
   SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
     CAST("model_id" AS VARCHAR) AS "model_id", CAST("kind" AS VARCHAR) AS "kind", CAST("base_model_id" AS VARCHAR) AS "base_model_id", CAST("dataset_ids" AS VARCHAR[]) AS "dataset_ids", CAST("status" AS VARCHAR) AS "status", CAST("path" AS VARCHAR) AS "path", CAST("n_examples" AS BIGINT) AS "n_examples", CAST("train_seconds" AS DOUBLE) AS "train_seconds", CAST("command" AS VARCHAR) AS "command", CAST("log_path" AS VARCHAR) AS "log_path", CAST("error" AS VARCHAR) AS "error", CAST("config_json" AS VARCHAR) AS "config_json",

@@ -544,22 +544,31 @@ def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: in
     return float(10.0 * np.log10(1.0 / max(errors / weights, 1e-10)))
 
 
-def grow_pool(graph: SceneGraph, scene, decisions: list[Decision], heldout_frames, pool: Pool,
-              min_psnr: float) -> dict[int, tuple[str | None, float | None]]:
-    """Each track the dual strategy modelled online because it is clear and well covered, scored on the held-out
-    views; those at ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>').
-    Returns track -> (pool model id or None, held-out PSNR)."""
+def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool, min_psnr: float,
+              config: DualConfig = DualConfig()) -> dict[int, tuple[str | None, float | None]]:
+    """Every vehicle node of ``graph`` that is clear and seen from enough sides (mirror images included) over the
+    training frames, completed by mirror symmetry where one side is missing, scored on its held-out views; those at
+    ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>'). Returns, per
+    candidate track, (pool model id or None, held-out PSNR or None)."""
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+
     out = {}
-    for d in decisions:
-        if d.strategy != "online" or not d.reason.startswith("clear and well covered"):
+    for node in graph.agents:
+        if node.category not in VEHICLE_CATEGORIES:
             continue
-        quality = heldout_psnr(graph, scene, d.track_id, heldout_frames)
+        c = clarity(scene, node.track_id, train_frames, config)
+        if c.score < config.min_clarity or c.coverage_mirrored < config.min_coverage:
+            continue
+        quality = heldout_psnr(graph, scene, node.track_id, heldout_frames)
         model_id = None
         if quality is not None and quality >= min_psnr:
-            node = graph.agent(d.track_id)
-            model_id = pool.add(node.gaussians.detached().to("cpu"), node.category, "scene_track",
-                                f"{scene.scene_id}/track-{d.track_id}", quality=quality)
-        out[d.track_id] = (model_id, quality)
+            g = node.gaussians
+            if c.coverage < config.min_coverage:
+                g = mirror_completed(g, seen_side(track_views(scene, node.track_id, train_frames,
+                                                              config.min_view_pixels)))
+            model_id = pool.add(g.detached().to("cpu"), node.category, "scene_track",
+                                f"{scene.scene_id}/track-{node.track_id}", quality=quality)
+        out[node.track_id] = (model_id, quality)
     return out
 
 

@@ -65,7 +65,8 @@ class AgentsBenchConfig:
     """Evaluated views per agent and edit."""
     min_pixels: int = 200
     """An evaluated view shows at least this many ground-truth pixels of the edited agent."""
-    match_scenes: tuple[str, ...] = ("straight:81", "t_junction:82")
+    match_scenes: tuple[str, ...] = ("straight:81", "t_junction:82", "intersection:83", "straight:84",
+                                     "t_junction:85", "intersection:86", "straight:87", "t_junction:88")
     """Worlds whose vehicles are swapped for pool-split vehicles to make matching queries."""
     match_queries: int = 60
     """Matching queries (pool-split vehicles, each seen once)."""
@@ -133,13 +134,15 @@ def prepare_scene(item: str, config: AgentsBenchConfig, workspace: Path, progres
 
 # ----------------------------------------------------------------------------- matching
 def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress = no_progress):
-    """(crop uint8 [CROP, CROP, 3], category, true model id) per query: benchmark-pool vehicles put in the place of
-    world vehicles (the renderer fits each mesh to the box it takes), each seen in the view that shows most of it
-    and cropped by its ground-truth mask (other pixels black, as in the keyframes)."""
+    """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3]) per query: benchmark-pool vehicles put in
+    the place of world vehicles (their own box size, standing on the road where the world's vehicle stood), each
+    seen in the view that shows most of it whole (not cut by the image border), cropped by its ground-truth mask
+    (other pixels black, as in the keyframes)."""
+    import dataclasses
+
     from omniscs.agents.matching import crop_square
-    from omniscs.edits import ReplaceModel
     from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import WorldRenderer, apply_edits, generate_world
+    from omniscs.world import WorldRenderer, build_asset, generate_world
 
     by_category: dict[str, list[tuple[str, str]]] = {}
     for row in pool_table.sort_values("model_id").itertuples():
@@ -151,34 +154,43 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     for item in config.match_scenes:
         template, _, seed = item.partition(":")
         world = generate_world(template, int(seed))
-        swaps, truth = [], {}
+        tracks, truth = [], {}
         for track in world.agents:
             options = by_category.get(track.category)
             if track.category not in VEHICLE_CATEGORIES or not options:
+                tracks.append(track)
                 continue
             asset, model_id = options.pop()
-            swaps.append(ReplaceModel(track.track_id, asset))
-            truth[track.track_id] = (model_id, track.category)
-        renderer = WorldRenderer(apply_edits(world, swaps))
+            size = np.asarray(build_asset(asset).size, dtype=np.float64)
+            poses = track.poses.copy()
+            poses[:, :3, 3] += poses[:, :3, 2] * 0.5 * (size[2] - track.size[2])  # the new box on the same ground
+            tracks.append(dataclasses.replace(track, asset_id=asset, size=size, poses=poses))
+            truth[track.track_id] = (model_id, track.category, size)
+        renderer = WorldRenderer(world.replace(agents=tuple(tracks)))
         best: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         for f in range(0, world.n_frames, 5):
-            for cam in world.camera_names:
-                gt = renderer.render_camera(f, cam)
+            for cam in world.cameras:
+                gt = renderer.render_camera(f, cam.name)
                 for tid in truth:
                     mask = gt.instance == tid
                     n = int(mask.sum())
-                    if n >= config.min_pixels * 2 and n > best.get(tid, (0,))[0]:
+                    border = mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()
+                    if n >= config.min_pixels * 2 and not border and n > best.get(tid, (0,))[0]:
                         best[tid] = (n, gt.rgb * mask[..., None], mask)
         for tid, (_, rgb, mask) in sorted(best.items()):
-            queries.append((crop_square(rgb.astype(np.uint8), mask.astype(np.float32)), truth[tid][1], truth[tid][0]))
+            model_id, category, size = truth[tid]
+            queries.append((crop_square(rgb.astype(np.uint8), mask.astype(np.float32)), category, model_id, size))
         progress(len(queries), config.match_queries, f"matching queries from {item}")
         if len(queries) >= config.match_queries:
             break
     return queries[:config.match_queries]
 
 
-def run_matching(queries, pool, embedders, progress: Progress = no_progress) -> list[dict]:
-    """Top-1/top-5 (within the query's category) per degradation level and embedder."""
+def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise: float = 0.05,
+                 progress: Progress = no_progress) -> list[dict]:
+    """Top-1/top-5 (within the query's category) per degradation level and embedder, on appearance alone and with
+    the box-shape term the dual strategy adds (the query's size as a detector measures it: ``size_noise`` relative
+    error per axis)."""
     from omniscs.agents.dual import pool_gallery
     from omniscs.agents.matching import Degradation, degrade
 
@@ -186,10 +198,15 @@ def run_matching(queries, pool, embedders, progress: Progress = no_progress) -> 
     crops = np.stack([q[0] for q in queries])
     cats = np.array([q[1] for q in queries])
     truth = np.array([q[2] for q in queries])
+    noise = np.random.default_rng(11).normal(0.0, size_noise, (len(queries), 3))
+    sizes = np.stack([q[3] for q in queries]) * np.exp(noise)
     for embedder in embedders:
         gallery, owner, table = pool_gallery(pool, embedder)
         models = np.array(sorted(table.model_id))
-        model_cat = table.set_index("model_id").loc[models, "category"].to_numpy()
+        indexed = table.set_index("model_id").loc[models]
+        model_cat = indexed["category"].to_numpy()
+        model_size = indexed[["length", "width", "height"]].to_numpy(np.float64)
+        shape = np.abs(np.log(model_size[None] / sizes[:, None])).mean(-1)  # [Q, M]
         index = {m: j for j, m in enumerate(models)}
         cols = np.array([index[m] for m in owner])
         for level, spec in MATCH_LEVELS:
@@ -200,11 +217,11 @@ def run_matching(queries, pool, embedders, progress: Progress = no_progress) -> 
             best = np.full((len(crops), len(models)), -np.inf)
             np.maximum.at(best.T, cols, sim.T)
             best[cats[:, None] != model_cat[None, :]] = -np.inf  # category known from detection
-            order = np.argsort(-best, axis=1)
-            ranked = models[order]
-            rows.append({"embedder": embedder.name, "level": level, "degradation": spec, "queries": len(crops),
-                         "top1": float(np.mean(ranked[:, 0] == truth)),
-                         "top5": float(np.mean([t in r[:5] for t, r in zip(truth, ranked)]))})
+            for cue, scores in (("appearance", best), ("appearance + box shape", best - size_weight * shape)):
+                ranked = models[np.argsort(-scores, axis=1)]
+                rows.append({"embedder": embedder.name, "cue": cue, "level": level, "degradation": spec,
+                             "queries": len(crops), "top1": float(np.mean(ranked[:, 0] == truth)),
+                             "top5": float(np.mean([t in r[:5] for t, r in zip(truth, ranked)]))})
     return rows
 
 
@@ -232,7 +249,11 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
     from omniscs.pipeline.pool import pool_asset_stage
     from omniscs.world import WorldRenderer, apply_edits
 
-    rows, strips, decisions, fits = [], [], [], []
+    from omniscs.agents.dual import grow_pool
+    from omniscs.pipeline.agents import GROWTH_MIN_PSNR
+
+    rows, strips, decisions, fits, pool_growth = [], [], [], [], []
+    shutil.rmtree(workspace / "bench-agents" / "growth-pool", ignore_errors=True)
     for item in config.scenes:
         scene, plan, fitted, targets = prepare_scene(item, config, workspace, progress)
         graph = load_checkpoint(fitted.path, scene)
@@ -244,6 +265,15 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
             pool_asset_stage(scene.world.agent(t).asset_id, in_pool.root)
         started = time.perf_counter()
         arms = _arm_graphs(graph, scene, plan, targets, pool, in_pool, progress)
+        # growth: the scene's clear, well-covered vehicles scored on held-out views join a copy of the pool
+        growth = Pool(workspace / "bench-agents" / "growth-pool")
+        if not growth.root.exists():
+            shutil.copytree(pool.root, growth.root, ignore=shutil.ignore_patterns("embeddings"))
+        grown = grow_pool(graph, scene, plan.train_frames, plan.heldout_frames, growth, GROWTH_MIN_PSNR)
+        pool_growth.append({"scene_id": scene.scene_id, "candidates": len(grown),
+                            "added": sorted(m for m, _ in grown.values() if m),
+                            "heldout_psnr": {str(t): q for t, (_, q) in grown.items()},
+                            "pool_size": len(growth.table())})
         fits.append({"scene_id": scene.scene_id, "source": item, "targets": targets,
                      "heldout_psnr": fitted.info["metrics"]["heldout_psnr"],
                      "arms_seconds": time.perf_counter() - started,
@@ -275,7 +305,7 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                     f, cam, gt = views[len(views) // 2]
                     strips.append((f"{name} ({scene.scene_id} track {tid}, {cam} frame {f})", gt.instance == tid,
                                    strip))
-    return rows, strips, decisions, fits
+    return rows, strips, decisions, fits, pool_growth
 
 
 def _mean(values) -> float | None:
@@ -322,14 +352,14 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
     embedders = [ColourHistogram(), HOG(), RawPixels(), _Named(MSNetEmbedder(MSNet()), "MSNet (untrained)")]
     matching = run_matching(queries, pool, embedders, progress)
     # Table 4
-    rows, strips, decisions, fits = run_table4(config, ws, pool, progress)
+    rows, strips, decisions, fits, growth = run_table4(config, ws, pool, progress)
     summary = table4_summary(rows)
     report = {"config": asdict(config), "machine": finish(machine),
               "pool": {"size": len(table), "by_category": table.category.value_counts().to_dict(),
                        "split": "pool", "seconds_to_fill": pool_seconds,
                        "build_seconds_per_model": [r["seconds"] for r in timing],
                        "median_build_seconds": statistics.median(r["seconds"] for r in timing),
-                       "quality_db_median": float(np.nanmedian(table.quality.astype(float)))},
+                       "quality_db_median": float(np.nanmedian(table.quality.astype(float))), "growth": growth},
               "matching": matching, "table4": summary, "rows": rows, "decisions": decisions, "fits": fits,
               "targets": _targets(matching, summary, timing)}
     write_report(out_dir, "agents_bench", report, agents_markdown(report),
@@ -402,6 +432,10 @@ def agents_markdown(report: dict) -> str:
               f"{p['size']} models ({', '.join(f'{k} {v}' for k, v in sorted(p['by_category'].items()))}); median "
               f"held-out quality {f(p['quality_db_median'], 1)} dB against ray-cast views; fresh builds "
               f"{', '.join(f(s, 1) for s in p['build_seconds_per_model'])} s per model.", "",
+              "Growth from scene tracks (clear, seen from enough sides with mirror images, held-out masked PSNR at "
+              "least the gate): " + "; ".join(f"after {g['scene_id']}: {g['candidates']} candidate(s), "
+                                                f"{len(g['added'])} added, pool {g['pool_size']}" for g in p["growth"])
+              + ".", "",
               "## Decisions (dual arm)", "", "| scene | track | strategy | clarity | coverage | model | reason |",
               "|---|---|---|---|---|---|---|"]
     for d in report["decisions"]:

@@ -92,7 +92,7 @@ def _complete(scene, plan: ScenePlan, model: StageRecord, pool, config, grow: bo
     p = Pool(pool) if pool is not None else None
     completed, decisions = complete_agents(graph, scene, plan.needs_360, plan.train_frames, p, config)
     progress(1, 3, f"agents of {scene.scene_id}: pool growth")
-    grown = grow_pool(completed, scene, decisions, plan.heldout_frames, p, GROWTH_MIN_PSNR) \
+    grown = grow_pool(completed, scene, plan.train_frames, plan.heldout_frames, p, GROWTH_MIN_PSNR, config) \
         if grow and p is not None else {}
     progress(2, 3, f"agents of {scene.scene_id}: checkpoint")
     write_checkpoint_files(completed, out, plan, read_checkpoint_meta(model.path).get("config"),

@@ -227,3 +227,25 @@ def test_pool_model_ids_are_valid_assets_of_replace_and_insert_edits(graph, pool
     assert np.allclose(edited.agent(40).size, pool.get(mid).meta["size"], atol=1e-3)
     with pytest.raises(Exception, match="no model"):
         apply_graph_edits(graph, [{"op": "replace_model", "track_id": 2, "asset_id": "pm-000000000000"}], resolve)
+
+
+def test_clear_well_covered_tracks_grow_the_pool_only_above_the_quality_gate(scene, graph, tmp_path):
+    from omniscs.agents.dual import grow_pool
+
+    frames = list(range(scene.n_frames))
+    # opaque nodes, as a fit leaves them (the initial graph's are faint)
+    graph = graph.replace(agents=tuple(a.with_changes(gaussians=GaussianParams(
+        a.gaussians.means, a.gaussians.quats, a.gaussians.log_scales + 0.5, a.gaussians.opacity_logits + 6.0,
+        a.gaussians.sh_dc, a.gaussians.sh_rest)) for a in graph.agents))
+    grown_pool = Pool(tmp_path / "grown")
+    loose = DualConfig(min_clarity=0.1, min_coverage=0.1)  # the tiny log sees its cars from few sides
+    assert grow_pool(graph, scene, frames[:4], frames[4:], grown_pool, 1e9, loose)  # candidates, none good enough
+    assert grown_pool.table().empty
+    got = grow_pool(graph, scene, frames[:4], frames[4:], grown_pool, -1e9, loose)
+    added = {t: m for t, (m, q) in got.items() if m}
+    assert added and all(q is None or np.isfinite(q) for _, q in got.values())
+    table = grown_pool.table().set_index("model_id")
+    for t, m in added.items():
+        assert table.loc[m, "provenance"] == "scene_track" and table.loc[m, "source"] == f"{scene.scene_id}/track-{t}"
+    # the default gates: nothing in this log is clear and covered enough
+    assert grow_pool(graph, scene, frames[:4], frames[4:], Pool(tmp_path / "strict"), 24.0) == {}

@@ -124,7 +124,7 @@ def test_edits_of_tracks_that_are_not_nodes_are_refused_with_a_clear_error(graph
         apply_graph_edits(graph, [Translate(track_id=99, lateral=1.0)])
     with pytest.raises(OmniscsError, match="already has a node"):
         apply_graph_edits(graph, [Insert(track_id=1, asset_id="nsg:2", category="car", pose=(0, 0, 0, 0))])
-    with pytest.raises(OmniscsError, match="model pool"):
+    with pytest.raises(OmniscsError, match="pool model"):
         apply_graph_edits(graph, [ReplaceModel(track_id=1, asset_id="excavator-0002")])
 
 
