@@ -409,8 +409,9 @@ def pool_gallery(pool: Pool, embedder: Embedder) -> tuple[np.ndarray, np.ndarray
     if table.empty:
         return np.zeros((0, 1), np.float32), np.zeros(0, dtype=object), table
     ids = sorted(table.model_id)
-    digest = hashlib.sha256(("\n".join(ids) + "|" + embedder.name).encode()).hexdigest()[:16]
-    cache = pool.root / "embeddings" / f"{embedder.name.replace(' ', '_')}-{digest}.npz"
+    name = getattr(embedder, "cache_key", embedder.name)  # an embedder with weights names them
+    digest = hashlib.sha256(("\n".join(ids) + "|" + name).encode()).hexdigest()[:16]
+    cache = pool.root / "embeddings" / f"{name.replace(' ', '_')}-{digest}.npz"
     if cache.is_file():
         with np.load(cache, allow_pickle=False) as z:
             return z["emb"], z["model"].astype(object), table

@@ -112,9 +112,12 @@ def _tensor(crops: np.ndarray) -> torch.Tensor:
 
 
 def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSNetTrainConfig = MSNetTrainConfig(),
-                net: MSNet | None = None, progress: Progress = no_progress) -> tuple[MSNet, dict]:
+                net: MSNet | None = None, progress: Progress = no_progress,
+                domains: np.ndarray | None = None) -> tuple[MSNet, dict]:
     """Train on ``crops`` (uint8 [N, 64, 64, 3]) of models ``labels`` [N]; each batch takes ``models_per_batch``
-    models with ``views_per_model`` crops each, every crop degraded by one of ``degradations`` at random."""
+    models with ``views_per_model`` crops each, every crop degraded by one of ``degradations`` at random. With
+    ``domains`` [N] (e.g. 0 = the pool's keyframes, 1 = camera images), a model's crops in a batch are drawn from
+    each of its domains in turn, so that positives cross the domains a query and the gallery come from."""
     from omniscs.agents.matching import degrade
 
     labels = np.asarray(labels)
@@ -127,11 +130,24 @@ def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSN
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=5e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps)
     by_model = {m: np.flatnonzero(labels == m) for m in models}
+    if domains is not None:
+        domains = np.asarray(domains)
+        if len(domains) != len(labels):
+            raise ValidationError("MSNet domains need one entry per crop")
+    by_domain = {m: [idx[domains[idx] == d] for d in np.unique(domains[idx])] for m, idx in by_model.items()} \
+        if domains is not None else None
+
+    def views_of(m) -> np.ndarray:
+        if by_domain is None:
+            return rng.choice(by_model[m], config.views_per_model)
+        groups = by_domain[m]
+        return np.array([rng.choice(groups[k % len(groups)]) for k in range(config.views_per_model)])
+
     started, losses = time.perf_counter(), []
     net.train()
     for step in range(config.steps):
         chosen = rng.choice(models, min(config.models_per_batch, len(models)), replace=False)
-        idx = np.concatenate([rng.choice(by_model[m], config.views_per_model) for m in chosen])
+        idx = np.concatenate([views_of(m) for m in chosen])
         batch = np.stack([degrade(crops[i], degradations[rng.integers(len(degradations))], rng) for i in idx])
         loss = batch_hard_triplet(net(_tensor(batch)), torch.as_tensor(labels[idx]), config.margin)
         opt.zero_grad()
@@ -152,9 +168,48 @@ class MSNetEmbedder:
     name = "MSNet"
 
     def __init__(self, net: MSNet) -> None:
+        import hashlib
+
         self.net = net.eval()
+        h = hashlib.sha256()
+        for k, v in sorted(net.state_dict().items()):
+            h.update(k.encode())
+            h.update(v.detach().cpu().numpy().tobytes())
+        self.cache_key = f"msnet-{h.hexdigest()[:12]}"  # cached gallery embeddings belong to these very weights
 
     @torch.no_grad()
     def embed(self, crops: np.ndarray) -> np.ndarray:
         out = [self.net(_tensor(crops[i:i + 256])).numpy() for i in range(0, len(crops), 256)]
         return np.concatenate(out).astype(np.float32)
+
+
+def save_msnet(net: MSNet, folder, info: dict) -> None:
+    """Weights (safetensors), the architecture and how they were made (``training.json``), written whole."""
+    import json
+    from pathlib import Path
+
+    from safetensors.torch import save_file
+
+    from omniscs.storage import atomic_directory
+
+    with atomic_directory(Path(folder), overwrite=True) as tmp:
+        save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(tmp / "msnet.safetensors"))
+        (tmp / "training.json").write_text(json.dumps({"architecture": asdict(net.config), **info}, indent=1,
+                                                      default=str))
+
+
+def load_msnet(folder) -> MSNet:
+    """An MSNet saved by ``save_msnet`` (a user's own weights of this architecture load the same way)."""
+    import json
+    from pathlib import Path
+
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    try:
+        arch = json.loads((folder / "training.json").read_text())["architecture"]
+        net = MSNet(MSNetConfig(tuple(arch["widths"]), int(arch["dim"])))
+        net.load_state_dict(load_file(str(folder / "msnet.safetensors")))
+    except (OSError, KeyError, ValueError, RuntimeError) as e:
+        raise ValidationError(f"{folder} holds no MSNet weights this version reads ({type(e).__name__}: {e})") from e
+    return net.eval()

@@ -98,10 +98,16 @@ def pool_ids(quota) -> list[str]:
 
 
 def build_pool(pool: Path, ids: list[str], progress: Progress = no_progress) -> list[dict]:
+    """The pool stage over ``ids``; assets the pool already holds a mesh model of are not looked at again."""
+    from omniscs.agents.pool import Pool
     from omniscs.pipeline.pool import pool_asset_stage
 
+    table = Pool(pool).table()
+    have = set(table.source[table.provenance == "mesh"]) if len(table) else set()
     rows = []
     for i, aid in enumerate(ids):
+        if aid in have:
+            continue
         progress(i, len(ids), f"pool model {aid}")
         rows.append(pool_asset_stage(aid, pool).rows["pool"][0])
     return rows
@@ -352,6 +358,10 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
     queries = matching_queries(config, table, progress)
     torch.manual_seed(0)
     embedders = [ColourHistogram(), HOG(), RawPixels(), _Named(MSNetEmbedder(MSNet()), "MSNet (untrained)")]
+    if (MSNET_CHECKPOINT / "msnet.safetensors").is_file():
+        from omniscs.agents.msnet import load_msnet
+
+        embedders.append(_Named(MSNetEmbedder(load_msnet(MSNET_CHECKPOINT)), "MSNet (shipped)"))
     matching = run_matching(queries, pool, embedders, progress=progress)
     # Table 4
     rows, strips, decisions, fits, growth = run_table4(config, ws, pool, progress)
@@ -374,6 +384,7 @@ class _Named:
 
     def __init__(self, inner, name: str) -> None:
         self.inner, self.name = inner, name
+        self.cache_key = getattr(inner, "cache_key", name)
 
     def embed(self, crops):
         return self.inner.embed(crops)
@@ -473,3 +484,89 @@ def _strip_png(strips, buf) -> None:
     fig.tight_layout()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- MSNet training (its shipped weights)
+#: Where the shipped MSNet weights live (made by ``omniscs bench agents --train-msnet``).
+MSNET_CHECKPOINT = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "msnet"
+
+
+@dataclass(frozen=True)
+class MSNetDataConfig:
+    """The training data of the shipped MSNet: the library's *world* split only (the benchmark's queries and pool
+    come from the pool split), seen two ways: its pool models' keyframes, and camera images of procedural worlds
+    (seeds far from every benchmark's) cropped by their ground-truth masks."""
+
+    worlds: tuple[str, ...] = tuple(f"{t}:{s}" for s in range(1000, 1012)
+                                    for t in ("straight", "t_junction", "intersection"))
+    frame_step: int = 4
+    min_pixels: int = 300
+    per_track: int = 6
+    steps: int = 3000
+    seed: int = 0
+
+
+def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progress: Progress = no_progress):
+    """crops uint8 [N, CROP, CROP, 3] and asset ids [N] of the vehicles of procedural worlds, up to ``per_track``
+    views each (spread over the log), whole in the image, cropped by their ground-truth masks."""
+    from omniscs.agents.matching import crop_square
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+    from omniscs.world import WorldRenderer, generate_world
+
+    crops, labels = [], []
+    for k, item in enumerate(items):
+        progress(k, len(items), f"MSNet data: {item}")
+        template, _, seed = item.partition(":")
+        world = generate_world(template, int(seed))
+        renderer = WorldRenderer(world)
+        vehicles = {a.track_id: a.asset_id for a in world.agents if a.category in VEHICLE_CATEGORIES}
+        seen: dict[int, list[np.ndarray]] = {}
+        for f in range(0, world.n_frames, frame_step):
+            for cam in world.cameras:
+                gt = renderer.render_camera(f, cam.name)
+                for tid in vehicles:
+                    mask = gt.instance == tid
+                    if mask.sum() < min_pixels or mask[0].any() or mask[-1].any() or mask[:, 0].any() \
+                            or mask[:, -1].any():
+                        continue
+                    seen.setdefault(tid, []).append(crop_square((gt.rgb * mask[..., None]).astype(np.uint8),
+                                                                mask.astype(np.float32)))
+        for tid, views in seen.items():
+            pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
+            crops += [views[i] for i in pick]
+            labels += [vehicles[tid]] * len(pick)
+    return np.stack(crops), np.array(labels)
+
+
+def train_shipped_msnet(workspace: Path | None = None, config: MSNetDataConfig = MSNetDataConfig(),
+                        out: Path = MSNET_CHECKPOINT, progress: Progress = no_progress) -> dict:
+    """Train MSNet on the world split (keyframes of its pool models + camera crops, positives across the two) and
+    write its weights to ``out`` (the shipped ones by default)."""
+    from omniscs.agents.matching import Degradation, crop_square
+    from omniscs.agents.msnet import MSNetTrainConfig, save_msnet, train_msnet
+    from omniscs.agents.pool import Pool
+
+    ws = workspace_root(workspace)
+    camera, camera_labels = world_crops(config.worlds, config.frame_step, config.min_pixels, config.per_track,
+                                        progress)
+    assets = sorted(set(camera_labels))
+    pool = Pool(ws / "bench-agents" / "world-split-pool")
+    build_pool(pool.root, assets, progress)
+    table = pool.table().set_index("source")
+    key_crops, key_labels = [], []
+    for aid in assets:
+        for k in pool.keyframes(str(table.loc[aid, "model_id"])):
+            key_crops.append(crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0))
+            key_labels.append(aid)
+    crops = np.concatenate([np.stack(key_crops), camera])
+    labels = np.concatenate([np.array(key_labels), camera_labels])
+    domains = np.concatenate([np.zeros(len(key_crops), int), np.ones(len(camera), int)])
+    degradations = [Degradation(**spec) for _, spec in MATCH_LEVELS] + [
+        Degradation(gain=1.3, gamma=0.8), Degradation(gain=0.6), Degradation(downsample=3.0, occlusion=0.25)]
+    train = MSNetTrainConfig(steps=config.steps, seed=config.seed)
+    net, info = train_msnet(crops, labels, degradations, train, progress=progress, domains=domains)
+    info.update({"command": "omniscs bench agents --train-msnet", "data": asdict(config),
+                 "n_assets": len(assets), "n_keyframe_crops": len(key_crops), "n_camera_crops": int(len(camera)),
+                 "machine": finish(machine_info())})
+    save_msnet(net, out, info)
+    return info

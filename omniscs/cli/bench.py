@@ -219,11 +219,19 @@ def bench_agents(
                                                         "reused)."),
     quick: bool = typer.Option(False, "--quick", help="One small scene, the fast preset, a small pool (a smoke run, "
                                                       "not a measurement)."),
+    train_msnet: bool = typer.Option(False, "--train-msnet", help="Train MSNet again on the library's world split "
+                                                                  "and write it into the package (its shipped "
+                                                                  "weights) before the benchmark."),
 ) -> None:
     """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
     (naive / online / pool / dual / dual in-pool after translate, rotate and overturn) on held-out worlds."""
-    from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark
+    from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark, train_shipped_msnet
 
+    if train_msnet:
+        with progress_bars() as bars:
+            info = train_shipped_msnet(workspace, progress=bars.sink("MSNet"))
+        console.print(f"MSNet: {info['n_assets']} assets, triplet loss {info['loss_first']:.3f} -> "
+                      f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
     with progress_bars() as bars:
         run_agents_benchmark(out, workspace, quick_config() if quick else AgentsBenchConfig(),
                              progress=bars.sink("agents bench"))

@@ -276,3 +276,12 @@ def test_rendering_the_candidates_into_the_scene_finds_the_vehicle_a_track_was_m
     got = verified_matches(graph, scene, [1], views, own, queries, DualConfig(verify_top_k=3, min_view_pixels=100))
     model_id, distance, error, affine = got[1]
     assert model_id == own_id and np.isfinite(distance) and 0 <= error < 1 and np.isfinite(affine).all()
+
+
+def test_a_track_no_view_shows_falls_back_to_its_fitted_node_mirrored(scene, graph, pool):
+    """Seen in no training view (absent, 80 m away, fully hidden): no crops to match, so the online model, finite."""
+    completed, decisions = complete_agents(graph, scene, [1], [], pool)
+    d = {d.track_id: d for d in decisions}[1]
+    assert d.strategy == "online" and d.clarity.n_views == 0 and d.clarity.score == 0.0
+    assert "no pool model matched" in d.reason
+    assert completed.agent(1).gaussians.is_finite() and len(completed.agent(1).gaussians) > 0
