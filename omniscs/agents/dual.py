@@ -429,11 +429,18 @@ def pool_gallery(pool: Pool, embedder: Embedder) -> tuple[np.ndarray, np.ndarray
     return emb, model.astype(object), table
 
 
+def default_embedder() -> Embedder:
+    """The shipped MSNet (``omniscs.agents.msnet.SHIPPED``), else the colour histogram."""
+    from omniscs.agents.msnet import shipped_embedder
+
+    return shipped_embedder() or ColourHistogram()
+
+
 def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], pool: Pool,
                  embedder: Embedder | None = None, size_weight: float = 1.0):
     """(tracks, model ids [M], similarity [T, M], model categories [M]) for the tracks that have crops: the mean
     over a track's crops of the best keyframe cosine similarity, less ``size_weight`` x mean |log size ratio|."""
-    embedder = embedder or ColourHistogram()
+    embedder = embedder or default_embedder()
     gallery, owner, table = pool_gallery(pool, embedder)
     tracks = [t for t in queries if len(queries[t])]
     if not tracks or table.empty:

@@ -105,6 +105,9 @@ class MSNetTrainConfig:
     lr: float = 2e-3
     margin: float = 0.3
     seed: int = 0
+    id_weight: float = 0.0
+    """Weight of an identity (softmax) loss over the training models beside L_om, as OSNet trains: a cosine
+    classifier on the embeddings keeps batch-hard triplets from collapsing every crop onto one point early on."""
 
 
 def _tensor(crops: np.ndarray) -> torch.Tensor:
@@ -120,14 +123,16 @@ def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSN
     each of its domains in turn, so that positives cross the domains a query and the gallery come from."""
     from omniscs.agents.matching import degrade
 
-    labels = np.asarray(labels)
+    labels = np.unique(np.asarray(labels), return_inverse=True)[1].reshape(-1)  # any label type -> 0..M-1
     models = np.unique(labels)
     if len(models) < 2 or len(crops) != len(labels):
         raise ValidationError("MSNet needs crops of at least two models, one label per crop")
     rng = np.random.default_rng(config.seed)
     torch.manual_seed(config.seed)
     net = net or MSNet()
-    opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=5e-4)
+    classifier = nn.Linear(net.config.dim, len(models), bias=False) if config.id_weight > 0 else None
+    params = list(net.parameters()) + (list(classifier.parameters()) if classifier is not None else [])
+    opt = torch.optim.AdamW(params, lr=config.lr, weight_decay=5e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps)
     by_model = {m: np.flatnonzero(labels == m) for m in models}
     if domains is not None:
@@ -149,13 +154,18 @@ def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSN
         chosen = rng.choice(models, min(config.models_per_batch, len(models)), replace=False)
         idx = np.concatenate([views_of(m) for m in chosen])
         batch = np.stack([degrade(crops[i], degradations[rng.integers(len(degradations))], rng) for i in idx])
-        loss = batch_hard_triplet(net(_tensor(batch)), torch.as_tensor(labels[idx]), config.margin)
+        emb = net(_tensor(batch))
+        target = torch.as_tensor(labels[idx])
+        loss = batch_hard_triplet(emb, target, config.margin)
+        if classifier is not None:  # cosine logits at scale 16
+            logits = 16.0 * emb @ nn.functional.normalize(classifier.weight, dim=1).T
+            loss = loss + config.id_weight * nn.functional.cross_entropy(logits, target)
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
         losses.append(float(loss.detach()))
-        progress(step + 1, config.steps, f"triplet loss {np.mean(losses[-20:]):.3f}")
+        progress(step + 1, config.steps, f"loss {np.mean(losses[-20:]):.3f}")
     net.eval()
     return net, {"config": asdict(config), "loss_first": float(np.mean(losses[:20])),
                  "loss_last": float(np.mean(losses[-20:])), "seconds": time.perf_counter() - started,
@@ -181,6 +191,17 @@ class MSNetEmbedder:
     def embed(self, crops: np.ndarray) -> np.ndarray:
         out = [self.net(_tensor(crops[i:i + 256])).numpy() for i in range(0, len(crops), 256)]
         return np.concatenate(out).astype(np.float32)
+
+
+#: The shipped weights (``omniscs bench agents --train-msnet`` makes them; ``training.json`` says how).
+SHIPPED = __import__("pathlib").Path(__file__).resolve().parent / "checkpoints" / "msnet"
+
+
+def shipped_embedder():
+    """The shipped MSNet as an Embedder, or None when the package holds no weights."""
+    if not (SHIPPED / "msnet.safetensors").is_file():
+        return None
+    return MSNetEmbedder(load_msnet(SHIPPED))
 
 
 def save_msnet(net: MSNet, folder, info: dict) -> None:

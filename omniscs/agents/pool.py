@@ -142,6 +142,50 @@ class Pool:
             params, calibration = calibrated(params, category)
         return self.add(params, category, "imported", str(Path(path).name), calibration=calibration)
 
+    def import_mesh(self, path: str | Path, category: str, calibrate: bool = True, gaussians: int = 20_000,
+                    refine_steps: int = 100) -> str:
+        """A mesh trimesh reads (OBJ, GLB/glTF, PLY, STL, OFF; face or vertex colours, or textures sampled per
+        face) into the pool: centred, made into Gaussians (``agents.mesh.model_from_mesh``), turned into the
+        vehicle frame (``calibrate``), added; returns its id."""
+        import trimesh
+
+        from omniscs.agents.mesh import model_from_mesh
+
+        try:
+            mesh = trimesh.load(str(path), force="mesh")
+        except Exception as e:  # trimesh raises many types for unreadable files
+            raise ValidationError(f"{path}: not a mesh trimesh can read ({type(e).__name__}: {e})") from e
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise ValidationError(f"{path}: the file holds no triangles")
+        try:
+            rgba = np.asarray(mesh.visual.to_color().face_colors, dtype=np.float64)[:, :3] / 255.0
+        except Exception:  # no usable colour information: a neutral grey
+            rgba = np.full((len(mesh.faces), 3), 0.6)
+        if rgba.shape != (len(mesh.faces), 3):
+            rgba = np.full((len(mesh.faces), 3), 0.6)
+        linear = np.where(rgba <= 0.04045, rgba / 12.92, ((rgba + 0.055) / 1.055) ** 2.4)
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        if not np.isfinite(vertices).all():
+            raise ValidationError(f"{path}: the mesh has non-finite vertices")
+        vertices = vertices - 0.5 * (vertices.min(0) + vertices.max(0))
+        params, info = model_from_mesh(vertices, np.asarray(mesh.faces), linear, gaussians, refine_steps)
+        calibration = None
+        if calibrate:
+            params, calibration = calibrated(params, category)
+        return self.add(params, category, "imported", str(Path(path).name), quality=info["quality_psnr"],
+                        calibration=calibration)
+
+    def import_file(self, path: str | Path, category: str, calibrate: bool = True) -> str:
+        """A 3D Gaussian splatting PLY (``import_ply``) or any mesh (``import_mesh``), told apart by content."""
+        path = Path(path)
+        if not path.is_file():
+            raise ValidationError(f"{path} is not a file")
+        if path.suffix.lower() == ".ply":
+            head = path.read_bytes()[:4096]
+            if b"f_dc_0" in head or b"property float opacity" in head:
+                return self.import_ply(path, category, calibrate)
+        return self.import_mesh(path, category, calibrate)
+
     def export_ply(self, model_id: str, path: str | Path) -> Path:
         from omniscs.agents.ply import write_gaussian_ply
 

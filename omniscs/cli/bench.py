@@ -230,7 +230,7 @@ def bench_agents(
     if train_msnet:
         with progress_bars() as bars:
             info = train_shipped_msnet(workspace, progress=bars.sink("MSNet"))
-        console.print(f"MSNet: {info['n_assets']} assets, triplet loss {info['loss_first']:.3f} -> "
+        console.print(f"MSNet: {info['n_assets']} assets, loss {info['loss_first']:.3f} -> "
                       f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
     with progress_bars() as bars:
         run_agents_benchmark(out, workspace, quick_config() if quick else AgentsBenchConfig(),

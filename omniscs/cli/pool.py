@@ -16,17 +16,19 @@ POOL = typer.Option(..., "--pool", help="The pool folder (created on the first i
 @app.command("import")
 def pool_import(
     file: Path = typer.Argument(..., help="A 3D Gaussian splatting PLY (x, y, z, f_dc_*, f_rest_*, opacity, "
-                                          "scale_*, rot_*), e.g. an image-to-3D generator's output."),
+                                          "scale_*, rot_*), e.g. an image-to-3D generator's output, or a mesh "
+                                          "(OBJ, GLB/glTF, PLY, STL, OFF) made into Gaussians."),
     category: str = typer.Option(..., help="Its category (car, truck, bus, trailer, pedestrian, ...)."),
     pool: Path = POOL,
     no_calibrate: bool = typer.Option(False, "--no-calibrate", help="Take the model's frame as it is (already +x "
                                                                     "heading, z up, box-centred)."),
 ) -> None:
-    """Import a splat file into the pool (turned into its vehicle frame); prints the model id on its last line."""
+    """Import a splat file or a mesh into the pool (turned into its vehicle frame); prints the model id on its last
+    line."""
     from omniscs.agents.pool import Pool
 
     p = Pool(pool)
-    model_id = p.import_ply(file, category, calibrate=not no_calibrate)
+    model_id = p.import_file(file, category, calibrate=not no_calibrate)
     meta = p.get(model_id).meta
     size = " x ".join(f"{v:.2f}" for v in meta["size"])
     console.print(f"{meta['n_gaussians']} Gaussians, {size} m, calibration: "

@@ -142,3 +142,30 @@ def test_the_pool_commands_import_list_and_export_with_the_id_alone_on_the_last_
     assert torch.equal(read_gaussian_ply(tmp_path / "out.ply").means, read_gaussian_ply(tmp_path / "m.ply").means)
     bad = run("import", str(tmp_path / "m.ply"), "--category", "ufo", "--pool", str(tmp_path / "pool"))
     assert bad.returncode == 2 and "unknown category" in bad.stderr and bad.stderr.strip().count("\n") == 0
+
+
+@pytest.mark.parametrize("suffix", [".glb", ".obj", ".ply"])
+def test_a_user_mesh_is_made_into_a_calibrated_pool_model(tmp_path, suffix):
+    """A library vehicle written as a coloured mesh, turned and moved at random, comes back box-centred, +x
+    heading, at its size; a file with no triangles is one clear error."""
+    from omniscs.geometry import make_transform, rotmat_from_euler, transform_points
+    from omniscs.world.assets import build_asset
+
+    a = build_asset("suv-0036")
+    T = make_transform(rotmat_from_euler(yaw=1.1), np.array([3.0, -2.0, 0.5]))
+    c = np.clip(a.surface.face_colour, 0, 1)
+    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+    mesh = trimesh.Trimesh(transform_points(T, a.surface.vertices), a.surface.faces, process=False,
+                           face_colors=(np.hstack([srgb, np.ones((len(c), 1))]) * 255).astype(np.uint8))
+    path = tmp_path / f"suv{suffix}"
+    mesh.export(path)
+    pool = Pool(tmp_path / "pool")
+    model_id = pool.import_file(path, "car")
+    meta = pool.get(model_id).meta
+    assert meta["provenance"] == "imported" and meta["source"] == path.name and meta["n_gaussians"] == 20_000
+    assert np.allclose(meta["size"], a.size, rtol=0.08)  # heading and axes recovered: length along +x
+    assert meta["calibration"]["heading_by"]
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing\n")
+    with pytest.raises(ValidationError):
+        pool.import_file(empty, "car")
