@@ -50,3 +50,20 @@ def test_the_network_gives_unit_vectors_and_training_lowers_the_loss():
     assert e.shape == (len(crops), 128) and np.allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-5)
     with pytest.raises(ValidationError, match="at least two models"):
         train_msnet(crops[:6], labels[:6], [Degradation()], MSNetTrainConfig(steps=1))
+
+
+def test_the_shipped_weights_load_and_say_how_they_were_made(tmp_path):
+    import json
+
+    from omniscs.agents.msnet import SHIPPED, load_msnet, shipped_embedder
+
+    info = json.loads((SHIPPED / "training.json").read_text())
+    assert info["command"] == "omniscs bench agents --train-msnet" and info["config"]["seed"] == 0
+    assert info["data"]["worlds"] and info["n_assets"] > 100 and info["loss_last"] < info["loss_first"]
+    embedder = shipped_embedder()
+    crops = np.random.default_rng(0).integers(0, 255, (5, 64, 64, 3), dtype=np.uint8)
+    emb = embedder.embed(crops)
+    assert emb.shape == (5, 128) and np.allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-5)
+    assert embedder.cache_key.startswith("msnet-")
+    with pytest.raises(ValidationError, match="no MSNet weights"):
+        load_msnet(tmp_path)
