@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from omniscs.agents.matching import CROP, ColourHistogram, Embedder, assign, crop_square
+from omniscs.agents.matching import CROP, Embedder, assign, crop_square, match_scores, match_tracks
 from omniscs.agents.pool import Pool
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, with_sh_degree
@@ -25,7 +25,6 @@ from omniscs.nsg.agent import track_poses
 from omniscs.nsg.edit import scale_to_box
 from omniscs.nsg.graph import SceneGraph, agent_key, render_view
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rotate_sh
-from omniscs.storage import atomic_write_bytes
 
 STRATEGIES = ("fitted", "online", "pool")
 MIRROR_Y = np.diag([1.0, -1.0, 1.0])  # the vehicle's x-z plane
@@ -71,7 +70,8 @@ class DualConfig:
     def __post_init__(self) -> None:
         if not (self.min_view_pixels >= 1 and self.good_pixels > 0 and self.sharp_reference > 0
                 and self.azimuth_bins >= 4 and 0 <= self.min_clarity <= 1 and 0 <= self.min_coverage <= 1
-                and self.box_margin_m >= 0 and self.match_views >= 1 and self.colour_views >= 1 and self.colour_steps >= 0
+                and self.box_margin_m >= 0 and self.match_views >= 1 and self.colour_views >= 1
+                and self.colour_steps >= 0
                 and self.size_weight >= 0 and self.verify_top_k >= 0):
             raise OmniscsError(f"bad dual-strategy settings {self}")
 
@@ -207,8 +207,10 @@ def clarity(scene, track_id: int, frames, config: DualConfig = DualConfig()) -> 
                    score)
 
 
-def choose(c: Clarity, needs_360: bool, pool_has_category: bool, config: DualConfig = DualConfig()) -> tuple[str, str]:
-    """(strategy, reason) for one track: see the module docstring."""
+def choose(c: Clarity | None, needs_360: bool, pool_has_category: bool,
+           config: DualConfig = DualConfig()) -> tuple[str, str]:
+    """(strategy, reason) for one track (``c`` may be None when it needs no 360-degree model): see the module
+    docstring."""
     if not needs_360:
         return "fitted", "no edit turns it off its observed views: the fitted node is kept"
     clear = c.score >= config.min_clarity
@@ -400,79 +402,6 @@ def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> n
     return np.stack(crops) if crops else np.zeros((0, CROP, CROP, 3), np.uint8)
 
 
-def pool_gallery(pool: Pool, embedder: Embedder) -> tuple[np.ndarray, np.ndarray, "object"]:
-    """The pool's keyframe embeddings [G, D], the model id of each [G] and the pool table; computed once per pool
-    content and embedder, cached under ``<pool>/embeddings/``."""
-    import hashlib
-
-    table = pool.table()
-    if table.empty:
-        return np.zeros((0, 1), np.float32), np.zeros(0, dtype=object), table
-    ids = sorted(table.model_id)
-    name = getattr(embedder, "cache_key", embedder.name)  # an embedder with weights names them
-    digest = hashlib.sha256(("\n".join(ids) + "|" + name).encode()).hexdigest()[:16]
-    cache = pool.root / "embeddings" / f"{name.replace(' ', '_')}-{digest}.npz"
-    if cache.is_file():
-        with np.load(cache, allow_pickle=False) as z:
-            return z["emb"], z["model"].astype(object), table
-    embs, owners = [], []
-    for mid in ids:
-        rgba = pool.keyframes(mid)
-        crops = np.stack([crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0) for k in rgba])
-        embs.append(embedder.embed(crops))
-        owners += [mid] * len(crops)
-    emb, model = np.concatenate(embs).astype(np.float32), np.array(owners)
-    import io
-    buf = io.BytesIO()
-    np.savez(buf, emb=emb, model=model.astype(str))
-    atomic_write_bytes(cache, buf.getvalue())
-    return emb, model.astype(object), table
-
-
-def default_embedder() -> Embedder:
-    """The shipped MSNet (``omniscs.agents.msnet.SHIPPED``), else the colour histogram."""
-    from omniscs.agents.msnet import shipped_embedder
-
-    return shipped_embedder() or ColourHistogram()
-
-
-def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], pool: Pool,
-                 embedder: Embedder | None = None, size_weight: float = 1.0):
-    """(tracks, model ids [M], similarity [T, M], model categories [M]) for the tracks that have crops: the mean
-    over a track's crops of the best keyframe cosine similarity, less ``size_weight`` x mean |log size ratio|."""
-    embedder = embedder or default_embedder()
-    gallery, owner, table = pool_gallery(pool, embedder)
-    tracks = [t for t in queries if len(queries[t])]
-    if not tracks or table.empty:
-        return [], np.zeros(0, dtype=object), np.zeros((len(tracks), 0)), np.zeros(0, dtype=object)
-    table = table.set_index("model_id")
-    models = np.array(sorted(table.index))
-    model_size = table.loc[models, ["length", "width", "height"]].to_numpy(np.float64)
-    index = {m: j for j, m in enumerate(models)}
-    cols = np.array([index[m] for m in owner])
-    scores = np.zeros((len(tracks), len(models)))
-    for i, t in enumerate(tracks):
-        sim = embedder.embed(queries[t]) @ gallery.T  # [k, G]
-        best = np.full((sim.shape[0], len(models)), -1.0)
-        np.maximum.at(best.T, cols, sim.T)
-        shape = np.abs(np.log(np.maximum(model_size, 1e-3) / np.maximum(sizes[t], 1e-3)[None])).mean(1)
-        scores[i] = best.mean(0) - size_weight * shape
-    return tracks, models, scores, table.loc[models, "category"].to_numpy()
-
-
-def match_tracks(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], categories: dict[int, str],
-                 pool: Pool, embedder: Embedder | None = None, size_weight: float = 1.0) -> dict[int, tuple[str, float]]:
-    """Each track (its crops, box size and category) assigned to its own pool model by ``match_scores``; one model
-    per track, within its category (Hungarian). Tracks without crops or without a model of their category are
-    left out. Returns track -> (model id, distance = 1 - similarity)."""
-    tracks, models, scores, model_cats = match_scores(queries, sizes, pool, embedder, size_weight)
-    if not tracks or not len(models):
-        return {}
-    picked = assign(scores, [categories[t] for t in tracks], list(model_cats))
-    return {t: (str(models[j]), float(1.0 - scores[i, j])) for i, (t, j) in enumerate(zip(tracks, picked))
-            if j is not None}
-
-
 def placed_candidate(pool: Pool, model_id: str, node_size: np.ndarray, sh_degree: int, device) -> GaussianParams:
     """A pool model with the graph's SH bands, stretched to fill the track's box."""
     model = pool.get(model_id)
@@ -550,7 +479,7 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
     views: dict[int, list[TrackView]] = {}
     for tid in sorted(nodes):
         if tid not in need:
-            decisions[tid] = Decision(tid, "fitted", choose(None, False, False, config)[1], None)  # type: ignore[arg-type]
+            decisions[tid] = Decision(tid, "fitted", choose(None, False, False, config)[1], None)
             continue
         c = clarity(scene, tid, train_frames, config)
         views[tid] = track_views(scene, tid, train_frames, config.min_view_pixels)
@@ -663,5 +592,6 @@ def read_decisions(path: str | Path) -> list[dict]:
 
 
 __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",
-           "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected", "fit_colour_correction", "query_crops",
-           "match_tracks", "pool_gallery", "complete_agents", "azimuth_coverage"]
+           "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected",
+           "fit_colour_correction", "query_crops",
+           "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr"]

@@ -1,18 +1,23 @@
 """Matching degraded road users to pool models: the degradations a scene's agents suffer, the embedders that map a
 crop to a vector (hand-made baselines here; the trained MSNet plugs in through the same ``Embedder`` interface),
-ranking against the pool's keyframes, and the one-to-one assignment (Hungarian, scipy) gated by category.
+ranking against the pool's keyframes (embeddings cached per pool and embedder), appearance plus box shape, and the
+one-to-one assignment (Hungarian, scipy) gated by category.
 
 A pool model is represented by its 30 keyframes; a query's similarity to a model is the best cosine similarity
 over that model's keyframes."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
 
 from omniscs.errors import ValidationError
+from omniscs.storage import atomic_write_bytes
+
+if TYPE_CHECKING:
+    from omniscs.agents.pool import Pool
 
 CROP = 64  # embedders see square crops of this many pixels
 
@@ -162,3 +167,78 @@ def assign(scores: np.ndarray, query_categories: list[str], model_categories: li
         if cost[r, c] < big:
             out[r] = int(c)
     return out
+
+
+# ----------------------------------------------------------------------------- matching to a pool
+def pool_gallery(pool: Pool, embedder: Embedder) -> tuple[np.ndarray, np.ndarray, "object"]:
+    """The pool's keyframe embeddings [G, D], the model id of each [G] and the pool table; computed once per pool
+    content and embedder, cached under ``<pool>/embeddings/``."""
+    import hashlib
+
+    table = pool.table()
+    if table.empty:
+        return np.zeros((0, 1), np.float32), np.zeros(0, dtype=object), table
+    ids = sorted(table.model_id)
+    name = getattr(embedder, "cache_key", embedder.name)  # an embedder with weights names them
+    digest = hashlib.sha256(("\n".join(ids) + "|" + name).encode()).hexdigest()[:16]
+    cache = pool.root / "embeddings" / f"{name.replace(' ', '_')}-{digest}.npz"
+    if cache.is_file():
+        with np.load(cache, allow_pickle=False) as z:
+            return z["emb"], z["model"].astype(object), table
+    embs, owners = [], []
+    for mid in ids:
+        rgba = pool.keyframes(mid)
+        crops = np.stack([crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0) for k in rgba])
+        embs.append(embedder.embed(crops))
+        owners += [mid] * len(crops)
+    emb, model = np.concatenate(embs).astype(np.float32), np.array(owners)
+    import io
+    buf = io.BytesIO()
+    np.savez(buf, emb=emb, model=model.astype(str))
+    atomic_write_bytes(cache, buf.getvalue())
+    return emb, model.astype(object), table
+
+
+def default_embedder() -> Embedder:
+    """The shipped MSNet (``omniscs.agents.msnet.SHIPPED``), else the colour histogram."""
+    from omniscs.agents.msnet import shipped_embedder
+
+    return shipped_embedder() or ColourHistogram()
+
+
+def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], pool: Pool,
+                 embedder: Embedder | None = None, size_weight: float = 1.0):
+    """(tracks, model ids [M], similarity [T, M], model categories [M]) for the tracks that have crops: the mean
+    over a track's crops of the best keyframe cosine similarity, less ``size_weight`` x mean |log size ratio|."""
+    embedder = embedder or default_embedder()
+    gallery, owner, table = pool_gallery(pool, embedder)
+    tracks = [t for t in queries if len(queries[t])]
+    if not tracks or table.empty:
+        return [], np.zeros(0, dtype=object), np.zeros((len(tracks), 0)), np.zeros(0, dtype=object)
+    table = table.set_index("model_id")
+    models = np.array(sorted(table.index))
+    model_size = table.loc[models, ["length", "width", "height"]].to_numpy(np.float64)
+    index = {m: j for j, m in enumerate(models)}
+    cols = np.array([index[m] for m in owner])
+    scores = np.zeros((len(tracks), len(models)))
+    for i, t in enumerate(tracks):
+        sim = embedder.embed(queries[t]) @ gallery.T  # [k, G]
+        best = np.full((sim.shape[0], len(models)), -1.0)
+        np.maximum.at(best.T, cols, sim.T)
+        shape = np.abs(np.log(np.maximum(model_size, 1e-3) / np.maximum(sizes[t], 1e-3)[None])).mean(1)
+        scores[i] = best.mean(0) - size_weight * shape
+    return tracks, models, scores, table.loc[models, "category"].to_numpy()
+
+
+def match_tracks(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], categories: dict[int, str],
+                 pool: Pool, embedder: Embedder | None = None,
+                 size_weight: float = 1.0) -> dict[int, tuple[str, float]]:
+    """Each track (its crops, box size and category) assigned to its own pool model by ``match_scores``; one model
+    per track, within its category (Hungarian). Tracks without crops or without a model of their category are
+    left out. Returns track -> (model id, distance = 1 - similarity)."""
+    tracks, models, scores, model_cats = match_scores(queries, sizes, pool, embedder, size_weight)
+    if not tracks or not len(models):
+        return {}
+    picked = assign(scores, [categories[t] for t in tracks], list(model_cats))
+    return {t: (str(models[j]), float(1.0 - scores[i, j])) for i, (t, j) in enumerate(zip(tracks, picked))
+            if j is not None}

@@ -8,7 +8,7 @@ Three parts, one report (reports/agents_bench.*):
   for each embedder.
 - The paper's Table 4: edited-agent masked PSNR/SSIM after translate 2.0/3.5 m, rotate 90/180/270 degrees and
   overturn (roll 180 degrees), for the naive graph, online only, pool only and the dual strategy on held-out
-  worlds, plus the dual strategy with the edited vehicles' own models added to the pool (in-pool: an upper bound).
+  worlds, plus the pool arm with the edited vehicles' own models added to the pool (in-pool: an upper bound).
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ TABLE4_EDITS: tuple[tuple[str, dict], ...] = (
     ("rotate 270°", {"op": "rotate", "yaw_deg": 270.0}),
     ("overturned", {"op": "rotate", "roll_deg": 180.0}),
 )
-ARMS = ("naive", "online", "pool", "dual", "dual in-pool")
+ARMS = ("naive", "online", "pool", "dual", "pool in-pool")
 
 #: Matching's degradation levels (the issue's target level is 'x4 + 40 % occl. + illum.').
 MATCH_LEVELS: tuple[tuple[str, dict], ...] = (
@@ -200,7 +200,7 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     """Top-1/top-5 (within the query's category) per degradation level and embedder, on appearance alone and with
     the box-shape term the dual strategy adds (the query's size as a detector measures it: ``size_noise`` relative
     error per axis)."""
-    from omniscs.agents.dual import pool_gallery
+    from omniscs.agents.matching import pool_gallery
     from omniscs.agents.matching import Degradation, degrade
 
     rows = []
@@ -241,7 +241,7 @@ def _arm_graphs(graph, scene, plan, targets, pool, in_pool, progress: Progress):
 
     arms = {"naive": (graph, [])}
     for arm, force, p in (("online", "online", None), ("pool", "pool", pool), ("dual", None, pool),
-                          ("dual in-pool", None, in_pool)):
+                          ("pool in-pool", "pool", in_pool)):
         progress(0, None, f"{scene.scene_id}: {arm}")
         arms[arm] = complete_agents(graph, scene, targets, plan.train_frames, p, force=force)
     return arms
@@ -373,7 +373,8 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
                        "build_seconds_per_model": [r["seconds"] for r in timing],
                        "median_build_seconds": statistics.median(r["seconds"] for r in timing),
                        "quality_db_median": float(np.nanmedian(table.quality.astype(float))), "growth": growth},
-              "matching": matching, "table4": summary, "pool_ranking_embedder": _default_name(), "rows": rows, "decisions": decisions, "fits": fits,
+              "matching": matching, "table4": summary, "pool_ranking_embedder": _default_name(), "rows": rows,
+              "decisions": decisions, "fits": fits,
               "targets": _targets(matching, summary, timing)}
     write_report(out_dir, "agents_bench", report, agents_markdown(report),
                  {"": lambda buf: _strip_png(strips, buf)} if strips else None)
@@ -381,7 +382,7 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
 
 
 def _default_name() -> str:
-    from omniscs.agents.dual import default_embedder
+    from omniscs.agents.matching import default_embedder
 
     return default_embedder().name
 
@@ -406,7 +407,8 @@ def _targets(matching, summary, timing) -> dict:
     return {"matching_top1_at_target_level": {"best": f"{best['embedder']}, {best.get('cue', 'appearance')}",
                                               "top1": best["top1"], "goal": 0.95,
                                               "met": best["top1"] >= 0.95},
-            "dual_gain_db": {"gains": gains, "goal": 3.0, "met": all(g is not None and g >= 3.0 for g in gains.values())},
+            "dual_gain_db": {"gains": gains, "goal": 3.0,
+                             "met": all(g is not None and g >= 3.0 for g in gains.values())},
             "build_seconds": {"median": statistics.median(r["seconds"] for r in timing), "goal": 30.0,
                               "met": statistics.median(r["seconds"] for r in timing) <= 30.0}}
 
@@ -422,10 +424,12 @@ def agents_markdown(report: dict) -> str:
              "(40 frames x 3 cameras at 480x270). The pool holds only the asset library's pool split: no vehicle "
              "of a benchmark world is in it.", "",
              "## Targets", "",
-             f"- Matching top-1 at x4 + 40 % occlusion + illumination: {t['matching_top1_at_target_level']['top1']:.1%} "
+             "- Matching top-1 at x4 + 40 % occlusion + illumination: "
+             f"{t['matching_top1_at_target_level']['top1']:.1%} "
              f"({t['matching_top1_at_target_level']['best']}); goal 95 %: "
              f"{'met' if t['matching_top1_at_target_level']['met'] else 'NOT met'}.",
-             "- Dual over naive, masked PSNR: " + ", ".join(f"{e} {f(g)} dB" for e, g in t["dual_gain_db"]["gains"].items())
+             "- Dual over naive, masked PSNR: "
+             + ", ".join(f"{e} {f(g)} dB" for e, g in t["dual_gain_db"]["gains"].items())
              + f"; goal 3 dB each: {'met' if t['dual_gain_db']['met'] else 'NOT met'}.",
              f"- Seconds per pool model (fresh builds, median): {f(t['build_seconds']['median'], 1)}; goal 30: "
              f"{'met' if t['build_seconds']['met'] else 'NOT met'}.", "",
@@ -438,8 +442,9 @@ def agents_markdown(report: dict) -> str:
     lines += ["", f"Agents per edit: {by[(TABLE4_EDITS[0][0], 'naive')]['agents']}. Arms: naive = the fitted node "
               "as it is; online = the fitted node cut to its box, its unseen side filled by mirror symmetry; pool = "
               "the matched pool model (colour-corrected to the track's views, the fitted Gaussians kept on seen sides "
-              "when the track is clear); dual = the clarity/coverage choice between the two; dual in-pool = dual with "
-              "the edited vehicles' own models added to the pool. Pool candidates are ranked by "
+              "when the track is clear); dual = the clarity/coverage choice between the two; pool in-pool = the "
+              "pool arm with the edited vehicles' own models added to the pool (an upper bound on matching). "
+              "Pool candidates are ranked by "
               f"{report.get('pool_ranking_embedder', 'colour histogram')} and box shape, the best five checked by "
               "rendering them into the scene.", "",
               "## Matching (top-1 / top-5 within the query's category)", "",

@@ -99,7 +99,8 @@ def pool_match(
 ) -> None:
     """Each track's pool model (Hungarian over appearance and box shape, within its category): JSON
     {track: {model_id, distance, category}}; tracks without a view or a model of their category map to null."""
-    from omniscs.agents.dual import DualConfig, match_tracks, scene_query_crops, track_views
+    from omniscs.agents.dual import DualConfig, scene_query_crops, track_views
+    from omniscs.agents.matching import match_tracks
     from omniscs.agents.pool import Pool
     from omniscs.cli.common import comma_list
     from omniscs.errors import ValidationError

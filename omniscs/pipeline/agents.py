@@ -37,7 +37,8 @@ def _pool_state(pool: str | Path | None, scene_id: str) -> dict | None:
         f"{scene_id}/")]) if len(table) else []}
 
 
-def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, workspace: str | Path | None = None,
+def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None,
+                 workspace: str | Path | None = None,
                  pool: str | Path | None = None, progress: Progress = no_progress, out_dir: str | Path | None = None,
                  config=None, grow: bool = True, reuse: bool = True) -> StageRecord:
     """The fitted graph (``model``, the fit stage's record) completed by the dual strategy; without ``pool`` every

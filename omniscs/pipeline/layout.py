@@ -11,8 +11,8 @@ from omniscs.ids import check_id
 __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder"]
 
 #: Top-level folder of each stage's outputs.
-FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models", "behavior": "variants",
-           "replay": "replays", "annotate": "annotated", "dataset": "datasets",
+FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models",
+           "behavior": "variants", "replay": "replays", "annotate": "annotated", "dataset": "datasets",
            "downstream": "downstream"}
 
 

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from omniscs.agents.dual import (DualConfig, azimuth_coverage, choose, clarity, colour_corrected, complete_agents,
-                                 cropped_to_box, match_tracks, mirror_completed, mirrored, track_views)
+                                 cropped_to_box, mirror_completed, mirrored, track_views)
+from omniscs.agents.matching import match_tracks
 from omniscs.agents.pool import Pool
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams
