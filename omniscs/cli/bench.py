@@ -224,7 +224,8 @@ def bench_agents(
                                                                   "weights) before the benchmark."),
 ) -> None:
     """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
-    (naive / online / pool / dual / dual in-pool after translate, rotate and overturn) on held-out worlds."""
+    (naive / online / pool / dual / pool with the vehicles' own models, after translate, rotate and overturn) on
+    held-out worlds."""
     from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark, train_shipped_msnet
 
     if train_msnet:
