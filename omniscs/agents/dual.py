@@ -195,7 +195,7 @@ def clarity(scene, track_id: int, frames, config: DualConfig = DualConfig()) -> 
         if vis >= 0:
             ratios.append(min(vis / (0.7 * sum(v.pixels for v in views if v.frame_idx == f)), 1.0))
     visible = float(np.median(ratios)) if ratios else None
-    largest = sorted(views, key=lambda v: -v.pixels)[:config.match_views]
+    largest = largest_views(views, config.match_views)
     sharp = float(np.median([sharpness(scene.image(v.camera, v.frame_idx), v.rect) for v in largest]))
     terms = [area_term, float(np.clip(sharp / config.sharp_reference, 0.0, 1.0))]
     if visible is not None:
@@ -278,10 +278,10 @@ def _visible_coverage(graph: SceneGraph, track_id: int, view) -> tuple[np.ndarra
     return out.rgb.numpy(), out.labels[..., 0].numpy()
 
 
-def _colour_samples(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView]):
-    """Per view: the candidate node rendered alone ([H, W, 3] tensor, differentiable in its colours when they
-    carry gradients), the logged image before the camera's exposure correction and the weight of every pixel
-    (how much of it the fitted track covers once what lies in front is taken off)."""
+def colour_samples(graph: SceneGraph, scene, track_id: int, views: list[TrackView]) -> list[tuple]:
+    """Per view where the track shows: the view, the logged image before the camera's exposure correction and the
+    weight of every pixel (how much of it the fitted track covers once what lies in front is taken off). Made once
+    per track; every candidate's colour correction and refinement reads them."""
     out = []
     for v in views:
         view = graph.view(v.camera, v.frame_idx)
@@ -297,6 +297,11 @@ def _colour_samples(graph: SceneGraph, scene, track_id: int, candidate: Gaussian
     return out
 
 
+def largest_views(views: list[TrackView], n: int) -> list[TrackView]:
+    """The ``n`` views in which the track's box covers most pixels."""
+    return sorted(views, key=lambda v: -v.pixels)[:n]
+
+
 def _alone(graph: SceneGraph, track_id: int, params: GaussianParams) -> SceneGraph:
     """The graph holding only the track's node (with ``params``), no background, no exposure correction."""
     from omniscs.gaussians import empty_params
@@ -305,12 +310,12 @@ def _alone(graph: SceneGraph, track_id: int, params: GaussianParams) -> SceneGra
     return graph.replace(background=empty_params(graph.sh_degree).to(graph.device), agents=(node,), exposure={})
 
 
-def fit_colour_correction(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView],
+def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianParams, samples: list[tuple],
                           ridge: float = 0.02) -> np.ndarray:
     """The colour map [A | b] (per channel: A diagonal) that makes ``candidate`` (in the track's node) look like the
-    logged images where the fitted track is what the camera saw: weighted least squares, pulled towards identity."""
+    logged images where the fitted track is what the camera saw (``colour_samples``): weighted least squares, pulled
+    towards identity."""
     identity = np.hstack([np.eye(3), np.zeros((3, 1))])
-    samples = _colour_samples(graph, scene, track_id, candidate, views)
     if not samples:
         return identity
     alone = _alone(graph, track_id, candidate)
@@ -335,27 +340,27 @@ def fit_colour_correction(graph: SceneGraph, scene, track_id: int, candidate: Ga
     return affine if np.all(np.isfinite(affine)) else identity
 
 
-def refine_colours(graph: SceneGraph, scene, track_id: int, candidate: GaussianParams, views: list[TrackView],
+def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, samples: list[tuple],
                    steps: int = 40, lr: float = 0.02) -> GaussianParams:
     """``candidate``'s colours (view-independent band) fitted for ``steps`` Adam steps to the logged images, only
     where the fitted track is what the camera saw *and* the candidate covers the pixel (a silhouette the two
     share, eroded by 2 pixels, so that no background colour leaks onto the model's rim); Gaussians no such pixel
-    sees keep their colours."""
-    samples = []
+    sees keep their colours. ``samples``: ``colour_samples`` of the track."""
+    masked = []
     alone = _alone(graph, track_id, candidate)
     kernel = np.ones((5, 5), np.uint8)
     with torch.no_grad():
-        for view, target, weight in _colour_samples(graph, scene, track_id, candidate, views):
+        for view, target, weight in samples:
             covered = render_view(alone, view).alpha.numpy() > 0.9
             shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
             if shared.sum() >= 20:
-                samples.append((view, target, torch.from_numpy(shared)))
-    if not samples or steps <= 0:
+                masked.append((view, target, torch.from_numpy(shared)))
+    if not masked or steps <= 0:
         return candidate
     dc = candidate.sh_dc.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([dc], lr=lr)
     for step in range(steps):
-        view, target, mask = samples[step % len(samples)]
+        view, target, mask = masked[step % len(masked)]
         params = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits, dc,
                                 candidate.sh_rest)
         out = render_view(_alone(graph, track_id, params), view)
@@ -375,7 +380,7 @@ def query_crops(graph: SceneGraph, scene, track_id: int, views: list[TrackView],
     """uint8 [k, CROP, CROP, 3] crops of the track in its ``n`` largest logged views: the logged pixels the fitted
     node covers (others black, as in the pool's keyframes), cut to the covered area."""
     crops = []
-    for v in sorted(views, key=lambda v: -v.pixels)[:n]:
+    for v in largest_views(views, n):
         _, cover = _visible_coverage(graph, track_id, graph.view(v.camera, v.frame_idx))
         if (cover > 0.5).sum() < 16:
             continue
@@ -388,7 +393,7 @@ def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> n
     """Crops like ``query_crops`` without a fitted graph: the track's ground-truth instance mask where the scene has
     one, else its box rectangle (the logged pixels around it included)."""
     crops = []
-    for v in sorted(views, key=lambda v: -v.pixels)[:n]:
+    for v in largest_views(views, n):
         image = scene.image(v.camera, v.frame_idx)
         instance = scene.instance_mask(v.camera, v.frame_idx) if scene.has_gt else None
         if instance is not None:
@@ -427,12 +432,13 @@ def verification_error(graph: SceneGraph, scene, track_id: int, candidate: Gauss
 
 
 def verified_matches(graph: SceneGraph, scene, tracks: list[int], views: dict[int, list[TrackView]], pool: Pool,
-                     queries: dict[int, np.ndarray], config: DualConfig, embedder: Embedder | None = None
-                     ) -> dict[int, tuple[str, float, float, np.ndarray]]:
+                     queries: dict[int, np.ndarray], config: DualConfig, embedder: Embedder | None = None,
+                     samples: dict[int, list[tuple]] | None = None) -> dict[int, tuple[str, float, float, np.ndarray]]:
     """Matching checked by rendering: each track's ``verify_top_k`` best models by appearance and shape are put in
     its node, colour-corrected, and scored by ``verification_error`` on its largest views; the Hungarian
     assignment (one model per track, within its category) then minimises that error. Returns track -> (model id,
-    matching distance, verification error, colour affine)."""
+    matching distance, verification error, colour affine). ``samples``: each track's ``colour_samples`` of its
+    largest views, when the caller has them."""
     sizes = {t: np.asarray(graph.agent(t).size) for t in tracks}
     cats = {t: graph.agent(t).category for t in tracks}
     have, models, scores, model_cats = match_scores({t: queries[t] for t in tracks}, sizes, pool, embedder,
@@ -445,10 +451,11 @@ def verified_matches(graph: SceneGraph, scene, tracks: list[int], views: dict[in
     for i, t in enumerate(have):
         same = np.flatnonzero(model_cats == cats[t])
         top = same[np.argsort(-scores[i, same])][:config.verify_top_k]
-        chosen = sorted(views[t], key=lambda v: -v.pixels)[:config.colour_views]
+        chosen = largest_views(views[t], config.colour_views)
+        own = samples[t] if samples is not None and t in samples else colour_samples(graph, scene, t, chosen)
         for j in top:
             g = placed_candidate(pool, str(models[j]), sizes[t], graph.sh_degree, graph.device)
-            affine = fit_colour_correction(graph, scene, t, g, chosen)
+            affine = fit_colour_correction(graph, t, g, own)
             err = verification_error(graph, scene, t, colour_corrected(g, affine), chosen[:config.match_views])
             if np.isfinite(err):
                 verify[i, j], errors[(i, j)], affines[(i, j)] = -err, err, affine
@@ -500,8 +507,10 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
             queries[t] = query_crops(cropped, scene, t, views[t], config.match_views)
             if not len(queries[t]):
                 queries[t] = scene_query_crops(scene, t, views[t], config.match_views)
+        samples = {t: colour_samples(cropped, scene, t, largest_views(views[t], config.colour_views))
+                   for t in to_match}
         if config.verify_top_k > 0:
-            matches = verified_matches(cropped, scene, to_match, views, pool, queries, config, embedder)
+            matches = verified_matches(cropped, scene, to_match, views, pool, queries, config, embedder, samples)
         else:
             matches = {t: (m, dist, None, None) for t, (m, dist) in match_tracks(
                 queries, {t: np.asarray(nodes[t].size) for t in to_match}, {t: nodes[t].category for t in to_match},
@@ -512,10 +521,9 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
         if d.strategy == "pool" and tid in matches:
             model_id, distance, error, affine = matches[tid]
             g = placed_candidate(pool, model_id, node.size, graph.sh_degree, graph.device)
-            colour_views = sorted(views[tid], key=lambda v: -v.pixels)[:config.colour_views]
             if affine is None:
-                affine = fit_colour_correction(cropped, scene, tid, g, colour_views)
-            g = refine_colours(cropped, scene, tid, colour_corrected(g, affine), colour_views, config.colour_steps)
+                affine = fit_colour_correction(cropped, tid, g, samples[tid])
+            g = refine_colours(cropped, tid, colour_corrected(g, affine), samples[tid], config.colour_steps)
             keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity
             if keep:  # the seen sides (and their mirror images) from the fit, the rest from the pool model
                 seen = node.gaussians
@@ -593,5 +601,5 @@ def read_decisions(path: str | Path) -> list[dict]:
 
 __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",
            "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected",
-           "fit_colour_correction", "query_crops",
+           "colour_samples", "fit_colour_correction", "query_crops",
            "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr"]

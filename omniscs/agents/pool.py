@@ -8,7 +8,7 @@ views around the model at 12 degrees of azimuth, rendered when it joins). The id
 parameters and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
 folder is written whole (a temporary sibling renamed into place) before its index row, and each row is its own
 file, so two writers adding at once never lose or half-write an entry, and a reader never sees a row without its
-model. Re-ID embeddings join each entry when MSNet is built (issue 13)."""
+model. Keyframe embeddings are cached per embedder under ``embeddings/`` (``agents.matching.pool_gallery``)."""
 from __future__ import annotations
 
 import hashlib

@@ -149,9 +149,8 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     (other pixels black, as in the keyframes)."""
     import dataclasses
 
-    from omniscs.agents.matching import crop_square
     from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import WorldRenderer, build_asset, generate_world
+    from omniscs.world import build_asset, generate_world
 
     by_category: dict[str, list[tuple[str, str]]] = {}
     for row in pool_table.sort_values("model_id").itertuples():
@@ -175,24 +174,36 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
             poses[:, :3, 3] += poses[:, :3, 2] * 0.5 * (size[2] - track.size[2])  # the new box on the same ground
             tracks.append(dataclasses.replace(track, asset_id=asset, size=size, poses=poses))
             truth[track.track_id] = (model_id, track.category, size)
-        renderer = WorldRenderer(world.replace(agents=tuple(tracks)))
-        best: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
-        for f in range(0, world.n_frames, 5):
-            for cam in world.cameras:
-                gt = renderer.render_camera(f, cam.name)
-                for tid in truth:
-                    mask = gt.instance == tid
-                    n = int(mask.sum())
-                    border = mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()
-                    if n >= config.min_pixels * 2 and not border and n > best.get(tid, (0,))[0]:
-                        best[tid] = (n, gt.rgb * mask[..., None], mask)
-        for tid, (_, rgb, mask) in sorted(best.items()):
+        best: dict[int, tuple[int, np.ndarray]] = {}
+        for tid, n, crop in whole_views(world.replace(agents=tuple(tracks)), truth, 5, config.min_pixels * 2):
+            if n > best.get(tid, (0,))[0]:
+                best[tid] = (n, crop)
+        for tid, (_, crop) in sorted(best.items()):
             model_id, category, size = truth[tid]
-            queries.append((crop_square(rgb.astype(np.uint8), mask.astype(np.float32)), category, model_id, size))
+            queries.append((crop, category, model_id, size))
         progress(len(queries), config.match_queries, f"matching queries from {item}")
         if len(queries) >= config.match_queries:
             break
     return queries[:config.match_queries]
+
+
+def whole_views(world, track_ids, frame_step: int, min_pixels: int):
+    """(track id, pixels, crop uint8 [CROP, CROP, 3]) for every camera image of every ``frame_step``-th frame of
+    ``world`` in which one of ``track_ids`` shows whole (not cut by the image border) over at least ``min_pixels``,
+    cropped by its ground-truth mask (other pixels black, as in the pool's keyframes)."""
+    from omniscs.agents.matching import crop_square
+    from omniscs.world import WorldRenderer
+
+    renderer = WorldRenderer(world)
+    for f in range(0, world.n_frames, frame_step):
+        for cam in world.cameras:
+            gt = renderer.render_camera(f, cam.name)
+            for tid in track_ids:
+                mask = gt.instance == tid
+                n = int(mask.sum())
+                if n < min_pixels or mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
+                    continue
+                yield tid, n, crop_square((gt.rgb * mask[..., None]).astype(np.uint8), mask.astype(np.float32))
 
 
 def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise: float = 0.05,
@@ -499,7 +510,7 @@ def _strip_png(strips, buf) -> None:
             if c == 0:
                 ax.set_ylabel(title.split(" (")[0], fontsize=8)
     fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=110)
+    fig.savefig(buf, format="png", dpi=70)  # photographic crops: at 110 dpi the strip passes 2 MB
     plt.close(fig)
 
 
@@ -525,28 +536,18 @@ class MSNetDataConfig:
 def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progress: Progress = no_progress):
     """crops uint8 [N, CROP, CROP, 3] and asset ids [N] of the vehicles of procedural worlds, up to ``per_track``
     views each (spread over the log), whole in the image, cropped by their ground-truth masks."""
-    from omniscs.agents.matching import crop_square
     from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import WorldRenderer, generate_world
+    from omniscs.world import generate_world
 
     crops, labels = [], []
     for k, item in enumerate(items):
         progress(k, len(items), f"MSNet data: {item}")
         template, _, seed = item.partition(":")
         world = generate_world(template, int(seed))
-        renderer = WorldRenderer(world)
         vehicles = {a.track_id: a.asset_id for a in world.agents if a.category in VEHICLE_CATEGORIES}
         seen: dict[int, list[np.ndarray]] = {}
-        for f in range(0, world.n_frames, frame_step):
-            for cam in world.cameras:
-                gt = renderer.render_camera(f, cam.name)
-                for tid in vehicles:
-                    mask = gt.instance == tid
-                    if mask.sum() < min_pixels or mask[0].any() or mask[-1].any() or mask[:, 0].any() \
-                            or mask[:, -1].any():
-                        continue
-                    seen.setdefault(tid, []).append(crop_square((gt.rgb * mask[..., None]).astype(np.uint8),
-                                                                mask.astype(np.float32)))
+        for tid, _, crop in whole_views(world, vehicles, frame_step, min_pixels):
+            seen.setdefault(tid, []).append(crop)
         for tid, views in seen.items():
             pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
             crops += [views[i] for i in pick]

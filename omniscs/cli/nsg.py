@@ -59,6 +59,8 @@ def fit(
     plan = load_plan(planned)
     console.print(f"plan: {planned.info['summary']}")
     complete = pool is not None and plan.stages.get("agent_models")
+    if complete and out.exists() and not overwrite:  # refused before the fit, not after it
+        raise OmniscsError(f"{out} already exists; pass --overwrite to replace it")
     with progress_bars() as bars:
         record = fit_stage(scene_path, plan, preset, workspace=ws if complete else None,
                            out_dir=None if complete else out, replace=overwrite,
@@ -68,8 +70,6 @@ def fit(
         if complete:
             from omniscs.pipeline.agents import agents_stage
 
-            if out.exists() and not overwrite:
-                raise OmniscsError(f"{out} already exists; pass --overwrite to replace it")
             agents = agents_stage(scene_path, plan, record, ws, pool, out_dir=out,
                                   progress=bars.sink(f"agents of {planned.scene_id}"))
             for row in agents.rows["agent_models"]:
