@@ -7,6 +7,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
@@ -16,6 +17,7 @@ from torch import Tensor
 from omniscs.errors import OmniscsError
 from omniscs.nsg.checkpoint import save_checkpoint
 from omniscs.nsg.config import FitConfig
+from omniscs.gaussians import GaussianParams, concat_params
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, render_view
 from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_graph, node_budgets
 from omniscs.nsg.metrics import psnr, ssim
@@ -122,26 +124,52 @@ def evaluate_graph(graph: SceneGraph, obs: Observations, frames, cameras=None) -
 
 
 class _Trainer:
-    """Live parameters of every node, their optimisers and the training loop's bookkeeping."""
+    """Live parameters of every node, their optimisers and the training loop's bookkeeping.
 
-    def __init__(self, scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> None:
-        self.scene, self.plan, self.config, self.obs = scene, plan, config, obs
-        self.template = initial_graph(scene, plan, config, obs)  # on config.device
+    ``trainable`` ({node key: [n] bool}) limits optimisation to some rows of a node: the others are held fixed
+    (no gradients, no optimiser state, never densified or pruned) and rendered before the trainable ones. A
+    node without an entry is wholly trainable; ``aux`` says whether the sky and exposures are optimised too.
+    """
+
+    def __init__(self, template: SceneGraph, config: FitConfig, budgets: Mapping[str, int],
+                 scene_scale: Mapping[str, float], trainable: Mapping[str, Tensor] | None = None,
+                 aux: bool = True) -> None:
+        self.config, self.template = config, template
         self.generator = torch.Generator().manual_seed(config.seed)  # host generator: same splits on any device
-        budgets = node_budgets(plan, config)
         self.nodes: dict[str, OptimisedGaussians] = {}
+        self.fixed: dict[str, GaussianParams] = {}
         self.scene_scale: dict[str, float] = {}
         self.budget: dict[str, int] = {}
         self.base_means_lr: dict[str, float] = {}
-        bg_scale = background_scene_scale(scene, plan.cameras)
-        self._add_node(BACKGROUND, self.template.background, bg_scale, budgets.background)
-        for a in self.template.agents:
-            self._add_node(agent_key(a.track_id), a.gaussians, agent_scene_scale(a.size), budgets.per_agent)
-        self.sky = self.template.sky.texture.clone().requires_grad_(True)
-        self.exposure = {c: t.clone().requires_grad_(True) for c, t in self.template.exposure.items()}
-        self.aux_optimizer = torch.optim.Adam(
-            [{"params": [self.sky], "lr": config.lr.sky},
-             {"params": list(self.exposure.values()), "lr": config.lr.exposure}], eps=1e-15)
+        trainable = dict(trainable or {})
+        unknown = sorted(set(trainable) - {BACKGROUND} - {agent_key(a.track_id) for a in template.agents})
+        if unknown:
+            raise OmniscsError(f"trainable rows name node(s) {unknown} that the scene graph does not have")
+        for key, params in [(BACKGROUND, template.background)] + [(agent_key(a.track_id), a.gaussians)
+                                                                  for a in template.agents]:
+            rows = trainable.get(key)
+            if rows is not None:
+                rows = rows.to(params.device)
+                self.fixed[key] = params.select(torch.nonzero(~rows).squeeze(1)).detached()
+                params = params.select(torch.nonzero(rows).squeeze(1))
+            self._add_node(key, params, scene_scale[key], budgets[key])
+        self.sky = template.sky.texture.clone().requires_grad_(aux)
+        self.exposure = {c: t.clone().requires_grad_(aux) for c, t in template.exposure.items()}
+        self.aux_optimizer = None
+        if aux:
+            self.aux_optimizer = torch.optim.Adam(
+                [{"params": [self.sky], "lr": config.lr.sky},
+                 {"params": list(self.exposure.values()), "lr": config.lr.exposure}], eps=1e-15)
+
+    @classmethod
+    def for_scene(cls, scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> "_Trainer":
+        """A fresh fit: nodes seeded from the scene as the plan says."""
+        template = initial_graph(scene, plan, config, obs)  # on config.device
+        budgets = node_budgets(plan, config)
+        sizes = {agent_key(a.track_id): budgets.per_agent for a in template.agents}
+        scales = {agent_key(a.track_id): agent_scene_scale(a.size) for a in template.agents}
+        return cls(template, config, {BACKGROUND: budgets.background, **sizes},
+                   {BACKGROUND: background_scene_scale(scene, plan.cameras), **scales})
 
     def _add_node(self, key: str, params, scene_scale: float, budget: int) -> None:
         lr = self.config.lr
@@ -153,28 +181,39 @@ class _Trainer:
         self.base_means_lr[key] = rates["means"]
 
     def graph(self, frozen: bool = False) -> SceneGraph:
-        get = (lambda n: n.frozen()) if frozen else (lambda n: n.current())
-        agents = tuple(dataclasses.replace(a, gaussians=get(self.nodes[agent_key(a.track_id)]))
-                       for a in self.template.agents)
+        def get(key: str) -> GaussianParams:
+            node = self.nodes[key].frozen() if frozen else self.nodes[key].current()
+            return node if key not in self.fixed else concat_params([self.fixed[key], node])
+
+        agents = tuple(dataclasses.replace(a, gaussians=get(agent_key(a.track_id))) for a in self.template.agents)
         sky = self.sky.detach().clone() if frozen else self.sky
         exposure = {c: (t.detach().clone() if frozen else t) for c, t in self.exposure.items()}
-        return self.template.replace(background=get(self.nodes[BACKGROUND]), agents=agents,
-                                     sky=SkyParams(sky), exposure=exposure)
+        return self.template.replace(background=get(BACKGROUND), agents=agents, sky=SkyParams(sky), exposure=exposure)
 
     def finite(self) -> bool:
         return all(n.is_finite() for n in self.nodes.values()) and bool(torch.isfinite(self.sky).all()) and \
             all(bool(torch.isfinite(t).all()) for t in self.exposure.values())
 
-    def step(self, step: int, view: View, target: Tensor, factor: int) -> tuple[float, float]:
+    @property
+    def n_gaussians(self) -> int:
+        return sum(len(n) for n in self.nodes.values()) + sum(len(p) for p in self.fixed.values())
+
+    def step(self, step: int, view: View, target: Tensor, factor: int,
+             depth_targets: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
+        """One optimiser step on one view; ``depth_targets`` (full-resolution pixels uv [M, 2], depths [M]) adds
+        the depth loss (LiDAR returns in a fit)."""
         cfg = self.config
         active_sh = min(cfg.sh_degree, step // max(1, cfg.sh_degree_interval))
         out = render_view(self.graph(), view, sh_degree=active_sh, absgrad=cfg.strategy.absgrad)
         means2d = out.meta.get("means2d")
         if means2d is not None and means2d.requires_grad:
             means2d.retain_grad()
+        unknown = torch.isnan(target)
+        if bool(unknown.any()):  # pixels a target leaves NaN are not supervised: the render stands in for them
+            target = torch.where(unknown, out.rgb.detach(), target)
         loss = photometric_loss(out.rgb, target, cfg)
-        if cfg.loss.depth_weight > 0:
-            uv, z = self.obs.lidar_depth_targets(view.camera, view.frame_idx)
+        if cfg.loss.depth_weight > 0 and depth_targets is not None:
+            uv, z = depth_targets
             loss = loss + cfg.loss.depth_weight * lidar_depth_loss(out.depth, out.alpha, uv, z, factor,
                                                                    cfg.loss.depth_min_alpha)
         loss_value = float(loss.detach())
@@ -185,6 +224,9 @@ class _Trainer:
         if refining and means2d is not None and means2d.grad is not None:
             grads = means2d.absgrad if cfg.strategy.absgrad else means2d.grad
             for key, sl in out.node_slices.items():
+                sl = slice(sl.start + len(self.fixed.get(key, ())), sl.stop)  # fixed rows come first
+                if sl.stop <= sl.start:
+                    continue
                 accumulate_gradients(cfg.strategy, self.nodes[key], grads[0, sl], out.meta["radii"][0, sl],
                                      view.width, view.height)
         progress = step / max(1, cfg.iterations - 1)
@@ -192,11 +234,13 @@ class _Trainer:
         for key, node in self.nodes.items():
             node.set_lr("means", self.base_means_lr[key] * decay)
             node.step()
-        self.aux_optimizer.step()
-        self.aux_optimizer.zero_grad(set_to_none=True)
+        if self.aux_optimizer is not None:
+            self.aux_optimizer.step()
+            self.aux_optimizer.zero_grad(set_to_none=True)
         if cfg.strategy.is_refine_step(step):
             for key, node in self.nodes.items():
-                refine(cfg.strategy, node, step, self.scene_scale[key], self.budget[key], self.generator)
+                if len(node):
+                    refine(cfg.strategy, node, step, self.scene_scale[key], self.budget[key], self.generator)
         if cfg.strategy.is_reset_step(step):
             for node in self.nodes.values():
                 reset_opacities(cfg.strategy, node)
@@ -230,30 +274,33 @@ def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan, progress: Progre
     return result
 
 
-def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | None, evaluate: bool) -> FitResult:
+#: One training sample: the view at the step's resolution, its target image [h, w, 3], the downscale factor and
+#: the depth targets (full-resolution pixels uv [M, 2], depths [M]) or None.
+Sample = tuple[View, Tensor, int, "tuple[np.ndarray, np.ndarray] | None"]
+
+
+def train_loop(trainer: _Trainer, n_views: int, sample: Callable[[int, int], Sample], label: str,
+               progress: Progress | None) -> tuple[list[dict], float | None, float | None]:
+    """The training loop every fit and refit runs: ``trainer.config.iterations`` steps over ``n_views`` views in
+    seeded random order (``sample(view_index, step)`` makes each step's sample), divergence detection (raises
+    FitDiverged), smoothed loss and PSNR, history every 50 steps. Returns (history, loss EMA, PSNR EMA)."""
+    config = trainer.config
     started = time.perf_counter()
-    obs = Observations(scene, plan.cameras, config.torch_device)
-    trainer = _Trainer(scene, plan, config, obs)
-    n_init = trainer.template.n_gaussians
-    init_seconds = time.perf_counter() - started
     monitor = DivergenceMonitor(config.max_loss_ratio, config.divergence_warmup)
     rng = np.random.default_rng(config.seed)
-    views = [(c, f) for f in plan.train_frames for c in plan.cameras]
     order: list[int] = []
     history: list[dict] = []
     psnr_ema = loss_ema = None
     for step in range(config.iterations):
         if not order:
-            order = list(rng.permutation(len(views)))
-        cam, f = views[order.pop()]
-        factor = config.downscale_at(step)
-        view = obs.view(cam, f).downscaled(factor)
-        loss, train_psnr = trainer.step(step, view, obs.image(cam, f, factor), factor)
+            order = list(rng.permutation(n_views))
+        view, target, factor, depth = sample(order.pop(), step)
+        loss, train_psnr = trainer.step(step, view, target, factor, depth)
         reason = monitor.update(loss)
         if reason is None and not trainer.finite():
             reason = "parameters became NaN or infinite"
         if reason is not None:
-            log.warning("fit of %s diverged at iteration %d: %s", scene.scene_id, step, reason)
+            log.warning("%s diverged at iteration %d: %s", label, step, reason)
             raise FitDiverged(step, reason)
         if config.strategy.is_reset_step(step):
             monitor.restart()
@@ -261,10 +308,28 @@ def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | 
         loss_ema = loss if loss_ema is None else LOSS_EMA * loss_ema + (1 - LOSS_EMA) * loss
         if step % 50 == 0 or step == config.iterations - 1:
             history.append({"iteration": step, "loss": loss_ema, "train_psnr": psnr_ema, "factor": factor,
-                            "n_gaussians": sum(len(n) for n in trainer.nodes.values()),
-                            "seconds": time.perf_counter() - started})
+                            "n_gaussians": trainer.n_gaussians, "seconds": time.perf_counter() - started})
         if progress is not None:
             progress(step + 1, config.iterations, f"loss {loss_ema:.4f}  PSNR {psnr_ema:.2f} dB")
+    return history, loss_ema, psnr_ema
+
+
+def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | None, evaluate: bool) -> FitResult:
+    started = time.perf_counter()
+    obs = Observations(scene, plan.cameras, config.torch_device)
+    trainer = _Trainer.for_scene(scene, plan, config, obs)
+    n_init = trainer.template.n_gaussians
+    init_seconds = time.perf_counter() - started
+    views = [(c, f) for f in plan.train_frames for c in plan.cameras]
+    with_depth = config.loss.depth_weight > 0
+
+    def sample(i: int, step: int) -> Sample:
+        cam, f = views[i]
+        factor = config.downscale_at(step)
+        return (obs.view(cam, f).downscaled(factor), obs.image(cam, f, factor), factor,
+                obs.lidar_depth_targets(cam, f) if with_depth else None)
+
+    history, loss_ema, psnr_ema = train_loop(trainer, len(views), sample, f"fit of {scene.scene_id}", progress)
     graph = trainer.graph(frozen=True)
     train_seconds = time.perf_counter() - started
     metrics = {"iterations": config.iterations, "fit_seconds": train_seconds, "init_seconds": init_seconds,
@@ -275,3 +340,28 @@ def _fit(scene: Scene, plan: ScenePlan, config: FitConfig, progress: Progress | 
         metrics.update({"heldout_psnr": held["psnr"], "heldout_ssim": held["ssim"], "heldout_views": held["n_views"],
                         "eval_seconds": time.perf_counter() - started - train_seconds})
     return FitResult(graph, plan, config, metrics, history)
+
+
+def refit(graph: SceneGraph, config: FitConfig, n_views: int, sample: Callable[[int, int], Sample],
+          trainable: Mapping[str, Tensor] | None = None, scene_scale: Mapping[str, float] | None = None,
+          budgets: Mapping[str, int] | None = None, label: str = "refit",
+          progress: Progress | None = None) -> tuple[SceneGraph, list[dict]]:
+    """Optimise an already fitted ``graph`` further with the fit's own step and loop: ``config.iterations``
+    steps over ``n_views`` samples (``sample(view_index, step)``: the targets need not be the log's images),
+    only the ``trainable`` rows of each named node changing (the RoI-guided background refit; no entry: the
+    whole node), the sky and exposures held. ``budgets`` caps each node's trainable rows (default: as many as
+    it starts with, so densification only replaces); ``scene_scale`` sizes the means' learning rate and the
+    densification thresholds (default 10 m). Raises FitDiverged (nothing returned) when it blows up."""
+    keys = [BACKGROUND] + [agent_key(a.track_id) for a in graph.agents]
+    sizes = {BACKGROUND: len(graph.background), **{agent_key(a.track_id): len(a.gaussians) for a in graph.agents}}
+    rows = {k: int(trainable[k].sum()) if trainable and k in trainable else sizes[k] for k in keys}
+    budgets = {k: max(rows[k], (budgets or {}).get(k, rows[k])) for k in keys}
+    scales = {k: (scene_scale or {}).get(k, 10.0) for k in keys}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(config.torch_threads)
+    try:
+        trainer = _Trainer(graph, config, budgets, scales, trainable, aux=False)
+        history, _, _ = train_loop(trainer, n_views, sample, label, progress)
+        return trainer.graph(frozen=True), history
+    finally:
+        torch.set_num_threads(threads)
