@@ -212,6 +212,24 @@ CREATE OR REPLACE VIEW agent_models AS
   FROM agent_models_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."scene_id", b."model_id", b."track_id"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW background_repairs_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("scene_id" AS VARCHAR) AS "scene_id", CAST("model_id" AS VARCHAR) AS "model_id", CAST("fit_model_id" AS VARCHAR) AS "fit_model_id", CAST("track_id" AS BIGINT) AS "track_id", CAST("hole_views" AS BIGINT) AS "hole_views", CAST("hole_pixels" AS BIGINT) AS "hole_pixels", CAST("observed_pixels" AS BIGINT) AS "observed_pixels", CAST("carried_pixels" AS BIGINT) AS "carried_pixels", CAST("inpainted_pixels" AS BIGINT) AS "inpainted_pixels", CAST("unfilled_pixels" AS BIGINT) AS "unfilled_pixels", CAST("seeds" AS BIGINT) AS "seeds", CAST("dropped_gaussians" AS BIGINT) AS "dropped_gaussians", CAST("depth_method" AS VARCHAR) AS "depth_method", CAST("refit" AS VARCHAR) AS "refit", CAST("seconds" AS DOUBLE) AS "seconds", CAST("repair_path" AS VARCHAR) AS "repair_path",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/background_repairs/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "scene_id", NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "fit_model_id", NULL::BIGINT AS "track_id", NULL::BIGINT AS "hole_views", NULL::BIGINT AS "hole_pixels", NULL::BIGINT AS "observed_pixels", NULL::BIGINT AS "carried_pixels", NULL::BIGINT AS "inpainted_pixels", NULL::BIGINT AS "unfilled_pixels", NULL::BIGINT AS "seeds", NULL::BIGINT AS "dropped_gaussians", NULL::VARCHAR AS "depth_method", NULL::VARCHAR AS "refit", NULL::DOUBLE AS "seconds", NULL::VARCHAR AS "repair_path" WHERE false);
+CREATE OR REPLACE VIEW background_repairs_by_run AS
+  SELECT run_id, "scene_id", "model_id", "fit_model_id", "track_id", "hole_views", "hole_pixels", "observed_pixels", "carried_pixels", "inpainted_pixels", "unfilled_pixels", "seeds", "dropped_gaussians", "depth_method", "refit", "seconds", "repair_path"
+  FROM background_repairs_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "scene_id", "model_id", "track_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW background_repairs AS
+  SELECT b.run_id, b."scene_id", b."model_id", b."fit_model_id", b."track_id", b."hole_views", b."hole_pixels", b."observed_pixels", b."carried_pixels", b."inpainted_pixels", b."unfilled_pixels", b."seeds", b."dropped_gaussians", b."depth_method", b."refit", b."seconds", b."repair_path"
+  FROM background_repairs_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."scene_id", b."model_id", b."track_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
 CREATE OR REPLACE VIEW downstream_models_raw AS
   SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
     CAST("model_id" AS VARCHAR) AS "model_id", CAST("kind" AS VARCHAR) AS "kind", CAST("base_model_id" AS VARCHAR) AS "base_model_id", CAST("dataset_ids" AS VARCHAR[]) AS "dataset_ids", CAST("status" AS VARCHAR) AS "status", CAST("path" AS VARCHAR) AS "path", CAST("n_examples" AS BIGINT) AS "n_examples", CAST("train_seconds" AS DOUBLE) AS "train_seconds", CAST("command" AS VARCHAR) AS "command", CAST("log_path" AS VARCHAR) AS "log_path", CAST("error" AS VARCHAR) AS "error", CAST("config_json" AS VARCHAR) AS "config_json",

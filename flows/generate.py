@@ -1,8 +1,9 @@
 """The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
-Per scene (DESIGN.md): ingest → plan → preview → fit NSG → agents (360° models) → behaviour variants → render + annotate → catalog;
+Per scene (DESIGN.md): ingest → plan → preview → fit NSG → agents (360° models) → background (repair behind
+moved or removed large static objects) → behaviour variants → render + annotate → catalog;
 then, once every scene is done, the run's annotated variants become one dataset (``datasets/<id>/``, catalogued).
-Stages the scene's plan does not need are skipped; stages not built yet (background) slot in between.
+Stages the scene's plan does not need are skipped.
 A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
 """
 from __future__ import annotations
@@ -44,6 +45,10 @@ def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: s
         completed = t.agents(scene, plan, model, request, workspace)
         records.append(completed)
         model = completed if not completed.skipped else model
+    if model is not None and stages["background_repair"]:
+        repaired = t.background(scene, plan, model, workspace)
+        records.append(repaired)
+        model = repaired if not repaired.skipped else model
     variants = t.behavior(scene, plan, model, request, workspace) if stages["behavior_variants"] else None
     if variants is not None:
         records.append(variants)
@@ -82,7 +87,8 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     accurate), with L_app rendered by the scene graph when one is fitted. ``edits`` (edit dicts, see README)
     are the edits the variants will apply: the plan makes their tracks nodes; tracks they turn off their observed
     views get 360-degree models in the ``agents`` stage (the dual strategy, with the model pool ``pool`` when given;
-    ``agent_models`` table). Each scene's plan is in the ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
+    ``agent_models`` table); large static objects they move or remove get the background behind them repaired in
+    the ``background`` stage (``background_repairs`` table). Each scene's plan is in the ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
     avoiding solution, and gathers them into the dataset ``dataset_id`` (default ``ds-<content hash>``;
     ``datasets``, ``samples`` and ``annotations`` tables). Every input is checked before any scene starts (a bad one fails the run with one line in its
     ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and

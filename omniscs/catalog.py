@@ -263,6 +263,24 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("added_to_pool", pa.string()),                   # pool model id when the track grew the pool
         pa.field("n_gaussians", pa.int64(), nullable=False),
     ]),
+    "background_repairs": pa.schema([                             # large static objects repaired behind (background stage)
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("model_id", pa.string(), nullable=False),        # the repaired graph (background-<key>)
+        pa.field("fit_model_id", pa.string(), nullable=False),    # the graph it repaired (fit or agents stage)
+        pa.field("track_id", pa.int64(), nullable=False),         # the object moved or removed
+        pa.field("hole_views", pa.int64(), nullable=False),       # training views it shows in
+        pa.field("hole_pixels", pa.int64(), nullable=False),      # at the repair's working resolution
+        pa.field("observed_pixels", pa.int64(), nullable=False),  # filled by what other views observed
+        pa.field("carried_pixels", pa.int64(), nullable=False),   # filled from earlier views' inpainting
+        pa.field("inpainted_pixels", pa.int64(), nullable=False),  # filled by the 2D inpainter
+        pa.field("unfilled_pixels", pa.int64(), nullable=False),  # left unsupervised (no context)
+        pa.field("seeds", pa.int64(), nullable=False),            # Gaussians seeded in the hole
+        pa.field("dropped_gaussians", pa.int64(), nullable=False),  # hidden behind the object in every view
+        pa.field("depth_method", pa.string(), nullable=False),    # drnet | lsq
+        pa.field("refit", pa.string(), nullable=False),           # roi | full | none
+        pa.field("seconds", pa.float64(), nullable=False),
+        pa.field("repair_path", pa.string(), nullable=False),     # masks, filled views, depth maps (in the checkpoint)
+    ]),
     "downstream_models": pa.schema([                              # driving models trained on generated datasets
         pa.field("model_id", pa.string(), nullable=False),        # proxy-planner-<hash> | external-<hash>
         pa.field("kind", pa.string(), nullable=False),            # proxy_planner | external
@@ -310,6 +328,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "annotations": ("dataset_id", "store_id", "frame_idx", "camera", "track_id"),
     "pool": ("pool_path", "model_id"),
     "agent_models": ("scene_id", "model_id", "track_id"),
+    "background_repairs": ("scene_id", "model_id", "track_id"),
     "downstream_models": ("model_id",),
     "evaluations": ("eval_id", "split", "metric", "class_name", "horizon", "convention"),
 }

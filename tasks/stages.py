@@ -5,6 +5,7 @@ from prefect import task
 
 from omniscs.pipeline import stages
 from omniscs.pipeline.agents import agents_stage
+from omniscs.pipeline.background import background_stage
 from omniscs.pipeline.records import SceneRequest, StageRecord
 from tasks.progress import artifact_progress
 
@@ -36,6 +37,12 @@ def agents(scene: StageRecord, plan: StageRecord, model: StageRecord, request: S
            workspace: str) -> StageRecord:
     return agents_stage(scene.path, stages.load_plan(plan), model, workspace, request.pool,
                         progress=artifact_progress(f"360-degree agents of {scene.scene_id}"))
+
+
+@task(name="background", task_run_name="background-{scene.scene_id}")
+def background(scene: StageRecord, plan: StageRecord, model: StageRecord, workspace: str) -> StageRecord:
+    return background_stage(scene.path, stages.load_plan(plan), model, workspace,
+                            progress=artifact_progress(f"background repair of {scene.scene_id}"))
 
 
 @task(name="behavior", task_run_name="behavior-{scene.scene_id}")

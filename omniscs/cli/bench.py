@@ -240,6 +240,36 @@ def bench_agents(
     console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
 
 
+@app.command("background")
+def bench_background(
+    out: Path = typer.Option(Path("reports"), help="Folder for background_bench.json/.md/.png."),
+    workspace: Optional[Path] = typer.Option(None, help="Where the scenes and fits go (and are reused)."),
+    quick: bool = typer.Option(False, "--quick", help="One dev scene, one novel offset, few steps (a smoke run, not "
+                                                      "a measurement)."),
+    train_depth: bool = typer.Option(False, "--train-depth", help="Train the embedded relative-depth network again "
+                                                                  "on procedural renders and write it into the "
+                                                                  "package (its shipped weights) before the "
+                                                                  "benchmark."),
+) -> None:
+    """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet and DRNet +
+    RoI refit against the world re-rendered without it (hole PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds),
+    at held-out logged and novel views; RoI refit vs a full background refit."""
+    from omniscs.bench.background import BackgroundBenchConfig, quick_config, run_background_benchmark
+
+    if train_depth:
+        from omniscs.bench.depth_data import train_shipped_depth
+
+        with progress_bars() as bars:
+            info = train_shipped_depth(workspace, progress=bars.sink("relative depth"))
+        console.print(f"relative depth: {info['n_images']} images, loss {info['loss_first']:.3f} -> "
+                      f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
+    with progress_bars() as bars:
+        run_background_benchmark(out, workspace, quick_config() if quick else BackgroundBenchConfig(),
+                                 progress=bars.sink("background bench"))
+    console.print((out / "background_bench.md").read_text())
+    console.print(f"wrote {out / 'background_bench.json'} and {out / 'background_bench.png'}")
+
+
 @app.command("downstream")
 def bench_downstream(
     out: Path = typer.Option(Path("reports"), help="Folder for downstream_bench.json/.md/.png."),

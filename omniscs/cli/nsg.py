@@ -29,6 +29,11 @@ def fit(
                                                    "observed views get a 360-degree model (online or pool); --out "
                                                    "then holds the completed graph (the fit itself stays in the "
                                                    "workspace)."),
+    background_repair: str = typer.Option("on", help="on: the background behind every large static object the "
+                                                     "edits move or remove is repaired (inpainting, relative depth, "
+                                                     "DRNet, RoI refit); --out then holds the repaired graph, with "
+                                                     "the repair's masks, filled views and depth maps in "
+                                                     "--out/repair/. off: skip it (for comparison)."),
 ) -> None:
     """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
     from omniscs.edits import edit_to_dict
@@ -53,38 +58,56 @@ def fit(
                                          edits=tuple(edit_to_dict(e) for e in read_edits(edit))))
     if pool is not None and not pool.is_dir():
         raise OmniscsError(f"--pool {pool} is not a pool folder (omniscs pool build / import make one)")
+    if background_repair not in ("on", "off"):
+        raise OmniscsError(f"--background-repair must be on or off; got {background_repair!r}")
     check_out(out, overwrite=True)  # an existing --out must be a folder omniscs wrote (reused or replaced)
     ws = usable_workspace(workspace)
     planned = plan_stage(scene_path, request, ws)
     plan = load_plan(planned)
     console.print(f"plan: {planned.info['summary']}")
     complete = pool is not None and plan.stages.get("agent_models")
-    if complete and out.exists() and not overwrite:  # refused before the fit, not after it
+    repair = background_repair == "on" and plan.stages.get("background_repair")
+    later = complete or repair  # a later stage writes --out; the fit (and agents) stay in the workspace
+    if later and out.exists() and not overwrite:  # refused before the fit, not after it
         raise OmniscsError(f"{out} already exists; pass --overwrite to replace it")
     with progress_bars() as bars:
-        record = fit_stage(scene_path, plan, preset, workspace=ws if complete else None,
-                           out_dir=None if complete else out, replace=overwrite,
+        record = fit_stage(scene_path, plan, preset, workspace=ws if later else None,
+                           out_dir=None if later else out, replace=overwrite,
                            progress=bars.sink(f"fit {planned.scene_id} ({preset})"), **overrides)
         if record.info["status"] != "fitted":
             raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")
+        model = record
         if complete:
             from omniscs.pipeline.agents import agents_stage
 
-            agents = agents_stage(scene_path, plan, record, ws, pool, out_dir=out,
-                                  progress=bars.sink(f"agents of {planned.scene_id}"))
-            for row in agents.rows["agent_models"]:
+            model = agents_stage(scene_path, plan, record, ws, pool, out_dir=None if repair else out,
+                                 progress=bars.sink(f"agents of {planned.scene_id}"))
+            for row in model.rows["agent_models"]:
                 if row["needs_360"]:
-                    model = f" -> {row['pool_model_id']}" if row["pool_model_id"] else ""
-                    console.print(f"track {row['track_id']}: {row['strategy']}{model} ({row['reason']})")
+                    chosen = f" -> {row['pool_model_id']}" if row["pool_model_id"] else ""
+                    console.print(f"track {row['track_id']}: {row['strategy']}{chosen} ({row['reason']})")
+        if repair:
+            from omniscs.pipeline.background import background_stage
+
+            repaired = background_stage(scene_path, plan, model, ws, out_dir=out,
+                                        progress=bars.sink(f"background repair of {planned.scene_id}"))
+            for row in repaired.rows["background_repairs"]:
+                console.print(f"track {row['track_id']}: background repaired in {row['hole_views']} views "
+                              f"({row['observed_pixels']:,} px observed elsewhere, {row['carried_pixels']:,} carried, "
+                              f"{row['inpainted_pixels']:,} inpainted), {row['seeds']:,} Gaussians seeded, "
+                              f"{row['seconds']:.0f} s")
     if not complete and pool is not None:
         console.print("no edit turns an agent off its observed views: the pool was not needed")
+    if plan.background_repair and background_repair == "off":
+        console.print(f"background repair off: the ground behind track(s) {list(plan.background_repair)} stays as "
+                      "fitted")
     m = record.info["metrics"]
     print_table([{"Gaussians": m["n_gaussians"], "agent nodes": m["n_agent_nodes"], "fit s": m["fit_seconds"],
                   "train PSNR": m["train_psnr"], "held-out PSNR": m["heldout_psnr"], "held-out SSIM": m["heldout_ssim"],
                   "held-out views": m["heldout_views"]}], title=f"{record.scene_id} ({preset})")
-    verb = "reused" if record.reused and not complete else "wrote"
+    verb = "reused" if record.reused and not later else "wrote"
     console.print(f"{verb} {out} (plan.json, graph.json, gaussians.safetensors, metrics.json"
-                  + (", decisions.json)" if complete else ")"))
+                  + (", decisions.json" if complete and not repair else "") + (", repair/" if repair else "") + ")")
 
 
 def render(

@@ -508,6 +508,12 @@ def run_scene(source, request: SceneRequest, workspace: str | Path, run_id: str 
             completed = agents_stage(ingested.path, plan, fitted, workspace, request.pool, progress=sink("agents"))
             records.append(completed)
             fitted = completed if not completed.skipped else fitted
+        if plan.stages.get("background_repair"):
+            from omniscs.pipeline.background import background_stage
+
+            repaired = background_stage(ingested.path, plan, fitted, workspace, progress=sink("background"))
+            records.append(repaired)
+            fitted = repaired if not repaired.skipped else fitted
     behaved = None
     if plan.stages.get("behavior_variants"):
         behaved = behavior_stage(ingested.path, plan, request.behavior_variants, workspace,

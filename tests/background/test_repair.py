@@ -1,0 +1,185 @@
+"""The repair on a small fitted log with a parked box truck beside the road: holes against the world's own masks,
+what the repair returns and keeps, the background stage (checkpoint, files, catalog rows, reuse, skip), and the
+clear errors when nothing pins the depth."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from omniscs import catalog
+from omniscs.background.drnet import DRNetConfig
+from omniscs.background.repair import (HoleView, RepairConfig, fill_views, prepare_views, removed_objects,
+                                       repair_background)
+from omniscs.errors import OmniscsError
+from omniscs.nsg.config import PRESETS
+from omniscs.pipeline import stages
+from omniscs.pipeline.background import background_stage
+from omniscs.pipeline.records import SceneRequest
+from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+
+TRUCK = 1
+REMOVE = {"op": "remove", "track_id": TRUCK}
+SMALL = RepairConfig(factor=1, roi_iterations=15, full_iterations=15, drnet=DRNetConfig(steps=30, crop=24))
+
+
+def _truck_world():
+    # a box truck parked 12 m ahead on the right, a car passing on the left
+    agents = ({"x": 14.0, "y": -4.0, "speed": 0.0, "asset": "box_truck-0000", "size": (8.3, 2.3, 3.6)},
+              {"x": 6.0, "y": 3.3, "speed": 9.0, "asset": "sedan-0011"})
+    return nsg_world(agents=agents, n_frames=8, n_cameras=2, width=96, height=54)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bg")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(PRESETS, "fast", tiny_fit_config(60))
+        store = write_nsg_scene(tmp / "in", _truck_world(), "bg-test")
+        plan = stages.load_plan(stages.plan_stage(store, SceneRequest(fit_preset="fast", edits=(REMOVE,)), tmp / "ws"))
+        record = stages.fit_stage(store, plan, "fast", tmp / "ws")
+    return store, plan, record, tmp
+
+
+def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.observations import Observations
+    from omniscs.scene import load_scene
+    from omniscs.world import WorldRenderer
+
+    store, plan, record, _ = fitted
+    assert plan.background_repair == (TRUCK,) and plan.stages["background_repair"]
+    scene = load_scene(store)
+    graph = load_checkpoint(record.path, scene)
+    views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
+    holes = prepare_views(graph, Observations(scene, plan.cameras), removed_objects(graph, [TRUCK]), views,
+                          RepairConfig(factor=1))
+    assert holes.views and holes.hidden.shape == (len(graph.background),)
+    renderer = WorldRenderer(scene.world)
+    covered = []
+    for hv in holes.views:
+        truth = renderer.render_camera(hv.frame, hv.camera).instance == TRUCK
+        covered.append((hv.mask & truth).sum() / max(1, truth.sum()))
+        assert np.all(np.isfinite(hv.target_depth[~np.isnan(hv.target_depth)]))
+        assert np.isnan(hv.target_depth[hv.mask]).all()  # no depth target inside the hole
+    assert np.mean(covered) > 0.9
+
+
+def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted):
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.edit import apply_graph_edits
+    from omniscs.nsg.observations import Observations
+    from omniscs.scene import load_scene
+
+    store, plan, record, _ = fitted
+    scene = load_scene(store)
+    graph = load_checkpoint(record.path, scene)
+    views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
+    result = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views,
+                               tiny_fit_config(60), SMALL)
+    g = result.graph
+    assert g.agent_ids == graph.agent_ids  # the truck is back where it was: edits move or remove it
+    assert np.array_equal(g.agent(TRUCK).world_from_agent, graph.agent(TRUCK).world_from_agent)
+    f = result.facts
+    assert f["seeds"] > 0 and f["hole_views"] == len(result.views)
+    assert f["observed_pixels"] + f["carried_pixels"] + f["inpainted_pixels"] + f["unfilled_pixels"] == f["hole_pixels"]
+    assert g.background.is_finite() and result.drnet is not None and f["refit"]["iterations"] == 15
+    seeds_only = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60),
+                                   RepairConfig(factor=1, refit="none", depth_method="lsq"))
+    s = seeds_only.facts
+    assert len(seeds_only.graph.background) == len(graph.background) - s["dropped_gaussians"] + s["seeds"]
+    assert seeds_only.drnet is None and "refit" not in s
+    removed = apply_graph_edits(g, [REMOVE])
+    out = removed.render(removed.view(plan.cameras[0], plan.train_frames[0]))
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+
+
+def test_fill_views_refuses_when_no_view_knows_any_depth():
+    from omniscs.nsg.observations import View
+
+    view = View(0, np.eye(4), np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), 16, 12, "CAM_FRONT")
+    mask = np.zeros((12, 16), bool)
+    mask[3:9, 4:12] = True
+    hv = HoleView("CAM_FRONT", 0, view, np.full((12, 16, 3), 128, np.uint8), mask, np.full((12, 16), np.nan, np.float32))
+
+    class Flat:
+        name = "flat"
+
+        def predict(self, rgb):
+            return np.ones(rgb.shape[:2], np.float32)
+
+    class Same:
+        name = "same"
+
+        def inpaint(self, rgb, mask):
+            return rgb.copy()
+
+    graph = type("G", (), {"render": None})
+    with pytest.raises(OmniscsError, match="known depth"):
+        fill_views([hv], graph, RepairConfig(), Same(), Flat())
+
+
+def test_the_background_stage_writes_a_repaired_checkpoint_its_files_and_rows_and_reuses_them(fitted):
+    from omniscs.nsg.checkpoint import load_checkpoint
+
+    store, plan, record, tmp = fitted
+    ws = tmp / "ws"
+    first = background_stage(store, plan, record, ws, config=SMALL)
+    assert not first.reused and first.info["repaired"] == [TRUCK]
+    assert Path(first.path).parent.parent == ws / "repaired"
+    graph = load_checkpoint(first.path)
+    assert TRUCK in graph.agent_ids
+    repair = Path(first.path) / "repair"
+    info = json.loads((repair / "repair.json").read_text())
+    assert (repair / "preview.png").is_file() and info["views"]
+    for v in info["views"]:
+        assert all((repair / name).is_file() for name in v["files"])
+    rows = first.rows["background_repairs"]
+    assert catalog.validated_table("background_repairs", rows).num_rows == 1 and rows[0]["track_id"] == TRUCK
+    again = background_stage(store, plan, record, ws, config=SMALL)
+    assert again.reused and again.path == first.path
+
+
+def test_the_background_stage_skips_scenes_that_need_no_repair(fitted, tmp_path):
+    store, _, record, _ = fitted
+    plan = stages.load_plan(stages.plan_stage(store, SceneRequest(fit_preset="fast"), tmp_path / "ws"))
+    skipped = background_stage(store, plan, record, tmp_path / "ws")
+    assert skipped.skipped and "nothing to repair" in skipped.info["why"]
+    assert background_stage(store, plan, None, tmp_path / "ws").skipped
+
+
+def test_omniscs_fit_repairs_the_background_of_a_removed_truck_unless_told_not_to(fitted, tmp_path):
+    from typer.testing import CliRunner
+
+    from omniscs.cli import app
+
+    store, _, _, _ = fitted
+    runner = CliRunner()
+    edit = json.dumps([REMOVE])
+    base = ["fit", str(store), "--preset", "fast", "--iterations", "20", "--edit", edit, "--workspace",
+            str(tmp_path / "ws")]
+    on = runner.invoke(app, base + ["--out", str(tmp_path / "on")])
+    assert on.exit_code == 0, on.output
+    assert "background repaired" in on.output and (tmp_path / "on" / "repair" / "repair.json").is_file()
+    off = runner.invoke(app, base + ["--out", str(tmp_path / "off"), "--background-repair", "off"])
+    assert off.exit_code == 0, off.output
+    assert "background repair off" in off.output and not (tmp_path / "off" / "repair").exists()
+    bad = runner.invoke(app, base + ["--out", str(tmp_path / "bad"), "--background-repair", "maybe"])
+    assert isinstance(bad.exception, OmniscsError) and "on or off" in str(bad.exception)  # main() exits 2 on it
+    assert not (tmp_path / "bad").exists()
+
+
+def test_generate_runs_the_background_stage_after_the_fit_and_catalogues_it(prefect_harness, tmp_path, monkeypatch):
+    from flows.generate import generate_dataset
+
+    monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(20))
+    store = write_nsg_scene(tmp_path / "in", _truck_world(), "bg-flow")
+    ws = tmp_path / "ws"
+    result = generate_dataset([str(store)], workspace=str(ws), run_id="repair", previews=False, fit_preset="fast",
+                              edits=[REMOVE])
+    (scene,) = result["scenes"]
+    assert list(scene["stages"]) == ["ingest", "plan", "fit", "background"]
+    rows = catalog.query(catalog.catalog_root(ws), "SELECT track_id, depth_method, refit, seeds > 0 AS seeded "
+                                                   "FROM background_repairs").to_pylist()
+    assert rows == [{"track_id": TRUCK, "depth_method": "drnet", "refit": "roi", "seeded": True}]
