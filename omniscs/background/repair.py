@@ -6,11 +6,12 @@ background reconstruction), on a fitted scene graph:
 2. known depth outside the holes: LiDAR returns and the background's Gaussian centres that are visible (their
    depth agrees with the rendered depth), as the distance to the camera centre;
 3. relative depth of each original image; DRNet trained per scene to map it to that absolute depth;
-4. views in order of growing hole share: what earlier views already filled is carried into the hole through its
-   3D points (z-buffered), the 2D inpainter fills only what is left (views with too little context are only
-   carried), the filled pixels' relative depth goes through DRNet (or the least-squares baseline) and the newly
-   inpainted pixels are lifted into 3D for the next views;
-5. the background loses its Gaussians inside the object's box and gains seeds at the lifted points;
+4. hole pixels the cleaned background covers keep what other views observed there; the 2D inpainter fills the
+   rest of each view (views with too little context are left unsupervised), and the inpainted pixels' relative
+   depth goes through DRNet (or the least-squares baseline); optionally (``carry``) views go in order of growing
+   hole share and what earlier views filled is carried into later ones through its 3D points first;
+5. the background loses its Gaussians inside the object's box and the hidden ones, and gains seeds at the lifted
+   inpainted pixels, less those some view would see in front of background it observed (a wrong depth);
 6. RoI-guided refit: only background Gaussians inside the enlarged box (and the seeds) are optimised, on crops
    around each view's hole, with the fit's own loop (omniscs.nsg.train.refit); or a full refit of the
    background for comparison, or none.
@@ -48,8 +49,11 @@ DEPTH_METHODS = ("drnet", "lsq")
 #: distance at which the pixel's ray enters the object's box.
 OCCLUDER_SHARE = 0.9
 
-#: A refit is declared diverged when its smoothed loss exceeds this multiple of its best (see refit_background).
-REFIT_MAX_LOSS_RATIO = 20.0
+#: A refit is declared diverged when a view's loss exceeds this multiple of that view's best.
+REFIT_MAX_LOSS_RATIO = 10.0
+
+#: A seed nearer than this share below the solid background's depth at a pixel counts as in front of it.
+SEED_DEPTH_SLACK = 0.05
 
 #: DRNet trains on the known depths inside each hole's bounding box grown by this many times its size per side.
 NEAR_HOLE_GROW = 0.5
@@ -71,9 +75,10 @@ class RepairConfig:
     """Relative depth model (omniscs.background.depth.load_depth_model spec); None: the shipped network."""
     depth_method: str = "drnet"
     """'drnet' (the paper) or 'lsq' (least-squares scale and shift of the relative depth: the baseline)."""
-    carry: bool = True
-    """Carry pixels filled in earlier views into later ones through their 3D points (multi-view consistency);
-    False inpaints every view on its own."""
+    carry: bool = False
+    """Carry pixels filled in earlier views into later ones through their 3D points (one texture for all views);
+    False (the default: better on the development logs, where carried pixels sat at their source view's depth
+    errors) inpaints every view on its own and lets the refit reconcile them."""
     min_context: float = 0.2
     """A view is inpainted only if at least this share of its pixels is known (outside the hole, or carried);
     otherwise only carried pixels fill it and the rest is not supervised."""
@@ -83,6 +88,9 @@ class RepairConfig:
     """Lifted hole pixels are thinned to one per voxel of this size before seeding Gaussians."""
     seed_opacity: float = 0.8
     """Opacity of the seeded Gaussians (high: without a refit they must already cover the hole)."""
+    seed_check: bool = True
+    """Drop seeds that some view would see in front of background it observed (a wrong depth; see
+    consistent_seeds)."""
     seed_max_scale_m: float = 0.3
     """Largest initial size of a seeded Gaussian."""
     refit: str = "roi"
@@ -126,6 +134,7 @@ class HoleView:
     filled_depth: np.ndarray | None = None  # [h, w] float32 distance (m) of hole pixels, NaN elsewhere / unfilled
     unfilled: np.ndarray | None = None      # [h, w] bool hole pixels nothing filled
     new: np.ndarray | None = None           # [h, w] bool hole pixels the 2D inpainter filled
+    solid_z: np.ndarray | None = None       # [h, w] z-depth of the cleaned background where it is solid, else inf
     observed: int = 0
     carried: int = 0
     inpainted: int = 0
@@ -315,6 +324,8 @@ def fill_views(hole_views: list[HoleView], cleaned: SceneGraph, config: RepairCo
         depth = np.full(hv.mask.shape, np.nan, np.float32)
         todo = hv.mask.copy()
         rendered = cleaned.render(hv.view)
+        # where the cleaned background is solid, and how far (z): seeds must not end up in front of it
+        hv.solid_z = np.where(rendered.alpha.cpu().numpy() > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
         seen = todo & (rendered.alpha.cpu().numpy() > OBSERVED_ALPHA)
         image[seen] = _uint8(rendered.rgb)[seen]
         depth[seen] = (rendered.depth.cpu().numpy() * _ray_norms(hv.view))[seen]
@@ -363,6 +374,24 @@ def near_hole(target: np.ndarray, mask: np.ndarray, grow: float = NEAR_HOLE_GROW
     return out
 
 
+def consistent_seeds(points: np.ndarray, colours: np.ndarray,
+                     hole_views: list[HoleView]) -> tuple[np.ndarray, np.ndarray]:
+    """Drop lifted points that some view would see in front of the solid cleaned background at a pixel its
+    inpainter did not fill (outside the hole, or observed inside it): a point there is at a wrong depth, and
+    would cover what that view saw. Points behind solid background stay hidden and are harmless."""
+    bad = np.zeros(len(points), bool)
+    for hv in hole_views:
+        if hv.solid_z is None:
+            continue
+        uv, z, inside = project_points(hv.view, points)
+        idx = np.flatnonzero(inside)
+        px = np.floor(uv[idx]).astype(np.int64)
+        solid = hv.solid_z[px[:, 1], px[:, 0]]
+        free = ~hv.new[px[:, 1], px[:, 0]] if hv.new is not None else np.ones(len(idx), bool)
+        bad[idx[free & (z[idx] < (1.0 - SEED_DEPTH_SLACK) * solid)]] = True
+    return points[~bad], colours[~bad]
+
+
 def seeded_graph(cleaned: SceneGraph, hole_views: list[HoleView], config: RepairConfig) -> tuple[SceneGraph, int]:
     """``cleaned`` plus Gaussians seeded at the inpainted hole pixels (coloured, at their estimated depth),
     thinned per voxel; returns it and the count of seeds (appended last to the background)."""
@@ -379,6 +408,10 @@ def seeded_graph(cleaned: SceneGraph, hole_views: list[HoleView], config: Repair
     if not pts:
         return cleaned, 0
     p, c = np.concatenate(pts), np.concatenate(cols)
+    if config.seed_check:
+        p, c = consistent_seeds(p, c, hole_views)
+    if not len(p):
+        return cleaned, 0
     keep = voxel_subsample(p, config.seed_voxel_m, len(p), np.random.default_rng(0))
     seeds = with_sh_degree(init_background(p[keep], c[keep], 0, config.seed_opacity, config.seed_max_scale_m),
                            cleaned.sh_degree).to(bg.device)
@@ -413,11 +446,10 @@ def refit_background(graph: SceneGraph, n_seeds: int, objects: list[RemovedObjec
     strategy = dataclasses.replace(fit_config.strategy, refine_start_iter=max(50, iterations // 6),
                                    refine_stop_iter=int(0.8 * iterations), refine_every=50, reset_every=0)
     loss = dataclasses.replace(fit_config.loss, depth_weight=config.depth_weight)
-    # the views' losses differ by an order of magnitude (inpainted holes vs well-fitted views): the divergence
-    # test compares the smoothed loss with its best only after every view was seen twice, and allows more
+    # the views' losses differ by orders of magnitude (small and large holes, inpainted and well-fitted views): the
+    # refit compares each view's loss with that view's own best
     cfg = dataclasses.replace(fit_config, iterations=iterations, strategy=strategy, loss=loss, sh_degree_interval=1,
-                              max_loss_ratio=max(fit_config.max_loss_ratio, REFIT_MAX_LOSS_RATIO),
-                              divergence_warmup=max(fit_config.divergence_warmup, 2 * len(samples)))
+                              max_loss_ratio=max(fit_config.max_loss_ratio, REFIT_MAX_LOSS_RATIO))
     budgets = {BACKGROUND: int(rows.sum() * 1.3)}
     scale = {BACKGROUND: float(max(10.0, np.ptp(means[rows], axis=0).max() if rows.any() else 10.0))}
     device = graph.device

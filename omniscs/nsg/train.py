@@ -279,14 +279,33 @@ def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan, progress: Progre
 Sample = tuple[View, Tensor, int, "tuple[np.ndarray, np.ndarray] | None"]
 
 
+@dataclass
+class PerViewDivergence:
+    """For samples whose losses differ by orders of magnitude (a refit's crops): a non-finite loss at once, and a
+    view's loss above ``max_ratio`` x the lowest that same view had, once it was seen before."""
+
+    max_ratio: float
+    best: dict = field(default_factory=dict)
+
+    def update(self, loss: float, view: int) -> str | None:
+        if not math.isfinite(loss):
+            return f"loss is {loss}"
+        best = self.best.get(view)
+        if best is not None and loss > self.max_ratio * max(best, 1e-12):
+            return f"loss {loss:.4g} of view {view} exceeds {self.max_ratio:g} x its best {best:.4g}"
+        self.best[view] = loss if best is None else min(best, loss)
+        return None
+
+
 def train_loop(trainer: _Trainer, n_views: int, sample: Callable[[int, int], Sample], label: str,
-               progress: Progress | None) -> tuple[list[dict], float | None, float | None]:
+               progress: Progress | None, per_view: bool = False) -> tuple[list[dict], float | None, float | None]:
     """The training loop every fit and refit runs: ``trainer.config.iterations`` steps over ``n_views`` views in
     seeded random order (``sample(view_index, step)`` makes each step's sample), divergence detection (raises
-    FitDiverged), smoothed loss and PSNR, history every 50 steps. Returns (history, loss EMA, PSNR EMA)."""
+    FitDiverged; ``per_view`` compares each view's loss with its own best, for samples of very unequal loss), smoothed loss and PSNR, history every 50 steps. Returns (history, loss EMA, PSNR EMA)."""
     config = trainer.config
     started = time.perf_counter()
     monitor = DivergenceMonitor(config.max_loss_ratio, config.divergence_warmup)
+    views = PerViewDivergence(config.max_loss_ratio) if per_view else None
     rng = np.random.default_rng(config.seed)
     order: list[int] = []
     history: list[dict] = []
@@ -294,9 +313,10 @@ def train_loop(trainer: _Trainer, n_views: int, sample: Callable[[int, int], Sam
     for step in range(config.iterations):
         if not order:
             order = list(rng.permutation(n_views))
-        view, target, factor, depth = sample(order.pop(), step)
+        index = order.pop()
+        view, target, factor, depth = sample(index, step)
         loss, train_psnr = trainer.step(step, view, target, factor, depth)
-        reason = monitor.update(loss)
+        reason = views.update(loss, index) if views is not None else monitor.update(loss)
         if reason is None and not trainer.finite():
             reason = "parameters became NaN or infinite"
         if reason is not None:
@@ -361,7 +381,7 @@ def refit(graph: SceneGraph, config: FitConfig, n_views: int, sample: Callable[[
     torch.set_num_threads(config.torch_threads)
     try:
         trainer = _Trainer(graph, config, budgets, scales, trainable, aux=False)
-        history, _, _ = train_loop(trainer, n_views, sample, label, progress)
+        history, _, _ = train_loop(trainer, n_views, sample, label, progress, per_view=True)
         return trainer.graph(frozen=True), history
     finally:
         torch.set_num_threads(threads)

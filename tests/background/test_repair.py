@@ -183,3 +183,23 @@ def test_generate_runs_the_background_stage_after_the_fit_and_catalogues_it(pref
     rows = catalog.query(catalog.catalog_root(ws), "SELECT track_id, depth_method, refit, seeds > 0 AS seeded "
                                                    "FROM background_repairs").to_pylist()
     assert rows == [{"track_id": TRUCK, "depth_method": "drnet", "refit": "roi", "seeded": True}]
+
+
+def test_seeds_in_front_of_observed_background_are_dropped_and_the_others_kept():
+    from omniscs.background.repair import consistent_seeds
+    from omniscs.nsg.observations import View
+
+    # camera at the origin looking along world +x; a solid wall 10 m away except an inpainted patch
+    cam = np.array([[0.0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+    view = View(0, cam, np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]]), 16, 12, "CAM_FRONT")
+    hv = HoleView("CAM_FRONT", 0, view, np.zeros((12, 16, 3), np.uint8), np.zeros((12, 16), bool),
+                  np.full((12, 16), np.nan, np.float32))
+    hv.solid_z = np.full((12, 16), 10.0)
+    hv.new = np.zeros((12, 16), bool)
+    hv.new[6, 8] = True  # the pixel the ray along +x meets
+    points = np.array([[5.0, 0.0, 0.0],     # in front of the wall, at the inpainted pixel: kept
+                       [5.0, 0.2, 0.0],     # in front of the wall where it was observed: dropped
+                       [12.0, 0.2, 0.0],    # behind the wall: hidden, kept
+                       [-5.0, 0.0, 0.0]])   # behind the camera: no view says anything, kept
+    kept, colours = consistent_seeds(points, np.arange(4)[:, None].repeat(3, 1), [hv])
+    assert colours[:, 0].tolist() == [0, 2, 3]
