@@ -444,4 +444,6 @@ def _strip_png(strips: list[dict], buf) -> None:
             img[edge] = (255, 0, 0)
             tiles.append(img)
         rows.append(np.concatenate(tiles, 1))
-    Image.fromarray(np.concatenate(rows, 0)).save(buf, format="PNG", optimize=True)
+    sheet = Image.fromarray(np.concatenate(rows, 0))
+    sheet = sheet.resize((sheet.width // 2, sheet.height // 2), Image.LANCZOS)  # a readable overview, small in git
+    sheet.save(buf, format="PNG", optimize=True)

@@ -279,6 +279,11 @@ def fit_scene(scene: Scene, config: FitConfig, plan: ScenePlan, progress: Progre
 Sample = tuple[View, Tensor, int, "tuple[np.ndarray, np.ndarray] | None"]
 
 
+#: Per-view divergence compares with at least this loss: a crop that is almost perfectly fitted varies by more
+#: than the ratio in noise alone.
+PER_VIEW_LOSS_FLOOR = 0.02
+
+
 @dataclass
 class PerViewDivergence:
     """For samples whose losses differ by orders of magnitude (a refit's crops): a non-finite loss at once, and a
@@ -291,7 +296,7 @@ class PerViewDivergence:
         if not math.isfinite(loss):
             return f"loss is {loss}"
         best = self.best.get(view)
-        if best is not None and loss > self.max_ratio * max(best, 1e-12):
+        if best is not None and loss > self.max_ratio * max(best, PER_VIEW_LOSS_FLOOR):
             return f"loss {loss:.4g} of view {view} exceeds {self.max_ratio:g} x its best {best:.4g}"
         self.best[view] = loss if best is None else min(best, loss)
         return None
