@@ -109,10 +109,19 @@ def hole_mask(view: View, objects: list[RemovedObject], dilation_px: int = HOLE_
         if not obj.present[view.frame_idx]:
             continue
         mask |= np.isfinite(box_entry_distance(view, obj.pose(view.frame_idx), obj.size))
-    if dilation_px > 0 and mask.any():
-        k = 2 * int(dilation_px) + 1
-        mask = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
-    return mask
+    return dilate(mask, dilation_px)
+
+
+def dilate(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """``mask`` grown by a disc of ``pixels`` radius."""
+    if pixels <= 0 or not mask.any():
+        return mask
+    k = 2 * int(pixels) + 1
+    return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+
+def ray_norms(view: View) -> np.ndarray:  # [H, W]: distance from the camera centre per metre of z-depth
+    return np.linalg.norm(pixel_rays(view), axis=-1)
 
 
 def hole_bbox(mask: np.ndarray, margin: int) -> tuple[int, int, int, int] | None:

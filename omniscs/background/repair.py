@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from omniscs.background.drnet import DRNetConfig, FittedDRNet, aligned_inverse, least_squares_depth, train_drnet
-from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, hole_bbox, hole_mask,
-                                      pixel_rays, points_in_box)
+from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, dilate, hole_bbox, hole_mask,
+                                      pixel_rays, points_in_box, ray_norms)
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate, concat_params, with_sh_degree
 from omniscs.nsg.background import init_background, voxel_subsample
@@ -158,12 +158,6 @@ def removed_objects(graph: SceneGraph, track_ids) -> list[RemovedObject]:
     return [RemovedObject.from_node(graph.agent(int(t))) for t in track_ids]
 
 
-def _ray_norms(view: View) -> np.ndarray:  # [h, w]: distance / z-depth along each pixel's ray
-    u, v = np.meshgrid(np.arange(view.width) + 0.5, np.arange(view.height) + 0.5)
-    K = view.K
-    return np.sqrt(((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2 + 1.0)
-
-
 def _uint8(rgb: torch.Tensor) -> np.ndarray:
     return (rgb.detach().clamp(0, 1).cpu().numpy() * 255.0).round().astype(np.uint8)
 
@@ -214,8 +208,8 @@ def prepare_views(graph: SceneGraph, obs: Observations, objects: list[RemovedObj
         if not first.any():
             continue
         dilation = max(1, int(round(4 / config.factor)))
-        mask = hole_mask_from(first, dilation)
-        target = _known_depth(without, view, obs, cam, f, centres, mask, config)
+        mask = dilate(first, dilation)
+        target = _known_depth(rest, view, obs, cam, f, centres, mask, config)
         image = _uint8(obs.image(cam, f, config.factor))
         out.append(HoleView(cam, f, view, image, mask, target))
     return Holes(out, behind & ~seen)
@@ -235,20 +229,13 @@ def cleaned_graph(graph: SceneGraph, objects: list[RemovedObject], hidden: np.nd
     return graph.replace(background=kept, agents=tuple(a for a in graph.agents if a.track_id not in ids)), int(drop.sum())
 
 
-def hole_mask_from(first: np.ndarray, dilation_px: int) -> np.ndarray:
-    import cv2
-
-    k = 2 * int(dilation_px) + 1
-    return cv2.dilate(first.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
-
-
-def _known_depth(without: SceneGraph, view: View, obs: Observations, cam: str, f: int, centres: np.ndarray,
+def _known_depth(rendered, view: View, obs: Observations, cam: str, f: int, centres: np.ndarray,
                  mask: np.ndarray, config: RepairConfig) -> np.ndarray:
-    """Distance to the camera at pixels outside ``mask`` that LiDAR or a visible Gaussian centre pins down."""
+    """Distance to the camera at pixels outside ``mask`` that LiDAR or a visible Gaussian centre pins down
+    (visible: within ``visible_tolerance`` of ``rendered``, the view's render of the graph without the objects)."""
     h, w = mask.shape
-    norms = _ray_norms(view)
+    norms = ray_norms(view)
     target = np.full((h, w), np.nan, dtype=np.float32)
-    rendered = without.render(view)
     rdepth, ralpha = rendered.depth.cpu().numpy(), rendered.alpha.cpu().numpy()
     uv, z, inside = project_points(view, centres)
     px = np.floor(uv[inside]).astype(np.int64)
@@ -328,7 +315,7 @@ def fill_views(hole_views: list[HoleView], cleaned: SceneGraph, config: RepairCo
         hv.solid_z = np.where(rendered.alpha.cpu().numpy() > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
         seen = todo & (rendered.alpha.cpu().numpy() > OBSERVED_ALPHA)
         image[seen] = _uint8(rendered.rgb)[seen]
-        depth[seen] = (rendered.depth.cpu().numpy() * _ray_norms(hv.view))[seen]
+        depth[seen] = (rendered.depth.cpu().numpy() * ray_norms(hv.view))[seen]
         todo &= ~seen
         hv.observed = int(seen.sum())
         if config.carry and len(points):
@@ -473,7 +460,7 @@ def _roi_sample(hv: HoleView, config: RepairConfig, crop: bool = True):
     view = hv.view
     ok = hv.mask & np.isfinite(hv.filled_depth)
     ys, xs = np.nonzero(ok)
-    z = hv.filled_depth[ok] / _ray_norms(view)[ok]
+    z = hv.filled_depth[ok] / ray_norms(view)[ok]
     if crop:
         box = hole_bbox(hv.mask, config.crop_margin_px)
         x0, y0, x1, y1 = box

@@ -194,12 +194,12 @@ def map_errors(hole_views, scene, track: int, factor: int) -> dict:
         K[:2] /= factor
         cams.append(CameraSpec(c.name, c.width // factor, c.height // factor, K, c.ego_from_camera))
     renderer = WorldRenderer(world.replace(cameras=tuple(cams)))
-    from omniscs.background.repair import _ray_norms
+    from omniscs.background.holes import ray_norms
 
     errs, deltas, n = [], [], 0
     for hv in hole_views:
         gt = renderer.render_camera(hv.frame, hv.camera).depth
-        gt_range = np.where(gt > 0, gt * _ray_norms(hv.view), 0.0)
+        gt_range = np.where(gt > 0, gt * ray_norms(hv.view), 0.0)
         pred = hv.filled_depth
         ok = hv.mask & np.isfinite(pred) & (gt_range > 0)
         if not ok.any():
