@@ -266,3 +266,21 @@ CREATE OR REPLACE VIEW evaluations AS
   FROM evaluations_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
   QUALIFY row_number() OVER (PARTITION BY b."eval_id", b."split", b."metric", b."class_name", b."horizon", b."convention"
     ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;
+CREATE OR REPLACE VIEW closed_loop_runs_raw AS
+  SELECT regexp_extract(filename, '[/\\]run_id=([^/\\]+)[/\\][^/\\]+$', 1) AS run_id,
+    CAST("eval_id" AS VARCHAR) AS "eval_id", CAST("scenario_id" AS VARCHAR) AS "scenario_id", CAST("scene_id" AS VARCHAR) AS "scene_id", CAST("kind" AS VARCHAR) AS "kind", CAST("model_id" AS VARCHAR) AS "model_id", CAST("policy" AS VARCHAR) AS "policy", CAST("reactive" AS BOOLEAN) AS "reactive", CAST("status" AS VARCHAR) AS "status", CAST("reason" AS VARCHAR) AS "reason", CAST("steps" AS BIGINT) AS "steps", CAST("simulated_s" AS DOUBLE) AS "simulated_s", CAST("pdms" AS DOUBLE) AS "pdms", CAST("hd_score" AS DOUBLE) AS "hd_score", CAST("route_completion" AS DOUBLE) AS "route_completion", CAST("no_collision" AS DOUBLE) AS "no_collision", CAST("drivable_compliance" AS DOUBLE) AS "drivable_compliance", CAST("time_to_collision" AS DOUBLE) AS "time_to_collision", CAST("comfort" AS DOUBLE) AS "comfort", CAST("ego_progress" AS DOUBLE) AS "ego_progress", CAST("collision" AS BOOLEAN) AS "collision", CAST("steps_per_s" AS DOUBLE) AS "steps_per_s", CAST("run_path" AS VARCHAR) AS "run_path", CAST("error" AS VARCHAR) AS "error",
+    filename AS file
+  FROM (SELECT * FROM read_parquet(getvariable('omniscs_catalog') || '/closed_loop_runs/run_id=*/*.parquet',
+          filename = true, hive_partitioning = false, union_by_name = true, allow_empty = true)
+        UNION ALL BY NAME SELECT NULL::VARCHAR AS filename, NULL::VARCHAR AS "eval_id", NULL::VARCHAR AS "scenario_id", NULL::VARCHAR AS "scene_id", NULL::VARCHAR AS "kind", NULL::VARCHAR AS "model_id", NULL::VARCHAR AS "policy", NULL::BOOLEAN AS "reactive", NULL::VARCHAR AS "status", NULL::VARCHAR AS "reason", NULL::BIGINT AS "steps", NULL::DOUBLE AS "simulated_s", NULL::DOUBLE AS "pdms", NULL::DOUBLE AS "hd_score", NULL::DOUBLE AS "route_completion", NULL::DOUBLE AS "no_collision", NULL::DOUBLE AS "drivable_compliance", NULL::DOUBLE AS "time_to_collision", NULL::DOUBLE AS "comfort", NULL::DOUBLE AS "ego_progress", NULL::BOOLEAN AS "collision", NULL::DOUBLE AS "steps_per_s", NULL::VARCHAR AS "run_path", NULL::VARCHAR AS "error" WHERE false);
+CREATE OR REPLACE VIEW closed_loop_runs_by_run AS
+  SELECT run_id, "eval_id", "scenario_id", "scene_id", "kind", "model_id", "policy", "reactive", "status", "reason", "steps", "simulated_s", "pdms", "hd_score", "route_completion", "no_collision", "drivable_compliance", "time_to_collision", "comfort", "ego_progress", "collision", "steps_per_s", "run_path", "error"
+  FROM closed_loop_runs_raw
+  WHERE run_id IN (SELECT run_id FROM runs_raw)
+  QUALIFY row_number() OVER (PARTITION BY run_id, "eval_id", "scenario_id"
+    ORDER BY regexp_extract(file, '-([0-9]{16})-[0-9a-f]{12}\.parquet$', 1) DESC, file DESC) = 1;
+CREATE OR REPLACE VIEW closed_loop_runs AS
+  SELECT b.run_id, b."eval_id", b."scenario_id", b."scene_id", b."kind", b."model_id", b."policy", b."reactive", b."status", b."reason", b."steps", b."simulated_s", b."pdms", b."hd_score", b."route_completion", b."no_collision", b."drivable_compliance", b."time_to_collision", b."comfort", b."ego_progress", b."collision", b."steps_per_s", b."run_path", b."error"
+  FROM closed_loop_runs_by_run AS b JOIN runs AS r ON r.run_id = b.run_id
+  QUALIFY row_number() OVER (PARTITION BY b."eval_id", b."scenario_id"
+    ORDER BY (r.status = 'completed') DESC, r.finished_at_us DESC, b.run_id DESC) = 1;

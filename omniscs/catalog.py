@@ -310,6 +310,31 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("status", pa.string(), nullable=False),          # ok | failed
         pa.field("error", pa.string()),
     ]),
+    "closed_loop_runs": pa.schema([                               # one closed-loop test run (closed_loop_eval)
+        pa.field("eval_id", pa.string(), nullable=False),         # the evaluation (policy x scenarios) it belongs to
+        pa.field("scenario_id", pa.string(), nullable=False),     # <scene id>/log or <scene id>/<variant id>
+        pa.field("scene_id", pa.string(), nullable=False),
+        pa.field("kind", pa.string(), nullable=False),            # log | behavior
+        pa.field("model_id", pa.string(), nullable=False),        # the scene graph driven in
+        pa.field("policy", pa.string(), nullable=False),          # replay | rule | proxy | drivearena
+        pa.field("reactive", pa.bool_(), nullable=False),         # agents brake for the ego (IDM)
+        pa.field("status", pa.string(), nullable=False),          # ok | failed
+        pa.field("reason", pa.string()),                          # why the episode ended
+        pa.field("steps", pa.int64()),
+        pa.field("simulated_s", pa.float64()),
+        pa.field("pdms", pa.float64()),                           # NAVSIM's PDM score (mean over steps)
+        pa.field("hd_score", pa.float64()),                       # HUGSIM's HD-Score
+        pa.field("route_completion", pa.float64()),
+        pa.field("no_collision", pa.float64()),                   # mean NC (NAVSIM rule)
+        pa.field("drivable_compliance", pa.float64()),            # mean DAC
+        pa.field("time_to_collision", pa.float64()),              # mean TTC score
+        pa.field("comfort", pa.float64()),                        # mean comfort score
+        pa.field("ego_progress", pa.float64()),                   # mean EP
+        pa.field("collision", pa.bool_()),                        # any contact during the run
+        pa.field("steps_per_s", pa.float64()),                    # simulation speed (render + policy + control)
+        pa.field("run_path", pa.string()),                        # run.json, steps.json, bev.png, frames.png, replay.gif
+        pa.field("error", pa.string()),
+    ]),
 }
 
 #: The columns that identify one logical row of each table. The default view ``<table>`` shows each value once,
@@ -331,6 +356,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "background_repairs": ("scene_id", "model_id", "track_id"),
     "downstream_models": ("model_id",),
     "evaluations": ("eval_id", "split", "metric", "class_name", "horizon", "convention"),
+    "closed_loop_runs": ("eval_id", "scenario_id"),
 }
 
 #: The run status whose rows win over those of other ended runs (failed, cancelled) in the default views.

@@ -117,7 +117,10 @@ class ViewAnnotator:
 
     @torch.no_grad()
     def annotate(self, view: View, node_poses: dict[int, np.ndarray],  # moved agent nodes: world_from_agent
-                 instances: list[Instance]) -> ViewAnnotation:
+                 instances: list[Instance], hidden: frozenset[int] = frozenset(),
+                 boxes: bool = True) -> ViewAnnotation:
+        """Colour, depth, instance and semantic masks of ``view`` and (``boxes``) each instance's label; agent nodes
+        in ``hidden`` are not drawn (a closed-loop scenario has them absent where their log has them)."""
         graph, cfg = self.graph, self.config
         f = graph.check_frame(view.frame_idx)
         camera_from_world = invert_transform(view.world_from_camera)
@@ -140,7 +143,8 @@ class ViewAnnotator:
                         * torch.nn.functional.one_hot(torch.tensor(e), len(showing)).to(torch.float32)
         tick = time.perf_counter()
         out = render_view(graph, view, agent_poses=self._poses(node_poses, f), labels=labels,
-                          only_agents=self._may_show(view, node_poses), activated=self.activated)
+                          only_agents=[t for t in self._may_show(view, node_poses) if t not in hidden],
+                          activated=self.activated)
         self.last_render_seconds = time.perf_counter() - tick
         rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         alpha = out.alpha.cpu().numpy()
@@ -160,8 +164,8 @@ class ViewAnnotator:
             instance = np.where(claimed, ids[best], instance).astype(np.int32)
             semantic = np.where(claimed, kinds[best], semantic).astype(np.uint8)
             seen = [inst for e, inst in enumerate(showing) if totals[e] > 0.0]
-            own = self._own_alphas(view, seen, node_poses)
-            for e, inst in enumerate(showing):
+            own = self._own_alphas(view, seen, node_poses) if boxes else {}
+            for e, inst in enumerate(showing if boxes else ()):
                 label = self._label(view, camera_from_world, inst, float(totals[e]), instance,
                                     own.get(inst.track_id, 0.0))
                 if label is not None:

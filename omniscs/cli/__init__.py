@@ -6,7 +6,7 @@ import sys
 
 import typer
 
-from omniscs.cli import bench, catalog, dataset, evaluation, generate, nsg, pool, scene, scs, world
+from omniscs.cli import bench, catalog, closedloop, dataset, evaluation, generate, nsg, pool, scene, scs, world
 from omniscs.cli.common import print_error
 from omniscs.errors import OmniscsError
 
@@ -24,6 +24,7 @@ app.add_typer(catalog.app, name="catalog")
 app.add_typer(dataset.app, name="dataset")
 app.add_typer(evaluation.app, name="eval")
 app.add_typer(pool.app, name="pool")
+app.add_typer(closedloop.app, name="closedloop")
 app.command("finetune")(evaluation.finetune)
 app.add_typer(bench.app, name="bench")
 

@@ -24,7 +24,7 @@ from torch import nn
 
 from omniscs.errors import ValidationError
 from omniscs.eval.planning import STEP_S, STEPS, footprints_on_grid
-from omniscs.eval.scenarios import COMMANDS, PlanningExample
+from omniscs.eval.scenarios import COMMANDS, PlanningExample, PlanningInput
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory, atomic_write_json
 
@@ -95,13 +95,16 @@ class ProxyPlanner(nn.Module):
 
 def features(example: PlanningExample, with_map: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(raster float32 [C, H, W], state float32 [S], straight-ahead base [STEPS, 2]) of one example."""
-    inp = example.inputs
+    return features_of(example.inputs, example.scenario.drivable if with_map else None)
+
+
+def features_of(inp: PlanningInput, drivable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``features`` of what a planner sees at one instant (``drivable``: the map's ``is_drivable`` or None)."""
     raster = np.zeros((len(CHANNELS), GRID_H, GRID_W), np.float32)
     now, past = inp.boxes_now, inp.boxes_past
     raster[0] = footprints_on_grid(now[now[:, 5] > 0, :5], _XS, _YS)
     raster[1] = footprints_on_grid(past[past[:, 5] > 0, :5], _XS, _YS)
     raster[2] = footprints_on_grid(now[now[:, 5] == 0, :5], _XS, _YS)
-    drivable = example.scenario.drivable if with_map else None
     if drivable is not None:
         gx, gy = np.meshgrid(_XS, _YS)
         frame = inp.world_from_frame

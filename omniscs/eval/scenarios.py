@@ -127,16 +127,23 @@ class PlanningExample:
 
 def _boxes(scenario: Scenario, step: int, frame: np.ndarray, vehicles_only: bool) -> np.ndarray:
     """[B, 6] boxes present at ``step`` in ``frame`` (x, y, length, width, yaw, is_vehicle)."""
-    pose = scenario.agents[:, step]
+    keep = scenario.vehicle if vehicles_only else np.ones(len(scenario.track_ids), bool)
+    return boxes_in_frame(scenario.agents[keep, step], scenario.sizes[keep], scenario.vehicle[keep], frame)
+
+
+def boxes_in_frame(pose: np.ndarray,     # [N, 3] world x, y, yaw (NaN rows = absent)
+                   sizes: np.ndarray,    # [N, 2] length, width
+                   vehicle: np.ndarray,  # [N] bool
+                   frame: np.ndarray,    # [3, 3] world_from_planning
+                   ) -> np.ndarray:      # [B, 6] x, y, length, width, yaw (from the frame's x axis), is_vehicle
+    """The present boxes in a planning frame."""
     keep = np.isfinite(pose).all(-1)
-    if vehicles_only:
-        keep &= scenario.vehicle
     if not keep.any():
         return np.zeros((0, 6))
     xy = to_frame(frame, pose[keep, :2])
     heading = np.arctan2(frame[1, 1], frame[0, 1])  # the frame's y axis (the ego's heading) in the world
     yaw = pose[keep, 2] - heading + np.pi / 2  # yaw measured from the frame's x axis
-    return np.column_stack([xy, scenario.sizes[keep], yaw, scenario.vehicle[keep].astype(np.float64)])
+    return np.column_stack([xy, np.asarray(sizes)[keep], yaw, np.asarray(vehicle)[keep].astype(np.float64)])
 
 
 def planning_examples(scenario: Scenario, start: int = 0, stride_s: float = STEP_S) -> list[PlanningExample]:

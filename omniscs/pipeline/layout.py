@@ -8,13 +8,14 @@ from pathlib import Path
 from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
-__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder"]
+__all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder",
+           "closedloop_folder"]
 
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models",
            "background": "repaired",
            "behavior": "variants", "replay": "replays", "annotate": "annotated", "dataset": "datasets",
-           "downstream": "downstream"}
+           "downstream": "downstream", "closedloop": "closedloop"}
 
 
 def scenes_dir(workspace: str | Path) -> Path:
@@ -40,3 +41,8 @@ def dataset_folder(workspace: str | Path, dataset_id: str) -> Path:
 def downstream_folder(workspace: str | Path, model_id: str) -> Path:
     """``<workspace>/downstream/<model_id>``: one downstream model (a fine-tuned checkpoint, an external job)."""
     return Path(workspace) / FOLDERS["downstream"] / check_id("downstream model id", model_id)
+
+
+def closedloop_folder(workspace: str | Path, eval_id: str) -> Path:
+    """``<workspace>/closedloop/<eval_id>``: the run folders of one closed-loop evaluation."""
+    return Path(workspace) / FOLDERS["closedloop"] / check_id("closed-loop evaluation id", eval_id)

@@ -1,0 +1,114 @@
+"""``omniscs closedloop run / serve``: drive a policy inside an edited world (the closed_loop_eval flow), or serve a
+scene graph over HUGSIM's HTTP protocol so HUGSIM's own client (or any driving stack speaking it) can drive."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from omniscs.cli.common import console
+
+app = typer.Typer(help="Closed-loop testing inside the edited world: run a policy, or serve HUGSIM's protocol.",
+                  no_args_is_help=True)
+
+
+@app.command("run")
+def run(
+    scenarios: list[str] = typer.Argument(..., help="SCENE_ID/log or SCENE_ID/VARIANT_ID (a behaviour variant); "
+                                                    "repeat for several."),
+    policy: str = typer.Option("rule", help="replay, rule, proxy, proxy:PATH, or http://HOST:PORT (a DriveArena "
+                                            "driver)."),
+    steps: Optional[int] = typer.Option(None, help="Stop after this many steps (default: the scenario's end)."),
+    out: Optional[Path] = typer.Option(None, help="Folder for the run folders (default: the workspace's "
+                                                  "closedloop/<eval id>/)."),
+    reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
+    camera: list[str] = typer.Option([], "--camera", help="Render these cameras only (repeat; default all)."),
+    width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
+    run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+) -> None:
+    """Drive each scenario with the policy, score it (PDMS, HD-Score, route completion) and write a run folder
+    (run.json, steps.json, bev.png, frames.png, replay.gif) and a closed_loop_runs catalog row."""
+    import os
+
+    from omniscs.cli.prefect_api import prefect_api
+    from omniscs.pipeline.closedloop import parse_ref, resolve
+    from omniscs.storage import workspace_path
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    if steps is not None and steps < 1:
+        raise typer.BadParameter("must be >= 1", param_hint="--steps")
+    ws = workspace_path(workspace)
+    for ref in scenarios:  # unknown scenes, graphs and variants fail here, before Prefect starts
+        parse_ref(ref)
+        resolve(ws, ref)
+    from omniscs.closedloop.policies import make_policy
+
+    if not policy.startswith(("http://", "https://")):
+        make_policy(policy)
+    from flows.closedloop import closed_loop_eval
+
+    with prefect_api():
+        result = closed_loop_eval(list(scenarios), policy=policy, workspace=str(ws), run_id=run_id,
+                                  reactive=reactive, max_steps=steps, cameras=list(camera) or None, width=width,
+                                  out_dir=str(out) if out is not None else None)
+    from rich.table import Table
+
+    table = Table(title=f"closed loop: {policy} (run {result['run_id']}, evaluation {result['eval_id']})")
+    for col in ("scenario", "ended", "PDMS", "HD-Score", "RC"):
+        table.add_column(col, justify="left" if col in ("scenario", "ended") else "right")
+    for r in result["runs"]:
+        table.add_row(str(r.get("scenario_id")), str(r.get("reason")), _num(r.get("pdms")), _num(r.get("hd_score")),
+                      _num(r.get("route_completion")))
+    console.print(table)
+    console.print(f"see: omniscs catalog query \"SELECT scenario_id, reason, pdms, hd_score, route_completion, "
+                  f"run_path FROM closed_loop_runs WHERE run_id = '{result['run_id']}'\"")
+
+
+def _num(v) -> str:
+    return "n/a" if v is None else f"{float(v):.3f}"
+
+
+@app.command("serve")
+def serve(
+    checkpoint: Optional[Path] = typer.Option(None, help="Scene-graph checkpoint (default: the scene's newest)."),
+    scenario: list[str] = typer.Option(..., "--scenario", help="SCENE_ID/log or SCENE_ID/VARIANT_ID served (repeat; "
+                                                               "one scene); clients run them in order."),
+    token: list[str] = typer.Option(..., "--token", help="An accepted auth-token header value (repeat); each token "
+                                                         "gets its own session."),
+    host: str = typer.Option("127.0.0.1", help="Address to bind (loopback unless told otherwise)."),
+    port: int = typer.Option(8065, help="Port (HUGSIM's client defaults to 8065)."),
+    camera: list[str] = typer.Option([], "--camera", help="Render these cameras only (repeat; default all)."),
+    width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
+    reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
+    out: Optional[Path] = typer.Option(None, help="Write each finished episode's run folder here."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
+) -> None:
+    """Serve HUGSIM's HTTP protocol (GET /, POST /reset, GET /get_current_state, POST /execute_action) over one
+    scene graph, so HUGSIM's client (hugsim-client) drives the edited world unchanged."""
+    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
+    from omniscs.errors import ValidationError
+    from omniscs.pipeline.closedloop import load_world, resolve
+    from omniscs.server.hugsim import ServerConfig, create_app
+    from omniscs.server.hugsim import serve as serve_app
+    from omniscs.storage import workspace_path
+
+    if any(not t for t in token):
+        raise typer.BadParameter("a token must not be empty", param_hint="--token")
+    ws = workspace_path(workspace)
+    refs = [resolve(ws, s, checkpoint) for s in scenario]
+    if len({r.scene_id for r in refs}) != 1:
+        raise ValidationError("serve one scene's scenarios at a time (one scene graph per server)")
+    worlds = [load_world(r) for r in refs]
+    scene, graph = worlds[0][0], worlds[0][1]
+    scenarios = {r.scenario_id: w[2] for r, w in zip(refs, worlds)}
+    config = ClosedLoopConfig(cameras=tuple(camera) if camera else None, width=width, reactive=reactive)
+    Simulator(graph, scene, config)  # camera and size errors now, not at the first request
+
+    def make_simulator() -> Simulator:
+        return Simulator(graph, scene, config)
+
+    app_ = create_app(make_simulator, scenarios, set(token), ServerConfig(out_dir=str(out) if out else None))
+    console.print(f"serving {', '.join(scenarios)} on http://{host}:{port} ({len(token)} token(s))")
+    serve_app(app_, host=host, port=port)

@@ -1,0 +1,216 @@
+"""One closed-loop run from start to end: reset, ask the policy, step, until the episode ends; then its scores, a
+bird's-eye replay picture, a contact sheet of rendered frames and an animated GIF, written as one run folder."""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from omniscs.closedloop import metrics
+from omniscs.closedloop.scenario import ClosedLoopScenario
+from omniscs.closedloop.simulator import Simulator
+from omniscs.errors import ValidationError
+from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_directory, atomic_write_json
+
+log = logging.getLogger(__name__)
+
+RUN_JSON = "run.json"
+STEPS_JSON = "steps.json"
+BEV_PNG = "bev.png"
+FRAMES_PNG = "frames.png"
+REPLAY_GIF = "replay.gif"
+#: Rendered frames kept for the contact sheet and the GIF (evenly spaced), and the GIF's width in pixels.
+SHEET_FRAMES = 8
+GIF_WIDTH = 320
+GIF_MAX_FRAMES = 100
+#: The bird's-eye picture shows this much around the ego's and the reference's paths (metres).
+BEV_MARGIN_M = 20.0
+
+
+@dataclass(frozen=True)
+class RunResult:
+    folder: Path | None
+    summary: dict       # run.json's content
+    scores: "metrics.RunScores"
+
+
+def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps: int | None = None,
+                out_dir: str | Path | None = None, camera: str | None = None, overwrite: bool = False,
+                progress: Progress = no_progress) -> RunResult:
+    """Drive ``scenario`` with ``policy`` for at most ``max_steps`` steps (default: until it ends) and score it;
+    with ``out_dir``, write run.json, steps.json and the pictures there (atomically). ``camera`` is the one shown
+    in the pictures (default: the rig's first)."""
+    if max_steps is not None and max_steps < 1:
+        raise ValidationError(f"max_steps must be >= 1 (got {max_steps})")
+    started = time.perf_counter()
+    res = sim.reset(scenario)
+    policy.reset(sim)
+    camera = camera or sim.rig[0].name
+    limit = scenario.n_steps - 1 if max_steps is None else max_steps
+    frames = [(0, res.observation.rgb.get(camera))]
+    policy_s = 0.0
+    reason = None
+    for k in range(limit):
+        tick = time.perf_counter()
+        action = policy.act(sim)
+        policy_s += time.perf_counter() - tick
+        res = sim.step(action)
+        frames.append((k + 1, res.observation.rgb.get(camera)))
+        progress(k + 1, limit, f"{scenario.scenario_id}: rc {res.info['rc']:.2f}")
+        if res.done:
+            reason = res.reason
+            break
+    reason = reason or "max_steps"
+    ep = sim.episode
+    ep.done, ep.reason = True, reason
+    scores = metrics.score_run(sim.trace())
+    seconds = time.perf_counter() - started
+    n = ep.step
+    timing = dict(ep.timing.as_dict(), policy_s=policy_s)
+    summary = {
+        "scenario_id": scenario.scenario_id, "scene_id": scenario.scene_id, "kind": scenario.kind,
+        "policy": getattr(policy, "name", type(policy).__name__), "steps": n, "dt": scenario.dt,
+        "simulated_s": round(n * scenario.dt, 6), "reason": reason, "reactive": sim.config.reactive,
+        "cameras": [c.name for c in sim.rig], "size": [sim.rig[0].width, sim.rig[0].height],
+        "scores": scores.to_dict(), "seconds": seconds,
+        "steps_per_s": n / max(timing["render_s"] + timing["controller_s"] + timing["world_s"] + policy_s, 1e-9),
+        "timing": timing,
+        "collided_with": sorted({int(scenario.track_ids[c.track]) for cs in ep.contacts for c in cs}),
+        "adversary": scenario.adversary,
+    }
+    folder = None
+    if out_dir is not None:
+        folder = write_run(sim, scores, summary, frames, Path(out_dir), overwrite)
+    return RunResult(folder, summary, scores)
+
+
+def step_rows(sim: Simulator, scores: "metrics.RunScores") -> list[dict]:
+    """Per step: time, ego pose and motion, applied controls, contact, off-road and the step's scores."""
+    ep = sim.episode
+    per = scores.to_dict().get("per_step", {})
+    rows = []
+    for k in range(len(ep.ego)):
+        x, y, yaw = (float(v) for v in ep.ego[k])
+        ctrl = ep.controls[k]
+        row = {"step": k, "t": round(k * ep.scenario.dt, 6), "x": x, "y": y, "yaw": yaw, "speed": float(ep.speed[k]),
+               "accel": None if ctrl is None else float(ctrl[0]), "steer_rate": None if ctrl is None else float(ctrl[1]),
+               "collision": bool(ep.contacts[k]), "offroad": bool(ep.offroad[k])}
+        for name, values in per.items():
+            if k < len(values):
+                row[name] = values[k]
+        rows.append(row)
+    return rows
+
+
+def write_run(sim: Simulator, scores, summary: dict, frames: list, out_dir: Path, overwrite: bool) -> Path:
+    with atomic_directory(out_dir, overwrite=overwrite) as tmp:
+        atomic_write_json(tmp / RUN_JSON, summary)
+        (tmp / STEPS_JSON).write_text(json.dumps(step_rows(sim, scores), allow_nan=False))
+        bev_picture(sim, summary, tmp / BEV_PNG)
+        shown = [(k, f) for k, f in frames if f is not None]
+        if shown:
+            contact_sheet(shown, sim.episode.scenario.dt, tmp / FRAMES_PNG)
+            replay_gif(shown, sim.episode.scenario.dt, tmp / REPLAY_GIF)
+    return out_dir
+
+
+def bev_picture(sim: Simulator, summary: dict, out_png: Path) -> Path:
+    """Bird's-eye view of the run: drivable area, the reference path, the ego's path coloured by time with its
+    footprint every 0.5 s, the agents' paths, and where contacts happened."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon
+
+    from omniscs.scs.behavior.collision import footprints
+
+    ep = sim.episode
+    sc = ep.scenario
+    ego = np.array(ep.ego)
+    agents = np.stack(ep.agents, 1) if len(sc.track_ids) else np.zeros((0, len(ego), 3))
+    pts = np.concatenate([ego[:, :2], sc.ego[:, :2]])
+    lo, hi = pts.min(0) - BEV_MARGIN_M, pts.max(0) + BEV_MARGIN_M
+    fig, ax = plt.subplots(figsize=(10, max(3.0, 10 * (hi[1] - lo[1]) / max(hi[0] - lo[0], 1e-6))), dpi=80)
+    if sc.drivable is not None:
+        xs, ys = np.linspace(lo[0], hi[0], 240), np.linspace(lo[1], hi[1], 120)
+        gx, gy = np.meshgrid(xs, ys)
+        d = np.asarray(sc.drivable.is_drivable(np.stack([gx.ravel(), gy.ravel()], 1))).reshape(gx.shape)
+        ax.imshow(d, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="Greys", alpha=0.25, vmin=0, vmax=1.5)
+    ax.plot(sc.ego[:, 0], sc.ego[:, 1], "--", color="0.4", lw=1, label="reference")
+    every = max(1, int(round(0.5 / sc.dt)))
+    for i in range(len(sc.track_ids)):
+        a = agents[i]
+        ok = np.isfinite(a).all(-1)
+        if not ok.any():
+            continue
+        hit = sc.adversary is not None and int(sc.track_ids[i]) == sc.adversary
+        ax.plot(a[ok, 0], a[ok, 1], color="tab:red" if hit else "tab:blue", lw=1, alpha=0.7)
+        k = int(np.flatnonzero(ok)[-1])
+        ax.add_patch(Polygon(footprints(a[k, :2], a[k, 2], sc.sizes[i, 0], sc.sizes[i, 1]), closed=True,
+                             fill=False, ec="tab:red" if hit else "tab:blue", lw=1))
+    colours = plt.cm.viridis(np.linspace(0, 1, len(ego)))
+    for k in range(0, len(ego), every):
+        ax.add_patch(Polygon(footprints(ego[k, :2], ego[k, 2], sc.ego_length, sc.ego_width), closed=True,
+                             fill=False, ec=colours[k], lw=1))
+    ax.scatter(ego[:, 0], ego[:, 1], c=np.arange(len(ego)) * sc.dt, cmap="viridis", s=6, label="ego")
+    hits = [k for k, cs in enumerate(ep.contacts) if cs]
+    if hits:
+        ax.scatter(ego[hits, 0], ego[hits, 1], marker="x", color="red", s=80, label="contact")
+    s = summary["scores"]
+    ax.set_title(f"{sc.scenario_id} | {summary['policy']} | {summary['reason']} after {summary['simulated_s']:.1f} s | "
+                 f"PDMS {_fmt(s.get('pdms'))} HD-Score {_fmt(s.get('hd_score'))} RC {_fmt(s.get('route_completion'))}",
+                 fontsize=9)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_png)
+    plt.close(fig)
+    return out_png
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None else f"{float(v):.2f}"
+
+
+def _pick(frames: list, n: int) -> list:
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(n, len(frames))).round().astype(int))
+    return [frames[i] for i in idx]
+
+
+def contact_sheet(frames: list, dt: float, out_png: Path) -> Path:
+    """Evenly spaced rendered frames in a 4-wide grid, each labelled with its time."""
+    from PIL import Image, ImageDraw
+
+    chosen = _pick(frames, SHEET_FRAMES)
+    h, w = chosen[0][1].shape[:2]
+    scale = min(1.0, 320 / w)
+    tw, th = int(w * scale), int(h * scale)
+    cols = min(4, len(chosen))
+    rows = (len(chosen) + cols - 1) // cols
+    sheet = Image.new("RGB", (cols * tw, rows * th), (0, 0, 0))
+    for i, (k, img) in enumerate(chosen):
+        tile = Image.fromarray(img).resize((tw, th), Image.BILINEAR)
+        ImageDraw.Draw(tile).text((4, 4), f"t = {k * dt:.1f} s", fill=(255, 255, 0))
+        sheet.paste(tile, ((i % cols) * tw, (i // cols) * th))
+    sheet.save(out_png, optimize=True)
+    return out_png
+
+
+def replay_gif(frames: list, dt: float, out_gif: Path) -> Path:
+    """The rendered frames as an animated GIF at real time (every frame up to 10 per second)."""
+    from PIL import Image
+
+    stride = max(1, int(round(0.1 / dt)), -(-len(frames) // GIF_MAX_FRAMES))
+    h, w = frames[0][1].shape[:2]
+    size = (GIF_WIDTH, max(2, int(round(h * GIF_WIDTH / w))))
+    images = [Image.fromarray(f).resize(size, Image.BILINEAR) for _, f in frames[::stride]]
+    images[0].save(out_gif, save_all=True, append_images=images[1:], duration=int(1000 * dt * stride), loop=0)
+    return out_gif
