@@ -11,32 +11,16 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from annotate_fixtures import fitted_scene, logged_variant
+from closedloop_fixtures import N_FRAMES, stopping_variant
 from omniscs.closedloop.env import ENV_ID
 from omniscs.closedloop.policies import ProxyPolicy, make_policy
 from omniscs.closedloop.run import BEV_PNG, FRAMES_PNG, REPLAY_GIF, RUN_JSON, STEPS_JSON, run_episode
-from omniscs.closedloop.scenario import log_scenario, variant_scenario
+from omniscs.closedloop.scenario import variant_scenario
 from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
 from omniscs.closedloop.vehicle import Controls
 from omniscs.errors import OmniscsError, ValidationError
 
-N_FRAMES = 20
 
-
-@pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    scene, graph = fitted_scene(tmp_path_factory.mktemp("closedloop"), n_frames=N_FRAMES, n_cameras=1,
-                                iterations=150)
-    return scene, graph, log_scenario(scene)
-
-
-def stopping_variant(scene, stop_x: float = 15.3):
-    """The log, but the car ahead (track 1) brakes to a stop at ``stop_x`` within 0.5 s."""
-    v = logged_variant(scene)
-    start = float(scene.boxes_at(0).set_index("track_id").loc[1].cx)
-    v["agents"]["1"] = [[min(start + 6.0 * 0.1 * k, stop_x), 0.0, 0.0] for k in range(len(v["source_frames"]))]
-    v["variant_id"], v["adversary"] = "stop", 1
-    return v
 
 
 def test_replaying_the_log_tracks_the_logged_ego_exactly_and_scores_full_marks(world):

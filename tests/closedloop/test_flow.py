@@ -1,0 +1,76 @@
+"""The closed_loop_eval flow over a workspace (a scene, its fitted graph, a behaviour variant): one
+closed_loop_runs row per scenario and a runs row; a scenario that cannot run is recorded failed without stopping
+the others; the CLI refuses a bad scenario before Prefect starts."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from closedloop_fixtures import stopping_variant
+from omniscs import catalog
+from omniscs.errors import OmniscsError
+from omniscs.pipeline import layout
+
+
+@pytest.fixture(scope="module")
+def workspace(world, world_root, tmp_path_factory):
+    scene = world[0]
+    ws = tmp_path_factory.mktemp("closedloop-ws")
+    shutil.copytree(world_root / "scene", layout.scene_folder(ws, "ingest", scene.scene_id))
+    shutil.copytree(world_root / "graph", layout.stage_folder(ws, "fit", scene.scene_id, "nsg-test-graph"))
+    variants = layout.stage_folder(ws, "behavior", scene.scene_id, "behavior-test") / "variants.json"
+    variants.parent.mkdir(parents=True)
+    variants.write_text(json.dumps([stopping_variant(scene)]))
+    return ws
+
+
+def test_closed_loop_eval_catalogues_each_scenario_and_the_run(prefect_harness, world, workspace):
+    from flows.closedloop import closed_loop_eval
+
+    sid = world[0].scene_id
+    out = closed_loop_eval([f"{sid}/log", f"{sid}/stop"], policy="replay", workspace=str(workspace), run_id="cl1",
+                           width=64)
+    rows = catalog.query(layout.catalog_root(workspace),
+                         "SELECT scenario_id, kind, status, reason, pdms, hd_score, collision, run_path "
+                         "FROM closed_loop_runs WHERE run_id = 'cl1' ORDER BY scenario_id").to_pylist()
+    assert [r["scenario_id"] for r in rows] == [f"{sid}/log", f"{sid}/stop"]
+    log_row, stop_row = rows
+    assert log_row["kind"] == "log" and log_row["status"] == "ok" and not log_row["collision"]
+    assert stop_row["kind"] == "behavior" and stop_row["reason"] == "collision" and stop_row["pdms"] < log_row["pdms"]
+    for r in rows:
+        assert layout.closedloop_folder(workspace, out["eval_id"]) in Path(r["run_path"]).parents
+        assert json.loads((Path(r["run_path"]) / "run.json").read_text())["scores"]
+    run = catalog.query(layout.catalog_root(workspace),
+                        "SELECT flow, status FROM runs WHERE run_id = 'cl1'").to_pylist()
+    assert run == [{"flow": "closed_loop_eval", "status": "completed"}]
+
+
+def test_a_scenario_that_cannot_run_is_recorded_failed_and_the_others_still_run(prefect_harness, world, workspace):
+    from flows.closedloop import closed_loop_eval
+
+    sid = world[0].scene_id
+    with pytest.raises(OmniscsError, match="no behaviour variant v999"):
+        closed_loop_eval([f"{sid}/v999", f"{sid}/log"], policy="rule", workspace=str(workspace), run_id="cl2",
+                         max_steps=3, width=64)
+    rows = {r["scenario_id"]: r for r in catalog.query(
+        layout.catalog_root(workspace), "SELECT scenario_id, status, error, steps FROM closed_loop_runs_by_run "
+                                        "WHERE run_id = 'cl2'").to_pylist()}
+    assert rows[f"{sid}/v999"]["status"] == "failed" and "v999" in rows[f"{sid}/v999"]["error"]
+    assert rows[f"{sid}/log"]["status"] == "ok" and rows[f"{sid}/log"]["steps"] == 3
+    run = catalog.query(layout.catalog_root(workspace), "SELECT status FROM runs WHERE run_id = 'cl2'").to_pylist()
+    assert run == [{"status": "failed"}]
+
+
+def test_the_cli_refuses_an_unknown_scene_or_policy_in_one_line(workspace, world):
+    for args in (["closedloop", "run", "no-such-scene/log"],
+                 ["closedloop", "run", f"{world[0].scene_id}/log", "--policy", "greedy"],
+                 ["closedloop", "run", "a/b/c"]):
+        proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *args,
+                               "--workspace", str(workspace)], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr
+        assert proc.stderr.strip().count("\n") == 0 and proc.stderr.startswith("error:")
