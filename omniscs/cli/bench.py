@@ -240,6 +240,24 @@ def bench_agents(
     console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
 
 
+@app.command("closedloop")
+def bench_closedloop(
+    out: Path = typer.Option(Path("reports"), help="Folder for closedloop_bench.json/.md/.png."),
+    workspace: Optional[Path] = typer.Option(None, help="Workspace for the benchmark's scenes and fits (default "
+                                                        "$OMNISCS_HOME or ./omniscs-data)."),
+    quick: bool = typer.Option(False, help="A tiny set-up that checks the code path (not for numbers)."),
+) -> None:
+    """Closed-loop testing: steps per second (1 x 640x360 and 6 x 800x450; render / policy / controller), the
+    shipped policies' PDMS and HD-Score on logs vs behaviour-SCS variants, and 20 HUGSIM clients at once."""
+    from omniscs.bench.closedloop import ClosedLoopBenchConfig, quick_config, run_closedloop_benchmark
+
+    with progress_bars() as bars:
+        run_closedloop_benchmark(out, workspace, quick_config() if quick else ClosedLoopBenchConfig(),
+                                 progress=bars.sink("closed-loop bench"))
+    console.print((out / "closedloop_bench.md").read_text())
+    console.print(f"wrote {out / 'closedloop_bench.json'} and {out / 'closedloop_bench.png'}")
+
+
 @app.command("background")
 def bench_background(
     out: Path = typer.Option(Path("reports"), help="Folder for background_bench.json/.md/.png."),

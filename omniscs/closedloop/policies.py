@@ -247,7 +247,9 @@ class DriveArenaDriver:
             raise OmniscsError(f"DriveArena driver at {self.url} unreachable: {e}") from None
 
     def reset(self, sim) -> None:
-        self._call("GET", "/driver-clean/")
+        status, body = self._call("GET", "/driver-clean/")
+        if status not in (200, 204, 404):  # 404: a driver without the (optional) history reset
+            raise OmniscsError(f"DriveArena driver could not clear its history: HTTP {status} {body[:200]!r}")
 
     def request(self, sim) -> dict:
         """The JSON body of one ``/driver-api/`` call for the simulator's current step."""

@@ -65,28 +65,33 @@ def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps:
         if res.done:
             reason = res.reason
             break
-    reason = reason or "max_steps"
-    ep = sim.episode
-    ep.done, ep.reason = True, reason
+    if reason is None:
+        sim.stop("max_steps")
     scores = metrics.score_run(sim.trace())
-    seconds = time.perf_counter() - started
-    n = ep.step
-    timing = dict(ep.timing.as_dict(), policy_s=policy_s)
-    summary = {
-        "scenario_id": scenario.scenario_id, "scene_id": scenario.scene_id, "kind": scenario.kind,
-        "policy": getattr(policy, "name", type(policy).__name__), "steps": n, "dt": scenario.dt,
-        "simulated_s": round(n * scenario.dt, 6), "reason": reason, "reactive": sim.config.reactive,
-        "cameras": [c.name for c in sim.rig], "size": [sim.rig[0].width, sim.rig[0].height],
-        "scores": scores.to_dict(), "seconds": seconds,
-        "steps_per_s": n / max(timing["render_s"] + timing["controller_s"] + timing["world_s"] + policy_s, 1e-9),
-        "timing": timing,
-        "collided_with": sorted({int(scenario.track_ids[c.track]) for cs in ep.contacts for c in cs}),
-        "adversary": scenario.adversary,
-    }
+    summary = run_summary(sim, scores, getattr(policy, "name", type(policy).__name__),
+                          time.perf_counter() - started, policy_s)
     folder = None
     if out_dir is not None:
         folder = write_run(sim, scores, summary, frames, Path(out_dir), overwrite)
     return RunResult(folder, summary, scores)
+
+
+def run_summary(sim: Simulator, scores: "metrics.RunScores", policy: str, seconds: float, policy_s: float = 0.0
+                ) -> dict:
+    """run.json's content for the simulator's (ended) episode: what ran, why it ended, its scores and timing."""
+    ep = sim.episode
+    sc = ep.scenario
+    timing = dict(ep.timing.as_dict(), policy_s=policy_s)
+    busy = timing["render_s"] + timing["controller_s"] + timing["world_s"] + policy_s
+    return {
+        "scenario_id": sc.scenario_id, "scene_id": sc.scene_id, "kind": sc.kind, "policy": policy,
+        "steps": ep.step, "dt": sc.dt, "simulated_s": round(ep.step * sc.dt, 6), "reason": ep.reason,
+        "reactive": sim.config.reactive, "cameras": [c.name for c in sim.rig],
+        "size": [sim.rig[0].width, sim.rig[0].height], "scores": scores.to_dict(), "seconds": seconds,
+        "steps_per_s": ep.step / max(busy, 1e-9), "timing": timing,
+        "collided_with": sorted({int(sc.track_ids[c.track]) for cs in ep.contacts for c in cs}),
+        "adversary": sc.adversary,
+    }
 
 
 def step_rows(sim: Simulator, scores: "metrics.RunScores") -> list[dict]:

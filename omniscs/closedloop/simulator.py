@@ -33,6 +33,8 @@ from omniscs.scene.store import CameraRecord
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("rgb", "depth", "instance", "semantic")
+#: Height of the ego's box in ``info["ego_box"]`` (scene stores record the ego's footprint only), metres.
+EGO_HEIGHT_M = 1.6
 #: Why an episode ended.
 REASONS = ("collision", "offroad", "left_fitted_area", "route_completed", "scenario_end", "max_steps")
 
@@ -97,10 +99,16 @@ class Observation:
 
 @dataclass(frozen=True)
 class StepResult:
+    """What one reset or step returns."""
+
     observation: Observation
-    info: dict          # JSON-able facts of this step (see ``Simulator.info``)
+    """The cameras at the new pose (after leaving the fitted area: the last picture taken inside it)."""
+    info: dict
+    """JSON-able facts of this step (see ``Simulator.info``)."""
     done: bool
-    reason: str | None  # one of REASONS when done
+    """Whether the episode has ended."""
+    reason: str | None
+    """Why it ended (one of REASONS), None while it goes on."""
 
 
 @dataclass
@@ -144,18 +152,22 @@ class Simulator:
     may share a graph (it is never changed)."""
 
     def __init__(self, graph, scene, config: ClosedLoopConfig = ClosedLoopConfig(),
-                 annotator: ViewAnnotator | None = None, members: dict | None = None) -> None:
+                 annotator: ViewAnnotator | None = None, members: dict | None = None,
+                 rig: list[CameraRecord] | None = None) -> None:
+        """``rig``: cameras to render instead of the fitted ones (e.g. a 6-camera nuScenes-size rig; a camera the
+        fit never saw gets no exposure correction); ``config.cameras`` then picks among them."""
         if graph.scene_id != scene.scene_id:
             raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
         self.graph, self.scene, self.config = graph, scene, config
         self.annotator = annotator or ViewAnnotator(graph, AnnotateConfig())
         self.members = members if members is not None else background_members(graph, background_tracks(scene, graph))
-        fitted = [c.name for c in graph.cameras]
-        names = list(config.cameras) if config.cameras is not None else fitted
-        unknown = [c for c in names if c not in fitted]
+        available = {c.name: c for c in (rig if rig is not None else graph.cameras)}
+        self.fitted = frozenset(c.name for c in graph.cameras)
+        names = list(config.cameras) if config.cameras is not None else list(available)
+        unknown = [c for c in names if c not in available]
         if unknown or not names:
-            raise ValidationError(f"camera(s) {unknown or names} not in this scene graph's rig {fitted}")
-        self.rig = [_resized(graph.camera(c), config.width, config.height) for c in names]
+            raise ValidationError(f"camera(s) {unknown or names} not in the rig {list(available)}")
+        self.rig = [_resized(available[c], config.width, config.height) for c in names]
         self.logged_xy = np.asarray(graph.world_from_ego)[:, :2, 3]
         self.node_ids = frozenset(graph.agent_ids)
         self.episode: Episode | None = None
@@ -218,6 +230,14 @@ class Simulator:
         ep.done, ep.reason = reason is not None, reason
         return StepResult(obs, self.info(), ep.done, reason)
 
+    def stop(self, reason: str) -> None:
+        """End the episode now (e.g. ``max_steps``: the caller's step budget ran out); ``info()["reason"]`` says why."""
+        if reason not in REASONS:
+            raise ValidationError(f"unknown reason {reason!r}; one of {list(REASONS)}")
+        ep = self._episode()
+        if not ep.done:
+            ep.done, ep.reason = True, reason
+
     # -- plans ---------------------------------------------------------------------------------
     def check_plan(self, plan) -> np.ndarray:  # -> [P, 2] float64 planning frame
         try:
@@ -226,9 +246,8 @@ class Simulator:
             raise ValidationError(f"a plan must be numbers [P, 2] (x right, y forward, metres): {exc}") from None
         if plan.ndim == 3 and plan.shape[0] == 1:
             plan = plan[0]
-        if plan.ndim != 2 or plan.shape[1] < 2 or not 1 <= plan.shape[0] <= 100:
+        if plan.ndim != 2 or plan.shape[1] != 2 or not 1 <= plan.shape[0] <= 100:
             raise ValidationError(f"a plan must be [P, 2] waypoints with 1 <= P <= 100 (got shape {list(plan.shape)})")
-        plan = plan[:, :2]
         if not np.isfinite(plan).all():
             raise ValidationError("the plan has NaN or infinite waypoints")
         far = float(np.max(np.linalg.norm(plan, axis=1)))
@@ -302,6 +321,7 @@ class Simulator:
         yaw_rate = yaw_rate_of(s, self.config.vehicle)
         boxes = self.boxes()
         contacts = ep.contacts[-1]
+        command = self.command()
         return {
             "scenario_id": sc.scenario_id, "step": ep.step, "timestamp": round(ep.t, 6),
             "ego_pos": [float(v) for v in T[:3, 3]], "ego_rot": [0.0, 0.0, float(s.yaw)],
@@ -309,9 +329,9 @@ class Simulator:
             "steer_rate": float(s.steer_rate), "yaw_rate": float(yaw_rate),
             "velocity": [float(v) for v in s.speed * heading],
             "acceleration": [float(s.accel), float(s.speed * yaw_rate)],  # longitudinal, lateral (m/s²)
-            "command": self.command(), "command_name": COMMANDS[self.command()],
-            "ego_box": [float(centre[0]), float(centre[1]), float(T[2, 3]), sc.ego_width, sc.ego_length, 1.6,
-                        float(centre[2])],
+            "command": command, "command_name": COMMANDS[command],
+            "ego_box": [float(centre[0]), float(centre[1]), float(T[2, 3]), sc.ego_width, sc.ego_length,
+                        EGO_HEIGHT_M, float(centre[2])],
             "obj_boxes": [[b["center"][0], b["center"][1], b["center"][2], b["size"][1], b["size"][0], b["size"][2],
                            b["yaw"]] for b in boxes],
             "boxes": boxes,
@@ -411,7 +431,7 @@ class Simulator:
         out = {k: {} for k in OUTPUTS}
         for cam in self.rig:
             view = View(frame, T @ cam.ego_from_camera, np.array(cam.K, dtype=np.float64), int(cam.width),
-                        int(cam.height), cam.name)
+                        int(cam.height), cam.name if cam.name in self.fitted else None)
             ann = self.annotator.annotate(view, node_poses, instances, hidden=frozenset(hidden), boxes=False)
             for key in cfg.outputs:
                 out[key][cam.name] = getattr(ann, key)
