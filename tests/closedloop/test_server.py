@@ -257,3 +257,23 @@ def test_create_app_refuses_a_server_nobody_could_use(served):
         create_app(make, scenarios, ["t"], ServerConfig(default_scenario="nowhere/log"))
     with pytest.raises(ValidationError, match="at least one scenario"):
         create_app(make, {}, ["t"])
+
+
+def test_a_client_that_disconnects_mid_request_leaves_the_server_serving_everyone(server, token):
+    import socket
+    from urllib.parse import urlparse
+
+    url = urlparse(server.url)
+    other = next(_unused_tokens)
+    post_plan(server, other, encoded(straight(5.0)), "before")
+    body = json.dumps({"plan_traj": encoded(straight(5.0)), "transaction_id": "cut"}).encode()
+    with socket.create_connection((url.hostname, url.port), timeout=10) as sock:  # half a request, then gone
+        sock.sendall(b"POST /execute_action HTTP/1.1\r\nHost: x\r\nauth-token: " + token.encode()
+                     + b"\r\nContent-Type: application/json\r\nContent-Length: " + str(len(body)).encode()
+                     + b"\r\n\r\n" + body[: len(body) // 2])
+    time.sleep(0.2)
+    assert state_of(server, token)["state"]["info"]["step"] == 0  # the cut request moved nothing
+    assert post_plan(server, token, encoded(straight(5.0)), "after").status_code == 200
+    assert state_of(server, token)["state"]["info"]["step"] == 1
+    assert post_plan(server, other, encoded(straight(5.0)), "after").status_code == 200
+    assert state_of(server, other)["state"]["info"]["step"] == 2

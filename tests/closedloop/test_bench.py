@@ -1,0 +1,23 @@
+"""The closed-loop benchmark end to end on one tiny scene (slow: it fits a graph and makes a behaviour variant)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+@pytest.mark.slow
+def test_the_quick_benchmark_reports_speed_scores_and_load(tmp_path):
+    from omniscs.bench.closedloop import quick_config, run_closedloop_benchmark
+
+    result = run_closedloop_benchmark(tmp_path / "reports", tmp_path / "ws", quick_config())
+    report = json.loads((tmp_path / "reports" / "closedloop_bench.json").read_text(), parse_constant=float)
+    assert (tmp_path / "reports" / "closedloop_bench.png").stat().st_size > 10_000
+    assert {(r["cameras"], r["outputs"]) for r in report["speed"]} == {
+        (1, "rgb+depth"), (1, "rgb+depth+instance+semantic"), (2, "rgb+depth"), (2, "rgb+depth+instance+semantic")}
+    assert all(r["steps_per_s"] > 0 and 0 < r["render_share"] <= 1 for r in report["speed"])
+    kinds = {(r["policy"], r["kind"]) for r in result["scores"]}
+    assert kinds == {(p, k) for p in ("replay", "rule", "proxy") for k in ("log", "behavior")}
+    assert result["load"]["errors"] == 0 and result["load"]["steps"] > 0
+    assert result["load"]["latency_ms"]["p50"] <= result["load"]["latency_ms"]["p99"]
+    assert "Closed-loop testing benchmark" in (tmp_path / "reports" / "closedloop_bench.md").read_text()
