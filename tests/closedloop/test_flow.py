@@ -74,3 +74,42 @@ def test_the_cli_refuses_an_unknown_scene_or_policy_in_one_line(workspace, world
                                "--workspace", str(workspace)], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr
         assert proc.stderr.strip().count("\n") == 0 and proc.stderr.startswith("error:")
+
+
+def test_the_serve_command_serves_a_workspace_scenario_to_hugsims_client(workspace, world, monkeypatch):
+    import socket
+    import time
+
+    import numpy as np
+    import requests
+
+    monkeypatch.setenv("IN_HF_SPACE", "false")
+    from hugsim_client import HugsimClient
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-c", "from omniscs.cli import main; main()", "closedloop", "serve",
+                             "--scenario", f"{world[0].scene_id}/log", "--token", "secret", "--port", str(port),
+                             "--width", "64", "--workspace", str(workspace)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 90
+        while True:
+            try:
+                if requests.get(url + "/", timeout=2).status_code == 200:
+                    break
+            except requests.ConnectionError:
+                pass
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.monotonic() < deadline, "the server did not answer within 90 s"
+            time.sleep(0.3)
+        client = HugsimClient(host=url, api_token="secret")
+        client.reset_env()
+        state = client.execute_action(np.array([[0.0, 3.0 * k] for k in range(1, 7)]))
+        assert state.state.info["step"] == 1 and state.state.obs["rgb"]["CAM_FRONT"].shape[1] == 64
+        assert requests.post(url + "/reset", headers={"auth-token": "wrong"}, timeout=10).status_code == 401
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
