@@ -262,7 +262,7 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
             e[key] = str(e[key])
     result = {"config": asdict(config), "scenes": entries, "speed": speed, "scores": scores,
               "summary": summarise(scores), "load": load, "machine": finish(machine)}
-    write_report(out_dir, "closedloop_bench", result, markdown(result), {".png": lambda f: _plot(result, f)})
+    write_report(out_dir, "closedloop_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 
@@ -366,12 +366,12 @@ def _plot(result: dict, f) -> None:
     for j, (kind, label) in enumerate((("log", "log"), ("behavior", "behaviour-SCS"))):
         for k, (metric, hatch) in enumerate((("pdms", ""), ("hd_score", "//"))):
             vals = [(result["summary"][p].get(kind) or {}).get(metric) or 0.0 for p in policies]
-            a.bar(x + (2 * j + k - 1.5) * 0.2, vals, 0.2, label=f"{metric.upper().replace('_', '-')} {label}",
+            a.bar(x + (2 * j + k - 1.5) * 0.2, vals, 0.2, label=f"{('PDMS', 'HD-Score')[k]} {label}",
                   hatch=hatch, color=("tab:blue", "tab:red")[j], alpha=0.8 if k == 0 else 0.5)
     a.set_xticks(x, policies)
-    a.set_ylim(0, 1.05)
+    a.set_ylim(0, 1.3)
     a.set_title("Scores by policy: log vs behaviour-SCS")
-    a.legend(fontsize=8)
+    a.legend(fontsize=8, ncol=2, loc="upper center")
     rows = result["speed"]
     labels = [f"{r['cameras']}x{r['size']}\n{r['outputs'].replace('+', ' ')}" for r in rows]
     bottom = np.zeros(len(rows))
