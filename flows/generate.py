@@ -19,10 +19,9 @@ from omniscs.ids import check_id
 from omniscs.pipeline.records import SceneRequest, StageRecord, new_run_id
 from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
 from omniscs.storage import clean_stale_temps, workspace_root
+from flows.runners import MAX_PARALLEL_SCENES, check_runner, scene_task_runner
 from tasks import stages as t
-
-#: Scenes processed at once; the machines this runs on have 2 cores.
-MAX_PARALLEL_SCENES = 2
+from tasks.progress import run_summary_artifact
 
 
 def _now_us() -> int:
@@ -76,7 +75,8 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
                      previews: bool = True, fit_preset: str | None = None, behavior_variants: int = 0,
                      behavior_preset: str = "balanced", behavior_checkpoint: str | None = None,
                      edits: list[dict] | None = None, device: str = "cpu", annotate: bool = False,
-                     dataset_id: str | None = None, pool: str | None = None) -> dict:
+                     dataset_id: str | None = None, pool: str | None = None, task_runner: str = "threads",
+                     workers: int | None = None, dask_address: str | None = None) -> dict:
     """Run the scene pipeline on every source and catalogue the run.
 
     Sources: ``syn:TEMPLATE:SEED[:LIGHTING]`` (procedural log of ``n_frames`` frames, ``n_cameras`` cameras at
@@ -94,6 +94,11 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and
     stage records, and the dataset id (None without ``annotate``); scenes that failed are listed under ``failed``, and the run then ends failed after the others
     finished. An interrupted run (KeyboardInterrupt) is recorded as ``cancelled``.
+
+    Scenes run on ``task_runner``: ``threads`` (``workers`` at once in this process, default 2) or ``dask``: a local
+    cluster of ``workers`` processes (default 2; each gets this machine's cores divided among them for torch and
+    numba), or the existing scheduler at ``dask_address`` (tcp://HOST:PORT; its workers must see the same workspace
+    path). See flows/runners.py. A table artifact summarises the run (scenes, stages, variants, dataset, failures).
     """
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
@@ -109,6 +114,7 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
             annotate=annotate, pool=pool))
         scenes, repeats = check_sources(sources, n_frames, n_cameras, width, height)
         dataset_id = check_id("dataset id", dataset_id) if dataset_id is not None else None
+        check_runner(task_runner, workers, dask_address)
     except OmniscsError as exc:
         t.catalog_run(run_id, ws, "generate_dataset", "failed", started, _now_us(), 0, config, error=one_line(exc))
         raise
@@ -118,9 +124,11 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     for stale in clean_stale_temps(ws):
         logger.info("removed %s, left by a writer that is no longer running", stale)
     try:
-        futures = scene_run.map([c.source for c in scenes], [c.text for c in scenes], request=unmapped(request),
-                                workspace=unmapped(ws), run_id=unmapped(run_id))
-        results = [f.result() for f in futures]
+        with scene_task_runner(task_runner, workers, dask_address) as runner:
+            futures = runner.map(scene_run, {"source": [c.source for c in scenes], "label": [c.text for c in scenes],
+                                             "request": unmapped(request), "workspace": unmapped(ws),
+                                             "run_id": unmapped(run_id)})
+            results = [f.result() for f in futures]
         dataset = None
         done = [r for r in results if "error" not in r]
         if annotate and done:
@@ -134,6 +142,7 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
         raise
     failed = [r for r in results if "error" in r]
     error = "; ".join(f"{r['label']}: {r['error']}" for r in failed) or None
+    run_summary_artifact(run_id, results, None if dataset is None else dataset.info["dataset_id"])
     t.catalog_run(run_id, ws, "generate_dataset", "failed" if failed else "completed", started, _now_us(),
                   len(scenes), config, error=error)
     if failed:

@@ -6,9 +6,10 @@ from prefect import task
 from omniscs.pipeline import closedloop as c
 from omniscs.pipeline.records import StageRecord
 from tasks.progress import artifact_progress
+from tasks.retries import STAGE_TASK_OPTIONS
 
 
-@task(name="closed-loop-run", task_run_name="closed-loop-{scenario}-{policy}")
+@task(name="closed-loop-run", task_run_name="closed-loop-{scenario}-{policy}", **STAGE_TASK_OPTIONS)
 def run_scenario(workspace: str, scenario: str, policy: str, eval_id: str, config, max_steps: int | None,
                  out_dir: str | None) -> StageRecord:
     return c.closed_loop_stage(workspace, scenario, policy, eval_id, config, max_steps, out_dir=out_dir,

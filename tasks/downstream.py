@@ -6,24 +6,25 @@ from prefect import task
 from omniscs.pipeline import downstream as d
 from omniscs.pipeline.records import StageRecord
 from tasks.progress import artifact_progress
+from tasks.retries import STAGE_TASK_OPTIONS
 
 
-@task(name="finetune-proxy-planner")
+@task(name="finetune-proxy-planner", **STAGE_TASK_OPTIONS)
 def finetune(dataset_ids: list[str], workspace: str) -> StageRecord:
     return d.finetune_stage(dataset_ids, workspace, progress=artifact_progress("fine-tune the proxy planner"))
 
 
-@task(name="evaluate-planner", task_run_name="evaluate-{label}")
+@task(name="evaluate-planner", task_run_name="evaluate-{label}", **STAGE_TASK_OPTIONS)
 def evaluate(model: StageRecord | None, dataset_ids: list[str], workspace: str, label: str) -> StageRecord:
     return d.evaluate_stage(model, dataset_ids, workspace)
 
 
-@task(name="external-job")
+@task(name="external-job", **STAGE_TASK_OPTIONS)
 def external(template: str, dataset_ids: list[str], workspace: str, values: dict, timeout_s: float,
              export: str | None) -> StageRecord:
     return d.external_stage(template, dataset_ids, workspace, values, timeout_s, export)
 
 
-@task(name="catalog-records", task_run_name="catalog-{writer}")
+@task(name="catalog-records", task_run_name="catalog-{writer}", **STAGE_TASK_OPTIONS)
 def catalog(run_id: str, workspace: str, records: list[StageRecord], writer: str = "downstream") -> list[str]:
     return d.catalog_records_stage(run_id, workspace, records, writer=writer)

@@ -1,7 +1,8 @@
-"""Progress of a task run as a Prefect progress artifact, fed through the pipeline's one throttle."""
+"""Progress of a task run as a Prefect progress artifact, fed through the pipeline's one throttle; a run's summary as
+a table artifact."""
 from __future__ import annotations
 
-from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.artifacts import create_progress_artifact, create_table_artifact, update_progress_artifact
 
 from omniscs.progress import Progress, Throttled, percent
 
@@ -11,3 +12,20 @@ def artifact_progress(description: str) -> Progress:
     artifact = create_progress_artifact(0.0, description=description)
     return Throttled(lambda done, total, note: update_progress_artifact(
         artifact, percent(done, total), description=f"{description}: {note}" if note else None))
+
+
+def run_summary_artifact(run_id: str, results: list[dict], dataset_id: str | None) -> str:
+    """One table row per scene of a ``generate_dataset`` run: its stages (made, reused or skipped), variants, the
+    dataset and why it failed; shown in the Prefect UI under the flow run (key ``run-summary``)."""
+    rows = []
+    for r in results:
+        stages = r.get("stages", {})
+        made = [s for s, rec in stages.items() if not rec["skipped"] and not rec["reused"]]
+        reused = [s for s, rec in stages.items() if rec["reused"]]
+        variants = stages.get("behavior", {}).get("info", {}).get("n_variants")
+        rows.append({"scene": r.get("scene_id") or r.get("label"), "status": "failed" if "error" in r else "done",
+                     "made": ", ".join(made), "reused": ", ".join(reused),
+                     "variants": "" if variants is None else int(variants), "dataset": dataset_id or "",
+                     "error": r.get("error", "")})
+    return str(create_table_artifact(rows, key="run-summary", description=f"generate_dataset run {run_id}: "
+                                                                           f"{len(rows)} scene(s)"))

@@ -37,6 +37,9 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
                                                           "annotate")
                              if k in parameters})
     scenes, _ = check_sources(list(sources), **rig)
+    from flows.runners import check_runner
+
+    check_runner(parameters.get("task_runner", "threads"), parameters.get("workers"), parameters.get("dask_address"))
     run_id = check_run_id(parameters.pop("run_id", None)) or new_run_id()
     usable_workspace(workspace)  # not a file, nor under one
     from flows.generate import generate_dataset
@@ -116,6 +119,12 @@ def generate(
     dataset_id: Optional[str] = typer.Option(None, help="With --annotate: the dataset's id (default ds-<hash>)."),
     pool: Optional[Path] = typer.Option(None, help="Model pool for the agents stage: tracks the edits turn off their "
                                                    "observed views get a 360-degree model from it or online."),
+    task_runner: str = typer.Option("threads", help="Where scenes run: threads (this process) or dask (a local "
+                                                    "cluster of --workers processes, or --dask-address)."),
+    workers: Optional[int] = typer.Option(None, help="Scenes at once: threads, or local Dask worker processes "
+                                                     "(default 2; each gets the cores divided among them)."),
+    dask_address: Optional[str] = typer.Option(None, help="tcp://HOST:PORT of an existing Dask scheduler (many "
+                                                          "machines sharing the workspace path)."),
 ) -> None:
     """Run the generate_dataset flow: per scene ingest, plan, preview, fit, behaviour variants, render + annotate,
     catalog; with --annotate, the run's dataset."""
@@ -126,7 +135,8 @@ def generate(
                           behavior_variants=behavior_variants, behavior_preset=behavior_preset,
                           behavior_checkpoint=str(behavior_checkpoint) if behavior_checkpoint else None,
                           edits=[edit_to_dict(e) for e in read_edits(edit)], device=device, annotate=annotate,
-                          dataset_id=dataset_id, pool=str(pool) if pool is not None else None)
+                          dataset_id=dataset_id, pool=str(pool) if pool is not None else None,
+                          task_runner=task_runner, workers=workers, dask_address=dask_address)
     rows = [{"scene_id": s["scene_id"], **{stage: _state(r) for stage, r in s["stages"].items()}}
             for s in result["scenes"]]
     print_table(rows, title=f"run {result['run_id']}")

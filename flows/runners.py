@@ -1,0 +1,82 @@
+"""Where a flow's scenes run, and which failures are worth another try.
+
+Task runners: ``threads`` (this process, today's default), ``dask`` with a local cluster of N worker processes
+(prefect-dask's ``DaskTaskRunner``), or ``dask`` with the address of an existing scheduler (many machines sharing one
+workspace path). Stages pass paths and ids between tasks, never tensors, so a scene's stages can run on any worker.
+Each local worker gets ``cores // N`` threads for torch, numba and OpenMP (set in its environment before it imports
+them), so N workers never oversubscribe the cores.
+
+Caching: a stage's own content-hash reuse (``omniscs.pipeline.reuse``: the hash of its inputs' content, its config and
+its version, checked under a per-output lock) stays the one source of truth, on every worker and across runs: it
+looks at what is on disk, so it also reuses what another run, the CLI or a benchmark made. Prefect's cache policies
+would add a second, weaker key (``INPUTS`` hashes the records passed in, i.e. paths, not the files' content; a
+changed scene store at the same path would hit) and need persisted results on storage every worker shares. So the
+stage tasks carry no Prefect cache (``NO_CACHE``), on purpose.
+
+Retries (``tasks.retries``): a stage task is retried with exponential backoff only for transient failures (a lost Dask
+worker, a closed connection, a timeout); a user error (``OmniscsError``) or a bug is never retried. A Dask worker
+that dies mid-task has its task rescheduled on another worker by Dask itself; the stage's reuse and the catalog's
+per-key views keep the rerun from duplicating anything."""
+from __future__ import annotations
+
+import os
+import socket
+from urllib.parse import urlparse
+
+from prefect.task_runners import ThreadPoolTaskRunner
+
+from omniscs.errors import OmniscsError, ValidationError
+
+TASK_RUNNERS = ("threads", "dask")
+#: Scenes processed at once by the thread runner; the machines this runs on have 2 cores.
+MAX_PARALLEL_SCENES = 2
+#: How long a Dask scheduler may take to answer before the run is refused (seconds).
+SCHEDULER_TIMEOUT_S = 5.0
+
+
+def check_runner(task_runner: str, workers: int | None, dask_address: str | None) -> None:
+    """One clear error for a bad choice, before any scene starts (the scheduler must answer now)."""
+    if task_runner not in TASK_RUNNERS:
+        raise ValidationError(f"task_runner must be one of {TASK_RUNNERS}; got {task_runner!r}")
+    if workers is not None and not 1 <= int(workers) <= 256:
+        raise ValidationError(f"workers must be between 1 and 256; got {workers}")
+    if dask_address is not None:
+        if task_runner != "dask":
+            raise ValidationError("dask_address needs task_runner='dask'")
+        if workers is not None:
+            raise ValidationError("workers is for a local Dask cluster; an existing scheduler has its own workers")
+        _reach_scheduler(dask_address)
+
+
+def _reach_scheduler(address: str) -> None:
+    url = urlparse(address if "://" in address else f"tcp://{address}")
+    if url.scheme not in ("tcp", "tls") or not url.hostname or not url.port:
+        raise ValidationError(f"Dask scheduler address {address!r} must look like tcp://HOST:PORT")
+    try:
+        with socket.create_connection((url.hostname, url.port), timeout=SCHEDULER_TIMEOUT_S):
+            pass
+    except OSError as e:
+        raise OmniscsError(f"the Dask scheduler at {address} is unreachable ({e}); start it (dask scheduler) "
+                           "or leave dask_address out for a local cluster") from None
+
+
+def worker_threads(workers: int, cores: int | None = None) -> int:
+    """Threads each of ``workers`` local processes may use on this machine's cores (at least 1)."""
+    return max(1, (cores or os.cpu_count() or 1) // max(int(workers), 1))
+
+
+def scene_task_runner(task_runner: str = "threads", workers: int | None = None, dask_address: str | None = None):
+    """The task runner that runs a flow's scenes (checked by ``check_runner`` first)."""
+    check_runner(task_runner, workers, dask_address)
+    if task_runner == "threads":
+        return ThreadPoolTaskRunner(max_workers=int(workers or MAX_PARALLEL_SCENES))
+    from prefect_dask import DaskTaskRunner
+
+    if dask_address is not None:
+        return DaskTaskRunner(address=dask_address)
+    n = int(workers or MAX_PARALLEL_SCENES)
+    threads = str(worker_threads(n))
+    env = {"OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
+           "OPENBLAS_NUM_THREADS": threads, "OMP_WAIT_POLICY": "PASSIVE"}
+    return DaskTaskRunner(cluster_kwargs={"n_workers": n, "threads_per_worker": 1, "processes": True, "env": env,
+                                          "dashboard_address": None})
