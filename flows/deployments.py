@@ -5,6 +5,7 @@ resource). Register them against a server with ``python -m flows.deployments`` (
 YAML), then start a worker for the pool."""
 from __future__ import annotations
 
+from prefect.deployments.runner import EntrypointType
 from prefect.events import DeploymentEventTrigger
 
 from flows.downstream import finetune_evaluate
@@ -17,6 +18,7 @@ NIGHTLY_PARAMETERS = {"sources": ["syn:straight:0", "syn:t_junction:1:dusk", "sy
                       "n_frames": 40, "n_cameras": 3, "fit_preset": "fast", "behavior_variants": 2,
                       "behavior_preset": "fast", "annotate": True}
 FINETUNE_ON_GENERATION = "finetune-evaluate-on-generation"
+MODULE = EntrypointType.MODULE_PATH
 
 
 def generation_completed_trigger(upstream: str = GENERATE_NIGHTLY) -> DeploymentEventTrigger:
@@ -28,12 +30,16 @@ def generation_completed_trigger(upstream: str = GENERATE_NIGHTLY) -> Deployment
 
 
 def deployments() -> list:
-    """The runner deployments (``RunnerDeployment``) of the factory."""
+    """The runner deployments (``RunnerDeployment``) of the factory. Entry points are module paths
+    (``flows.generate.generate_dataset``): a process worker starts each run in a fresh temporary folder, where a file
+    path relative to the checkout would not be found; the project is installed in the worker's environment."""
     return [generate_dataset.to_deployment(name=GENERATE_NIGHTLY, cron=NIGHTLY_CRON, parameters=NIGHTLY_PARAMETERS,
+                                           entrypoint_type=MODULE,
                                            description="Nightly dataset generation over the synthetic templates."),
-            generate_dataset.to_deployment(name="generate-on-demand",
+            generate_dataset.to_deployment(name="generate-on-demand", entrypoint_type=MODULE,
                                            description="Dataset generation for sources given at run time."),
             finetune_evaluate.to_deployment(name=FINETUNE_ON_GENERATION, triggers=[generation_completed_trigger()],
+                                            entrypoint_type=MODULE,
                                             description="Fine-tune and evaluate the proxy planner on what a "
                                                         "nightly generation run made.")]
 
