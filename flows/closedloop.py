@@ -4,7 +4,7 @@ behaviour variant) is driven by the policy in its scene's fitted graph and score
 and the others still run; the flow then ends failed."""
 from __future__ import annotations
 
-from prefect import flow, get_run_logger
+from prefect import flow, get_run_logger, unmapped
 
 from omniscs.closedloop.simulator import ClosedLoopConfig
 from omniscs.errors import OmniscsError, ValidationError
@@ -13,6 +13,7 @@ from omniscs.pipeline.records import new_run_id
 from omniscs.pipeline.validate import check_run_id
 from omniscs.storage import workspace_root
 from flows.generate import _now_us, one_line
+from flows.runners import check_runner, scene_task_runner
 from tasks import closedloop as t
 from tasks import downstream as td
 from tasks import stages as ts
@@ -22,25 +23,34 @@ from tasks import stages as ts
 def closed_loop_eval(scenarios: list[str], policy: str = "rule", workspace: str | None = None,
                      run_id: str | None = None, reactive: bool = False, max_steps: int | None = None,
                      cameras: list[str] | None = None, width: int | None = None,
-                     out_dir: str | None = None) -> dict:
+                     out_dir: str | None = None, task_runner: str = "threads", workers: int | None = 1,
+                     dask_address: str | None = None) -> dict:
     """Drive ``scenarios`` (``SCENE_ID/log`` or ``SCENE_ID/VARIANT_ID``) with ``policy`` (replay, rule, proxy,
     proxy:PATH or a DriveArena driver's http://HOST:PORT); ``reactive``: agents brake for the ego; ``cameras`` and
     ``width``: what is rendered (default: the fitted rig at its size); ``out_dir``: where the run folders go
-    (default: the workspace's ``closedloop/<eval id>/``)."""
+    (default: the workspace's ``closedloop/<eval id>/``). Scenarios run on ``task_runner`` (``threads``: ``workers``
+    at once, default one; ``dask``: a local cluster or ``dask_address``; see flows/runners.py)."""
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
     settings = {"scenarios": scenarios, "policy": policy, "reactive": reactive, "max_steps": max_steps,
-                "cameras": cameras, "width": width, "out_dir": out_dir}
+                "cameras": cameras, "width": width, "out_dir": out_dir, "task_runner": task_runner,
+                "workers": workers, "dask_address": dask_address}
     try:
         if not scenarios:
             raise ValidationError("name at least one scenario (SCENE_ID/log or SCENE_ID/VARIANT_ID)")
         for ref in scenarios:
             c.parse_ref(ref)
+        check_runner(task_runner, workers, dask_address)
         config = ClosedLoopConfig(cameras=tuple(cameras) if cameras else None, width=width, reactive=reactive,
                                   outputs=("rgb", "depth"))
         eval_id = c.eval_id_of(policy, scenarios, c.settings_of(config, max_steps))
-        records = [t.run_scenario(ws, ref, policy, eval_id, config, max_steps, out_dir) for ref in scenarios]
+        with scene_task_runner(task_runner, workers, dask_address) as runner:
+            futures = runner.map(t.run_scenario, {"workspace": unmapped(ws), "scenario": list(scenarios),
+                                                  "policy": unmapped(policy), "eval_id": unmapped(eval_id),
+                                                  "config": unmapped(config), "max_steps": unmapped(max_steps),
+                                                  "out_dir": unmapped(out_dir)})
+            records = [f.result() for f in futures]
         td.catalog(run_id, ws, records, writer="closedloop")
     except BaseException as exc:
         ts.catalog_run.fn(run_id, ws, "closed_loop_eval", "failed" if isinstance(exc, Exception) else "cancelled",

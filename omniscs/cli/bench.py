@@ -240,6 +240,28 @@ def bench_agents(
     console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
 
 
+@app.command("scaleout")
+def bench_scaleout(
+    out: Path = typer.Option(Path("reports"), help="Folder for scaleout_bench.json/.md/.png."),
+    workspace: Path = typer.Option(Path("omniscs-data/bench-scaleout"), help="Scratch workspace (emptied per run)."),
+    quick: bool = typer.Option(False, help="A tiny set-up that checks the code path (not for numbers)."),
+) -> None:
+    """generate_dataset on 8 scenes with 1 vs 2 Dask worker processes, the resume cost of a worker killed mid-fit,
+    and a projection to 10 and 100 machines."""
+    import os
+
+    from omniscs.cli.prefect_api import prefect_api
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    from flows.bench_scaleout import ScaleoutBenchConfig, quick_config, run_scaleout_benchmark
+
+    with progress_bars() as bars, prefect_api():
+        run_scaleout_benchmark(out, workspace, quick_config() if quick else ScaleoutBenchConfig(),
+                               progress=bars.sink("scale-out bench"))
+    console.print((out / "scaleout_bench.md").read_text())
+    console.print(f"wrote {out / 'scaleout_bench.json'} and {out / 'scaleout_bench.png'}")
+
+
 @app.command("closedloop")
 def bench_closedloop(
     out: Path = typer.Option(Path("reports"), help="Folder for closedloop_bench.json/.md/.png."),

@@ -27,6 +27,9 @@ def run(
     width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
     run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+    task_runner: str = typer.Option("threads", help="Where scenarios run: threads or dask (see omniscs generate)."),
+    workers: int = typer.Option(1, help="Scenarios at once (threads) or local Dask worker processes."),
+    dask_address: Optional[str] = typer.Option(None, help="tcp://HOST:PORT of an existing Dask scheduler."),
 ) -> None:
     """Drive each scenario with the policy, score it (PDMS, HD-Score, route completion) and write a run folder
     (run.json, steps.json, bev.png, frames.png, replay.gif) and a closed_loop_runs catalog row."""
@@ -43,6 +46,9 @@ def run(
     for ref in scenarios:  # unknown scenes, graphs and variants fail here, before Prefect starts
         parse_ref(ref)
         resolve(ws, ref)
+    from flows.runners import check_runner
+
+    check_runner(task_runner, None if dask_address else workers, dask_address)
     from omniscs.closedloop.policies import make_policy
 
     if not policy.startswith(("http://", "https://")):
@@ -52,7 +58,8 @@ def run(
     with prefect_api():
         result = closed_loop_eval(list(scenarios), policy=policy, workspace=str(ws), run_id=run_id,
                                   reactive=reactive, max_steps=steps, cameras=list(camera) or None, width=width,
-                                  out_dir=str(out) if out is not None else None)
+                                  out_dir=str(out) if out is not None else None, task_runner=task_runner,
+                                  workers=None if dask_address else workers, dask_address=dask_address)
     from rich.table import Table
 
     table = Table(title=f"closed loop: {policy} (run {result['run_id']}, evaluation {result['eval_id']})")

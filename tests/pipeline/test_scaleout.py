@@ -4,6 +4,7 @@ transient failures are retried and user errors are not; concurrent writers lose 
 from __future__ import annotations
 
 import glob
+import json
 import multiprocessing
 import os
 import re
@@ -83,6 +84,15 @@ def test_generate_dataset_on_a_local_dask_cluster_catalogues_every_scene_once(pr
     assert sorted(rows.column("scene_id").to_pylist()) == sorted(s["scene_id"] for s in out["scenes"])
     run = catalog.query(layout.catalog_root(ws), "SELECT status FROM runs WHERE run_id = 'dask1'").to_pylist()
     assert run == [{"status": "completed"}]
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        summaries = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["run-summary"])))
+    tables = [json.loads(a.data) if isinstance(a.data, str) else a.data for a in summaries
+              if "dask1" in (a.description or "")]
+    assert tables and sorted(r["scene"] for r in tables[0]) == sorted(s["scene_id"] for s in out["scenes"])
+    assert all(r["status"] == "done" and "ingest" in r["made"] for r in tables[0])
 
 
 def test_a_scheduler_that_does_not_answer_fails_the_run_in_one_line(prefect_harness, tmp_path):
