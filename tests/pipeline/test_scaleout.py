@@ -163,3 +163,17 @@ def test_two_writers_on_the_same_catalog_table_lose_nothing(tmp_path):
     assert all(p.exitcode == 0 for p in procs)
     rows = catalog.query(tmp_path / "catalog", "SELECT flow FROM runs_raw").column("flow").to_pylist()
     assert sorted(rows) == sorted(f"w{k}-{i}" for k in range(2) for i in range(40))
+
+
+def test_generate_dataset_runs_on_an_existing_scheduler_given_by_address(prefect_harness, tmp_path):
+    from distributed import LocalCluster
+
+    from flows.generate import generate_dataset
+
+    ws = tmp_path / "ws"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        out = generate_dataset(["syn:straight:16"], workspace=str(ws), run_id="dask4", task_runner="dask",
+                               dask_address=cluster.scheduler_address, **TINY)
+    assert len(out["scenes"]) == 1 and not out["failed"]
+    run = catalog.query(layout.catalog_root(ws), "SELECT status FROM runs WHERE run_id = 'dask4'").to_pylist()
+    assert run == [{"status": "completed"}]
