@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.bench.harness import finish, load_line, machine_info, status_bytes, write_report
 from omniscs.pipeline.records import SceneRequest
 from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
@@ -160,12 +160,9 @@ def score_policies(scene, graph, log_sc, variants, config: ClosedLoopBenchConfig
 
 def _rss_mb() -> float:
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
+        return status_bytes("VmRSS") / 2 ** 20
     except OSError:
-        pass
-    return float("nan")
+        return float("nan")
 
 
 def load_test(scene, graph, scenarios: dict, config: ClosedLoopBenchConfig, progress: Progress = no_progress) -> dict:

@@ -59,3 +59,11 @@ def save_partial(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
 
 def drop_partial(out_dir: str | Path, name: str) -> None:
     (Path(out_dir) / f"{name}.partial.json").unlink(missing_ok=True)
+
+
+def status_bytes(field: str) -> int:
+    """A memory field of /proc/self/status (VmRSS, VmHWM) in bytes."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise OSError(f"/proc/self/status has no {field}")

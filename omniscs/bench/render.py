@@ -86,23 +86,16 @@ def _forward_backward(scene: StreetScene, backend: str) -> Callable[[], Any]:
 _MEMORY_PROBE = """
 import json, sys, torch
 from pathlib import Path
-from omniscs.bench.render import _forward_backward, _status_bytes
+from omniscs.bench.harness import status_bytes
+from omniscs.bench.render import _forward_backward
 from omniscs.render.scenes import street_scene
 width, height, count = map(int, sys.argv[1:4])
 _forward_backward(street_scene(1_000, 64, 36), "cpu")()  # load the compiled kernels
 scene = street_scene(count, width, height)
-baseline = _status_bytes("VmRSS")
+baseline = status_bytes("VmRSS")
 _forward_backward(scene, "cpu")()
-print(json.dumps({"baseline_rss_bytes": baseline, "peak_rss_bytes": _status_bytes("VmHWM")}))
+print(json.dumps({"baseline_rss_bytes": baseline, "peak_rss_bytes": status_bytes("VmHWM")}))
 """
-
-
-def _status_bytes(field: str) -> int:
-    """A memory field of /proc/self/status (VmRSS, VmHWM) in bytes."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1]) * 1024
-    raise OSError(f"/proc/self/status has no {field}")
 
 
 def _measure_peak_memory(width: int, height: int, count: int) -> dict[str, Any]:

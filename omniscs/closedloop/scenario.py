@@ -3,6 +3,7 @@ trajectory (the log's, or the variant's plan) gives the route, the start state a
 other agents follow their trajectories in time (optionally yielding to the ego: ``omniscs.closedloop.traffic``)."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,8 +60,10 @@ class ClosedLoopScenario:
     def duration_s(self) -> float:
         return (self.n_steps - 1) * self.dt
 
+    @functools.cached_property
     def kinds(self) -> tuple[str, ...]:
-        """Each agent as the metrics see it: "vehicle", "vru" or "static" (a parked car counts as static)."""
+        """Each agent as the metrics see it: "vehicle", "vru" or "static" (a parked car counts as static); worked
+        out once per scenario (every simulator step reads it)."""
         out = []
         for i, c in enumerate(self.categories):
             xy = self.agents[i, :, :2]

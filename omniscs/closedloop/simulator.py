@@ -280,17 +280,17 @@ class Simulator:
         s, a = ep.state, ep.scenario.ego_centre_ahead_m
         return np.array([s.x + a * math.cos(s.yaw), s.y + a * math.sin(s.yaw), s.yaw])
 
+    def _nearest_reference(self) -> int:
+        """The reference step whose ego position is nearest the simulated ego's."""
+        return int(np.argmin(np.linalg.norm(self._episode().scenario.ego[:, :2] - self.ego_centre()[:2], axis=1)))
+
     def world_from_ego(self) -> np.ndarray:  # -> [4, 4]
-        ep = self._episode()
-        s, sc = ep.state, ep.scenario
-        k = int(np.argmin(np.linalg.norm(sc.ego[:, :2] - self.ego_centre()[:2], axis=1)))
-        return pose_from_xyz_yaw(s.x, s.y, float(sc.ego_z[k]), s.yaw)
+        s, sc = self._episode().state, self._episode().scenario
+        return pose_from_xyz_yaw(s.x, s.y, float(sc.ego_z[self._nearest_reference()]), s.yaw)
 
     def command(self) -> int:
         """UniAD's driving command (index into COMMANDS) of the nearest reference position."""
-        ep = self._episode()
-        k = int(np.argmin(np.linalg.norm(ep.scenario.ego[:, :2] - self.ego_centre()[:2], axis=1)))
-        return int(self._commands[k])
+        return int(self._commands[self._nearest_reference()])
 
     def boxes(self) -> list[dict]:
         """The agents present now: id, category, centre (x, y, z), size (l, w, h), yaw, velocity (vx, vy)."""
@@ -352,7 +352,7 @@ class Simulator:
         return metrics.RunTrace(
             dt=sc.dt, ego=np.array(ep.ego), ego_speed=np.array(ep.speed), ego_size=(sc.ego_length, sc.ego_width),
             agents=np.stack(ep.agents, 1) if len(sc.track_ids) else np.zeros((0, len(ep.ego), 3)),
-            agent_sizes=sc.sizes[:, :2], agent_kinds=sc.kinds(),
+            agent_sizes=sc.sizes[:, :2], agent_kinds=sc.kinds,
             agent_velocity=np.stack(ep.velocity, 1) if len(sc.track_ids) else np.zeros((0, len(ep.ego), 2)),
             plans=tuple(ep.plans), plan_dt=self.config.plan_dt, route=sc.route,
             reference_progress=ref_progress, drivable=sc.drivable)
@@ -369,7 +369,7 @@ class Simulator:
         centre = self.ego_centre()
         poses = ep.traffic.poses()
         vel = ep.traffic.velocities(sc.dt)
-        kinds = sc.kinds()
+        kinds = sc.kinds
         ep.ego.append(centre)
         ep.speed.append(ep.state.speed)
         ep.agents.append(poses)

@@ -33,6 +33,7 @@ class ScenarioRef:
     scene_path: Path
     checkpoint: Path
     variants_path: Path | None
+    variant: dict | None = None  # the variants.json entry (None = the log)
 
 
 def parse_ref(ref: str) -> tuple[str, str | None]:
@@ -74,8 +75,9 @@ def resolve(workspace: str | Path, ref: str, checkpoint: str | Path | None = Non
     ckpt = Path(checkpoint) if checkpoint is not None else newest_checkpoint(workspace, scene_id)
     if not (ckpt / "graph.json").is_file():
         raise OmniscsError(f"{ckpt} is not a scene-graph checkpoint (no graph.json)")
-    variants_path = find_variant(workspace, scene_id, variant_id)[0] if variant_id else None
-    return ScenarioRef(f"{scene_id}/{variant_id or 'log'}", scene_id, variant_id, scene_path, ckpt, variants_path)
+    variants_path, variant = find_variant(workspace, scene_id, variant_id) if variant_id else (None, None)
+    return ScenarioRef(f"{scene_id}/{variant_id or 'log'}", scene_id, variant_id, scene_path, ckpt, variants_path,
+                       variant)
 
 
 def load_world(ref: ScenarioRef, device: str = "cpu"):
@@ -88,10 +90,9 @@ def load_world(ref: ScenarioRef, device: str = "cpu"):
     graph = load_checkpoint(ref.checkpoint, scene, device=device)
     dt = _scene_period(scene)
     log_sc = log_scenario(scene, dt=dt)
-    if ref.variant_id is None:
+    if ref.variant is None:
         return scene, graph, log_sc
-    variant = next(v for v in json.loads(ref.variants_path.read_text()) if str(v.get("variant_id")) == ref.variant_id)
-    return scene, graph, variant_scenario(scene, variant, log_sc)
+    return scene, graph, variant_scenario(scene, ref.variant, log_sc)
 
 
 def _scene_period(scene) -> float:
