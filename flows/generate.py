@@ -1,7 +1,8 @@
 """The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
 Per scene (DESIGN.md): ingest → plan → preview → fit NSG → agents (360° models) → background (repair behind
-moved or removed large static objects) → behaviour variants → render + annotate → catalog;
+moved or removed large static objects) → behaviour variants → appearance variants (pool objects composited) →
+render + annotate → catalog;
 then, once every scene is done, the run's annotated variants become one dataset (``datasets/<id>/``, catalogued).
 Stages the scene's plan does not need are skipped.
 A scene waits for nothing but its own stages: one slow or failed scene holds back no other.
@@ -51,8 +52,11 @@ def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: s
     variants = t.behavior(scene, plan, model, request, workspace) if stages["behavior_variants"] else None
     if variants is not None:
         records.append(variants)
+    composed = t.appearance(scene, plan, model, request, workspace) if stages.get("appearance_variants") else None
+    if composed is not None:
+        records.append(composed)
     if stages.get("render_annotate"):
-        records.append(t.annotate(scene, plan, model, variants, workspace))
+        records.append(t.annotate(scene, plan, model, variants, workspace, composed))
     t.catalog_scene(run_id, workspace, scene.scene_id, records)
     return {"scene_id": scene.scene_id, "path": scene.path, "reused": scene.reused,
             "stages": {r.stage: r.to_dict() for r in records}}
@@ -76,7 +80,8 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
                      behavior_preset: str = "balanced", behavior_checkpoint: str | None = None,
                      edits: list[dict] | None = None, device: str = "cpu", annotate: bool = False,
                      dataset_id: str | None = None, pool: str | None = None, task_runner: str = "threads",
-                     workers: int | None = None, dask_address: str | None = None) -> dict:
+                     workers: int | None = None, dask_address: str | None = None, appearance_variants: int = 0,
+                     appearance_objects: list[str] | None = None) -> dict:
     """Run the scene pipeline on every source and catalogue the run.
 
     Sources: ``syn:TEMPLATE:SEED[:LIGHTING]`` (procedural log of ``n_frames`` frames, ``n_cameras`` cameras at
@@ -88,7 +93,10 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     are the edits the variants will apply: the plan makes their tracks nodes; tracks they turn off their observed
     views get 360-degree models in the ``agents`` stage (the dual strategy, with the model pool ``pool`` when given;
     ``agent_models`` table); large static objects they move or remove get the background behind them repaired in
-    the ``background`` stage (``background_repairs`` table). Each scene's plan is in the ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
+    the ``background`` stage (``background_repairs`` table). ``appearance_variants`` > 0 makes that many
+    appearance-level SCS variants per scene: objects of ``pool`` (``appearance_objects``, model ids; default the
+    whole pool) replacing a vehicle's model or inserted at valid poses, upright, on the side or overturned
+    (``variants`` rows of kind ``appearance``); with ``annotate`` they are rendered and annotated like the others. Each scene's plan is in the ``plans`` table. ``annotate`` renders and annotates every variant through its scene's graph, the ego on its
     avoiding solution, and gathers them into the dataset ``dataset_id`` (default ``ds-<content hash>``;
     ``datasets``, ``samples`` and ``annotations`` tables). Every input is checked before any scene starts (a bad one fails the run with one line in its
     ``runs`` row); a scene named twice runs once. Returns the run id, workspace, and per scene its id, path and
@@ -106,12 +114,14 @@ def generate_dataset(sources: list[str], workspace: str | None = None, run_id: s
     config = run_config(sources, n_frames, n_cameras, width, height, fit_preset=fit_preset,
                         behavior_variants=behavior_variants, behavior_preset=behavior_preset,
                         behavior_checkpoint=behavior_checkpoint, edits=edits or (), previews=previews, device=device,
-                        annotate=annotate, dataset_id=dataset_id, pool=pool)
+                        annotate=annotate, dataset_id=dataset_id, pool=pool,
+                        appearance_variants=appearance_variants, appearance_objects=list(appearance_objects or ()))
     try:  # every input checked before any scene starts; a bad one is the run's one-line error
         request = check_request(SceneRequest(
             fit_preset=fit_preset, behavior_variants=behavior_variants, behavior_preset=behavior_preset,
             behavior_checkpoint=behavior_checkpoint, edits=tuple(edits or ()), previews=previews, device=device,
-            annotate=annotate, pool=pool))
+            annotate=annotate, pool=pool, appearance_variants=appearance_variants,
+            appearance_objects=tuple(appearance_objects or ())))
         scenes, repeats = check_sources(sources, n_frames, n_cameras, width, height)
         dataset_id = check_id("dataset id", dataset_id) if dataset_id is not None else None
         check_runner(task_runner, workers, dask_address)

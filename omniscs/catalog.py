@@ -93,35 +93,40 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("n_boxes", pa.int32(), nullable=False),
         pa.field("n_visible_agents", pa.int32()),
     ]),
-    "variants": pa.schema([                                       # behaviour-level SCS variants
+    "variants": pa.schema([                                       # SCS variants: behaviour-level, and appearance-level (kind appearance)
         pa.field("scene_id", pa.string(), nullable=False),
         pa.field("variant_id", pa.string(), nullable=False),
-        pa.field("kind", pa.string(), nullable=False),            # cut_in | head_on | rear_end | t_bone | none
-        pa.field("adversary", pa.int64(), nullable=False),        # track id
+        pa.field("kind", pa.string(), nullable=False),            # cut_in | head_on | rear_end | t_bone | none | appearance
+        pa.field("adversary", pa.int64(), nullable=False),        # track id (appearance: the composited object's track)
         pa.field("collision_step", pa.int32()),                   # step of first contact in the variant; null = none
         pa.field("collision_time_s", pa.float64()),
-        pa.field("success", pa.bool_(), nullable=False),          # ego and adversary boxes overlap (IoU > 0.02)
-        pa.field("plausible", pa.bool_(), nullable=False),        # comfort, no other collision, stays on the road
-        pa.field("reachable", pa.bool_(), nullable=False),        # the adversary could reach the ego path at all
+        pa.field("success", pa.bool_()),          # ego and adversary boxes overlap (IoU > 0.02)
+        pa.field("plausible", pa.bool_()),        # comfort, no other collision, stays on the road
+        pa.field("reachable", pa.bool_()),        # the adversary could reach the ego path at all
         pa.field("n_violations", pa.int32(), nullable=False),
         pa.field("violations", pa.list_(pa.string()), nullable=False),
-        pa.field("loss_adv", pa.float64(), nullable=False),
-        pa.field("loss_beh", pa.float64(), nullable=False),
+        pa.field("loss_adv", pa.float64()),
+        pa.field("loss_beh", pa.float64()),
         pa.field("loss_app", pa.float64()),                       # null: no renderer (scene graph) was supplied
-        pa.field("loss_restore", pa.float64(), nullable=False),
-        pa.field("loss_plaus", pa.float64(), nullable=False),
-        pa.field("adversary_min_accel_mps2", pa.float64(), nullable=False),
-        pa.field("adversary_max_accel_mps2", pa.float64(), nullable=False),
-        pa.field("adversary_max_lateral_accel_mps2", pa.float64(), nullable=False),
-        pa.field("min_distance_m", pa.float64(), nullable=False),
-        pa.field("planner", pa.string(), nullable=False),         # replay | rule
-        pa.field("iterations", pa.int32(), nullable=False),       # Adam steps of the kept attempt
-        pa.field("attempts", pa.int32(), nullable=False),         # adversaries tried for this variant
+        pa.field("loss_restore", pa.float64()),
+        pa.field("loss_plaus", pa.float64()),
+        pa.field("adversary_min_accel_mps2", pa.float64()),
+        pa.field("adversary_max_accel_mps2", pa.float64()),
+        pa.field("adversary_max_lateral_accel_mps2", pa.float64()),
+        pa.field("min_distance_m", pa.float64()),
+        pa.field("planner", pa.string()),         # replay | rule
+        pa.field("iterations", pa.int32()),       # Adam steps of the kept attempt
+        pa.field("attempts", pa.int32()),         # adversaries tried for this variant
         pa.field("source", pa.string()),                          # latent | knots (the interception path itself)
-        pa.field("optimisation_seconds", pa.float64(), nullable=False),  # over every attempt
-        pa.field("checkpoint", pa.string(), nullable=False),      # content hash (12 hex) of the traffic model
+        pa.field("optimisation_seconds", pa.float64()),  # over every attempt
+        pa.field("checkpoint", pa.string()),      # content hash (12 hex) of the traffic model
         pa.field("variants_path", pa.string(), nullable=False),   # the variants.json holding the trajectories
         pa.field("bev_path", pa.string()),
+        pa.field("placement", pa.string()),                       # appearance: replace | insert (null: behaviour)
+        pa.field("object_id", pa.string()),                       # appearance: the composited model (pm-... / nsg:...)
+        pa.field("object_category", pa.string()),
+        pa.field("pose", pa.string()),                            # appearance: upright | on_side | overturned | replace
+        pa.field("edits_json", pa.string()),                      # appearance: the variant's edit specs (JSON)
     ]),
     "plans": pa.schema([                                          # what each scene needs modelled (plan stage)
         pa.field("scene_id", pa.string(), nullable=False),

@@ -49,10 +49,13 @@ class Remove:
 
 @dataclass(frozen=True)
 class ReplaceModel:
-    """Swap the agent's appearance for another asset/model, scaled to the agent's box; motion is kept."""
+    """Swap the agent's appearance for another asset/model; motion is kept. With ``size`` null the model is scaled
+    to the agent's box; with ``size`` (length, width, height; e.g. the model's own size) the box becomes that size,
+    resting on the ground the agent's box stood on (appearance-level SCS keeps an object's own proportions)."""
 
     track_id: int
     asset_id: str
+    size: tuple | None = None
     op: str = field(default="replace_model", init=False)
 
 
@@ -292,6 +295,13 @@ def poses_from_waypoints(waypoints, n_frames: int) -> tuple[np.ndarray, np.ndarr
         poses[i] = pose_from_xyz_yaw(*w)
         present[i] = True
     return poses, present
+
+
+def resized_poses(poses: np.ndarray, old_size, new_size) -> np.ndarray:  # [F, 4, 4] -> [F, 4, 4]
+    """Box poses moved along their own up axis so a box of ``new_size`` rests where one of ``old_size`` stood."""
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[:, :3, 3] += out[:, :3, 2] * 0.5 * (float(new_size[2]) - float(old_size[2]))
+    return out
 
 
 def resting_tilt(size: np.ndarray, roll_deg: float, pitch_deg: float) -> tuple[np.ndarray, float]:  # R [3, 3], dz

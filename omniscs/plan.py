@@ -125,15 +125,21 @@ def modelled_area(scene: Scene, view_range_m: float) -> float:
 
 def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig = PlanConfig(),
               cameras: list[str] | None = None, behavior_variants: int = 0, fit_nsg: bool = True,
+              appearance_variants: int = 0,
               annotate: bool = False) -> ScenePlan:
     """Decide what to model for ``scene`` given the edits the requested variants will apply, how many
     behaviour-level variants are requested (their stage runs only when that is > 0, and then every vehicle
     becomes an agent node, since the adversarial optimisation may move any of them) and whether a scene graph
     is fitted at all (``fit_nsg``; without one, no later stage that models the scene runs). ``annotate`` renders
-    and annotates the variants (the dataset's frames): it needs both a scene graph and behaviour variants."""
+    and annotates the variants (the dataset's frames): it needs a scene graph and behaviour or appearance variants.
+    ``appearance_variants`` > 0 (objects composited into the graph) also makes every vehicle a node: any may have
+    its model replaced."""
     if isinstance(behavior_variants, bool) or not isinstance(behavior_variants, (int, np.integer)) \
             or behavior_variants < 0:
         raise OmniscsError(f"behavior_variants must be a non-negative integer; got {behavior_variants!r}")
+    if isinstance(appearance_variants, bool) or not isinstance(appearance_variants, (int, np.integer)) \
+            or appearance_variants < 0:
+        raise OmniscsError(f"appearance_variants must be a non-negative integer; got {appearance_variants!r}")
     edits = list(edits or [])
     agents = {a["track_id"]: a for a in agent_rows(scene)}
     inserted = tuple(sorted(int(e.track_id) for e in edits if isinstance(e, Insert)))
@@ -154,9 +160,11 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         edited = tid in by_track
         # behaviour variants may move any vehicle (L_app renders them where they move): each needs a node
         behaviour = behavior_variants > 0 and a["category"] in VEHICLE_CATEGORIES
-        if moving or edited or behaviour or config.every_track_a_node:
-            reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited), ("behavior", behaviour))
-                                    if on) or "every-track"
+        # appearance variants may replace any vehicle's model (the object inherits its motion): each needs a node
+        appearance = appearance_variants > 0 and a["category"] in VEHICLE_CATEGORIES
+        if moving or edited or behaviour or appearance or config.every_track_a_node:
+            reasons[tid] = "+".join(r for r, on in (("moving", moving), ("edited", edited), ("behavior", behaviour),
+                                                    ("appearance", appearance)) if on) or "every-track"
     nodes = tuple(sorted(reasons))
     needs_360 = tuple(sorted(t for t, es in by_track.items()
                              if any(_turns_far(e, config.rotation_needing_360_deg) for e in es)))
@@ -181,7 +189,8 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         "agent_models": bool(fit_nsg and (needs_360 or inserted)),
         "background_repair": bool(fit_nsg and repair),
         "behavior_variants": behavior_variants > 0,
-        "render_annotate": bool(annotate and fit_nsg and behavior_variants > 0),
+        "appearance_variants": bool(fit_nsg and appearance_variants > 0),
+        "render_annotate": bool(annotate and fit_nsg and (behavior_variants > 0 or appearance_variants > 0)),
     }
     return ScenePlan(
         scene_id=scene.scene_id, content_hash=scene.content_hash, agent_nodes=nodes, node_reasons=reasons,

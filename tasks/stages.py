@@ -5,6 +5,7 @@ from prefect import task
 
 from omniscs.pipeline import stages
 from omniscs.pipeline.agents import agents_stage
+from omniscs.pipeline.appearance import appearance_stage
 from omniscs.pipeline.background import background_stage
 from omniscs.pipeline.records import SceneRequest, StageRecord
 from tasks.progress import artifact_progress
@@ -55,11 +56,20 @@ def behavior(scene: StageRecord, plan: StageRecord, model: StageRecord | None, r
                                  adversarial_overrides=stages.device_overrides(request))
 
 
+@task(name="appearance", task_run_name="appearance-{scene.scene_id}", **STAGE_TASK_OPTIONS)
+def appearance(scene: StageRecord, plan: StageRecord, model: StageRecord | None, request: SceneRequest,
+               workspace: str) -> StageRecord:
+    return appearance_stage(scene.path, stages.load_plan(plan), model, request.appearance_variants, request.pool,
+                            workspace, request.appearance_objects,
+                            progress=artifact_progress(f"appearance variants of {scene.scene_id}"))
+
+
 @task(name="annotate", task_run_name="annotate-{scene.scene_id}", **STAGE_TASK_OPTIONS)
 def annotate(scene: StageRecord, plan: StageRecord, model: StageRecord | None, behavior: StageRecord | None,
-             workspace: str) -> StageRecord:
+             workspace: str, appearance: StageRecord | None = None) -> StageRecord:
     return stages.annotate_stage(scene.path, stages.load_plan(plan), model, behavior, workspace,
-                                 progress=artifact_progress(f"render + annotate variants of {scene.scene_id}"))
+                                 progress=artifact_progress(f"render + annotate variants of {scene.scene_id}"),
+                                 appearance=appearance)
 
 
 @task(name="dataset", **STAGE_TASK_OPTIONS)

@@ -68,7 +68,7 @@ def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path
         annotations.extend(dict(a, dataset_id=dataset_id) for a in rows["annotations"])
     if not variants:
         raise OmniscsError("no annotated variant to put in a dataset; ask for behaviour variants of at least one "
-                           "scene with a vehicle besides the ego")
+                           "scene with a vehicle besides the ego, or for appearance variants")
     card = dataset_card(dataset_id, variants, samples, annotations, card_facts)
     atomic_write_json(out_dir / CARD_JSON, card)
     atomic_write_text(out_dir / CARD_MD, card_markdown(card))
@@ -108,6 +108,8 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
                    "frames": int(sum(v["n_frames"] for v in variants)), "images": len(samples),
                    "annotations": len(annotations),
                    "ego_solved": sum(bool(v.get("ego_solved")) for v in variants),
+                   "variants_by_level": {level: sum(v.get("level", "behaviour") == level for v in variants)
+                                         for level in ("behaviour", "appearance")},
                    "dropped_frames": int(sum(v["dropped_frames"] for v in variants)),
                    "annotations_by_category": dict(sorted(categories.items())),
                    "annotations_by_visibility": {f"level {k}": n for k, n in levels.items()},
@@ -134,11 +136,13 @@ def card_markdown(card: dict) -> str:
                                                 f"min {s['min']:.2f}{unit} over {s['n']} variant(s)"
 
     lines = [f"# Dataset {card['dataset_id']}", "",
-             f"{c['variants']} behaviour-level SCS variant(s) of {c['scenes']} scene(s): {c['frames']} frames, "
+             f"{c['variants']} SCS variant(s) of {c['scenes']} scene(s) ({c['variants_by_level']['behaviour']} "
+             f"behaviour-level, {c['variants_by_level']['appearance']} appearance-level): {c['frames']} frames, "
              f"{c['images']} annotated images, {c['annotations']} box annotations (one per box and camera).", "",
              f"- Sources: {', '.join(card.get('sources') or []) or 'n/a'}",
-             f"- The ego drives its avoiding solution in {c['ego_solved']} of {c['variants']} variant(s); the others "
-             "keep the plan that collides (test cases).",
+             f"- The ego drives its avoiding solution in {c['ego_solved']} of {c['variants_by_level']['behaviour']} "
+             "behaviour variant(s); the others keep the plan that collides (test cases). Appearance variants keep the "
+             "logged ego.",
              f"- Frames not rendered because the ego left the fitted area: {c['dropped_frames']}",
              f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
              f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",

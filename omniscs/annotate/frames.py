@@ -42,10 +42,14 @@ class VariantFrames:
 
 def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozenset[int],
                    ego_xy_yaw: np.ndarray | None = None,  # [S, 3] world box centre of the ego; None = the variant's
-                   config: AnnotateConfig = AnnotateConfig()) -> VariantFrames:
+                   config: AnnotateConfig = AnnotateConfig(),
+                   edited: dict | None = None) -> VariantFrames:
     """Frames, ego poses and boxes of ``variant`` (a ``variants.json`` entry) over ``scene``. Agent nodes the variant
     moves are placed upright at its (x, y, yaw) with their logged height; every other track keeps its logged box
-    (tracks left in the background cannot move). ``ego_xy_yaw`` replaces the variant's ego (the ego's solution)."""
+    (tracks left in the background cannot move). ``ego_xy_yaw`` replaces the variant's ego (the ego's solution); a
+    variant whose ``ego`` is null keeps the logged ego poses. ``edited`` ({track id: node annotation boxes, or None
+    for a removed track}; ``omniscs.scs.appearance.compose.node_boxes``) gives the boxes of tracks an edit changed,
+    replaced or inserted: they come from the edited graph's nodes, which draw themselves where they are."""
     from omniscs.scs.behavior.appearance import variant_ego_poses
 
     steps_frames = variant.get("source_frames")
@@ -59,12 +63,13 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
         if len(ego) != len(steps_frames) or not np.all(np.isfinite(ego)):
             raise OmniscsError(f"the ego trajectory has {len(ego)} finite steps; the variant has {len(steps_frames)}")
         ego = ego.tolist()
-    if ego is None or len(ego) != len(steps_frames):
+    if ego is not None and len(ego) != len(steps_frames):
         raise OmniscsError(f"variant {variant.get('variant_id')}: its ego trajectory does not cover its steps")
     if np.any(steps_frames < 0) or np.any(steps_frames >= scene.n_frames):
         raise OmniscsError(f"variant {variant.get('variant_id')} names frames outside the scene's 0..{scene.n_frames - 1}")
     logged = scene.world_from_ego_all
-    ego_poses = variant_ego_poses(dict(variant, ego=ego), logged)
+    ego_poses = logged.copy() if ego is None else variant_ego_poses(dict(variant, ego=ego), logged)
+    edited = edited or {}
 
     picked = np.arange(0, len(steps_frames), int(config.frame_every))
     frames = steps_frames[picked]
@@ -83,6 +88,8 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
         placed: dict[int, np.ndarray] = {}
         for box in scene.boxes_at(int(f)).itertuples(index=False):
             tid = int(box.track_id)
+            if tid in edited:  # the edited node's own box below (or none: removed)
+                continue
             row = {c: getattr(box, c) for c in BOX_COLUMNS}
             row["frame_idx"] = t
             traj = agents.get(str(tid))
@@ -98,8 +105,13 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
                 row.update(cx=x, cy=y, yaw=float(wrap_angle(yaw)), qw=q[0], qx=q[1], qy=q[2], qz=q[3])
             row["num_lidar_points"], row["visible_pixels"] = -1, -1
             rows.append(row)
+        for tid, node_rows in sorted(edited.items()):
+            if node_rows is not None and int(f) in node_rows:
+                rows.append({**node_rows[int(f)], "frame_idx": t, "track_id": tid, "num_lidar_points": -1,
+                             "visible_pixels": -1})
         node_poses.append(placed)
     boxes = pd.DataFrame(rows, columns=BOX_COLUMNS)
+    moved |= set(edited)
     return VariantFrames(frames.astype(np.int64), ts, world_from_ego, boxes, box_velocities(boxes, ts),
                          tuple(node_poses), commands, offsets, dropped, frozenset(moved))
 

@@ -22,6 +22,8 @@ from omniscs.storage import atomic_write_json
 
 log = logging.getLogger(__name__)
 
+#: ``kind`` of an appearance-level variant (``omniscs.scs.appearance``).
+APPEARANCE = "appearance"
 #: What the annotate stage writes beside the variant stores: every catalog row and every variant's summary.
 ROWS_JSON = "rows.json"
 
@@ -35,15 +37,18 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                       solve: Callable[[dict], object] | None = None, reference: Reference | None = None,
                       config: AnnotateConfig = AnnotateConfig(), picture: Callable | None = None,
                       describe: Callable | None = None, progress: Progress = no_progress,
-                      replay: Replay | None = None) -> list[AnnotatedVariant]:
+                      replay: Replay | None = None, compose: Callable[[dict], object] | None = None,
+                      reference_for: Callable[[dict], Reference | None] | None = None) -> list[AnnotatedVariant]:
     """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
 
     ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
     solved the ego drives it in the rendered frames, else the ego keeps the variant's plan and the variant is kept
     as a test case (``ego_solved`` false). ``picture(variant, solution, png)`` draws the variant's BEV with the
     solution. ``describe(frames) -> world.json`` (procedural sources) goes into each variant's store. ``replay`` (the
-    graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies. Writes
-    ``rows.json`` (samples, annotations, summaries) last."""
+    graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies.
+    Appearance variants (``kind`` appearance) keep the logged ego over every frame and are drawn by the graph
+    ``compose(variant)`` returns (``omniscs.scs.appearance.compose.Composite``: the edited graph and the boxes of
+    the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given. Writes ``rows.json`` (samples, annotations, summaries) last."""
     out_dir = Path(out_dir)
     annotator = ViewAnnotator(graph, config, replay)
     members = background_members(graph, background_tracks(scene, graph))
@@ -53,18 +58,30 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
             raise OmniscsError(f"variant {variant.get('variant_id')} belongs to scene {variant.get('scene_id')}, "
                                f"not {scene.scene_id}")
         vid = str(variant.get("variant_id"))
-        solution = solve(variant) if solve is not None else None
-        solved = solution is not None and bool(solution.solved)
-        ego = np.asarray(solution.trajectory) if solved else None
-        if solution is not None and not solved:
-            log.warning("variant %s of %s: no comfortable collision-free ego trajectory (%s); kept as a test case "
-                        "with the ego on its plan", vid, scene.scene_id, solution.reason)
         store_id = variant_store_id(scene.scene_id, vid)
         done = i * 1.0
 
         def step(k, n, what=None, _done=done):
             progress(int(_done * 1000 + 1000 * k / max(n or 1, 1)), 1000 * len(variants), what)
 
+        if variant.get("kind") == APPEARANCE:
+            if compose is None:
+                raise OmniscsError(f"variant {vid} is an appearance variant; annotating it needs its composition "
+                                   "(a model pool or the graph's own nodes)")
+            composite = compose(variant)
+            framed = dict(variant, source_frames=list(range(scene.n_frames)), ego=None)
+            results.append(write_annotated_variant(
+                composite.graph, scene, framed, out_dir / store_id, store_id,
+                reference=reference_for(variant) if reference_for is not None else None, config=config,
+                progress=step, annotator=ViewAnnotator(composite.graph, config, replay), members=members,
+                describe=describe, edited=composite.boxes))
+            continue
+        solution = solve(variant) if solve is not None else None
+        solved = solution is not None and bool(solution.solved)
+        ego = np.asarray(solution.trajectory) if solved else None
+        if solution is not None and not solved:
+            log.warning("variant %s of %s: no comfortable collision-free ego trajectory (%s); kept as a test case "
+                        "with the ego on its plan", vid, scene.scene_id, solution.reason)
         result = write_annotated_variant(graph, scene, variant, out_dir / store_id, store_id, ego_xy_yaw=ego,
                                          solution=None if solution is None else solution.to_dict(),
                                          reference=reference, config=config, progress=step, annotator=annotator,

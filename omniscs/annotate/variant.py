@@ -113,7 +113,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                             reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
                             progress: Progress = no_progress, annotator: ViewAnnotator | None = None,
                             members: dict | None = None, rig: list[CameraRecord] | None = None,
-                            describe: Callable[[VariantFrames], str] | None = None) -> AnnotatedVariant:
+                            describe: Callable[[VariantFrames], str] | None = None,
+                            edited: dict | None = None) -> AnnotatedVariant:
     """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
     when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
     exact image of a frame (procedural scenes) for fidelity; on every scene the viewpoint offset and the feature
@@ -122,14 +123,15 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     ``rig`` renders other cameras than the logged ones (e.g. a nuScenes-size rig; no exposure correction for a
     camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras.
     ``describe(frames) -> world.json`` writes the variant's procedural world into its store (synthetic sources:
-    its roads reach the exports' maps)."""
+    its roads reach the exports' maps). ``edited`` gives the boxes of the nodes an appearance variant's edits made
+    or changed (``variant_frames``); ``graph`` is then the edited graph."""
     started = time.perf_counter()
     if graph.scene_id != scene.scene_id:
         raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
     annotator = annotator or ViewAnnotator(graph, config)
     if members is None:
         members = background_members(graph, background_tracks(scene, graph))
-    vf = variant_frames(scene, variant, frozenset(graph.agent_ids), ego_xy_yaw, config)
+    vf = variant_frames(scene, variant, frozenset(graph.agent_ids), ego_xy_yaw, config, edited)
     if vf.dropped_frames:
         log.warning("variant %s of %s: the ego leaves the fitted area (> %.1f m from every logged ego position) in "
                     "%d frame(s); those frames are not rendered", variant.get("variant_id"), scene.scene_id,
@@ -334,7 +336,9 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
         values = [f[key] for f in fidelity if f.get(key) is not None]
         return float(np.mean(values)) if values else None
 
-    return {"variant_id": str(variant.get("variant_id")), "n_frames": vf.n_frames, "n_images": n_images,
+    return {"variant_id": str(variant.get("variant_id")),
+            "level": "appearance" if variant.get("kind") == "appearance" else "behaviour",
+            "n_frames": vf.n_frames, "n_images": n_images,
             "n_annotations": n_annotations, "dropped_frames": len(vf.dropped_frames),
             "ego_solved": None if solution is None else bool(solution.get("solved")),
             "fidelity_psnr": mean("psnr"), "fidelity_ssim": mean("ssim"), "fidelity_masked_psnr": mean("masked_psnr"),

@@ -121,3 +121,73 @@ def scs_behavior(
             if v["variant_id"] == r["variant_id"] and v["violations"]:
                 console.print(f"{r['variant_id']}: " + "; ".join(v["violations"][:4]))
     console.print(f"wrote {result.variants_json} and {len(result.bev_pngs)} BEV picture(s)")
+
+
+@app.command("appearance")
+def scs_appearance(
+    scene: Path = typer.Argument(..., help="A scene store (its fitted scene graph: --nsg, else the newest one of the "
+                                           "workspace)."),
+    out: Path = typer.Option(..., help="Folder for variants.json, one annotated scene store per variant (scenes/), "
+                                       "rows.json and preview.png."),
+    pool: Optional[Path] = typer.Option(None, help="Model pool the objects come from (pm-... ids)."),
+    nsg: Optional[Path] = typer.Option(None, help="The scene's fitted scene graph (default: its newest checkpoint in "
+                                                  "the workspace)."),
+    insert: Optional[str] = typer.Option(None, help="Insert this model (pm-... or nsg:TRACK[@CKPT]) at --pose."),
+    pose: Optional[str] = typer.Option(None, help="x,y,yaw[,roll,pitch] of --insert: world metres, degrees (roll 180 "
+                                                  "= overturned, 90 = on its side); it rests on the road."),
+    replace: Optional[int] = typer.Option(None, help="Replace this track's model (it keeps its motion) ..."),
+    with_model: Optional[str] = typer.Option(None, "--with", help="... by this model (its own size)."),
+    sample: Optional[int] = typer.Option(None, help="Draw N variants (1-to-N): objects replace vehicles or stand at "
+                                                    "sampled valid poses, upright, on the side and overturned in turn."),
+    object_ids: Optional[list[str]] = typer.Option(None, "--object", help="--sample: objects to use (repeat; "
+                                                                          "default: every model of --pool)."),
+    camera: Optional[str] = typer.Option(None, help="--sample: the camera objects must be seen by."),
+    distance: str = typer.Option("8,30", help="--sample: lo,hi metres from that camera."),
+    seed: int = typer.Option(0, help="--sample: seed."),
+    colour: bool = typer.Option(True, "--colour/--no-colour", help="Map objects' colours by the scene's colour "
+                                                                   "transform (estimated from its vehicles)."),
+    shadow: bool = typer.Option(True, "--shadow/--no-shadow", help="A soft contact shadow under each object."),
+    overwrite: bool = typer.Option(False, help="Replace an existing --out written by omniscs."),
+) -> None:
+    """Appearance-level SCS: composite pool objects into a fitted scene (replace an agent's model, insert at a pose,
+    or sample N valid placements) and render them with automatic ground truth."""
+    from omniscs.pipeline.appearance import appearance_scene_set
+
+    check_out(out, overwrite)
+    with progress_bars() as bars:
+        result = appearance_scene_set(scene, out, pool=pool, checkpoint=nsg, insert=insert, pose=pose,
+                                      replace=replace, with_model=with_model, sample=sample,
+                                      objects=tuple(object_ids or ()), camera=camera, distance=distance, seed=seed,
+                                      colour=colour, shadow=shadow, progress=bars.sink("appearance variants"))
+    print_table([{"variant": v["variant_id"], "placement": v["placement"], "object": v["object_id"],
+                  "track": v["track_id"], "pose": (v.get("pose") or {}).get("name", "")}
+                 for v in result["specs"]], title=str(out / "variants.json"))
+    print_table([{"variant": s["variant_id"], "frames": s["n_frames"], "images": s["n_images"],
+                  "boxes": s["n_annotations"], "PSNR dB": s["fidelity_psnr"], "object PSNR dB":
+                  s["fidelity_masked_psnr"]} for s in result["variants"]], title="rendered and annotated")
+    console.print(f"wrote {out} ({result['n_images']} images, {result['n_annotations']} box annotations); "
+                  f"preview: {out / 'preview.png'}")
+
+
+@app.command("mine")
+def scs_mine(
+    results: Path = typer.Option(..., help="Detection results in the nuScenes results format (JSON)."),
+    dataset: Path = typer.Option(..., help="A nuScenes dataroot (e.g. an OmniSCS export: omniscs dataset export)."),
+    version: str = typer.Option("v1.0-trainval", help="The dataroot's version folder (v1.0-mini, ...)."),
+    out: Path = typer.Option(..., help="Folder for missed.json, missed.md and missed.png."),
+    match_distance: float = typer.Option(2.0, help="Centre distance (m) under which a detection matches."),
+    min_score: float = typer.Option(0.0, help="Detections below this score are ignored."),
+    overwrite: bool = typer.Option(False, help="Replace an existing --out written by omniscs."),
+) -> None:
+    """What a detector misses: ground-truth boxes no detection matches (nuScenes' centre-distance rule), by category,
+    distance, visibility, orientation and pose, and the objects worth compositing (appearance-level SCS)."""
+    from omniscs.scs.appearance.mining import MiningConfig, mine, pick_scs_objects
+
+    check_out(out, overwrite)
+    report = mine(dataset, version, results, out, MiningConfig(match_distance_m=match_distance, min_score=min_score),
+                  overwrite=overwrite)
+    print_table([{k: r[k] for k in r} for r in report.by_category.to_dict("records")], title="missed by category")
+    picks = pick_scs_objects(report)
+    print_table([{"category": p.category, "orientation": p.orientation, "pose": p.pose, "GT": p.n_gt,
+                  "missed": p.n_missed, "miss rate": p.miss_rate} for p in picks], title="SCS objects to composite")
+    console.print(f"{report.n_missed} of {report.n_gt} evaluated boxes missed; wrote {out}")

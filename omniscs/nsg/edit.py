@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from omniscs.edits import Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, local_motion, parse_edits, \
-    poses_from_waypoints, resting_tilt
+    poses_from_waypoints, resized_poses, resting_tilt
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, with_sh_degree
 from omniscs.geometry import make_transform
@@ -107,9 +107,11 @@ def apply_graph_edits(graph: SceneGraph, edits, resolve: ModelResolver | None = 
             del nodes[tid]
         elif isinstance(edit, ReplaceModel):
             model = resolve(edit.asset_id)
+            size = np.array(node.size, dtype=np.float64) if edit.size is None else np.asarray(edit.size, np.float64)
             gaussians = scale_to_box(with_sh_degree(model.gaussians, graph.sh_degree).to(graph.device), model.size,
-                                     node.size)
-            nodes[tid] = node.with_changes(gaussians=gaussians, category=model.category)
+                                     size)
+            nodes[tid] = node.with_changes(gaussians=gaussians, category=model.category, size=size,
+                                           world_from_agent=resized_poses(node.world_from_agent, node.size, size))
         elif isinstance(edit, SetTrajectory):
             poses, present = poses_from_waypoints(edit.waypoints, graph.n_frames)
             poses[~present] = node.world_from_agent[~present]

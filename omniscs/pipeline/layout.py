@@ -14,7 +14,7 @@ __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "datase
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models",
            "background": "repaired",
-           "behavior": "variants", "replay": "replays", "annotate": "annotated", "dataset": "datasets",
+           "behavior": "variants", "appearance": "variants", "replay": "replays", "annotate": "annotated", "dataset": "datasets",
            "downstream": "downstream", "closedloop": "closedloop"}
 
 

@@ -2,6 +2,7 @@
 logs and benchmark scenes. Model code never imports the world; this wiring hands it neutral arrays and a RoadMap."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +124,54 @@ def world_description(scene):
                               frame_period_us=period).to_json()
 
     return describe
+
+
+def appearance_reference(scene, asset_of):
+    """For a procedural scene, ``variant -> Reference`` of appearance variants: the world with the variant's edits,
+    each object model replaced by the library asset it was built from (``asset_of(model id) -> asset id`` or None),
+    ray-cast; None for recorded logs, and a variant whose object has no asset of the library gets no reference."""
+    world = scene.world
+    if world is None:
+        return None
+    from omniscs.edits import Insert, ReplaceModel, parse_edits
+    from omniscs.world import WorldRenderer, apply_edits
+
+    def for_variant(variant: dict):
+        edits = []
+        for e in parse_edits(variant["edits"]):
+            if isinstance(e, (Insert, ReplaceModel)):
+                asset = asset_of(e.asset_id)
+                if asset is None:
+                    return None
+                e = dataclasses.replace(e, asset_id=asset)
+            edits.append(e)
+        renderer = WorldRenderer(apply_edits(world, edits))
+
+        def reference(vf, camera: str, t: int):
+            r = renderer.render_camera(int(vf.scene_frames[t]), camera)
+            return r.rgb, r.instance
+        return reference
+
+    return for_variant
+
+
+def pool_asset_of(pool):
+    """``model id -> asset id`` of the library asset a pool model was built from (provenance mesh), else None."""
+    from omniscs.world.assets import asset_split
+
+    table = pool.table() if pool is not None else None
+
+    def asset_of(model_id: str):
+        if table is None or table.empty:
+            return None
+        row = table[table.model_id == model_id]
+        if row.empty or row.iloc[0].provenance != "mesh":
+            return None
+        source = str(row.iloc[0].source)
+        try:
+            asset_split(source)
+        except Exception:  # not an id of the library (a user's mesh file)
+            return None
+        return source
+
+    return asset_of

@@ -41,7 +41,13 @@ class SceneRequest:
     ``fit_preset`` and ``behavior_variants`` > 0."""
     pool: str | None = None
     """Model pool folder for the agents stage (360-degree models of tracks the edits turn); None: such tracks
-    get their online model (the fitted node, mirrored) only."""
+    get their online model (the fitted node, mirrored) only. Appearance variants take their objects from it."""
+    appearance_variants: int = 0
+    """Appearance-level SCS variants per scene (0: none): pool objects replacing a vehicle's model or inserted at
+    valid poses (upright, on its side, overturned); needs ``fit_preset`` and ``pool``."""
+    appearance_objects: tuple[str, ...] = ()
+    """Pool model ids the appearance variants composite (e.g. what ``omniscs scs mine`` found missed); empty: every
+    model of the pool."""
 
     def __post_init__(self) -> None:
         if self.fit_preset is not None and self.fit_preset not in PRESET_NAMES:
@@ -53,9 +59,19 @@ class SceneRequest:
             raise OmniscsError(f"unknown behavior preset {self.behavior_preset!r}; use one of {list(PRESET_NAMES)}")
         if not isinstance(self.annotate, bool):
             raise OmniscsError(f"annotate must be true or false; got {self.annotate!r}")
-        if self.annotate and (self.fit_preset is None or self.behavior_variants < 1):
+        n = self.appearance_variants
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise OmniscsError(f"appearance_variants must be a non-negative integer; got {n!r}")
+        if n and (self.fit_preset is None or self.pool is None):
+            raise OmniscsError("appearance variants composite pool objects into a scene graph: give a fit preset "
+                               "and a model pool")
+        if isinstance(self.appearance_objects, (str, bytes)) or \
+                not all(isinstance(m, str) and m for m in self.appearance_objects):
+            raise OmniscsError(f"appearance_objects must be a list of pool model ids; got {self.appearance_objects!r}")
+        object.__setattr__(self, "appearance_objects", tuple(self.appearance_objects))
+        if self.annotate and (self.fit_preset is None or self.behavior_variants + self.appearance_variants < 1):
             raise OmniscsError("a dataset renders variants through a scene graph: give a fit preset and "
-                               "behavior_variants >= 1")
+                               "behavior_variants >= 1 or appearance_variants >= 1")
         if self.device not in ("cpu", "cuda") and not str(self.device).startswith("cuda:"):
             raise OmniscsError(f"unknown device {self.device!r}; use cpu or cuda")
         if isinstance(self.edits, (str, bytes, dict)) or not all(isinstance(e, dict) for e in self.edits):
@@ -75,12 +91,14 @@ class SceneRequest:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["edits"] = [dict(e) for e in self.edits]
+        d["appearance_objects"] = list(self.appearance_objects)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneRequest":
         d = dict(d)
         d["edits"] = tuple(d.get("edits") or ())
+        d["appearance_objects"] = tuple(d.get("appearance_objects") or ())
         return cls(**d)
 
 

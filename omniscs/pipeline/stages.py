@@ -111,7 +111,8 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
     if request.behavior_variants > 0:
         check_behavior_request(scene, request)
     plan = make_plan(scene, edits, config, behavior_variants=request.behavior_variants,
-                     fit_nsg=request.fit_preset is not None, annotate=request.annotate)
+                     fit_nsg=request.fit_preset is not None, annotate=request.annotate,
+                     appearance_variants=request.appearance_variants)
     key = StageKey.of("plan", PLAN_VERSION, scene.content_hash, plan.to_dict())
     out = layout.stage_folder(workspace, "plan", scene.scene_id, f"plan-{key.short}")
     with output_lock(out):
@@ -323,11 +324,13 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
 
 def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
                    workspace: str | Path, config=None, progress: Progress = no_progress,
-                   reuse: bool = True) -> StageRecord:
+                   reuse: bool = True, appearance: StageRecord | None = None) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
-    ``config.exact_fidelity`` is off)."""
+    ``config.exact_fidelity`` is off). ``appearance`` (the appearance stage's record) adds its variants, composed
+    from their pool's models; with procedural scenes their exact reference inserts the library asset each pool
+    model was built from."""
     from omniscs.annotate import AnnotateConfig
     from omniscs.annotate.replay import Replay
     from omniscs.annotate.scene import annotate_variants
@@ -340,18 +343,24 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     scene = load_scene(scene_path)
     if not plan.stages.get("render_annotate"):
         return StageRecord.skip("annotate", scene.scene_id, "the request builds no dataset")
-    if model is None or model.info.get("status") != "fitted" or behavior is None or behavior.skipped:
-        return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no behaviour variants to render")
+    behavior = behavior if behavior is not None and not behavior.skipped else None
+    appearance = appearance if appearance is not None and not appearance.skipped else None
+    if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None):
+        return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no variants to render")
     config = config or AnnotateConfig()
     solution_config = SolutionConfig()
-    key = StageKey.of("annotate", ANNOTATE_VERSION, {"scene": scene.content_hash, "graph": model.key,
-                                                     "variants": behavior.key},
+    inputs = {"scene": scene.content_hash, "graph": model.key, "variants": None if behavior is None else behavior.key}
+    if appearance is not None:
+        inputs["appearance"] = appearance.key
+    key = StageKey.of("annotate", ANNOTATE_VERSION, inputs,
                       {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config)})
     out = layout.stage_folder(workspace, "annotate", scene.scene_id, f"annotate-{key.short}")
     with output_lock(out, _waiting(progress, out)):
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
-            variants = json.loads(Path(behavior.path).read_text())
+            variants = json.loads(Path(behavior.path).read_text()) if behavior is not None else []
+            if appearance is not None:
+                variants += json.loads(Path(appearance.path).read_text())
             traffic = traffic_from_scene(scene)
             replay = None
             if config.fidelity_every:  # the proxies compare with the unedited logged views: rendered once per graph
@@ -365,7 +374,9 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     reference=world_reference(scene) if config.exact_fidelity else None,
                     describe=world_description(scene), config=config,
                     progress=progress, replay=replay,
-                    picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png))
+                    picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
+                    compose=appearance_composer(graph), reference_for=appearance_references(scene, variants)
+                    if config.exact_fidelity else None)
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 
             produce(out, key, make)
@@ -378,6 +389,32 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                        info={"n_variants": len(summaries), "n_images": len(rows["samples"]),
                              "n_annotations": len(rows["annotations"]),
                              "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries)})
+
+
+def appearance_composer(graph):
+    """``variant -> Composite`` of appearance variants over ``graph``: objects from the variant's pool (or the graph's
+    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``)."""
+    from omniscs.agents.pool import model_resolver
+    from omniscs.nsg.edit import node_model_resolver
+    from omniscs.scs.appearance.compose import compose_variant
+
+    def compose(variant: dict):
+        pool = variant.get("pool")
+        resolve = model_resolver(pool, node_model_resolver(graph)) if pool else node_model_resolver(graph)
+        return compose_variant(graph, variant, resolve)
+    return compose
+
+
+def appearance_references(scene, variants: list[dict]):
+    """``variant -> Reference`` (exact images) of a procedural scene's appearance variants, else None."""
+    from omniscs.agents.pool import Pool
+    from omniscs.pipeline.procedural import appearance_reference, pool_asset_of
+
+    pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
+    if scene.world is None or not pools:
+        return None
+    by_pool = {p: appearance_reference(scene, pool_asset_of(Pool(p))) for p in pools}
+    return lambda variant: by_pool[variant["pool"]](variant) if variant.get("pool") in by_pool else None
 
 
 # ----------------------------------------------------------------------------- dataset
@@ -520,8 +557,16 @@ def run_scene(source, request: SceneRequest, workspace: str | Path, run_id: str 
                                  request.behavior_preset, request.behavior_checkpoint, fitted,
                                  progress=sink("behavior"), adversarial_overrides=device_overrides(request))
         records.append(behaved)
+    composed = None
+    if plan.stages.get("appearance_variants"):
+        from omniscs.pipeline.appearance import appearance_stage
+
+        composed = appearance_stage(ingested.path, plan, fitted, request.appearance_variants, request.pool, workspace,
+                                    request.appearance_objects, progress=sink("appearance"))
+        records.append(composed)
     if plan.stages.get("render_annotate"):
-        records.append(annotate_stage(ingested.path, plan, fitted, behaved, workspace, progress=sink("annotate")))
+        records.append(annotate_stage(ingested.path, plan, fitted, behaved, workspace, progress=sink("annotate"),
+                                      appearance=composed))
     if run_id is not None:
         catalog_scene_stage(run_id, workspace, records)
     return records

@@ -106,9 +106,16 @@ def check_request(request: SceneRequest | dict) -> SceneRequest:
     if request.behavior_variants > MAX_BEHAVIOR_VARIANTS:
         raise OmniscsError(f"behavior_variants must be at most {MAX_BEHAVIOR_VARIANTS}; got "
                            f"{request.behavior_variants}")
+    if request.appearance_variants > MAX_BEHAVIOR_VARIANTS:
+        raise OmniscsError(f"appearance_variants must be at most {MAX_BEHAVIOR_VARIANTS}; got "
+                           f"{request.appearance_variants}")
     request.parsed_edits()
     if request.pool is not None and not Path(request.pool).is_dir():
         raise ValidationError(f"pool {request.pool} is not a folder (make one with omniscs pool build or import)")
+    if request.appearance_variants > 0:  # the objects must be in the pool before any scene starts
+        from omniscs.pipeline.appearance import pool_objects
+
+        pool_objects(request.pool, request.appearance_objects)
     if request.behavior_variants > 0 or request.behavior_checkpoint is not None:
         from omniscs.scs.behavior.checkpoint import load_checkpoint
 

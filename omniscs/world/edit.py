@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from omniscs.edits import (Edit, Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, local_motion,
-                           parse_edits, poses_from_waypoints, resting_tilt)
+                           parse_edits, resized_poses, poses_from_waypoints, resting_tilt)
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform
 from omniscs.taxonomy import CATEGORIES
@@ -16,7 +16,8 @@ def apply_edits(world: World, edits) -> World:
     """A new World with ``edits`` (edit objects, dicts or a JSON string) applied in order; ``world`` is untouched.
 
     Translate/Rotate right-multiply their local motion onto every pose; Remove drops the track;
-    ReplaceModel swaps the asset and keeps the box (the renderer scales the new mesh to fit it);
+    ReplaceModel swaps the asset and keeps the box (the renderer scales the new mesh to fit it), or takes the
+    edit's ``size``, resting on the same ground;
     SetTrajectory replaces poses and presence; Insert adds a track.
     """
     tracks: dict[int, AgentTrack] = {a.track_id: a for a in world.agents}
@@ -56,7 +57,9 @@ def _apply_one(world: World, tracks: dict[int, AgentTrack], edit: Edit) -> None:
     elif isinstance(edit, ReplaceModel):
         t = _track(tracks, edit.track_id)
         build_asset(edit.asset_id)  # unknown ids raise here
-        tracks[t.track_id] = _replace(t, asset_id=edit.asset_id, category=asset_category(edit.asset_id))
+        size = t.size if edit.size is None else np.asarray(edit.size, dtype=np.float64)
+        tracks[t.track_id] = _replace(t, asset_id=edit.asset_id, category=asset_category(edit.asset_id),
+                                      size=size.copy(), poses=resized_poses(t.poses, t.size, size))
     elif isinstance(edit, SetTrajectory):
         t = _track(tracks, edit.track_id)
         poses, present = poses_from_waypoints(edit.waypoints, world.n_frames)
