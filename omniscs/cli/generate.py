@@ -21,6 +21,10 @@ DEMO_FRAMES = 20
 #: The demo's dataset: one scene (its variants hit the ego head-on with the fast presets), fitted and annotated.
 DEMO_DATASET_SOURCE = "syn:straight_parked_truck:3:day"
 DEMO_DATASET_VARIANTS = 2
+#: The demo dataset's appearance variants and the pool-split assets they take their objects from (none is in a
+#: procedural world): an overturned truck, a bus on its side, a car replacing a vehicle.
+DEMO_APPEARANCE_VARIANTS = 2
+DEMO_POOL_ASSETS = ("pool:box_truck", "pool:bus", "pool:sedan")
 
 
 def run_generate(sources: list[str], workspace: Optional[Path] = None, **parameters) -> dict:
@@ -34,7 +38,8 @@ def run_generate(sources: list[str], workspace: Optional[Path] = None, **paramet
     rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
     request = check_request({k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
                                                           "behavior_checkpoint", "edits", "previews", "device",
-                                                          "annotate")
+                                                          "annotate", "pool", "appearance_variants",
+                                                          "appearance_objects")
                              if k in parameters})
     scenes, _ = check_sources(list(sources), **rig)
     from flows.runners import check_runner
@@ -115,7 +120,7 @@ def generate(
                                                   "their tracks become nodes in every scene's plan."),
     device: str = typer.Option("cpu", help="Compute device of the scene graph and behaviour optimisation."),
     annotate: bool = typer.Option(False, help="Render and annotate every variant and gather them as a dataset "
-                                              "(needs --fit-preset and --behavior-variants)."),
+                                              "(needs --fit-preset and behaviour or appearance variants)."),
     dataset_id: Optional[str] = typer.Option(None, help="With --annotate: the dataset's id (default ds-<hash>)."),
     pool: Optional[Path] = typer.Option(None, help="Model pool for the agents stage: tracks the edits turn off their "
                                                    "observed views get a 360-degree model from it or online."),
@@ -125,9 +130,15 @@ def generate(
                                                      "(default 2; each gets the cores divided among them)."),
     dask_address: Optional[str] = typer.Option(None, help="tcp://HOST:PORT of an existing Dask scheduler (many "
                                                           "machines sharing the workspace path)."),
+    appearance_variants: int = typer.Option(0, help="Appearance-level SCS variants per scene (0: none): objects of "
+                                                    "--pool replacing a vehicle or inserted upright, on the side or "
+                                                    "overturned at valid poses (needs --fit-preset and --pool)."),
+    appearance_object: Optional[list[str]] = typer.Option(None, "--appearance-object", help="Pool model ids the "
+                                                          "appearance variants use (repeat; default: the whole pool), "
+                                                          "e.g. what `omniscs scs mine` found missed."),
 ) -> None:
-    """Run the generate_dataset flow: per scene ingest, plan, preview, fit, behaviour variants, render + annotate,
-    catalog; with --annotate, the run's dataset."""
+    """Run the generate_dataset flow: per scene ingest, plan, preview, fit, agents, background, behaviour and
+    appearance variants, render + annotate, catalog; with --annotate, the run's dataset."""
     from omniscs.edits import edit_to_dict
 
     result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
@@ -136,7 +147,8 @@ def generate(
                           behavior_checkpoint=str(behavior_checkpoint) if behavior_checkpoint else None,
                           edits=[edit_to_dict(e) for e in read_edits(edit)], device=device, annotate=annotate,
                           dataset_id=dataset_id, pool=str(pool) if pool is not None else None,
-                          task_runner=task_runner, workers=workers, dask_address=dask_address)
+                          task_runner=task_runner, workers=workers, dask_address=dask_address,
+                          appearance_variants=appearance_variants, appearance_objects=list(appearance_object or ()))
     rows = [{"scene_id": s["scene_id"], **{stage: _state(r) for stage, r in s["stages"].items()}}
             for s in result["scenes"]]
     print_table(rows, title=f"run {result['run_id']}")
@@ -144,6 +156,17 @@ def generate(
     if result.get("dataset_path"):
         console.print(f"dataset {result['dataset_id']}: {result['dataset_path']}  (omniscs dataset info "
                       f"{result['dataset_id']})")
+
+
+def demo_pool(ws: Path) -> Path:
+    """The demo's model pool (``<workspace>/pools/demo``): the first model of each kind in DEMO_POOL_ASSETS, built
+    once from the asset library's meshes (a few seconds each) and reused."""
+    from omniscs.pipeline.pool import asset_ids, pool_asset_stage
+
+    pool = ws / "pools" / "demo"
+    for item in DEMO_POOL_ASSETS:
+        pool_asset_stage(asset_ids([item])[0], pool)
+    return pool
 
 
 def _state(record: dict) -> str:
@@ -181,10 +204,13 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     console.print(f"plans:        {ws / 'plans'}  (SELECT scene_id, n_agent_nodes, gaussian_budget FROM plans)")
     console.print(f"catalog:      {root}  (try: omniscs catalog query \"SELECT category, count(*) FROM agents GROUP BY 1\""
                   + (f" --workspace {ws}" if workspace else "") + ")")
+    pool = demo_pool(ws)
     console.print(f"then a small dataset: {DEMO_DATASET_SOURCE}, fast scene graph, {DEMO_DATASET_VARIANTS} behaviour "
-                  "variants rendered and annotated (a few minutes)")
+                  f"and {DEMO_APPEARANCE_VARIANTS} appearance variants (objects of the pool {pool}) rendered and "
+                  "annotated (a few minutes)")
     built = run_generate([DEMO_DATASET_SOURCE], workspace, n_frames=DEMO_FRAMES, n_cameras=3, width=480, height=270,
                          previews=False, fit_preset="fast", behavior_variants=DEMO_DATASET_VARIANTS,
-                         behavior_preset="fast", annotate=True)
+                         behavior_preset="fast", annotate=True, pool=str(pool),
+                         appearance_variants=DEMO_APPEARANCE_VARIANTS)
     show_dataset(Path(built["dataset_path"]))
     console.print(f"demo finished in {time.perf_counter() - started:.1f} s")

@@ -160,7 +160,8 @@ def scs_appearance(
                                       objects=tuple(object_ids or ()), camera=camera, distance=distance, seed=seed,
                                       colour=colour, shadow=shadow, progress=bars.sink("appearance variants"))
     print_table([{"variant": v["variant_id"], "placement": v["placement"], "object": v["object_id"],
-                  "track": v["track_id"], "pose": (v.get("pose") or {}).get("name", "")}
+                  "track": v["track_id"], "pose": (v.get("pose") or {}).get("name", "user") if v["placement"] == "insert"
+                  else "its motion"}
                  for v in result["specs"]], title=str(out / "variants.json"))
     print_table([{"variant": s["variant_id"], "frames": s["n_frames"], "images": s["n_images"],
                   "boxes": s["n_annotations"], "PSNR dB": s["fidelity_psnr"], "object PSNR dB":
@@ -178,6 +179,12 @@ def scs_mine(
     match_distance: float = typer.Option(2.0, help="Centre distance (m) under which a detection matches."),
     min_score: float = typer.Option(0.0, help="Detections below this score are ignored."),
     overwrite: bool = typer.Option(False, help="Replace an existing --out written by omniscs."),
+    models_into: Optional[Path] = typer.Option(None, "--models-into", help="Also make a pool model of each picked "
+                                               "missed object traced to a fitted scene of --workspace (its track's "
+                                               "node, mirror-completed) in this pool; prints their ids "
+                                               "(for --appearance-object)."),
+    workspace: Optional[Path] = typer.Option(None, help="With --models-into: the workspace whose scenes the dataroot "
+                                                        "was exported from."),
 ) -> None:
     """What a detector misses: ground-truth boxes no detection matches (nuScenes' centre-distance rule), by category,
     distance, visibility, orientation and pose, and the objects worth compositing (appearance-level SCS)."""
@@ -191,3 +198,14 @@ def scs_mine(
     print_table([{"category": p.category, "orientation": p.orientation, "pose": p.pose, "GT": p.n_gt,
                   "missed": p.n_missed, "miss rate": p.miss_rate} for p in picks], title="SCS objects to composite")
     console.print(f"{report.n_missed} of {report.n_gt} evaluated boxes missed; wrote {out}")
+    if models_into is not None:
+        from omniscs.pipeline.appearance import missed_object_models
+        from omniscs.storage import workspace_root
+
+        with progress_bars() as bars:
+            models = missed_object_models(out / "missed.json", workspace_root(workspace), models_into,
+                                          progress=bars.sink("models of missed objects"))
+        print_table([{k: m.get(k) for k in ("store_id", "track_id", "category", "model_id", "reason")}
+                     for m in models], title=f"pool models in {models_into}")
+        ids = sorted({m["model_id"] for m in models if m["model_id"]})
+        console.print(f"{len(ids)} model(s): " + " ".join(f"--appearance-object {m}" for m in ids))

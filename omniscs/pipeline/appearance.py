@@ -248,3 +248,94 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
 
         atomic_write_json(tmp / "colour.json", None if transform is None else transform.to_dict())
     return {"specs": specs, **result}
+
+
+# ----------------------------------------------------------------------------- models of what a detector missed
+def _source_scene(workspace: Path, store_id: str) -> str | None:
+    """The workspace scene a dataset's (or a log's) store id comes from: a variant store names its source scene in
+    its manifest; a logged scene is its own source."""
+    if (layout.scene_folder(workspace, "ingest", store_id) / "manifest.json").is_file():
+        return store_id
+    for manifest in sorted(Path(workspace).glob(f"{layout.FOLDERS['dataset']}/*/scenes/{store_id}/manifest.json")):
+        source = json.loads(manifest.read_text()).get("source_scene_id")
+        if source:
+            return str(source)
+    return None
+
+
+def _scene_path(workspace: Path, scene_id: str) -> Path:
+    """Where a scene of the workspace is: ingested under ``scenes/``, or a scene store used in place (as the
+    ``scenes`` catalog table recorded it)."""
+    from omniscs import catalog
+    from omniscs.ids import check_id
+
+    here = layout.scene_folder(workspace, "ingest", scene_id)
+    if (here / "manifest.json").is_file():
+        return here
+    rows = catalog.query(catalog.catalog_root(workspace), "SELECT path FROM scenes WHERE scene_id = "
+                         f"'{check_id('scene id', scene_id)}' ORDER BY run_id DESC LIMIT 1").to_pylist()
+    if not rows:
+        raise OmniscsError(f"scene {scene_id} is neither under {here.parent} nor in the scenes catalog table")
+    return Path(rows[0]["path"])
+
+
+def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: int = 20,
+                         progress: Progress = no_progress) -> list[dict]:
+    """A pool model for each missed object of ``omniscs scs mine``'s picks (``missed.json``) that can be traced to a
+    track of a fitted scene of ``workspace``: the track's node in the scene's newest graph, cut to its box and
+    completed by mirror symmetry when one side was never seen (the pool's construction from a track's views), added
+    to ``pool`` (provenance scene_track; the same model twice is one entry). Objects that cannot be traced, or whose
+    track was left in the background, are listed with the reason. At most ``limit`` objects, in pick order."""
+    from omniscs.agents.dual import DualConfig, cropped_to_box, mirror_completed, seen_side, track_views
+    from omniscs.agents.pool import Pool
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.pipeline.closedloop import newest_checkpoint
+
+    try:
+        payload = json.loads(Path(missed_json).read_text())
+    except (OSError, ValueError) as exc:
+        raise OmniscsError(f"{missed_json}: not a missed.json of `omniscs scs mine` ({exc})") from None
+    wanted, seen = [], set()
+    for pick in payload.get("picks") or []:
+        for box in pick.get("missed") or []:
+            key = (box.get("scene_id"), box.get("track_id"))
+            if key not in seen:
+                seen.add(key)
+                wanted.append(dict(box, pick=f"{pick.get('category')} / {pick.get('orientation')} / "
+                                             f"{pick.get('pose')}"))
+    if not wanted:
+        raise OmniscsError(f"{missed_json} picks no missed object; nothing to model")
+    config = DualConfig()
+    p = Pool(pool)
+    out, graphs = [], {}
+    for i, box in enumerate(wanted[:limit]):
+        progress(i, min(limit, len(wanted)), f"model of {box.get('scene_id')} track {box.get('track_id')}")
+        row = {"store_id": box.get("scene_id"), "track_id": box.get("track_id"), "category": box.get("category"),
+               "pick": box["pick"], "model_id": None}
+        scene_id = _source_scene(workspace, str(box.get("scene_id"))) if box.get("scene_id") else None
+        if scene_id is None or box.get("track_id") is None:
+            out.append(dict(row, reason="not traced to a scene of this workspace"))
+            continue
+        if scene_id not in graphs:
+            try:
+                scene = load_scene(_scene_path(workspace, scene_id))
+                graphs[scene_id] = (scene, load_checkpoint(newest_checkpoint(workspace, scene_id), scene))
+            except OmniscsError as exc:
+                graphs[scene_id] = (None, str(exc))
+        scene, graph = graphs[scene_id]
+        tid = int(box["track_id"])
+        if scene is None:
+            out.append(dict(row, scene_id=scene_id, reason=graph))
+            continue
+        if tid not in graph.agent_ids:
+            out.append(dict(row, scene_id=scene_id, reason="the track was left in the background (not a node)"))
+            continue
+        node = graph.agent(tid)
+        g = cropped_to_box(node.gaussians, node.size, config.box_margin_m)
+        views = track_views(scene, tid, range(scene.n_frames), config.min_view_pixels)
+        if views:
+            g = mirror_completed(g, seen_side(views))
+        model_id = p.add(g.detached().to("cpu"), node.category, "scene_track", f"{scene_id}/track-{tid}")
+        out.append(dict(row, scene_id=scene_id, model_id=model_id, reason="the track's node, mirror-completed"))
+    progress(len(out), len(out), "models of missed objects")
+    return out

@@ -1,0 +1,139 @@
+"""Appearance variants through the product: generate_dataset with appearance_variants (the appearance stage, the
+annotate stage, a catalogued dataset whose variants and annotations name the composited objects), and the
+``omniscs scs appearance`` / ``omniscs scs mine`` commands (issue 16)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs import catalog
+from omniscs.cli import app
+from omniscs.errors import OmniscsError
+from omniscs.nsg.config import PRESETS
+
+AGENTS = ({"x": 14.0, "y": 0.0, "speed": 4.0, "asset": "sedan-0003"},
+          {"x": 4.0, "y": 3.3, "speed": 9.0, "asset": "sedan-0011"})
+
+
+@pytest.fixture(scope="module")
+def pool_path(tmp_path_factory):
+    from omniscs.agents.mesh import model_from_mesh
+    from omniscs.agents.pool import Pool
+    from omniscs.world.assets import build_asset
+
+    p = Pool(tmp_path_factory.mktemp("pool") / "pool")
+    for aid in ("sedan-0045", "box_truck-0020"):
+        a = build_asset(aid)
+        params, info = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1500, 0)
+        p.add(params, a.category, "mesh", aid, info["quality_psnr"])
+    return p.root
+
+
+@pytest.fixture(scope="module")
+def built(prefect_harness, tmp_path_factory, pool_path):
+    from flows.generate import generate_dataset
+
+    root = tmp_path_factory.mktemp("appflow")
+    store = write_nsg_scene(root / "in", nsg_world(agents=AGENTS, n_frames=16, n_cameras=1, width=128, height=72))
+    mp = pytest.MonkeyPatch()
+    mp.setitem(PRESETS, "fast", tiny_fit_config(40))
+    try:
+        result = generate_dataset([str(store)], workspace=str(root / "ws"), run_id="app1", previews=False,
+                                  fit_preset="fast", appearance_variants=2, pool=str(pool_path), annotate=True)
+    finally:
+        mp.undo()
+    return root / "ws", store, result
+
+
+def test_the_flow_makes_catalogues_and_annotates_appearance_variants(built):
+    ws, _, result = built
+    stages = result["scenes"][0]["stages"]
+    assert stages["appearance"]["info"]["n_variants"] == 2 and not stages["appearance"]["skipped"]
+    assert "behavior" not in stages or stages["behavior"]["skipped"]
+    assert stages["annotate"]["info"]["n_variants"] == 2
+    root = catalog.catalog_root(ws)
+    rows = catalog.query(root, "SELECT variant_id, kind, placement, object_id, pose, adversary, edits_json "
+                               "FROM variants WHERE run_id = 'app1' ORDER BY variant_id").to_pylist()
+    assert [r["kind"] for r in rows] == ["appearance", "appearance"]
+    assert rows[0]["placement"] == "insert" and rows[0]["pose"] == "overturned"
+    assert all(r["object_id"].startswith("pm-") and json.loads(r["edits_json"]) for r in rows)
+    objects = {r["variant_id"]: r["adversary"] for r in rows}
+    ann = catalog.query(root, f"SELECT variant_id, track_id, category, mask_pixels FROM annotations "
+                              f"WHERE dataset_id = '{result['dataset_id']}'").to_pylist()
+    seen = {(a["variant_id"], a["track_id"]) for a in ann if a["mask_pixels"] > 0}
+    assert all((v, t) in seen for v, t in objects.items())  # each composited object is annotated where it shows
+    card = json.loads((Path(result["dataset_path"]) / "dataset.json").read_text())
+    assert card["counts"]["variants_by_level"] == {"behaviour": 0, "appearance": 2}
+
+
+def test_an_unknown_object_or_a_missing_pool_fails_the_run_before_any_scene(prefect_harness, tmp_path, pool_path):
+    from flows.generate import generate_dataset
+
+    with pytest.raises(OmniscsError, match="not models of pool"):
+        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1,
+                         pool=str(pool_path), appearance_objects=["pm-000000000000"])
+    with pytest.raises(OmniscsError, match="give a fit preset and a model pool"):
+        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1)
+
+
+def _checkpoint(result) -> str:
+    return result["scenes"][0]["stages"]["fit"]["path"]
+
+
+def test_scs_appearance_inserts_at_a_user_pose_and_refuses_an_overlap(built, pool_path, tmp_path):
+    from omniscs.agents.pool import Pool
+
+    _, store, result = built
+    car = Pool(pool_path).table().set_index("source").loc["sedan-0045", "model_id"]
+    out = tmp_path / "ins"
+    ok = CliRunner().invoke(app, ["scs", "appearance", str(store), "--nsg", _checkpoint(result), "--pool",
+                                  str(pool_path), "--insert", car, "--pose", "22,6.4,5,180,0", "--out", str(out)])
+    assert ok.exit_code == 0, ok.output
+    variants = json.loads((out / "variants.json").read_text())
+    assert variants[0]["pose"]["roll_deg"] == 180.0 and (out / "preview.png").is_file()
+    rows = json.loads((out / "scenes" / "rows.json").read_text())
+    tid = variants[0]["track_id"]
+    mine = [a for a in rows["annotations"] if a["track_id"] == tid]
+    assert mine and all(a["category"] == "car" for a in mine) and max(a["mask_pixels"] for a in mine) > 20
+    bad = CliRunner().invoke(app, ["scs", "appearance", str(store), "--nsg", _checkpoint(result), "--pool",
+                                   str(pool_path), "--insert", car, "--pose", "14,0,0", "--out", str(tmp_path / "x")])
+    assert isinstance(bad.exception, OmniscsError) and "overlaps" in str(bad.exception)
+    assert not (tmp_path / "x").exists()  # nothing half-written
+
+
+def test_scs_mine_reports_what_a_detector_missed_on_an_export(built, tmp_path):
+    from omniscs.eval.nuscenes_io import NuScenesTables
+
+    _, _, result = built
+    out = tmp_path / "nusc"
+    exported = CliRunner().invoke(app, ["dataset", "export", result["dataset_path"], "--format", "nuscenes",
+                                        "--out", str(out)])
+    assert exported.exit_code == 0, exported.output
+    tables = NuScenesTables.load(out, "v1.0-trainval")
+    results = {t: [] for t in tables.scene_samples()}  # a detector that sees nothing misses everything
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"meta": {"use_camera": True}, "results": results}))
+    ws = built[0]
+    pool = tmp_path / "missed-pool"
+    mined = CliRunner().invoke(app, ["scs", "mine", "--results", str(path), "--dataset", str(out), "--version",
+                                     "v1.0-trainval", "--out", str(tmp_path / "missed"), "--models-into", str(pool),
+                                     "--workspace", str(ws)])
+    assert mined.exit_code == 0, mined.output
+    payload = json.loads((tmp_path / "missed" / "missed.json").read_text())
+    report = payload["report"]
+    assert (tmp_path / "missed" / "missed.png").is_file()
+    # with no detection at all every evaluated box is missed, and some boxes are evaluated
+    assert report["n_gt"] > 0 and report["n_missed"] == report["n_gt"] and report["miss_rate"] == 1.0
+    assert report["n_tracks_recovered"] == report["n_gt"]  # an OmniSCS export: every box traced to its track
+    assert len(payload["missed"]) == report["n_gt"] and payload["picks"]
+    # the missed tracks of the export come back to the workspace's fitted scene: their nodes join the pool
+    from omniscs.agents.pool import Pool
+
+    table = Pool(pool).table()
+    assert len(table) >= 1 and set(table.provenance) == {"scene_track"}, mined.output
+    assert all(src.startswith("nsg-test/track-") for src in table.source)
+    assert "--appearance-object pm-" in mined.output
