@@ -128,8 +128,13 @@ class Pool:
     def keyframes(self, model_id: str) -> np.ndarray:
         """uint8 [30, H, W, 4] RGBA views of the model around it at 12 degree steps (``agents.mesh.keyframes``)."""
         self.get(model_id)
-        with np.load(self.root / MODELS / model_id / KEYFRAMES) as z:
-            return z["rgba"]
+        try:
+            with np.load(self.root / MODELS / model_id / KEYFRAMES) as z:
+                return z["rgba"]
+        except Exception as e:  # missing, truncated or not an npz
+            raise ValidationError(f"pool model {model_id} in {self.root} has no readable keyframes ({KEYFRAMES}: "
+                                  f"{type(e).__name__}); add the model again (omniscs pool import / build) or remove "
+                                  "its folder") from None
 
     def import_ply(self, path: str | Path, category: str, calibrate: bool = True) -> str:
         """A 3D Gaussian splatting PLY (e.g. an image-to-3D generator's output) into the pool: read, turned and

@@ -35,6 +35,8 @@ def pool_objects(pool, objects=(), categories=None) -> list[str]:
         missing = [m for m in objects if m not in known]
         if missing:
             raise OmniscsError(f"object(s) {missing} are not models of pool {pool}; see `omniscs pool list {pool}`")
+        for m in objects:  # a model without its views cannot be checked or matched: refused before any scene
+            Pool(pool).keyframes(m)
         return list(objects)
     if categories:
         table = table[table.category.isin(list(categories))]

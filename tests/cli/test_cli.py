@@ -91,7 +91,8 @@ def test_generate_exposes_every_parameter_of_the_flow():
     from flows.generate import generate_dataset
 
     # the CLI's names for flow parameters whose option reads better under another name
-    option = {"sources": None, "n_frames": "--frames", "n_cameras": "--cameras", "edits": "--edit"}
+    option = {"sources": None, "n_frames": "--frames", "n_cameras": "--cameras", "edits": "--edit",
+              "appearance_objects": "--appearance-object"}
     result = runner.invoke(app, ["generate", "--help"], env={"COLUMNS": "200"})
     assert result.exit_code == 0
     for name in inspect.signature(generate_dataset.fn).parameters:

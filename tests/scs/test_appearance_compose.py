@@ -268,3 +268,22 @@ def test_impossible_and_malformed_requests_are_clear_errors(scene, graph, resolv
         compose_variant(graph, v, lambda _: AgentModel(bad, huge.size, huge.category))
     with pytest.raises(Exception, match="has no model"):
         compose_variant(graph, dict(v, edits=[dict(v["edits"][0], asset_id="pm-000000000000")]), resolve)
+
+
+def test_a_pool_model_without_keyframes_is_refused_before_any_scene_and_the_colour_fit_falls_back(
+        scene, graph, pool, tmp_path):
+    import shutil
+
+    from omniscs.agents.pool import Pool
+    from omniscs.pipeline.appearance import pool_objects
+    from omniscs.scs.appearance.colour import IDENTITY, ColourFitConfig, scene_colour_transform
+
+    broken = Pool(tmp_path / "broken")
+    shutil.copytree(pool.root, broken.root, ignore=shutil.ignore_patterns("embeddings"))
+    truck, car = _ids(pool)
+    (broken.root / "models" / car / "keyframes.npz").unlink()
+    with pytest.raises(OmniscsError, match="has no readable keyframes"):
+        pool_objects(broken.root, (car,))
+    assert pool_objects(broken.root, (truck,)) == [truck]
+    got = scene_colour_transform(graph, scene, broken, config=ColourFitConfig(min_view_pixels=50))
+    assert np.allclose(got.affine, IDENTITY) and "could not be matched" in got.reason

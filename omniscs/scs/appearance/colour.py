@@ -82,7 +82,10 @@ def scene_colour_transform(graph, scene, pool, frames=None, config: ColourFitCon
         return ColourTransform(IDENTITY.copy(), (), (), "no vehicle node seen well enough: colours unchanged")
     queries = {t: query_crops(graph, scene, t, views, config.views_per_vehicle) for _, t, views in seen}
     sizes = {t: np.asarray(graph.agent(t).size) for t in queries}
-    tracks, models, scores, categories = match_scores(queries, sizes, pool, embedder)
+    try:
+        tracks, models, scores, categories = match_scores(queries, sizes, pool, embedder)
+    except OmniscsError as exc:  # e.g. a pool model whose keyframes are missing: no match, colours unchanged
+        return ColourTransform(IDENTITY.copy(), (), (), f"pool models could not be matched ({exc}): colours unchanged")
     fits, used = [], []
     for i, t in enumerate(tracks):
         same = np.flatnonzero(categories == graph.agent(t).category)
