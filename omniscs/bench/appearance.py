@@ -469,8 +469,9 @@ def _strip_png(strips, buf) -> None:
             ax.imshow(img[y0:y1, x0:x1])
             ax.set_xticks([])
             ax.set_yticks([])
-            ax.set_title(f"{name}\n{title}" if ax is row[0] else name, fontsize=7, loc="left" if ax is row[0]
-                         else "center")
+            if row is axes[0]:
+                ax.set_title(name, fontsize=8, pad=14)
+        row[0].text(0.0, 1.02, title, transform=row[0].transAxes, fontsize=6, va="bottom")
     fig.tight_layout()
     fig.savefig(buf, format="png", dpi=80)
     plt.close(fig)
