@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from appearance_fixtures import small_pool
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 from omniscs.errors import OmniscsError
 from omniscs.geometry import pose_from_xyz_yaw, rotmat_from_euler
@@ -43,17 +44,8 @@ def graph(scene):
 
 @pytest.fixture(scope="module")
 def pool(tmp_path_factory):
-    """Two pool-split models: a van-sized truck and a sedan (never in the test world)."""
-    from omniscs.agents.mesh import model_from_mesh
-    from omniscs.agents.pool import Pool
-    from omniscs.world.assets import build_asset
-
-    p = Pool(tmp_path_factory.mktemp("pool") / "pool")
-    for aid in ("box_truck-0020", "sedan-0045"):
-        a = build_asset(aid)
-        params, info = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1500, 0)
-        p.add(params, a.category, "mesh", aid, info["quality_psnr"])
-    return p
+    """Two pool-split models: a box truck and a sedan (never in the test world)."""
+    return small_pool(tmp_path_factory.mktemp("pool") / "pool")
 
 
 @pytest.fixture(scope="module")

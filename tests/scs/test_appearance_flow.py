@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from appearance_fixtures import small_pool
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 from omniscs import catalog
 from omniscs.cli import app
@@ -21,16 +22,7 @@ AGENTS = ({"x": 14.0, "y": 0.0, "speed": 4.0, "asset": "sedan-0003"},
 
 @pytest.fixture(scope="module")
 def pool_path(tmp_path_factory):
-    from omniscs.agents.mesh import model_from_mesh
-    from omniscs.agents.pool import Pool
-    from omniscs.world.assets import build_asset
-
-    p = Pool(tmp_path_factory.mktemp("pool") / "pool")
-    for aid in ("sedan-0045", "box_truck-0020"):
-        a = build_asset(aid)
-        params, info = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1500, 0)
-        p.add(params, a.category, "mesh", aid, info["quality_psnr"])
-    return p.root
+    return small_pool(tmp_path_factory.mktemp("pool") / "pool", ("sedan-0045", "box_truck-0020")).root
 
 
 @pytest.fixture(scope="module")
