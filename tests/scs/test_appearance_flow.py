@@ -54,10 +54,11 @@ def test_the_flow_makes_catalogues_and_annotates_appearance_variants(built):
     assert rows[0]["placement"] == "insert" and rows[0]["pose"] == "overturned"
     assert all(r["object_id"].startswith("pm-") and json.loads(r["edits_json"]) for r in rows)
     objects = {r["variant_id"]: r["adversary"] for r in rows}
-    ann = catalog.query(root, f"SELECT variant_id, track_id, category, mask_pixels FROM annotations "
+    ann = catalog.query(root, f"SELECT variant_id, track_id, category, mask_pixels, is_adversary FROM annotations "
                               f"WHERE dataset_id = '{result['dataset_id']}'").to_pylist()
     seen = {(a["variant_id"], a["track_id"]) for a in ann if a["mask_pixels"] > 0}
     assert all((v, t) in seen for v, t in objects.items())  # each composited object is annotated where it shows
+    assert all(a["is_adversary"] == (a["track_id"] == objects[a["variant_id"]]) for a in ann)
     card = json.loads((Path(result["dataset_path"]) / "dataset.json").read_text())
     assert card["counts"]["variants_by_level"] == {"behaviour": 0, "appearance": 2}
 

@@ -88,8 +88,9 @@ def insert_variant(scene_id: str, variant_id: str, track_id: int, model: AgentMo
 
 def _spec(scene_id: str, variant_id: str, placement: str, track_id: int, model_id: str, category: str, edits,
           pose: dict | None) -> dict:
+    # the object is the variant's SCS agent: annotated is_adversary, drawn red in dataset previews
     return {"variant_id": variant_id, "scene_id": scene_id, "kind": KIND, "placement": placement,
-            "track_id": int(track_id), "object_id": model_id, "category": category,
+            "track_id": int(track_id), "adversary": int(track_id), "object_id": model_id, "category": category,
             "edits": [edit_to_dict(e) for e in edits], "pose": pose, "spec_version": SPEC_VERSION}
 
 

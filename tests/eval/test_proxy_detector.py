@@ -1,0 +1,231 @@
+"""The embedded proxy camera detector: exact camera geometry (projection, back-projection, observation angle),
+results the nuScenes protocol accepts, deterministic training that lowers the loss, the shipped weights, and clear
+errors for bad dataroots and checkpoints."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from omniscs.errors import ValidationError
+from omniscs.eval.detection import DETECTION_NAMES
+from omniscs.eval.detector import (
+    DEFAULT_DETECTOR,
+    DetectConfig,
+    DetectorConfig,
+    DetectorTrainConfig,
+    ProxyDetector,
+    annotations_by_sample,
+    back_project,
+    camera_views,
+    detect,
+    global_yaw,
+    load_detector,
+    observation_angle,
+    output_size,
+    project_to_camera,
+    save_detector,
+    targets,
+    train_detector,
+    training_set,
+    view_boxes,
+    write_results,
+    yaw_from_quaternion,
+)
+from omniscs.eval.nuscenes_io import NuScenesTables, evaluate_detection_results, load_results
+from omniscs.export import export_scenes
+from tests.dataset_fixtures import synthetic_store
+
+VERSION = "v1.0-mini"
+#: A network small enough to train a few steps in a second.
+TINY = DetectorConfig(input_width=96, input_height=56, widths=(8, 16, 16, 16), head_width=16)
+
+
+@pytest.fixture(scope="module")
+def dataroot(tmp_path_factory):
+    store = synthetic_store(tmp_path_factory)
+    return export_scenes([store], "nuscenes", tmp_path_factory.mktemp("detroot") / "nuscenes", version=VERSION)
+
+
+def _model(seed: int = 0, config: DetectorConfig = TINY) -> ProxyDetector:
+    torch.manual_seed(seed)
+    return ProxyDetector(config).eval()
+
+
+def test_back_projecting_a_projected_ground_truth_centre_with_its_depth_recovers_it(dataroot):
+    tables = NuScenesTables.load(dataroot, VERSION)
+    anns = annotations_by_sample(tables)
+    checked = 0
+    for token, views in camera_views(tables, tables.scene_samples()).items():
+        centres = np.array([a["translation"] for a in anns[token]], np.float64)
+        yaws = yaw_from_quaternion(np.array([a["rotation"] for a in anns[token]]))
+        for view in views:
+            uv, depth = project_to_camera(centres, view.intrinsics, view.global_from_camera)
+            front = depth > 0.5
+            back = back_project(uv[front], depth[front], view.intrinsics, view.global_from_camera)
+            np.testing.assert_allclose(back, centres[front], atol=1e-6, rtol=0)
+            alpha = observation_angle(yaws[front], centres[front], view.global_from_camera)
+            turn = np.angle(np.exp(1j * (global_yaw(alpha, back, view.global_from_camera) - yaws[front])))
+            assert np.abs(turn).max(initial=0.0) < 1e-9
+            checked += int(front.sum())
+    assert checked >= 10
+
+
+def test_a_box_straight_ahead_projects_to_the_principal_point_at_its_distance():
+    K = np.array([[300.0, 0, 200.0], [0, 300.0, 100.0], [0, 0, 1]])
+    global_from_camera = np.eye(4)
+    global_from_camera[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera looking along global +x
+    global_from_camera[:3, 3] = [500.0, 1200.0, 1.5]
+    uv, depth = project_to_camera(np.array([[520.0, 1200.0, 1.5]]), K, global_from_camera)
+    np.testing.assert_allclose(uv, [[200.0, 100.0]], atol=1e-9)
+    np.testing.assert_allclose(depth, [20.0], atol=1e-9)
+    # a box heading across the ray (global +y) is seen at alpha = +90 degrees from any camera looking at it
+    assert observation_angle(np.array([np.pi / 2]), np.array([[520.0, 1200.0, 1.5]]), global_from_camera)[0] \
+        == pytest.approx(np.pi / 2)
+
+
+def test_detected_results_pass_the_protocols_checks_and_lie_in_the_global_frame(dataroot, tmp_path):
+    results = detect(_model(), dataroot, VERSION, config=DetectConfig(score_threshold=0.0, top_k=5))
+    tables = NuScenesTables.load(dataroot, VERSION)
+    samples = tables.scene_samples()
+    assert set(results["results"]) == set(samples) and results["meta"]["use_camera"] is True
+    path = write_results(results, tmp_path / "results.json")
+    boxes, meta = load_results(path, tables, samples)
+    assert len(boxes) > 0 and meta["use_camera"] is True
+    assert np.isfinite(boxes.translation).all() and np.isfinite(boxes.velocity).all() and (boxes.size > 0).all()
+    metrics, info = evaluate_detection_results(dataroot, VERSION, path)
+    assert info["n_samples"] == len(samples) and 0.0 <= metrics.mean_ap <= 1.0 and np.isfinite(metrics.nd_score)
+
+
+def test_moving_the_global_frame_moves_the_detected_boxes_with_it(dataroot, tmp_path):
+    """The same images with every ego pose moved by a rigid transform T: the boxes come out moved by T."""
+    from omniscs.geometry import make_transform
+    from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
+
+    T = make_transform(quat_to_rotmat(np.array([np.cos(0.35), 0, 0, np.sin(0.35)])), np.array([1000.0, -500.0, 3.0]))
+    moved = tmp_path / "moved"
+    shutil.copytree(dataroot / VERSION, moved / VERSION)
+    (moved / "samples").symlink_to(dataroot / "samples")
+    poses = json.loads((moved / VERSION / "ego_pose.json").read_text())
+    for p in poses:
+        pose = T @ make_transform(quat_to_rotmat(np.array(p["rotation"])), np.array(p["translation"]))
+        p["translation"], p["rotation"] = pose[:3, 3].tolist(), rotmat_to_quat(pose[:3, :3]).tolist()
+    (moved / VERSION / "ego_pose.json").write_text(json.dumps(poses))
+    config = DetectConfig(score_threshold=0.0, top_k=5, nms_radius_m=0.0)
+    a, b = (detect(_model(), root, VERSION, config=config)["results"] for root in (dataroot, moved))
+    for token, boxes in a.items():
+        assert len(boxes) == len(b[token]) > 0
+        for x, y in zip(boxes, b[token]):
+            np.testing.assert_allclose(T[:3, :3] @ x["translation"] + T[:3, 3], y["translation"], atol=1e-6)
+            np.testing.assert_allclose(x["size"], y["size"], atol=1e-9)
+            turn = yaw_from_quaternion(np.array([y["rotation"]]))[0] - yaw_from_quaternion(np.array([x["rotation"]]))[0]
+            assert np.angle(np.exp(1j * (turn - 0.7))) == pytest.approx(0.0, abs=1e-6)
+            np.testing.assert_allclose(T[:2, :2] @ x["velocity"], y["velocity"], atol=1e-6)
+
+
+def test_boxes_of_one_object_seen_by_two_cameras_are_merged():
+    from omniscs.eval.detector import centre_nms
+
+    box = {"translation": [10.0, 5.0, 1.0], "detection_name": "car", "detection_score": 0.9}
+    kept = centre_nms([box, {**box, "translation": [10.5, 5.0, 1.0], "detection_score": 0.8},
+                       {**box, "detection_name": "truck", "detection_score": 0.7},
+                       {**box, "translation": [14.0, 5.0, 1.0], "detection_score": 0.6}], radius_m=1.5)
+    assert [(b["detection_name"], b["detection_score"]) for b in kept] == [("car", 0.9), ("truck", 0.7), ("car", 0.6)]
+
+
+def test_flipping_an_image_mirrors_its_heatmap_targets(dataroot):
+    from omniscs.eval.detector import _flipped
+
+    data = training_set([(dataroot, VERSION)], TINY)
+    i = int(np.argmax([len(b) for b in data.boxes]))
+    assert len(data.boxes[i]) > 0
+    heat, reg, mask = targets([data.boxes[i]], data.focal[[i]], TINY, DetectorTrainConfig())
+    fheat, freg, fmask = targets([_flipped(data.boxes[i], TINY.input_width)], data.focal[[i]], TINY,
+                                 DetectorTrainConfig())
+    assert heat.shape == (1, len(DETECTION_NAMES), *output_size(TINY))
+    # cells are STRIDE px wide and the input width is a multiple of it: mirrored pixels are mirrored cells
+    torch.testing.assert_close(fheat, torch.flip(heat, dims=[-1]))
+    on, fon = mask[0, 2] > 0, torch.flip(fmask[0, 2], dims=[-1]) > 0
+    assert torch.equal(on, fon)
+    torch.testing.assert_close(torch.flip(freg, dims=[-1])[0, 6][on], -reg[0, 6][on])  # sin(alpha) changes sign
+    torch.testing.assert_close(torch.flip(freg, dims=[-1])[0, 2][on], reg[0, 2][on])  # depth does not
+
+
+def test_a_few_training_steps_lower_the_loss_and_the_same_seed_gives_the_same_weights(dataroot):
+    train = DetectorTrainConfig(steps=40, batch_size=4, lr=5e-3, log_every=10, seed=3, threads=1)
+    data = training_set([(dataroot, VERSION)], TINY, train)
+    assert sum(len(b) for b in data.boxes) > 0
+    a, rec = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    b, rec_b = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    curve = [c["total"] for c in rec["loss_curve"]]
+    assert len(curve) == 4 and curve[-1] < 0.7 * curve[0]
+    assert curve == [c["total"] for c in rec_b["loss_curve"]]
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(x, y), name
+    assert rec["n_images"] == len(data) and rec["n_boxes"] > 0
+
+
+def test_a_saved_detector_loads_with_the_same_outputs_and_a_bad_folder_is_a_clear_error(tmp_path):
+    model = _model(seed=1)
+    save_detector(model, tmp_path / "ckpt", {"note": "test"})
+    again = load_detector(tmp_path / "ckpt")
+    x = torch.randint(0, 255, (2, 3, TINY.input_height, TINY.input_width), dtype=torch.uint8)
+    with torch.no_grad():
+        for p, q in zip(model(x), again(x)):
+            assert torch.equal(p, q)
+    with pytest.raises(ValidationError, match="not a proxy detector checkpoint"):
+        load_detector(tmp_path / "nothing")
+    (tmp_path / "ckpt" / "detector_config.json").write_text(json.dumps({**json.loads(
+        (tmp_path / "ckpt" / "detector_config.json").read_text()), "head_width": 24}))
+    with pytest.raises(ValidationError, match="do not fit"):
+        load_detector(tmp_path / "ckpt")
+
+
+def test_the_shipped_detector_loads_and_gives_finite_outputs():
+    model = load_detector()
+    record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
+    assert record["command"] and record["data"]["train_logs"] and record["seconds"] > 0
+    assert (DEFAULT_DETECTOR / "detector.safetensors").stat().st_size < 5_000_000
+    c = model.config
+    x = torch.randint(0, 255, (1, 3, c.input_height, c.input_width), dtype=torch.uint8)
+    with torch.no_grad():
+        heat, reg = model(x)
+    assert heat.shape[1] == len(c.classes) and torch.isfinite(heat).all() and torch.isfinite(reg).all()
+
+
+def test_bad_dataroots_are_one_clear_error(dataroot, tmp_path):
+    model = _model()
+    with pytest.raises(ValidationError, match="no nuScenes tables"):
+        detect(model, tmp_path / "missing", VERSION)
+    with pytest.raises(ValidationError, match="no nuScenes tables"):
+        train_detector([(tmp_path / "missing", VERSION)], DetectorTrainConfig(steps=1), TINY)
+    no_cams = shutil.copytree(dataroot / VERSION, tmp_path / "nocam" / VERSION)
+    tables = NuScenesTables.load(dataroot, VERSION)
+    lidar = {t for t, c in tables["calibrated_sensor"].items()
+             if not tables["sensor"][c["sensor_token"]]["channel"].startswith("CAM_")}
+    rows = [r for r in json.loads((no_cams / "sample_data.json").read_text()) if r["calibrated_sensor_token"] in lidar]
+    (no_cams / "sample_data.json").write_text(json.dumps(rows))
+    with pytest.raises(ValidationError, match="no camera keyframes"):
+        detect(model, tmp_path / "nocam", VERSION)
+    with pytest.raises(ValidationError, match="no camera keyframes"):
+        train_detector([(tmp_path / "nocam", VERSION)], DetectorTrainConfig(steps=1), TINY)
+    no_images = shutil.copytree(dataroot / VERSION, tmp_path / "noimg" / VERSION)  # tables without the images
+    with pytest.raises(ValidationError, match="missing or unreadable"):
+        detect(model, no_images.parent, VERSION)
+    with pytest.raises(ValidationError, match="unknown scene"):
+        detect(model, dataroot, VERSION, scenes=["nope"])
+
+
+def test_view_boxes_keep_only_annotations_in_front_within_range_and_in_the_image(dataroot):
+    tables = NuScenesTables.load(dataroot, VERSION)
+    anns = annotations_by_sample(tables)
+    config = DetectorTrainConfig(max_depth_m=30.0)
+    for token, views in camera_views(tables, tables.scene_samples()).items():
+        for view in views:
+            boxes = view_boxes(view, anns.get(token, []), DETECTION_NAMES, config)
+            assert ((boxes.depth >= config.near_m) & (boxes.depth <= 30.0)).all()
+            assert ((boxes.uv >= 0) & (boxes.uv < [view.width, view.height])).all()
+            assert (boxes.extent > 0).all() and (boxes.size > 0).all()
