@@ -59,7 +59,7 @@ class ShippedDetectorConfig:
     train_keyframe_every: int = 1
     """Frames per keyframe in the training dataroots (1: every frame is an annotated sample)."""
     detector: DetectorConfig = field(default_factory=DetectorConfig)
-    train: DetectorTrainConfig = field(default_factory=lambda: DetectorTrainConfig(steps=1_500))
+    train: DetectorTrainConfig = field(default_factory=lambda: DetectorTrainConfig(steps=2_500))
     detect: DetectConfig = field(default_factory=DetectConfig)
 
     def logs(self, split: str) -> list[tuple[str, int]]:

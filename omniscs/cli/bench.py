@@ -339,9 +339,24 @@ def bench_downstream(
                                                                 "logs and write it into the package (its shipped "
                                                                 "weights)."),
     quick: bool = typer.Option(False, "--quick", help="A few scenes and epochs (a smoke run, not a measurement)."),
+    detection: bool = typer.Option(False, "--detection", help="The detection protocol instead (base vs fine-tuned "
+                                                              "with appearance-SCS data; mAP/NDS on an "
+                                                              "appearance-SCS and the original test set) with the "
+                                                              "embedded proxy camera detector: "
+                                                              "downstream_detection_bench.*."),
 ) -> None:
     """The planning protocol (base vs fine-tuned with behaviour-SCS data; L2 and collision rate on a behaviour-SCS
-    and the original test set) with the embedded proxy planner."""
+    and the original test set) with the embedded proxy planner; with --detection, the detection protocol."""
+    if detection:
+        from omniscs.bench.detection_protocol import DetectionProtocolConfig, quick_config as quick_detection, \
+            run_detection_protocol
+
+        with progress_bars() as bars:
+            run_detection_protocol(out, workspace, quick_detection() if quick else DetectionProtocolConfig(),
+                                   progress=bars.sink("detection protocol"))
+        console.print((out / "downstream_detection_bench.md").read_text())
+        console.print(f"wrote {out / 'downstream_detection_bench.json'}")
+        return
     from omniscs.bench.downstream import DownstreamBenchConfig, quick_config, run_downstream_benchmark
 
     with progress_bars() as bars:

@@ -435,8 +435,9 @@ class ProxyDetector(nn.Module):
             x = block(x)
             feats.append(x)
         top = self.lateral[2](feats[3])
-        for lateral, fuse, skip in ((self.lateral[1], self.fuse[0], feats[2]), (self.lateral[0], self.fuse[1], feats[1])):
-            top = fuse(lateral(skip) + F.interpolate(top, size=skip.shape[-2:], mode="nearest"))
+        for level, fuse in ((1, self.fuse[0]), (0, self.fuse[1])):  # stride 8, then stride 4
+            skip = feats[level + 1]
+            top = fuse(self.lateral[level](skip) + F.interpolate(top, size=skip.shape[-2:], mode="nearest"))
         return self.heat_head(top), self.reg_head(top)
 
 

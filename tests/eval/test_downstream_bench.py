@@ -19,3 +19,8 @@ def test_the_quick_protocol_writes_its_report_with_both_test_sets(tmp_path):
         for m in models.values():
             assert m["n"] > 0 and all(np.isfinite(v) for v in (*m["L2"].values(), *m["collision"].values()))
     assert "proxy" in (tmp_path / "reports" / "downstream_bench.md").read_text()
+    # the fine-tuning settings are chosen on the validation scenes, one row per candidate
+    grid = report["finetune_selection"]
+    assert len(grid) == 2 and all(np.isfinite(g["l2_change_3s"]) for g in grid)
+    assert (report["config"]["finetune"]["lr"], report["config"]["scs_share"]) in {(g["lr"], g["scs_share"]) for g in grid}
+    assert report["data"]["val"]["log_examples"] > 0

@@ -126,6 +126,32 @@ def test_moving_the_global_frame_moves_the_detected_boxes_with_it(dataroot, tmp_
             np.testing.assert_allclose(T[:2, :2] @ x["velocity"], y["velocity"], atol=1e-6)
 
 
+def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroot):
+    """A network that output exactly its targets would detect every learned box where it is, as large as it is and
+    heading where it heads: encoding (targets) and decoding (back-projection) are inverse."""
+    from omniscs.eval.detector import _decode_view, _scaled
+
+    tables = NuScenesTables.load(dataroot, VERSION)
+    anns = annotations_by_sample(tables)
+    train, found = DetectorTrainConfig(), 0
+    for token, views in camera_views(tables, tables.scene_samples()).items():
+        truth = {a["token"]: a for a in anns[token]}
+        for view in views:
+            boxes = view_boxes(view, anns[token], TINY.classes, train)
+            sx, sy = TINY.input_width / view.width, TINY.input_height / view.height
+            heat, reg, _ = targets([_scaled(boxes, sx, sy)], np.array([view.intrinsics[1, 1] * sy]), TINY, train)
+            for box in _decode_view(torch.where(heat == 1, 20.0, -20.0)[0], reg[0], view, TINY, DetectConfig()):
+                gt = min(truth.values(),
+                         key=lambda a: np.linalg.norm(np.subtract(a["translation"], box["translation"])))
+                np.testing.assert_allclose(box["translation"], gt["translation"], atol=1e-4)
+                np.testing.assert_allclose(box["size"], gt["size"], rtol=1e-5)
+                turn = yaw_from_quaternion(np.array([box["rotation"], gt["rotation"]]))
+                assert np.angle(np.exp(1j * (turn[0] - turn[1]))) == pytest.approx(0.0, abs=1e-5)
+                assert box["detection_name"] == gt["detection_name"]
+                found += 1
+    assert found >= 3
+
+
 def test_boxes_of_one_object_seen_by_two_cameras_are_merged():
     from omniscs.eval.detector import centre_nms
 
