@@ -95,11 +95,13 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
     return {"logs": logs, "scs": stores, "dataset": dataset.path}
 
 
-def _export(stores: list[str], out: Path) -> Path:
+def _export(stores: list[str], out: Path, keyframe_every: int | None = None) -> Path:
+    """The stores as one nuScenes dataroot (``keyframe_every`` None: the 2 Hz keyframes the protocol evaluates;
+    training sets take every frame, as the shipped detector's training did)."""
     from omniscs.export import export_scenes
 
     if not (out / VERSION / "sample.json").is_file():
-        export_scenes(stores, "nuscenes", out, overwrite=True, version=VERSION)
+        export_scenes(stores, "nuscenes", out, overwrite=True, version=VERSION, keyframe_every=keyframe_every)
     return out
 
 
@@ -136,8 +138,8 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
     scenes = {"train": config.train_scenes, "test": config.test_scenes}
     splits = {s: build_split(s, scenes[s], *pools[s], config, ws, progress) for s in ("train", "test")}
     tag = f"{len(config.train_scenes)}-{len(config.test_scenes)}x{config.appearance_variants}-{config.n_frames}f"
-    roots = {"train logs": _export(splits["train"]["logs"], root / f"train-logs-{tag}"),
-             "train appearance-SCS": _export(splits["train"]["scs"], root / f"train-scs-{tag}"),
+    roots = {"train logs": _export(splits["train"]["logs"], root / f"train-logs-{tag}", 1),
+             "train appearance-SCS": _export(splits["train"]["scs"], root / f"train-scs-{tag}", 1),
              "appearance-SCS test": _export(splits["test"]["scs"], root / f"test-scs-{tag}"),
              "original test": _export(splits["test"]["logs"], root / f"test-logs-{tag}")}
     data_s = time.perf_counter() - started
