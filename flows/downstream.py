@@ -20,6 +20,8 @@ from tasks import downstream as t
 from tasks import stages as ts
 
 MODELS = ("proxy", "external")
+#: What the proxies can be fine-tuned and evaluated for.
+TASKS = ("planning", "detection")
 
 
 def _datasets(ws: str, dataset_ids: list[str] | None, upstream_flow_run: str | None) -> list[str]:
@@ -36,30 +38,42 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
                       test_dataset_ids: list[str] | None = None, workspace: str | None = None,
                       run_id: str | None = None, upstream_flow_run: str | None = None,
                       external_template: str | None = None, external_values: dict | None = None,
-                      external_timeout_s: float = 6 * 3600.0, external_export: str | None = "uniad") -> dict:
+                      external_timeout_s: float = 6 * 3600.0, external_export: str | None = "uniad",
+                      tasks: list[str] | None = None) -> dict:
     """Fine-tune and evaluate on ``dataset_ids`` (or the datasets of ``upstream_flow_run``). ``model="proxy"``:
-    the embedded proxy planner, evaluated before (base) and after fine-tuning on ``test_dataset_ids`` (default: the
-    training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
+    the embedded proxies of ``tasks`` (default ``["planning"]``; ``"detection"``: the proxy camera detector, made for
+    datasets with appearance variants), each evaluated before (base) and after fine-tuning on ``test_dataset_ids``
+    (default: the training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
     ``external_template`` run as a job (``omniscs.eval.external``) on the exported datasets. Returns the run id,
     model records and evaluation ids; a model that fails is recorded failed and the run ends failed."""
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
     config = {"dataset_ids": dataset_ids, "model": model, "test_dataset_ids": test_dataset_ids,
-              "upstream_flow_run": upstream_flow_run, "external_template": external_template}
+              "upstream_flow_run": upstream_flow_run, "external_template": external_template, "tasks": tasks}
     records: list[StageRecord] = []
     try:
         if model not in MODELS:
             raise ValidationError(f"model must be one of {MODELS}; got {model!r}")
         datasets = _datasets(ws, dataset_ids, upstream_flow_run)
         d.dataset_paths(ws, datasets)
+        wanted = list(tasks or ["planning"])
+        unknown = [k for k in wanted if k not in TASKS]
+        if unknown or not wanted:
+            raise ValidationError(f"tasks must be some of {TASKS}; got {wanted}")
         if model == "proxy":
             tests = list(test_dataset_ids or datasets)
-            tuned = t.finetune(datasets, ws)
-            records.append(tuned)
-            records.append(t.evaluate(None, tests, ws, "base"))
-            if tuned.info.get("status") == "trained":
-                records.append(t.evaluate(tuned, tests, ws, tuned.info["model_id"]))
+            if "planning" in wanted:
+                tuned = t.finetune(datasets, ws)
+                records.append(tuned)
+                records.append(t.evaluate(None, tests, ws, "base"))
+                if tuned.info.get("status") == "trained":
+                    records.append(t.evaluate(tuned, tests, ws, tuned.info["model_id"]))
+            if "detection" in wanted:
+                tuned = t.finetune_detector(datasets, ws)
+                records.append(tuned)
+                records.append(t.evaluate_detector(None, tests, ws, "base"))
+                records.append(t.evaluate_detector(tuned, tests, ws, tuned.info["model_id"]))
         else:
             if not external_template:
                 raise ValidationError("model='external' needs external_template (a command with placeholders)")

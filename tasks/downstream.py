@@ -19,6 +19,17 @@ def evaluate(model: StageRecord | None, dataset_ids: list[str], workspace: str, 
     return d.evaluate_stage(model, dataset_ids, workspace)
 
 
+@task(name="finetune-proxy-detector", **STAGE_TASK_OPTIONS)
+def finetune_detector(dataset_ids: list[str], workspace: str) -> StageRecord:
+    return d.finetune_detector_stage(dataset_ids, workspace,
+                                     progress=artifact_progress("fine-tune the proxy camera detector"))
+
+
+@task(name="evaluate-detector", task_run_name="evaluate-detector-{label}", **STAGE_TASK_OPTIONS)
+def evaluate_detector(model: StageRecord | None, dataset_ids: list[str], workspace: str, label: str) -> StageRecord:
+    return d.evaluate_detector_stage(model, dataset_ids, workspace)
+
+
 @task(name="external-job", **STAGE_TASK_OPTIONS)
 def external(template: str, dataset_ids: list[str], workspace: str, values: dict, timeout_s: float,
              export: str | None) -> StageRecord:

@@ -105,29 +105,10 @@ def _export(stores: list[str], out: Path, keyframe_every: int | None = None) -> 
     return out
 
 
-def evaluate_model(model, dataroot: Path, results_path: Path) -> dict:
-    """mAP, NDS and per-class AP of ``model`` on ``dataroot`` over the classes its evaluated ground truth holds."""
-    from omniscs.eval.detection import DetectionConfig, filter_boxes
-    from omniscs.eval.detector import detect, write_results
-    from omniscs.eval.nuscenes_io import NuScenesTables, evaluate_detection_results, load_ground_truth
-
-    write_results(detect(model, dataroot, VERSION), results_path)
-    tables = NuScenesTables.load(dataroot, VERSION)
-    gt, racks = load_ground_truth(tables, tables.scene_samples())
-    present = tuple(sorted(set(filter_boxes(gt, DetectionConfig(), racks).name)))
-    metrics, info = evaluate_detection_results(dataroot, VERSION, results_path, config=DetectionConfig(
-        class_names=present))
-    aps = metrics.mean_dist_aps
-    return {"mAP": float(metrics.mean_ap), "NDS": float(metrics.nd_score), "classes": list(present),
-            "AP": {c: float(v) for c, v in aps.items()},
-            "gt_boxes": {c: int((filter_boxes(gt, DetectionConfig(), racks).name == c).sum()) for c in present},
-            "n_samples": info["n_samples"]}
-
-
 def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = None,
                            config: DetectionProtocolConfig = DetectionProtocolConfig(),
                            progress: Progress = no_progress) -> dict:
-    from omniscs.eval.detector import DEFAULT_DETECTOR, load_detector, train_detector
+    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector, train_detector
 
     machine = machine_info()
     ws = workspace_root(workspace)
@@ -152,7 +133,8 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
     tune_s = time.perf_counter() - tick
     rows = {}
     for name in ("appearance-SCS test", "original test"):
-        rows[name] = {m: evaluate_model(model, roots[name], root / f"results-{m}-{name.replace(' ', '_')}-{tag}.json")
+        rows[name] = {m: evaluate_detector(model, roots[name], VERSION,
+                                           root / f"results-{m}-{name.replace(' ', '_')}-{tag}.json")
                       for m, model in (("base", base), ("fine-tuned", tuned))}
     scs, orig = rows["appearance-SCS test"], rows["original test"]
     gain = scs["fine-tuned"]["mAP"] - scs["base"]["mAP"]

@@ -97,6 +97,8 @@ def finetune(
     timeout_s: float = typer.Option(6 * 3600.0, help="external: stop the job after this many seconds."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
     run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
+    task: list[str] = typer.Option([], "--task", help="proxy: planning (the proxy planner, default) and/or "
+                                                      "detection (the proxy camera detector); repeat for both."),
 ) -> None:
     """Fine-tune on generated datasets and evaluate (the finetune_evaluate flow); results go to the catalog
     (downstream_models, evaluations)."""
@@ -119,7 +121,7 @@ def finetune(
         out = finetune_evaluate(list(datasets), model=model, test_dataset_ids=list(test_dataset) or None,
                                 workspace=str(ws), run_id=run_id, external_template=external_template,
                                 external_values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
-                                external_timeout_s=timeout_s)
+                                external_timeout_s=timeout_s, tasks=list(task) or None)
     console.print(f"run {out['run_id']}: " + ", ".join(f"{m.get('model_id')} ({m.get('status', 'evaluated')})"
                                                     for m in out["models"]))
     console.print(f"see: omniscs catalog query \"SELECT model_id, split, metric, horizon, value FROM evaluations "

@@ -771,3 +771,25 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
         raise ValidationError(f"{path}: the weights do not fit the network of {CONFIG} ({e})") from e
     model.eval()
     return model
+
+
+def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, results_path: str | Path,
+                      config: DetectConfig = DetectConfig()) -> dict:
+    """``model``'s detections of every keyframe of ``dataroot`` written to ``results_path`` and scored by the
+    nuScenes protocol over the classes the dataroot's evaluated ground truth holds (a class absent from a set would
+    only add a zero): mAP, NDS, AP per class, evaluated boxes per class, samples."""
+    from omniscs.eval.detection import DetectionConfig, filter_boxes
+    from omniscs.eval.nuscenes_io import evaluate_detection_results, load_ground_truth
+
+    write_results(detect(model, dataroot, version, config=config), results_path)
+    tables = NuScenesTables.load(dataroot, version)
+    gt, racks = load_ground_truth(tables, tables.scene_samples())
+    names = filter_boxes(gt, DetectionConfig(), racks).name
+    present = tuple(sorted(set(names)))
+    if not present:
+        raise ValidationError(f"{Path(dataroot) / version} has no evaluated ground-truth box to score detections on")
+    metrics, info = evaluate_detection_results(dataroot, version, results_path,
+                                               config=DetectionConfig(class_names=present))
+    return {"mAP": float(metrics.mean_ap), "NDS": float(metrics.nd_score), "classes": list(present),
+            "AP": {c: float(v) for c, v in metrics.mean_dist_aps.items()},
+            "gt_boxes": {c: int((names == c).sum()) for c in present}, "n_samples": int(info["n_samples"])}

@@ -88,6 +88,19 @@ def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str
     return rows
 
 
+def detection_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str, metrics: dict) -> list[dict]:
+    """``evaluations`` rows of one detection evaluation (``omniscs.eval.detector.evaluate_detector``'s output): mAP,
+    NDS and the AP of every class the set holds."""
+    def row(metric: str, value: float, class_name: str = "") -> dict:
+        return {"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": "detection",
+                "split": split, "metric": metric, "class_name": class_name, "horizon": "", "convention": "",
+                "value": float(value) if np.isfinite(value) else None, "n": int(metrics["n_samples"]), "status": "ok",
+                "error": None}
+
+    return [row("mAP", metrics["mAP"]), row("NDS", metrics["NDS"])] + [row("AP", v, c)
+                                                                       for c, v in sorted(metrics["AP"].items())]
+
+
 def failed_row(eval_id: str, model_id: str, dataset_id: str | None, task: str, split: str, error: str) -> dict:
     return {"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": task, "split": split,
             "metric": "run", "class_name": "", "horizon": "", "convention": "", "value": None, "n": None,

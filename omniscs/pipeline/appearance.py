@@ -265,22 +265,6 @@ def _source_scene(workspace: Path, store_id: str) -> str | None:
     return None
 
 
-def _scene_path(workspace: Path, scene_id: str) -> Path:
-    """Where a scene of the workspace is: ingested under ``scenes/``, or a scene store used in place (as the
-    ``scenes`` catalog table recorded it)."""
-    from omniscs import catalog
-    from omniscs.ids import check_id
-
-    here = layout.scene_folder(workspace, "ingest", scene_id)
-    if (here / "manifest.json").is_file():
-        return here
-    rows = catalog.query(catalog.catalog_root(workspace), "SELECT path FROM scenes WHERE scene_id = "
-                         f"'{check_id('scene id', scene_id)}' ORDER BY run_id DESC LIMIT 1").to_pylist()
-    if not rows:
-        raise OmniscsError(f"scene {scene_id} is neither under {here.parent} nor in the scenes catalog table")
-    return Path(rows[0]["path"])
-
-
 def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: int = 20,
                          progress: Progress = no_progress) -> list[dict]:
     """A pool model for each missed object of ``omniscs scs mine``'s picks (``missed.json``) that can be traced to a
@@ -320,7 +304,11 @@ def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: 
             continue
         if scene_id not in graphs:
             try:
-                scene = load_scene(_scene_path(workspace, scene_id))
+                where = layout.scene_store(workspace, scene_id)
+                if where is None:
+                    raise OmniscsError(f"scene {scene_id} is neither ingested in {workspace} nor in its scenes "
+                                       "catalog table")
+                scene = load_scene(where)
                 graphs[scene_id] = (scene, load_checkpoint(newest_checkpoint(workspace, scene_id), scene))
             except OmniscsError as exc:
                 graphs[scene_id] = (None, str(exc))

@@ -44,8 +44,8 @@ def _source_scenes(workspace: str | Path, datasets: list[Path]) -> list[Path]:
     from omniscs.eval.downstream import dataset_card
 
     ids = sorted({v["scene_id"] for d in datasets for v in dataset_card(d).get("variants", [])})
-    paths = [layout.scene_folder(workspace, "ingest", sid) for sid in ids]
-    return [p for p in paths if (p / "manifest.json").is_file()]
+    paths = [layout.scene_store(workspace, sid) for sid in ids]  # ingested, or used in place
+    return [p for p in paths if p is not None]
 
 
 def _planner(model: StageRecord | None):
@@ -107,6 +107,118 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
                        rows={"downstream_models": [dict(row, status="trained", n_examples=outputs.get("n_examples"),
                                                         train_seconds=outputs.get("train_seconds"), error=None)]},
                        info={"status": "trained", "model_id": model_id})
+
+
+DETECTOR_BASE_ID = "proxy-detector-base"
+#: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields; the detection protocol's).
+DETECTOR_FINETUNE = {"steps": 600, "lr": 1e-3, "seed": 1}
+DETECTOR_VERSION = "v1.0-trainval"
+
+
+def _dataset_stores(dataset: Path) -> list[str]:
+    return sorted(str(p) for p in (dataset / "scenes").iterdir() if (p / "manifest.json").is_file())
+
+
+def _dataroot(stores: list[str], out: Path, keyframe_every: int | None) -> Path:
+    from omniscs.export import export_scenes
+
+    return export_scenes(stores, "nuscenes", out, overwrite=True, version=DETECTOR_VERSION,
+                         keyframe_every=keyframe_every)
+
+
+def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, config=None, base: str | Path | None = None,
+                            progress: Progress = no_progress, reuse: bool = True) -> StageRecord:
+    """The proxy camera detector fine-tuned from ``base`` (default: the shipped one) on the datasets' variant stores
+    (appearance variants above all) and their source logs, every frame, exported as nuScenes dataroots for the
+    training only (``downstream/<model_id>/detector/`` keeps the weights)."""
+    import shutil
+    import tempfile
+
+    from omniscs.eval.detector import DEFAULT_DETECTOR, DetectorTrainConfig, load_detector, save_detector, \
+        train_detector
+    from omniscs.eval.downstream import content_id, dataset_card
+
+    started = time.perf_counter()
+    config = config or DetectorTrainConfig(**DETECTOR_FINETUNE)
+    datasets = dataset_paths(workspace, dataset_ids)
+    base_path = Path(base) if base is not None else DEFAULT_DETECTOR
+    inputs = {"datasets": {d.name: dataset_card(d).get("counts") for d in datasets}, "base": _folder_hash(base_path)}
+    settings = {"train": dataclasses.asdict(config)}
+    key = StageKey.of("finetune-detector", FINETUNE_VERSION, inputs, settings)
+    model_id = content_id("proxy-detector", {"key": key.digest})
+    out = layout.downstream_folder(workspace, model_id)
+    row = {"model_id": model_id, "kind": "proxy_detector", "base_model_id": DETECTOR_BASE_ID if base is None
+           else str(base), "dataset_ids": list(dataset_ids), "path": str(out), "command": None, "log_path": None,
+           "config_json": json.dumps(settings, sort_keys=True)}
+    with output_lock(out):
+        manifest = reusable(out, key) if reuse else None
+        reused = manifest is not None
+        if manifest is None:
+            stores = [s for d in datasets for s in _dataset_stores(d)]
+            logs = [str(p) for p in _source_scenes(workspace, datasets)]
+            base_model = load_detector(base_path)
+
+            def make(tmp: Path) -> dict:
+                data = Path(tempfile.mkdtemp(prefix=".detector-data-", dir=tmp))
+                try:
+                    roots = [(_dataroot(stores, data / "variants", 1), DETECTOR_VERSION)]
+                    if logs:
+                        roots.append((_dataroot(logs, data / "logs", 1), DETECTOR_VERSION))
+                    model, record = train_detector(roots, config, init=base_model, progress=progress)
+                finally:
+                    shutil.rmtree(data, ignore_errors=True)
+                record.update(datasets=list(dataset_ids), base=str(base_path), variant_stores=len(stores),
+                              log_stores=len(logs))
+                save_detector(model, tmp / "detector", record)
+                return {"n_examples": record.get("n_images"), "train_seconds": record.get("seconds")}
+
+            manifest = produce(out, key, make)
+    outputs = manifest.get("outputs", {})
+    return StageRecord("finetune", "-", str(out / "detector"), reused=reused, seconds=time.perf_counter() - started,
+                       key=key.digest,
+                       rows={"downstream_models": [dict(row, status="trained", n_examples=outputs.get("n_examples"),
+                                                        train_seconds=outputs.get("train_seconds"), error=None)]},
+                       info={"status": "trained", "model_id": model_id, "task": "detection"})
+
+
+def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], workspace: str | Path,
+                            eval_id: str | None = None) -> StageRecord:
+    """A proxy detector (``model``: a detector fine-tune's record; None: the shipped base) on each dataset's variant
+    stores and on its source logs ("original"), 2 Hz keyframes, by nuScenes mAP / NDS / AP per class over the classes
+    each set holds; rows for ``evaluations``."""
+    import shutil
+    import tempfile
+
+    from omniscs.eval.detector import evaluate_detector, load_detector
+    from omniscs.eval.downstream import content_id, detection_rows, failed_row
+
+    started = time.perf_counter()
+    model_id = DETECTOR_BASE_ID if model is None else model.info["model_id"]
+    eval_id = eval_id or content_id("eval", {"model": model_id, "datasets": sorted(dataset_ids), "task": "detection"})
+    detector = load_detector(None if model is None else model.path)
+    rows = []
+    for path in dataset_paths(workspace, dataset_ids):
+        did = path.name
+        sets = (("variants", _dataset_stores(path)), ("original", [str(p) for p in _source_scenes(workspace, [path])]))
+        data = Path(tempfile.mkdtemp(prefix=".detector-eval-"))
+        try:
+            for split, stores in sets:
+                if not stores:
+                    rows.append(failed_row(eval_id, model_id, did, "detection", split,
+                                           f"dataset {did} has no {split} scene store in this workspace"))
+                    continue
+                try:
+                    metrics = evaluate_detector(detector, _dataroot(stores, data / split, None), DETECTOR_VERSION,
+                                                data / f"{split}-results.json")
+                except ValidationError as exc:  # e.g. no evaluated box: recorded, not a lost run
+                    rows.append(failed_row(eval_id, model_id, did, "detection", split, str(exc)))
+                    continue
+                rows += detection_rows(eval_id, model_id, did, split, metrics)
+        finally:
+            shutil.rmtree(data, ignore_errors=True)
+    return StageRecord("evaluate", "-", None, seconds=time.perf_counter() - started,
+                       rows={"evaluations": rows}, info={"eval_id": eval_id, "model_id": model_id,
+                                                         "failed": sum(r["status"] == "failed" for r in rows)})
 
 
 def _folder_hash(path: Path) -> str:

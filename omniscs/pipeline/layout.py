@@ -9,7 +9,7 @@ from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
 __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder",
-           "closedloop_folder"]
+           "closedloop_folder", "scene_store"]
 
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models",
@@ -46,3 +46,17 @@ def downstream_folder(workspace: str | Path, model_id: str) -> Path:
 def closedloop_folder(workspace: str | Path, eval_id: str) -> Path:
     """``<workspace>/closedloop/<eval_id>``: the run folders of one closed-loop evaluation."""
     return Path(workspace) / FOLDERS["closedloop"] / check_id("closed-loop evaluation id", eval_id)
+
+
+def scene_store(workspace: str | Path, scene_id: str) -> Path | None:
+    """Where a scene of the workspace is: ingested under ``scenes/``, or a scene store used in place (as the
+    ``scenes`` catalog table recorded it); None when neither knows it."""
+    from omniscs import catalog
+
+    here = scene_folder(workspace, "ingest", scene_id)
+    if (here / "manifest.json").is_file():
+        return here
+    rows = catalog.query(catalog_root(Path(workspace)), "SELECT path FROM scenes WHERE scene_id = "
+                         f"'{check_id('scene id', scene_id)}' ORDER BY run_id DESC LIMIT 1").to_pylist()
+    path = Path(rows[0]["path"]) if rows else None
+    return path if path is not None and (path / "manifest.json").is_file() else None

@@ -130,3 +130,32 @@ def test_scs_mine_reports_what_a_detector_missed_on_an_export(built, tmp_path):
     assert len(table) >= 1 and set(table.provenance) == {"scene_track"}, mined.output
     assert all(src.startswith("nsg-test/track-") for src in table.source)
     assert "--appearance-object pm-" in mined.output
+
+
+def test_the_proxy_detector_is_fine_tuned_and_evaluated_on_appearance_variants_by_the_flow(built, prefect_harness):
+    from flows.downstream import finetune_evaluate
+    from omniscs.pipeline import downstream as d
+
+    ws, _, result = built
+    mp = pytest.MonkeyPatch()
+    mp.setattr(d, "DETECTOR_FINETUNE", {"steps": 3, "batch_size": 2, "seed": 1})
+    try:
+        out = finetune_evaluate([result["dataset_id"]], workspace=str(ws), run_id="det1", tasks=["detection"])
+    finally:
+        mp.undo()
+    tuned = out["models"][0]["model_id"]
+    assert tuned.startswith("proxy-detector-")
+    root = catalog.catalog_root(ws)
+    model = catalog.query(root, f"SELECT kind, status, n_examples FROM downstream_models WHERE model_id = '{tuned}'")
+    assert model.to_pylist() == [{"kind": "proxy_detector", "status": "trained",
+                                  "n_examples": model.to_pylist()[0]["n_examples"]}]
+    assert model.to_pylist()[0]["n_examples"] > 0
+    rows = catalog.query(root, "SELECT model_id, split, metric, class_name, value, status FROM evaluations_by_run "
+                               "WHERE run_id = 'det1' AND task = 'detection'").to_pylist()
+    got = {(r["model_id"], r["split"], r["metric"]) for r in rows}
+    for m in (d.DETECTOR_BASE_ID, tuned):
+        for split in ("variants", "original"):
+            assert {(m, split, "mAP"), (m, split, "NDS"), (m, split, "AP")} <= got
+    assert all(r["status"] == "ok" and 0.0 <= r["value"] <= 1.0 for r in rows)
+    with pytest.raises(OmniscsError, match="tasks must be some of"):
+        finetune_evaluate([result["dataset_id"]], workspace=str(ws), tasks=["segmentation"])
