@@ -87,7 +87,7 @@ def planning(
 
 def finetune(
     datasets: list[str] = typer.Argument(..., help="Ids of generated datasets in the workspace (train data)."),
-    model: str = typer.Option("proxy", help="proxy (the embedded proxy planner) or external (a job command)."),
+    model: str = typer.Option("proxy", help="proxy (the embedded proxies, see --task) or external (a job command)."),
     test_dataset: list[str] = typer.Option([], "--test-dataset", help="Evaluate on these datasets (repeat; default "
                                                                       "the training datasets: a fit, not a test)."),
     external_template: Optional[str] = typer.Option(None, help="external: the job's command with {placeholders} "
