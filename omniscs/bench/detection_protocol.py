@@ -41,7 +41,9 @@ class DetectionProtocolConfig:
     preset: str = "fast"
     """Fit preset of the scene graphs the variants are rendered through."""
     appearance_variants: int = 4
-    """Appearance variants per scene."""
+    """Appearance variants per training scene."""
+    test_variants: int = 4
+    """Appearance variants per test scene (the appearance-SCS test set)."""
     object_kinds: tuple[str, ...] = ("box_truck", "bus", "excavator", "wheel_loader", "trailer", "sedan", "suv")
     """Library kinds the SCS objects come from (pool split)."""
     train_objects: tuple[int, int] = (0, 3)
@@ -59,7 +61,7 @@ class DetectionProtocolConfig:
 def quick_config() -> DetectionProtocolConfig:
     """A smoke run: one train and one test scene, two variants, a few steps (not a measurement)."""
     return DetectionProtocolConfig(train_scenes=("straight:7201",), test_scenes=("straight:7301",), n_frames=12,
-                                   appearance_variants=2, object_kinds=("box_truck", "sedan"),
+                                   appearance_variants=2, test_variants=2, object_kinds=("box_truck", "sedan"),
                                    finetune=DetectorTrainConfig(steps=5, batch_size=4, seed=1))
 
 
@@ -79,7 +81,8 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
     from omniscs.pipeline.stages import dataset_stage, run_scene
     from omniscs.scene import SyntheticSource
 
-    request = SceneRequest(fit_preset=config.preset, previews=False, appearance_variants=config.appearance_variants,
+    n_variants = config.appearance_variants if split == "train" else config.test_variants
+    request = SceneRequest(fit_preset=config.preset, previews=False, appearance_variants=n_variants,
                            pool=str(pool), appearance_objects=tuple(objects), annotate=True)
     logs, annotated = [], []
     for i, item in enumerate(scenes):
@@ -89,7 +92,7 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
                             workspace)
         logs.append(records[0].path)
         annotated.append(next(r for r in records if r.stage == "annotate"))
-    dataset = dataset_stage(annotated, workspace, f"det-scs-{split}-{len(scenes)}x{config.appearance_variants}",
+    dataset = dataset_stage(annotated, workspace, f"det-scs-{split}-{len(scenes)}x{n_variants}",
                             {"protocol": "detection", "split": split})
     stores = sorted(str(p) for p in (Path(dataset.path) / "scenes").iterdir() if p.is_dir())
     return {"logs": logs, "scs": stores, "dataset": dataset.path}
@@ -118,7 +121,8 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
              "test": _pool(ws, "test", config.object_kinds, config.test_objects)}
     scenes = {"train": config.train_scenes, "test": config.test_scenes}
     splits = {s: build_split(s, scenes[s], *pools[s], config, ws, progress) for s in ("train", "test")}
-    tag = f"{len(config.train_scenes)}-{len(config.test_scenes)}x{config.appearance_variants}-{config.n_frames}f"
+    tag = (f"{len(config.train_scenes)}x{config.appearance_variants}-{len(config.test_scenes)}x{config.test_variants}-"
+           f"{config.n_frames}f-{config.train_objects[0]}-{config.train_objects[1]}")
     roots = {"train logs": _export(splits["train"]["logs"], root / f"train-logs-{tag}", 1),
              "train appearance-SCS": _export(splits["train"]["scs"], root / f"train-scs-{tag}", 1),
              "appearance-SCS test": _export(splits["test"]["scs"], root / f"test-scs-{tag}"),
@@ -160,7 +164,8 @@ def markdown(r: dict) -> str:
              "machine, not what UniAD would do.", "",
              f"Data: {len(c['train_scenes'])} train logs ({', '.join(c['train_scenes'])}) and {len(c['test_scenes'])} "
              f"held-out test logs ({', '.join(c['test_scenes'])}), {c['n_frames']} frames, 3 cameras; "
-             f"{c['appearance_variants']} appearance variants per log (objects of kinds {', '.join(c['object_kinds'])} "
+             f"{c['appearance_variants']} appearance variants per train log and {c['test_variants']} per test log "
+             f"(objects of kinds {', '.join(c['object_kinds'])} "
              f"from the library's pool split: train indices {c['train_objects']}, held-out test objects "
              f"{c['test_objects']}), fast scene graphs. Base: the shipped proxy detector "
              f"(`{r['base_training'].get('command')}`); fine-tuned: from base, {c['finetune']['steps']} steps on the "

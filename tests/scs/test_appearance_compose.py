@@ -279,3 +279,21 @@ def test_a_pool_model_without_keyframes_is_refused_before_any_scene_and_the_colo
     assert pool_objects(broken.root, (truck,)) == [truck]
     got = scene_colour_transform(graph, scene, broken, config=ColourFitConfig(min_view_pixels=50))
     assert np.allclose(got.affine, IDENTITY) and "could not be matched" in got.reason
+
+
+def test_an_object_that_fits_nowhere_gives_way_to_the_next_and_is_recorded(scene, graph, resolve, pool):
+    from omniscs.nsg.edit import AgentModel
+    from omniscs.scs.appearance.placement import PlacementConfig
+    from omniscs.scs.appearance.variants import AppearanceConfig, make_appearance_variants
+
+    truck, car = _ids(pool)
+    real = resolve(car)
+    giant = AgentModel(real.gaussians, np.array([60.0, 30.0, 5.0]), real.category)
+    models = {"pm-giant": giant, car: real}
+    config = AppearanceConfig(placements=("insert",), placement=PlacementConfig(distance_m=(10.0, 30.0),
+                                                                                min_visible_frames=2), seed=1)
+    drawn = make_appearance_variants(graph, scene, lambda m: models[m], ["pm-giant", car], 2, config)
+    assert [v["object_id"] for v in drawn.variants] == [car, car]
+    assert sum(len(r["objects_that_fit_nowhere"]) for r in drawn.placements) == 1
+    assert drawn.placements[[len(r["objects_that_fit_nowhere"]) > 0 for r in drawn.placements].index(True)][
+        "objects_that_fit_nowhere"][0]["object_id"] == "pm-giant"

@@ -92,7 +92,7 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
     placement sampler finds a valid pose (no overlap with any agent, static object, the ego or another inserted
     object at any frame; on the road; in view for enough frames); a replace takes a vehicle node whose trajectory
     the object's own size keeps valid, else the variant is an insert. An impossible request is an OmniscsError."""
-    from omniscs.scs.appearance.placement import placement_context, sample_placements
+    from omniscs.scs.appearance.placement import PlacementError, placement_context, sample_placements
 
     if n < 1:
         raise OmniscsError(f"ask for at least one appearance variant; got {n}")
@@ -121,8 +121,23 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
                         "place; the object is inserted instead", vid, scene.scene_id, model_id, *model.size)
         pose_name = config.poses[sum(v["placement"] == "insert" for v in variants) % len(config.poses)]
         roll, pitch = POSES[pose_name]
-        box = model_upright_box(model, roll, pitch)
-        result = sample_placements(context, box, 1, config.placement, int(rng.integers(2**31)))
+        failed = []
+        for attempt in range(len(order)):  # an object that fits nowhere (longer than the road is wide) gives way
+            if attempt:
+                model_id = order[(i + attempt) % len(order)]
+                model = resolve(model_id)
+            box = model_upright_box(model, roll, pitch)
+            try:
+                result = sample_placements(context, box, 1, config.placement, int(rng.integers(2**31)))
+                break
+            except PlacementError as exc:
+                failed.append({"object_id": model_id, "error": str(exc), **exc.result.to_dict()})
+        else:
+            raise OmniscsError(f"variant {vid} of {scene.scene_id}: none of the {len(order)} object(s) can be placed "
+                               f"{pose_name.replace('_', ' ')}; the first: {failed[0]['error']}")
+        if failed:
+            log.warning("variant %s of %s: %d object(s) fit nowhere %s (e.g. %s); %s is placed instead", vid,
+                        scene.scene_id, len(failed), pose_name, failed[0]["object_id"], model_id)
         x, y, z, yaw = (float(v) for v in result.placements[0])
         z -= 0.5 * float(box[2])  # the sampler gives the box centre; the variant stands on the road there
         track = new_track_id(scene, graph, taken)
@@ -130,7 +145,7 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
         variants.append(insert_variant(scene.scene_id, vid, track, model, model_id, x, y, z, yaw, roll, pitch))
         variants[-1]["pose"]["name"] = pose_name
         records.append({"variant_id": vid, "placement": "insert", "track_id": track, "pose_name": pose_name,
-                        **result.to_dict()})
+                        "objects_that_fit_nowhere": failed, **result.to_dict()})
     progress(n, n, "appearance variants drawn")
     return AppearanceVariants(variants, records, colour)
 
