@@ -1,0 +1,26 @@
+"""The detection protocol end to end on one train and one test scene (slow: it fits two scene graphs and renders
+their appearance variants)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+
+@pytest.mark.slow
+def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_tuned(tmp_path):
+    from omniscs.bench.detection_protocol import quick_config, run_detection_protocol
+
+    run_detection_protocol(tmp_path / "reports", tmp_path / "ws", quick_config())
+    report = json.loads((tmp_path / "reports" / "downstream_detection_bench.json").read_text())
+    assert set(report["rows"]) == {"appearance-SCS test", "original test"}
+    for models in report["rows"].values():
+        assert set(models) == {"base", "fine-tuned"}
+        for m in models.values():
+            assert m["n_samples"] > 0 and 0.0 <= m["mAP"] <= 1.0 and np.isfinite(m["NDS"]) and m["classes"]
+    # the appearance-SCS test set holds the composited objects' classes besides the log's own
+    scs_boxes = report["rows"]["appearance-SCS test"]["base"]["gt_boxes"]
+    assert sum(scs_boxes.values()) > sum(report["rows"]["original test"]["base"]["gt_boxes"].values())
+    assert (tmp_path / "reports" / "downstream_detection_bench.png").stat().st_size > 5_000
+    assert "proxy" in (tmp_path / "reports" / "downstream_detection_bench.md").read_text()
