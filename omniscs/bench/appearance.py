@@ -101,14 +101,10 @@ def bench_pool(root: Path, per_kind: int, progress: Progress = no_progress):
 
 # ----------------------------------------------------------------------------- one case
 def _gt_renderer(world, variant: dict, asset_of):
-    from omniscs.edits import Insert, ReplaceModel, parse_edits
-    import dataclasses
+    from omniscs.pipeline.procedural import appearance_world
+    from omniscs.world import WorldRenderer
 
-    from omniscs.world import WorldRenderer, apply_edits
-
-    edits = [dataclasses.replace(e, asset_id=asset_of(e.asset_id)) if isinstance(e, (Insert, ReplaceModel)) else e
-             for e in parse_edits(variant["edits"])]
-    return WorldRenderer(apply_edits(world, edits))
+    return WorldRenderer(appearance_world(world, variant, asset_of))
 
 
 def evaluation_views(renderer, scene, track_id: int, config: AppearanceBenchConfig):
@@ -350,7 +346,7 @@ def run_appearance_benchmark(out_dir: Path, workspace: Path | None = None,
                 continue
             model_id = options[0]
             model = resolve(model_id)
-            candidates = _replaceable(graph, scene, model, context, pconfig)
+            candidates = _replaceable(graph, model, context, pconfig)
             if candidates:
                 track = int(candidates[int(rng.integers(len(candidates)))])
                 variants.append(replace_variant(scene.scene_id, f"a{len(variants):03d}", track, model, model_id))

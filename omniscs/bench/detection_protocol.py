@@ -23,12 +23,13 @@ import numpy as np
 
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.eval.detector import DetectorTrainConfig
+from omniscs.pipeline.downstream import DETECTOR_VERSION
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import workspace_root
 
 log = logging.getLogger(__name__)
 
-VERSION = "v1.0-trainval"
+VERSION = DETECTOR_VERSION  # the dataroots the protocol exports and reads
 
 
 @dataclass(frozen=True)
@@ -101,10 +102,10 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
 def _export(stores: list[str], out: Path, keyframe_every: int | None = None) -> Path:
     """The stores as one nuScenes dataroot (``keyframe_every`` None: the 2 Hz keyframes the protocol evaluates;
     training sets take every frame, as the shipped detector's training did)."""
-    from omniscs.export import export_scenes
+    from omniscs.pipeline.downstream import export_dataroot
 
-    if not (out / VERSION / "sample.json").is_file():
-        export_scenes(stores, "nuscenes", out, overwrite=True, version=VERSION, keyframe_every=keyframe_every)
+    if not (out / VERSION / "sample.json").is_file():  # made by an earlier run: reused
+        export_dataroot(stores, out, keyframe_every)
     return out
 
 

@@ -125,13 +125,11 @@ def user_variants(scene, graph, resolve, insert: str | None = None, pose: str | 
     """One appearance variant from a user's request: ``insert`` (model id) at ``pose`` or ``replace`` (track id)
     ``with_model``; the placement checks run on it and a failure is one OmniscsError saying which and why (never a
     silent overlap)."""
-    import dataclasses
-
     import numpy as np
 
     from omniscs.scs.appearance.compose import insert_variant, model_upright_box, new_track_id, replace_variant
-    from omniscs.scs.appearance.placement import Obstacles, check_placement, placement_context
-    from omniscs.scs.appearance.variants import AppearanceConfig
+    from omniscs.scs.appearance.placement import check_placement, placement_context
+    from omniscs.scs.appearance.variants import AppearanceConfig, replacement_check
 
     config = config or AppearanceConfig()
     if (insert is None) == (replace is None):
@@ -154,11 +152,7 @@ def user_variants(scene, graph, resolve, insert: str | None = None, pose: str | 
         raise OmniscsError("--replace TRACK needs --with MODEL (a pool model id)")
     node = graph.agent(int(replace))  # a clear error for a track that is not a node
     model = resolve(with_model)
-    frames = np.flatnonzero(node.present)
-    T = node.world_from_agent[frames]
-    poses = np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], 1)
-    others = dataclasses.replace(context, obstacles=Obstacles.from_scene(scene, exclude=(int(replace),)))
-    check = check_placement(others, np.asarray(model.size, dtype=np.float64), poses, config.placement, frames=frames)
+    check = replacement_check(context, node, model.size, config.placement)
     if not check.ok:
         raise OmniscsError(f"track {replace} with {with_model} ({model.size[0]:.1f} x {model.size[1]:.1f} m) in its "
                            f"place: " + "; ".join(check.failures))

@@ -54,6 +54,12 @@ def _planner(model: StageRecord | None):
     return load_planner(None if model is None else model.path)
 
 
+def _model_row(model_id: str, kind: str, base_model_id: str, dataset_ids: list[str], out: Path, settings: dict) -> dict:
+    """The ``downstream_models`` row of a proxy fine-tune, less its outcome (status, counts, seconds, error)."""
+    return {"model_id": model_id, "kind": kind, "base_model_id": base_model_id, "dataset_ids": list(dataset_ids),
+            "path": str(out), "command": None, "log_path": None, "config_json": json.dumps(settings, sort_keys=True)}
+
+
 def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, base: str | Path | None = None,
                    progress: Progress = no_progress, reuse: bool = True) -> StageRecord:
     """The proxy planner fine-tuned from ``base`` (default: the shipped one) on the datasets' behaviour-SCS
@@ -71,9 +77,8 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
     key = StageKey.of("finetune", FINETUNE_VERSION, inputs, settings)
     model_id = content_id("proxy-planner", {"key": key.digest})
     out = layout.downstream_folder(workspace, model_id)
-    row = {"model_id": model_id, "kind": "proxy_planner", "base_model_id": BASE_MODEL_ID if base is None
-           else str(base), "dataset_ids": list(dataset_ids), "path": str(out), "command": None, "log_path": None,
-           "config_json": json.dumps(settings, sort_keys=True)}
+    row = _model_row(model_id, "proxy_planner", BASE_MODEL_ID if base is None else str(base), dataset_ids, out,
+                     settings)
     with output_lock(out):
         manifest = reusable(out, key) if reuse else None
         reused = manifest is not None
@@ -119,7 +124,8 @@ def _dataset_stores(dataset: Path) -> list[str]:
     return sorted(str(p) for p in (dataset / "scenes").iterdir() if (p / "manifest.json").is_file())
 
 
-def _dataroot(stores: list[str], out: Path, keyframe_every: int | None) -> Path:
+def export_dataroot(stores: list[str], out: Path, keyframe_every: int | None) -> Path:
+    """Scene stores as one nuScenes dataroot (DETECTOR_VERSION) at ``out``, replacing what is there."""
     from omniscs.export import export_scenes
 
     return export_scenes(stores, "nuscenes", out, overwrite=True, version=DETECTOR_VERSION,
@@ -147,9 +153,8 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
     key = StageKey.of("finetune-detector", FINETUNE_VERSION, inputs, settings)
     model_id = content_id("proxy-detector", {"key": key.digest})
     out = layout.downstream_folder(workspace, model_id)
-    row = {"model_id": model_id, "kind": "proxy_detector", "base_model_id": DETECTOR_BASE_ID if base is None
-           else str(base), "dataset_ids": list(dataset_ids), "path": str(out), "command": None, "log_path": None,
-           "config_json": json.dumps(settings, sort_keys=True)}
+    row = _model_row(model_id, "proxy_detector", DETECTOR_BASE_ID if base is None else str(base), dataset_ids, out,
+                     settings)
     with output_lock(out):
         manifest = reusable(out, key) if reuse else None
         reused = manifest is not None
@@ -161,9 +166,9 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
             def make(tmp: Path) -> dict:
                 data = Path(tempfile.mkdtemp(prefix=".detector-data-", dir=tmp))
                 try:
-                    roots = [(_dataroot(stores, data / "variants", 1), DETECTOR_VERSION)]
+                    roots = [(export_dataroot(stores, data / "variants", 1), DETECTOR_VERSION)]
                     if logs:
-                        roots.append((_dataroot(logs, data / "logs", 1), DETECTOR_VERSION))
+                        roots.append((export_dataroot(logs, data / "logs", 1), DETECTOR_VERSION))
                     model, record = train_detector(roots, config, init=base_model, progress=progress)
                 finally:
                     shutil.rmtree(data, ignore_errors=True)
@@ -208,7 +213,7 @@ def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], w
                                            f"dataset {did} has no {split} scene store in this workspace"))
                     continue
                 try:
-                    metrics = evaluate_detector(detector, _dataroot(stores, data / split, None), DETECTOR_VERSION,
+                    metrics = evaluate_detector(detector, export_dataroot(stores, data / split, None), DETECTOR_VERSION,
                                                 data / f"{split}-results.json")
                 except ValidationError as exc:  # e.g. no evaluated box: recorded, not a lost run
                     rows.append(failed_row(eval_id, model_id, did, "detection", split, str(exc)))

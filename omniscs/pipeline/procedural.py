@@ -126,26 +126,36 @@ def world_description(scene):
     return describe
 
 
+def appearance_world(world, variant: dict, asset_of):
+    """The procedural ``world`` with an appearance variant's edits, each object model replaced by the library asset it
+    was built from (``asset_of(model id) -> asset id`` or None); None when an object has no asset of the library."""
+    from omniscs.edits import Insert, ReplaceModel, parse_edits
+    from omniscs.world import apply_edits
+
+    edits = []
+    for e in parse_edits(variant["edits"]):
+        if isinstance(e, (Insert, ReplaceModel)):
+            asset = asset_of(e.asset_id)
+            if asset is None:
+                return None
+            e = dataclasses.replace(e, asset_id=asset)
+        edits.append(e)
+    return apply_edits(world, edits)
+
+
 def appearance_reference(scene, asset_of):
-    """For a procedural scene, ``variant -> Reference`` of appearance variants: the world with the variant's edits,
-    each object model replaced by the library asset it was built from (``asset_of(model id) -> asset id`` or None),
-    ray-cast; None for recorded logs, and a variant whose object has no asset of the library gets no reference."""
+    """For a procedural scene, ``variant -> Reference`` of appearance variants: ``appearance_world`` ray-cast; None
+    for recorded logs, and a variant whose object has no asset of the library gets no reference."""
     world = scene.world
     if world is None:
         return None
-    from omniscs.edits import Insert, ReplaceModel, parse_edits
-    from omniscs.world import WorldRenderer, apply_edits
+    from omniscs.world import WorldRenderer
 
     def for_variant(variant: dict):
-        edits = []
-        for e in parse_edits(variant["edits"]):
-            if isinstance(e, (Insert, ReplaceModel)):
-                asset = asset_of(e.asset_id)
-                if asset is None:
-                    return None
-                e = dataclasses.replace(e, asset_id=asset)
-            edits.append(e)
-        renderer = WorldRenderer(apply_edits(world, edits))
+        edited = appearance_world(world, variant, asset_of)
+        if edited is None:
+            return None
+        renderer = WorldRenderer(edited)
 
         def reference(vf, camera: str, t: int):
             r = renderer.render_camera(int(vf.scene_frames[t]), camera)

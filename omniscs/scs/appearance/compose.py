@@ -222,14 +222,15 @@ def compose_variant(graph: SceneGraph, variant: dict, resolve: ModelResolver, co
         if colour.shape != (3, 4) or not np.all(np.isfinite(colour)):
             raise OmniscsError(f"variant {variant.get('variant_id')}: colour must be a finite 3 x 4 matrix [A | b]")
     edits = parse_edits(variant["edits"])
-    models = colour_resolver(resolve, colour if config.colour_fit else None)
+    loaded: dict[str, AgentModel] = {}  # each model read once, checked, then handed to the edits
     for e in edits:
-        if isinstance(e, (Insert, ReplaceModel)):
-            model = resolve(e.asset_id)
+        if isinstance(e, (Insert, ReplaceModel)) and e.asset_id not in loaded:
+            model = loaded[e.asset_id] = resolve(e.asset_id)
             if not isinstance(model.gaussians, GaussianParams) or len(model.gaussians) == 0:
                 raise OmniscsError(f"variant {variant.get('variant_id')}: model {e.asset_id} has no Gaussians")
             if not model.gaussians.is_finite():
                 raise OmniscsError(f"variant {variant.get('variant_id')}: model {e.asset_id} has non-finite parameters")
+    models = colour_resolver(lambda a: loaded[a] if a in loaded else resolve(a), colour if config.colour_fit else None)
     edited = apply_graph_edits(graph, edits, models)
     before = {a.track_id for a in graph.agents}
     after = {a.track_id: a for a in edited.agents}

@@ -169,6 +169,11 @@ class Obstacles:
     def __len__(self) -> int:
         return len(self.frame_idx)
 
+    def without(self, track_ids) -> Obstacles:
+        """These obstacles less the boxes of ``track_ids`` (e.g. the agent an object replaces)."""
+        keep = ~np.isin(self.track_id, np.asarray(list(track_ids), dtype=np.int64))
+        return Obstacles(self.frame_idx[keep], self.track_id[keep], self.centre[keep], self.size[keep], self.yaw[keep])
+
 
 @dataclass(frozen=True)
 class Cameras:

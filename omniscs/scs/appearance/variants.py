@@ -64,24 +64,25 @@ class AppearanceVariants:
     colour: dict | None      # the scene's colour transform (``ColourTransform.to_dict``)
 
 
-def _replaceable(graph, scene, model, context, config: PlacementConfig) -> list[int]:
-    """Vehicle nodes whose whole trajectory stays valid (every placement check, the node itself left out of the
-    obstacles) with the object's own size in their place."""
+def replacement_check(context, node, size, config: PlacementConfig):
+    """Every placement check on ``node``'s whole trajectory with a box of ``size`` in its place (the node itself left
+    out of the obstacles): whether an object of that size may replace it."""
     import dataclasses
 
-    from omniscs.scs.appearance.placement import Obstacles, check_placement
+    from omniscs.scs.appearance.placement import check_placement
 
-    out = []
-    for node in graph.agents:
-        if node.category not in VEHICLE_CATEGORIES or not node.present.any():
-            continue
-        frames = np.flatnonzero(node.present)
-        T = node.world_from_agent[frames]
-        poses = np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], 1)
-        others = dataclasses.replace(context, obstacles=Obstacles.from_scene(scene, exclude=(node.track_id,)))
-        if check_placement(others, np.asarray(model.size, dtype=np.float64), poses, config, frames=frames).ok:
-            out.append(node.track_id)
-    return out
+    frames = np.flatnonzero(node.present)
+    T = node.world_from_agent[frames]
+    poses = np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], 1)
+    others = dataclasses.replace(context, obstacles=context.obstacles.without([node.track_id]))
+    return check_placement(others, np.asarray(size, dtype=np.float64), poses, config, frames=frames)
+
+
+def _replaceable(graph, model, context, config: PlacementConfig) -> list[int]:
+    """Vehicle nodes whose whole trajectory stays valid with the object's own size in their place."""
+    return [node.track_id for node in graph.agents
+            if node.category in VEHICLE_CATEGORIES and node.present.any()
+            and replacement_check(context, node, model.size, config).ok]
 
 
 def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list[str], n: int,
@@ -110,7 +111,7 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
         placement = config.placements[i % len(config.placements)]
         if placement == "replace":
             used = {v["track_id"] for v in variants if v["placement"] == "replace"}
-            options = [t for t in _replaceable(graph, scene, model, context, config.placement) if t not in used]
+            options = [t for t in _replaceable(graph, model, context, config.placement) if t not in used]
             if options:
                 track = int(options[int(rng.integers(len(options)))])
                 variants.append(replace_variant(scene.scene_id, vid, track, model, model_id))
