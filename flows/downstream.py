@@ -39,18 +39,20 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
                       run_id: str | None = None, upstream_flow_run: str | None = None,
                       external_template: str | None = None, external_values: dict | None = None,
                       external_timeout_s: float = 6 * 3600.0, external_export: str | None = "uniad",
-                      tasks: list[str] | None = None) -> dict:
+                      tasks: list[str] | None = None, detector_rehearsal: list[str] | None = None) -> dict:
     """Fine-tune and evaluate on ``dataset_ids`` (or the datasets of ``upstream_flow_run``). ``model="proxy"``:
     the embedded proxies of ``tasks`` (default ``["planning"]``; ``"detection"``: the proxy camera detector, made for
     datasets with appearance variants), each evaluated before (base) and after fine-tuning on ``test_dataset_ids``
     (default: the training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
     ``external_template`` run as a job (``omniscs.eval.external``) on the exported datasets. Returns the run id,
-    model records and evaluation ids; a model that fails is recorded failed and the run ends failed."""
+    model records and evaluation ids; a model that fails is recorded failed and the run ends failed.
+    ``detector_rehearsal``: nuScenes dataroots the base detector was trained on, mixed into its fine-tuning."""
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
     config = {"dataset_ids": dataset_ids, "model": model, "test_dataset_ids": test_dataset_ids,
-              "upstream_flow_run": upstream_flow_run, "external_template": external_template, "tasks": tasks}
+              "upstream_flow_run": upstream_flow_run, "external_template": external_template, "tasks": tasks,
+              "detector_rehearsal": detector_rehearsal}
     records: list[StageRecord] = []
     try:
         if model not in MODELS:
@@ -70,7 +72,7 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
                 if tuned.info.get("status") == "trained":
                     records.append(t.evaluate(tuned, tests, ws, tuned.info["model_id"]))
             if "detection" in wanted:
-                tuned = t.finetune_detector(datasets, ws)
+                tuned = t.finetune_detector(datasets, ws, detector_rehearsal)
                 records.append(tuned)
                 records.append(t.evaluate_detector(None, tests, ws, "base"))
                 records.append(t.evaluate_detector(tuned, tests, ws, tuned.info["model_id"]))

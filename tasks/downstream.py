@@ -20,8 +20,8 @@ def evaluate(model: StageRecord | None, dataset_ids: list[str], workspace: str, 
 
 
 @task(name="finetune-proxy-detector", **STAGE_TASK_OPTIONS)
-def finetune_detector(dataset_ids: list[str], workspace: str) -> StageRecord:
-    return d.finetune_detector_stage(dataset_ids, workspace,
+def finetune_detector(dataset_ids: list[str], workspace: str, rehearsal: list[str] | None = None) -> StageRecord:
+    return d.finetune_detector_stage(dataset_ids, workspace, rehearsal=rehearsal,
                                      progress=artifact_progress("fine-tune the proxy camera detector"))
 
 

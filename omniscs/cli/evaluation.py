@@ -99,6 +99,10 @@ def finetune(
     run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
     task: list[str] = typer.Option([], "--task", help="proxy: planning (the proxy planner, default) and/or "
                                                       "detection (the proxy camera detector); repeat for both."),
+    rehearse: list[Path] = typer.Option([], "--rehearse", help="detection: a nuScenes dataroot the base detector "
+                                                               "was trained on, mixed into the fine-tuning so it "
+                                                               "does not forget it (repeat; the shipped detector's: "
+                                                               "python -m omniscs.bench.detector_data)."),
 ) -> None:
     """Fine-tune on generated datasets and evaluate (the finetune_evaluate flow); results go to the catalog
     (downstream_models, evaluations)."""
@@ -115,13 +119,18 @@ def finetune(
         raise typer.BadParameter("needed with --model external", param_hint="--external-template")
     ws = workspace_path(workspace)
     dataset_paths(ws, list(datasets) + list(test_dataset))  # unknown ids fail here, before Prefect starts
+    from omniscs.pipeline.downstream import dataroot_version
+
+    for root in rehearse:
+        dataroot_version(root)  # and so does a folder that is not a dataroot
     from flows.downstream import finetune_evaluate
 
     with prefect_api():
         out = finetune_evaluate(list(datasets), model=model, test_dataset_ids=list(test_dataset) or None,
                                 workspace=str(ws), run_id=run_id, external_template=external_template,
                                 external_values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
-                                external_timeout_s=timeout_s, tasks=list(task) or None)
+                                external_timeout_s=timeout_s, tasks=list(task) or None,
+                                detector_rehearsal=[str(r) for r in rehearse] or None)
     console.print(f"run {out['run_id']}: " + ", ".join(f"{m.get('model_id')} ({m.get('status', 'evaluated')})"
                                                     for m in out["models"]))
     console.print(f"see: omniscs catalog query \"SELECT model_id, split, metric, horizon, value FROM evaluations "

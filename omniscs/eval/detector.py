@@ -17,19 +17,24 @@ top-down path back to stride 4 (``STRIDE``) adding 1x1 lateral projections, then
     intrinsics and input sizes read the same); log size (width, length, height: the nuScenes order) relative to the
     class's typical size (3); sin and cos of the *observation angle* alpha = global yaw - ground-plane azimuth of the
     ray from the camera to the centre (2: what an image shows of a box's heading; the same for every camera);
-    velocity along and across that ray (m/s over ``VELOCITY_SCALE``: 2).
+    velocity along and across that ray (m/s over ``VELOCITY_SCALE``: 2); the ground contact, where the box's bottom
+    centre projects, relative to the cell (2).
 Losses: CenterNet's penalty-reduced focal loss on the heatmaps (Gaussian peaks of the radius CenterNet derives from
 the projected 2D box) and L1 on each regression at the object centres, each normalised by the number of centres.
-Decoding: 3x3 max-pool peaks, the top ``DetectConfig.top_k`` per image above ``score_threshold``, back-projection
-with the intrinsics and predicted depth, camera -> ego -> global, and a centre-distance NMS per class across the
-cameras of a sample.
+Decoding: 3x3 max-pool peaks, the top ``DetectConfig.top_k`` per image above ``score_threshold``, each centre placed
+twice: back-projected with the regressed depth, and read from the ground (the ray through the contact pixel meets the
+ego's z = 0 plane, the centre is half the box height above it; a flat-ground assumption). The two are weighed by their
+expected errors at that distance (inverse variances, from errors measured on the training images after training:
+``calibrate_depth``): the ground reading is precise near the camera and loses a row's worth of precision
+quadratically with distance, the regressed depth errs in proportion to it. Then camera -> ego -> global, and a
+centre-distance NMS per class across the cameras of a sample.
 """
 from __future__ import annotations
 
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +50,9 @@ from omniscs.storage import atomic_directory, atomic_write_json, atomic_write_te
 
 #: Output stride of the heads (input pixels per heatmap cell).
 STRIDE = 4
-#: Regression channels: offset (2), log depth (1), log size (3: w, l, h), sin / cos of alpha (2), velocity (2).
-REGRESSION = 10
+#: Regression channels: offset (2), log depth (1), log size (3: w, l, h), sin / cos of alpha (2), velocity (2),
+#: ground contact (2: where the box's bottom centre projects, relative to the cell like the offset).
+REGRESSION = 12
 #: Velocities are regressed divided by this (m/s).
 VELOCITY_SCALE = 10.0
 #: Typical box size (width, length, height; m) per class: the sizes are regressed as log ratios to these.
@@ -87,6 +93,11 @@ class DetectorConfig:
     """Initial depth of the depth head (its bias)."""
     heatmap_prior: float = 0.1
     """Initial heatmap probability (CenterNet's bias of -2.19)."""
+    depth_error: float | None = None
+    """Mean relative error of the regressed depth (|z / z_true - 1|), measured on the training images after training
+    (``calibrate_depth``); None: not measured, the regressed depth is used alone."""
+    contact_error_px: float | None = None
+    """Mean error (input px) of the regressed ground-contact point's row, measured with ``depth_error``."""
 
     def __post_init__(self):
         if len(self.widths) != 4 or min(self.widths) < 1 or self.head_width < 1:
@@ -98,6 +109,10 @@ class DetectorConfig:
             raise ValidationError(f"detector classes must be distinct nuScenes detection names; got {self.classes}")
         if not (self.reference_focal > 0 and self.depth_prior_m > 0 and 0 < self.heatmap_prior < 1):
             raise ValidationError("reference_focal and depth_prior_m must be positive, heatmap_prior in (0, 1)")
+        for name in ("depth_error", "contact_error_px"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValidationError(f"{name} must be a positive finite number or None; got {value}")
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
         object.__setattr__(self, "classes", tuple(str(c) for c in self.classes))
 
@@ -135,12 +150,17 @@ class DetectorTrainConfig:
     weight_size: float = 1.0
     weight_rotation: float = 1.0
     weight_velocity: float = 0.5
+    weight_contact: float = 1.0
+    calibration_images: int = 512
+    """Training images (evenly spaced) on which the errors that weigh regressed against ground-contact depth are
+    measured after training (0: not measured; the regressed depth is then used alone)."""
     log_every: int = 50
     """Steps per entry of the recorded loss curve."""
 
     def __post_init__(self):
-        if self.steps < 1 or self.batch_size < 1 or self.threads < 1 or self.log_every < 1:
-            raise ValidationError("steps, batch_size, threads and log_every must be >= 1")
+        if self.steps < 1 or self.batch_size < 1 or self.threads < 1 or self.log_every < 1 \
+                or self.calibration_images < 0:
+            raise ValidationError("steps, batch_size, threads and log_every must be >= 1, calibration_images >= 0")
         if not (self.lr > 0) or self.weight_decay < 0 or not 0 < self.near_m < self.max_depth_m:
             raise ValidationError("lr must be > 0, weight_decay >= 0 and 0 < near_m < max_depth_m")
         if self.min_visibility not in (1, 2, 3, 4) or not 0 < self.min_overlap < 1:
@@ -268,6 +288,7 @@ class CameraView:
     height: int
     intrinsics: np.ndarray          # [3, 3] px
     global_from_camera: np.ndarray  # [4, 4] OpenCV camera (x right, y down, z forward) -> global
+    global_from_ego: np.ndarray     # [4, 4] the ego frame (its z = 0 plane is the ground under the car) -> global
 
 
 @dataclass(frozen=True)
@@ -281,6 +302,7 @@ class ViewBoxes:
     velocity: np.ndarray  # [N, 2] m/s along and across the camera ray (NaN: unknown)
     label: np.ndarray     # [N] int, index into the detector's classes
     extent: np.ndarray    # [N, 2] height and width (px) of the projected box, clipped to the image
+    contact: np.ndarray   # [N, 2] where the box's bottom centre (its ground contact) projects, px
 
     def __len__(self) -> int:
         return len(self.label)
@@ -300,10 +322,10 @@ def camera_views(tables: NuScenesTables, samples: list[str]) -> dict[str, list[C
         K = np.asarray(calib.get("camera_intrinsic") or [], np.float64)
         if K.shape != (3, 3):
             raise ValidationError(f"calibrated_sensor {calib['token']} ({ch}) has no 3x3 camera_intrinsic")
-        global_from_camera = transform_of(tables["ego_pose"][sd["ego_pose_token"]]) @ transform_of(calib)
+        global_from_ego = transform_of(tables["ego_pose"][sd["ego_pose_token"]])
         out[sd["sample_token"]].append(CameraView(sd["sample_token"], ch, tables.root / sd["filename"],
                                                   int(sd.get("width") or 0), int(sd.get("height") or 0), K,
-                                                  global_from_camera))
+                                                  global_from_ego @ transform_of(calib), global_from_ego))
     if not any(out.values()):
         raise ValidationError(f"{tables.root / tables.version} has no camera keyframes (sample_data of a CAM_* channel "
                               f"with is_key_frame) in the {len(samples)} chosen samples; the camera detector needs "
@@ -354,13 +376,17 @@ def view_boxes(view: CameraView, annotations: list[dict], classes: tuple[str, ..
         x1, y1 = np.clip(cuv.max(0), 0, [view.width, view.height])
         yaw = yaw_from_quaternion(np.asarray(ann["rotation"]))
         azimuth = ray_azimuth(centre, view.global_from_camera)[0]
+        bottom = centre - [0.0, 0.0, float(ann["size"][2]) / 2]  # nuScenes boxes turn about z only
+        buv, bz = project_to_camera(bottom, view.intrinsics, view.global_from_camera)
+        buv = buv[0] if bz[0] > 0.1 else uv[0]
         vel = np.asarray(ann["velocity"], np.float64)
         along = vel[0] * np.cos(azimuth) + vel[1] * np.sin(azimuth)
         across = -vel[0] * np.sin(azimuth) + vel[1] * np.cos(azimuth)
         rows.append((u, v, z, *ann["size"], float(observation_angle(yaw, centre, view.global_from_camera)[0]),
-                     along, across, index[ann["detection_name"]], y1 - y0, x1 - x0))
-    a = np.array(rows, np.float64).reshape(-1, 12)
-    return ViewBoxes(a[:, 0:2], a[:, 2], a[:, 3:6], a[:, 6], a[:, 7:9], a[:, 9].astype(np.int64), a[:, 10:12])
+                     along, across, index[ann["detection_name"]], y1 - y0, x1 - x0, *buv))
+    a = np.array(rows, np.float64).reshape(-1, 14)
+    return ViewBoxes(a[:, 0:2], a[:, 2], a[:, 3:6], a[:, 6], a[:, 7:9], a[:, 9].astype(np.int64), a[:, 10:12],
+                     a[:, 12:14])
 
 
 def load_image(view: CameraView, width: int, height: int) -> np.ndarray:  # -> uint8 [3, height, width]
@@ -394,7 +420,7 @@ def _with_size(view: CameraView) -> CameraView:
         raise ValidationError(f"camera image {view.image_path} of sample {view.sample_token} is missing or "
                               f"unreadable ({e})") from e
     return CameraView(view.sample_token, view.channel, view.image_path, w, h, view.intrinsics,
-                      view.global_from_camera)
+                      view.global_from_camera, view.global_from_ego)
 
 
 # ----------------------------------------------------------------------------- network
@@ -424,7 +450,8 @@ class ProxyDetector(nn.Module):
             self.reg_head[-1].bias[7] = 1.0  # cos alpha
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        # images uint8 or float [B, 3, H, W] (0..255) -> heatmap logits [B, C, H/4, W/4], regression [B, 10, H/4, W/4]
+        # images uint8 or float [B, 3, H, W] (0..255) -> heatmap logits [B, C, H/4, W/4],
+        # regression [B, REGRESSION, H/4, W/4]
         x = images.float() / 255.0 - 0.5
         b, _, hgt, wid = x.shape
         ys = torch.linspace(-1, 1, hgt, dtype=x.dtype).view(1, 1, hgt, 1).expand(b, 1, hgt, wid)
@@ -469,7 +496,7 @@ class TrainingSet:
 
 def _scaled(boxes: ViewBoxes, sx: float, sy: float) -> ViewBoxes:
     return ViewBoxes(boxes.uv * [sx, sy], boxes.depth, boxes.size, boxes.alpha, boxes.velocity, boxes.label,
-                     boxes.extent * [sy, sx])
+                     boxes.extent * [sy, sx], boxes.contact * [sx, sy])
 
 
 def training_set(dataroots: list[tuple[str | Path, str]], config: DetectorConfig = DetectorConfig(),
@@ -495,10 +522,10 @@ def training_set(dataroots: list[tuple[str | Path, str]], config: DetectorConfig
 
 
 def _flipped(boxes: ViewBoxes, width: int) -> ViewBoxes:
-    uv = boxes.uv.copy()
-    uv[:, 0] = width - uv[:, 0]
+    uv, contact = boxes.uv.copy(), boxes.contact.copy()
+    uv[:, 0], contact[:, 0] = width - uv[:, 0], width - contact[:, 0]
     return ViewBoxes(uv, boxes.depth, boxes.size, -boxes.alpha, boxes.velocity * [1.0, -1.0], boxes.label,
-                     boxes.extent)
+                     boxes.extent, contact)
 
 
 def _draw_gaussian(heat: np.ndarray, cx: int, cy: int, radius: int) -> None:  # heat [H, W], in place (max)
@@ -513,8 +540,8 @@ def _draw_gaussian(heat: np.ndarray, cx: int, cy: int, radius: int) -> None:  # 
 
 def targets(batch: list[ViewBoxes], focal: np.ndarray, config: DetectorConfig, train: DetectorTrainConfig
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(heatmaps [B, C, h, w], regression targets [B, 10, h, w], regression mask [B, 10, h, w]) of boxes in input
-    pixels; where two centres fall in one cell the nearer box wins."""
+    """(heatmaps [B, C, h, w], regression targets [B, REGRESSION, h, w], regression mask [B, REGRESSION, h, w]) of
+    boxes in input pixels; where two centres fall in one cell the nearer box wins."""
     oh, ow = output_size(config)
     heat = np.zeros((len(batch), len(config.classes), oh, ow), np.float32)
     reg = np.zeros((len(batch), REGRESSION, oh, ow), np.float32)
@@ -529,7 +556,8 @@ def targets(batch: list[ViewBoxes], focal: np.ndarray, config: DetectorConfig, t
             vel = boxes.velocity[i] / VELOCITY_SCALE
             reg[b, :, cy, cx] = [c[0] - cx, c[1] - cy, math.log(boxes.depth[i] * config.reference_focal / focal[b]),
                                  *(np.log(boxes.size[i]) - prior[boxes.label[i]]), math.sin(boxes.alpha[i]),
-                                 math.cos(boxes.alpha[i]), *np.nan_to_num(vel)]
+                                 math.cos(boxes.alpha[i]), *np.nan_to_num(vel),
+                                 *(boxes.contact[i] / STRIDE - [cx, cy])]
             mask[b, :, cy, cx] = 1.0
             if not np.isfinite(vel).all():
                 mask[b, 8:10, cy, cx] = 0.0
@@ -554,7 +582,8 @@ def detection_losses(heat_logits: torch.Tensor, regression: torch.Tensor, heat: 
 
     terms = {"heatmap": focal_loss(heat_logits, heat), "offset": train.weight_offset * l1(slice(0, 2)),
              "depth": train.weight_depth * l1(slice(2, 3)), "size": train.weight_size * l1(slice(3, 6)),
-             "rotation": train.weight_rotation * l1(slice(6, 8)), "velocity": train.weight_velocity * l1(slice(8, 10))}
+             "rotation": train.weight_rotation * l1(slice(6, 8)), "velocity": train.weight_velocity * l1(slice(8, 10)),
+             "contact": train.weight_contact * l1(slice(10, 12))}
     terms["total"] = sum(terms.values())
     return terms
 
@@ -615,21 +644,55 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
                 window = []
             progress(step + 1, config.steps, f"loss {losses['total'].item():.3f}")
         model.eval()
+        calibration = calibrate_depth(model, data, config.calibration_images)
+        if calibration["depth_error"] is not None:
+            model.config = replace(model.config, depth_error=calibration["depth_error"],
+                                   contact_error_px=calibration["contact_error_px"])
     finally:
         torch.set_num_threads(threads)
     record = {"train_config": asdict(config), "detector_config": _config_dict(model.config),
               "n_parameters": n_parameters(model), "n_images": len(data), "n_boxes": n_boxes,
               "boxes_per_class": {c: int(sum((b.label == i).sum() for b in data.boxes))
                                   for i, c in enumerate(model.config.classes)},
-              "loss_curve": curve, "read_seconds": read_s, "seconds": time.perf_counter() - started,
+              "loss_curve": curve, "calibration": calibration, "read_seconds": read_s, "seconds": time.perf_counter() - started,
               "fine_tuned": init is not None}
     return model, record
+
+
+@torch.no_grad()
+def calibrate_depth(model: ProxyDetector, data: TrainingSet, n_images: int) -> dict:
+    """The mean relative error of the regressed depth and the mean row error (input px) of the regressed ground
+    contact at the ground-truth centres of up to ``n_images`` evenly spaced images of ``data``: the weights of
+    ``fused_centres``. None for both where there are no images or no boxes."""
+    picked = np.unique(np.linspace(0, len(data) - 1, min(n_images, len(data))).round().astype(int)) \
+        if n_images > 0 and len(data) else np.zeros(0, int)
+    rel, row = [], []
+    for start in range(0, len(picked), 32):
+        idx = picked[start:start + 32]
+        _, regression = model(data.images[torch.from_numpy(idx)])
+        oh, ow = regression.shape[-2:]
+        for k, i in enumerate(idx):
+            boxes = data.boxes[i]
+            if not len(boxes):
+                continue
+            c = boxes.uv / STRIDE
+            cx = np.clip(c[:, 0], 0, ow - 1e-6).astype(int)
+            cy = np.clip(c[:, 1], 0, oh - 1e-6).astype(int)
+            r = regression[k][:, cy, cx].double().numpy()
+            depth = np.exp(np.clip(r[2], -10, 10)) * data.focal[i] / model.config.reference_focal
+            rel.append(np.abs(depth / boxes.depth - 1.0))
+            row.append(np.abs((cy + r[11]) * STRIDE - boxes.contact[:, 1]))
+    if not rel or not np.concatenate(rel).size:
+        return {"depth_error": None, "contact_error_px": None, "n_boxes": 0, "n_images": int(len(picked))}
+    rel_all, row_all = np.concatenate(rel), np.concatenate(row)
+    return {"depth_error": float(max(np.mean(rel_all), 1e-4)), "contact_error_px": float(max(np.mean(row_all), 1e-3)),
+            "n_boxes": int(rel_all.size), "n_images": int(len(picked))}
 
 
 # ----------------------------------------------------------------------------- inference
 def _decode_view(heat_logits: torch.Tensor, regression: torch.Tensor, view: CameraView, config: DetectorConfig,
                  detect_config: DetectConfig) -> list[dict]:
-    """Boxes (global frame, no sample token yet) of one view's outputs ([C, h, w], [10, h, w])."""
+    """Boxes (global frame, no sample token yet) of one view's outputs ([C, h, w], [REGRESSION, h, w])."""
     heat = torch.sigmoid(heat_logits)
     peaks = heat * (F.max_pool2d(heat[None], 3, 1, 1)[0] == heat).float()
     k = min(detect_config.top_k, peaks.numel())
@@ -641,13 +704,14 @@ def _decode_view(heat_logits: torch.Tensor, regression: torch.Tensor, view: Came
     oh, ow = heat.shape[-2:]
     label, cell = flat // (oh * ow), flat % (oh * ow)
     cy, cx = cell // ow, cell % ow
-    r = regression[:, cy, cx].double().numpy()  # [10, K]
+    r = regression[:, cy, cx].double().numpy()  # [REGRESSION, K]
     sx, sy = config.input_width / view.width, config.input_height / view.height
     uv = np.stack([(cx + r[0]) * STRIDE / sx, (cy + r[1]) * STRIDE / sy], 1)
     depth = np.exp(np.clip(r[2], -10, 10)) * (view.intrinsics[1, 1] * sy) / config.reference_focal
-    centres = back_project(uv, depth, view.intrinsics, view.global_from_camera)
     prior = np.array([CLASS_SIZE[config.classes[i]] for i in label], np.float64)
     size = prior * np.exp(np.clip(r[3:6].T, -3, 3))
+    contact = np.stack([(cx + r[10]) * STRIDE / sx, (cy + r[11]) * STRIDE / sy], 1)
+    centres = fused_centres(uv, depth, contact, size[:, 2], view, config, sy)
     yaw = global_yaw(np.arctan2(r[6], r[7]), centres, view.global_from_camera)
     azimuth = ray_azimuth(centres, view.global_from_camera)
     along, across = r[8] * VELOCITY_SCALE, r[9] * VELOCITY_SCALE
@@ -661,6 +725,54 @@ def _decode_view(heat_logits: torch.Tensor, regression: torch.Tensor, view: Came
                     "velocity": vel[j].tolist(), "detection_name": name, "detection_score": float(scores[j]),
                     "attribute_name": attribute_for(name, float(np.hypot(*vel[j])))})
     return out
+
+
+def ground_contact_centres(contact: np.ndarray,  # [N, 2] px: where each box's bottom centre projects
+                           height: np.ndarray,   # [N] box heights (m)
+                           view: CameraView,
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Box centres read from the ground: the ray through each contact pixel meets the ego's z = 0 plane at the
+    bottom centre, the centre is half the height above it. Returns (centres [N, 3] global, their depths [N] along
+    the optical axis, valid [N]: the ray meets the ground in front of the camera, which stands above it)."""
+    n, p0 = view.global_from_ego[:3, 2], view.global_from_ego[:3, 3]
+    origin = view.global_from_camera[:3, 3]
+    uv1 = np.concatenate([np.asarray(contact, np.float64), np.ones((len(contact), 1))], 1)
+    rays = (uv1 @ np.linalg.inv(np.asarray(view.intrinsics, np.float64)).T) @ view.global_from_camera[:3, :3].T
+    down = rays @ n
+    above = float(n @ (origin - p0))
+    valid = (down < -1e-6) & (above > 1e-3)
+    s = np.where(valid, -above / np.where(valid, down, -1.0), 0.0)
+    centres = origin + s[:, None] * rays + np.asarray(height, np.float64)[:, None] / 2 * n
+    camera = (centres - view.global_from_camera[:3, 3]) @ view.global_from_camera[:3, :3]
+    valid &= camera[:, 2] > 0.1
+    return centres, camera[:, 2], valid
+
+
+def fused_centres(uv: np.ndarray,       # [N, 2] px: projected centres
+                  depth: np.ndarray,    # [N] regressed depths (m, optical axis)
+                  contact: np.ndarray,  # [N, 2] px: regressed ground contacts
+                  height: np.ndarray,   # [N] box heights (m)
+                  view: CameraView, config: DetectorConfig, input_scale: float,
+                  ) -> np.ndarray:      # [N, 3] global
+    """Box centres from the regressed depth and, where the detector's errors were measured, the ground contact,
+    weighed by their expected errors at that distance (inverse variances): the regressed depth errs by about
+    ``depth_error`` * z, the ground contact by ``contact_error_px`` times how far the ground point moves per input
+    pixel of row, z^2 / (f * camera height). Near boxes are read from the ground, far ones from the regressed
+    depth. ``input_scale``: input pixels per image pixel (rows)."""
+    direct = back_project(uv, depth, view.intrinsics, view.global_from_camera)
+    if config.depth_error is None or config.contact_error_px is None or not len(uv):
+        return direct
+    ground, z_ground, valid = ground_contact_centres(contact, height, view)
+    if not valid.any():
+        return direct
+    n, p0 = view.global_from_ego[:3, 2], view.global_from_ego[:3, 3]
+    above = max(float(n @ (view.global_from_camera[:3, 3] - p0)), 1e-3)
+    focal = float(view.intrinsics[1, 1]) * input_scale
+    z = np.clip(np.where(valid, z_ground, depth), 0.1, None)
+    var_direct = (config.depth_error * np.clip(depth, 0.1, None)) ** 2
+    var_ground = (config.contact_error_px * z * z / (focal * above)) ** 2
+    w = np.where(valid, var_direct / (var_direct + var_ground + 1e-12), 0.0)
+    return w[:, None] * np.where(valid[:, None], ground, direct) + (1 - w[:, None]) * direct
 
 
 def attribute_for(name: str, speed: float) -> str:

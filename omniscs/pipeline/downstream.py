@@ -116,12 +116,23 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
 
 DETECTOR_BASE_ID = "proxy-detector-base"
 #: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields; the detection protocol's).
-DETECTOR_FINETUNE = {"steps": 600, "lr": 1e-3, "seed": 1}
+DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1}
 DETECTOR_VERSION = "v1.0-trainval"
 
 
 def _dataset_stores(dataset: Path) -> list[str]:
     return sorted(str(p) for p in (dataset / "scenes").iterdir() if (p / "manifest.json").is_file())
+
+
+def dataroot_version(root: str | Path) -> tuple[str, str]:
+    """(root, version) of a nuScenes dataroot holding exactly one ``v1.0-*`` table folder; a clear error otherwise."""
+    root = Path(root)
+    versions = sorted(p.name for p in root.glob("v1.0-*") if (p / "sample.json").is_file()) if root.is_dir() else []
+    if len(versions) != 1:
+        raise ValidationError(f"{root} is not a nuScenes dataroot with one version folder (found "
+                              f"{versions or 'none'}); name a dataroot such as the one the base detector was "
+                              "trained on")
+    return str(root), versions[0]
 
 
 def export_dataroot(stores: list[str], out: Path, keyframe_every: int | None) -> Path:
@@ -133,10 +144,14 @@ def export_dataroot(stores: list[str], out: Path, keyframe_every: int | None) ->
 
 
 def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, config=None, base: str | Path | None = None,
-                            progress: Progress = no_progress, reuse: bool = True) -> StageRecord:
+                            progress: Progress = no_progress, reuse: bool = True,
+                            rehearsal: list[str] | None = None) -> StageRecord:
     """The proxy camera detector fine-tuned from ``base`` (default: the shipped one) on the datasets' variant stores
     (appearance variants above all) and their source logs, every frame, exported as nuScenes dataroots for the
-    training only (``downstream/<model_id>/detector/`` keeps the weights)."""
+    training only (``downstream/<model_id>/detector/`` keeps the weights). ``rehearsal``: nuScenes dataroots the
+    base was trained on, mixed into the fine-tuning so that it does not forget them (the shipped detector's are
+    made by ``python -m omniscs.bench.detector_data``; without them, a fine-tuning on a few logs costs the
+    detector much of what it knew: reports/downstream_detection_bench.md)."""
     import shutil
     import tempfile
 
@@ -148,7 +163,9 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
     config = config or DetectorTrainConfig(**DETECTOR_FINETUNE)
     datasets = dataset_paths(workspace, dataset_ids)
     base_path = Path(base) if base is not None else DEFAULT_DETECTOR
-    inputs = {"datasets": {d.name: dataset_card(d).get("counts") for d in datasets}, "base": _folder_hash(base_path)}
+    replay = [dataroot_version(r) for r in rehearsal or []]
+    inputs = {"datasets": {d.name: dataset_card(d).get("counts") for d in datasets}, "base": _folder_hash(base_path),
+              "rehearsal": [f"{r} {v}" for r, v in replay]}
     settings = {"train": dataclasses.asdict(config)}
     key = StageKey.of("finetune-detector", FINETUNE_VERSION, inputs, settings)
     model_id = content_id("proxy-detector", {"key": key.digest})
@@ -169,11 +186,11 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
                     roots = [(export_dataroot(stores, data / "variants", 1), DETECTOR_VERSION)]
                     if logs:
                         roots.append((export_dataroot(logs, data / "logs", 1), DETECTOR_VERSION))
-                    model, record = train_detector(roots, config, init=base_model, progress=progress)
+                    model, record = train_detector(roots + replay, config, init=base_model, progress=progress)
                 finally:
                     shutil.rmtree(data, ignore_errors=True)
                 record.update(datasets=list(dataset_ids), base=str(base_path), variant_stores=len(stores),
-                              log_stores=len(logs))
+                              log_stores=len(logs), rehearsal=[list(r) for r in replay])
                 save_detector(model, tmp / "detector", record)
                 return {"n_examples": record.get("n_images"), "train_seconds": record.get("seconds")}
 

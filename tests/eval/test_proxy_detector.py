@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -126,9 +127,12 @@ def test_moving_the_global_frame_moves_the_detected_boxes_with_it(dataroot, tmp_
             np.testing.assert_allclose(T[:2, :2] @ x["velocity"], y["velocity"], atol=1e-6)
 
 
-def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroot):
+@pytest.mark.parametrize("config", [TINY, replace(TINY, depth_error=0.1, contact_error_px=0.5)],
+                         ids=["regressed depth", "fused with the ground contact"])
+def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroot, config):
     """A network that output exactly its targets would detect every learned box where it is, as large as it is and
-    heading where it heads: encoding (targets) and decoding (back-projection) are inverse."""
+    heading where it heads: encoding (targets) and decoding (back-projection, and the ground contact where the
+    errors are measured) are inverse."""
     from omniscs.eval.detector import _decode_view, _scaled
 
     tables = NuScenesTables.load(dataroot, VERSION)
@@ -137,10 +141,10 @@ def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroo
     for token, views in camera_views(tables, tables.scene_samples()).items():
         truth = {a["token"]: a for a in anns[token]}
         for view in views:
-            boxes = view_boxes(view, anns[token], TINY.classes, train)
-            sx, sy = TINY.input_width / view.width, TINY.input_height / view.height
-            heat, reg, _ = targets([_scaled(boxes, sx, sy)], np.array([view.intrinsics[1, 1] * sy]), TINY, train)
-            for box in _decode_view(torch.where(heat == 1, 20.0, -20.0)[0], reg[0], view, TINY, DetectConfig()):
+            boxes = view_boxes(view, anns[token], config.classes, train)
+            sx, sy = config.input_width / view.width, config.input_height / view.height
+            heat, reg, _ = targets([_scaled(boxes, sx, sy)], np.array([view.intrinsics[1, 1] * sy]), config, train)
+            for box in _decode_view(torch.where(heat == 1, 20.0, -20.0)[0], reg[0], view, config, DetectConfig()):
                 gt = min(truth.values(),
                          key=lambda a: np.linalg.norm(np.subtract(a["translation"], box["translation"])))
                 np.testing.assert_allclose(box["translation"], gt["translation"], atol=1e-4)
@@ -192,6 +196,38 @@ def test_a_few_training_steps_lower_the_loss_and_the_same_seed_gives_the_same_we
     for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
         assert torch.equal(x, y), name
     assert rec["n_images"] == len(data) and rec["n_boxes"] > 0
+
+
+def test_the_ground_contact_reads_a_box_on_flat_ground_and_is_refused_above_the_horizon():
+    """A car 12 m ahead of a camera 1.5 m above flat ground: the ray through the pixel of its bottom centre meets
+    the ground at the bottom centre; a pixel above the horizon never meets it."""
+    from omniscs.eval.detector import CameraView, ground_contact_centres
+
+    K = np.array([[200.0, 0, 160], [0, 200.0, 90], [0, 0, 1]])
+    # OpenCV camera looking along ego +x: x_cam = -y_ego, y_cam = -z_ego, z_cam = x_ego
+    R = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    global_from_ego = np.eye(4)
+    global_from_ego[:3, 3] = [100.0, -20.0, 3.0]  # the ground under the car is at global z = 3
+    ego_from_camera = np.eye(4)
+    ego_from_camera[:3, :3], ego_from_camera[:3, 3] = R, [1.0, 0.0, 1.5]
+    view = CameraView("s", "CAM_FRONT", None, 320, 180, K, global_from_ego @ ego_from_camera, global_from_ego)
+    centre = np.array([[100.0 + 13.0, -20.0 + 0.5, 3.0 + 0.8]])
+    uv, _ = project_to_camera(centre - [0, 0, 0.8], K, view.global_from_camera)
+    centres, depth, valid = ground_contact_centres(np.vstack([uv, [[160.0, 60.0]]]), np.array([1.6, 1.6]), view)
+    assert valid.tolist() == [True, False]
+    np.testing.assert_allclose(centres[0], centre[0], atol=1e-9)
+    assert depth[0] == pytest.approx(12.0)
+    assert np.isfinite(centres).all() and np.isfinite(depth).all()
+
+
+def test_training_measures_the_errors_that_weigh_the_two_depths(dataroot):
+    train = DetectorTrainConfig(steps=3, batch_size=4, seed=3, threads=1, calibration_images=6)
+    model, rec = train_detector([(dataroot, VERSION)], train, TINY)
+    cal = rec["calibration"]
+    assert cal["n_images"] == 6 and cal["n_boxes"] > 0
+    assert model.config.depth_error == cal["depth_error"] > 0 and model.config.contact_error_px == cal["contact_error_px"] > 0
+    off, _ = train_detector([(dataroot, VERSION)], replace(train, calibration_images=0), TINY)
+    assert off.config.depth_error is None and off.config.contact_error_px is None
 
 
 def test_a_saved_detector_loads_with_the_same_outputs_and_a_bad_folder_is_a_clear_error(tmp_path):

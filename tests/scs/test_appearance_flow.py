@@ -13,7 +13,8 @@ from appearance_fixtures import small_pool
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 from omniscs import catalog
 from omniscs.cli import app
-from omniscs.errors import OmniscsError
+from omniscs.errors import OmniscsError, ValidationError
+from omniscs.eval.detector import DetectorTrainConfig
 from omniscs.nsg.config import PRESETS
 
 AGENTS = ({"x": 14.0, "y": 0.0, "speed": 4.0, "asset": "sedan-0003"},
@@ -159,3 +160,29 @@ def test_the_proxy_detector_is_fine_tuned_and_evaluated_on_appearance_variants_b
     assert all(r["status"] == "ok" and 0.0 <= r["value"] <= 1.0 for r in rows)
     with pytest.raises(OmniscsError, match="tasks must be some of"):
         finetune_evaluate([result["dataset_id"]], workspace=str(ws), tasks=["segmentation"])
+
+
+def test_the_detector_fine_tuning_rehearses_the_bases_own_data_and_refuses_a_folder_that_is_no_dataroot(
+        built, tmp_path):
+    """Dataroots the base was trained on join the fine-tuning (more images, recorded, part of the stage's key); a
+    folder that is not a nuScenes dataroot is one clear error, with nothing trained."""
+    from omniscs.eval.detector import load_detector
+    from omniscs.pipeline import downstream as d
+
+    ws, _, result = built
+    config = DetectorTrainConfig(steps=2, batch_size=2, seed=1, calibration_images=4)
+    stores = d._dataset_stores(d.dataset_paths(ws, [result["dataset_id"]])[0])
+    replay = d.export_dataroot(stores[:1], tmp_path / "replay", 1)
+    plain = d.finetune_detector_stage([result["dataset_id"]], ws, config)
+    rehearsed = d.finetune_detector_stage([result["dataset_id"]], ws, config, rehearsal=[str(replay)])
+    assert rehearsed.info["model_id"] != plain.info["model_id"]
+    n_plain = plain.rows["downstream_models"][0]["n_examples"]
+    n_rehearsed = rehearsed.rows["downstream_models"][0]["n_examples"]
+    record = json.loads((Path(rehearsed.path) / "training.json").read_text())
+    n_replay = len(list((replay / "samples").rglob("*.jpg"))) + len(list((replay / "samples").rglob("*.png")))
+    assert n_replay > 0 and n_rehearsed == n_plain + n_replay
+    assert record["rehearsal"] == [[str(replay), d.DETECTOR_VERSION]]
+    assert load_detector(rehearsed.path).config.depth_error is not None  # errors measured after the fine-tuning
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValidationError, match="not a nuScenes dataroot"):
+        d.finetune_detector_stage([result["dataset_id"]], ws, config, rehearsal=[str(tmp_path / "empty")])
