@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.progress import Progress, no_progress
+
+log = logging.getLogger(__name__)
 
 FINETUNE_VERSION = 1
 #: Share of the fine-tuning examples that are behaviour-SCS (repeated to reach it; the rest are the logs).
@@ -179,6 +182,9 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
             stores = [s for d in datasets for s in _dataset_stores(d)]
             logs = [str(p) for p in _source_scenes(workspace, datasets)]
             base_model = load_detector(base_path)
+            if not replay:
+                log.warning("fine-tuning the detector without the data it was trained on (no rehearsal dataroot): "
+                            "on a few logs and their variants alone it forgets much of what it knew")
 
             def make(tmp: Path) -> dict:
                 data = Path(tempfile.mkdtemp(prefix=".detector-data-", dir=tmp))
