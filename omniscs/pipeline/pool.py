@@ -42,21 +42,21 @@ def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, r
     from omniscs.world.assets import build_asset
 
     started = time.perf_counter()
-    asset = build_asset(asset_id)
     p = Pool(pool)
     table = p.table()
     same = table[(table.source == asset_id) & (table.provenance == "mesh") & (table.n_gaussians == gaussians)] \
         if len(table) else table
-    if len(same):  # built before with these settings (the build is deterministic): not built again
+    if len(same):  # built before with these settings (the build is deterministic): neither mesh nor model again
         model_id, existed = str(same.model_id.iloc[0]), True
     else:
+        asset = build_asset(asset_id)
         s = asset.surface
         params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps)
         existed = model_id_of(params, asset.category) in set(table.model_id) if len(table) else False
         model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"])
     meta = p.get(model_id).meta
     length, width, height = meta["size"]
-    row = {"pool_path": str(Path(pool).resolve()), "model_id": model_id, "category": asset.category,
+    row = {"pool_path": str(Path(pool).resolve()), "model_id": model_id, "category": meta["category"],
            "length": length, "width": width, "height": height, "n_gaussians": meta["n_gaussians"],
            "provenance": "mesh", "source": asset_id, "quality": meta["quality"], "new": not existed,
            "seconds": time.perf_counter() - started}
