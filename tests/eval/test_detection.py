@@ -135,3 +135,30 @@ def test_filters_drop_far_boxes_ground_truth_without_points_and_bicycles_in_rack
     rack[:3, 3] = [3, 3, 0]
     kept = filter_boxes(boxes, config, racks={"s": rack[None]})
     assert kept.translation[:, :2].tolist() == [[10, 0], [3, -3]]
+
+
+def test_the_scene_bootstrap_of_a_map_difference_brackets_what_it_measures():
+    """The same predictions twice differ by exactly 0 in every draw; the ground truth itself against nothing differs
+    by +1 on the whole set and by more than 0 in every draw (a perfect detector beats a blind one whichever scenes are
+    drawn; a draw without a class's boxes scores that class 0 for both); noisy against perfect lies strictly between,
+    and the interval holds the observed difference. One scene is no sample to draw from."""
+    from omniscs.errors import ValidationError
+    from omniscs.eval.detection import bootstrap_map_difference
+
+    gt_rec, pred_rec = _random_case(5, n_samples=8)
+    config = DetectionConfig(class_names=CLASSES)
+    gt, noisy = Boxes.from_records(gt_rec), Boxes.from_records(pred_rec)
+    perfect = Boxes.from_records([dict(r, detection_score=1.0) for r in gt_rec])
+    nothing = Boxes.from_records([])
+    groups = {f"sample-{s}": f"scene-{s // 2}" for s in range(8)}  # 4 scenes of 2 samples
+    same = bootstrap_map_difference(gt, noisy, noisy, groups, config, n=20)
+    assert same["difference"] == 0.0 and same["low"] == same["high"] == 0.0 and same["share_b_better"] == 0.0
+    blind = bootstrap_map_difference(gt, nothing, perfect, groups, config, n=20)
+    assert blind["difference"] == pytest.approx(1.0) and 0.0 < blind["low"] <= blind["high"] <= 1.0 + 1e-9
+    assert blind["share_b_better"] == 1.0 and blind["n_groups"] == 4
+    mixed = bootstrap_map_difference(gt, noisy, perfect, groups, config, n=50, seed=1)
+    assert 0.0 < mixed["difference"] < 1.0 and mixed["low"] <= mixed["difference"] <= mixed["high"]
+    again = bootstrap_map_difference(gt, noisy, perfect, groups, config, n=50, seed=1)
+    assert again == mixed  # seeded
+    with pytest.raises(ValidationError, match="at least two groups"):
+        bootstrap_map_difference(gt, noisy, perfect, {t: "one" for t in groups}, config)

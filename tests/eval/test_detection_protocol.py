@@ -24,3 +24,8 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
     assert sum(scs_boxes.values()) > sum(report["rows"]["original test"]["base"]["gt_boxes"].values())
     assert (tmp_path / "reports" / "downstream_detection_bench.png").stat().st_size > 5_000
     assert "proxy" in (tmp_path / "reports" / "downstream_detection_bench.md").read_text()
+    # the gain's interval: the appearance-SCS test set (the log's variants) has scenes to resample, the one log not
+    intervals = report["summary"]["intervals"]
+    scs = intervals["appearance-SCS test"]
+    assert scs["n_groups"] >= 2 and scs["low"] <= scs["difference"] <= scs["high"]
+    assert intervals["original test"] is None
