@@ -120,15 +120,15 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
     (``omniscs.eval.detection.bootstrap_map_difference``), over the classes the set holds; None for a set of one
     scene."""
     from omniscs.eval.detection import DetectionConfig, bootstrap_map_difference, filter_boxes
-    from omniscs.eval.nuscenes_io import NuScenesTables, load_ground_truth, load_results
+    from omniscs.eval.nuscenes_io import NuScenesTables, evaluated_classes, load_ground_truth, load_results
 
     tables = NuScenesTables.load(dataroot, VERSION)
-    groups = {t: scene["name"] for scene in tables["scene"].values() for t in tables.scene_samples([scene["name"]])}
     if len(tables["scene"]) < 2:
         return None
+    groups = {t: scene["name"] for scene in tables["scene"].values() for t in tables.scene_samples([scene["name"]])}
     samples = tables.scene_samples()
     gt, racks = load_ground_truth(tables, samples)
-    config = DetectionConfig(class_names=tuple(sorted(set(filter_boxes(gt, DetectionConfig(), racks).name))))
+    config = DetectionConfig(class_names=evaluated_classes(gt, racks))
     preds = [filter_boxes(load_results(p, tables, samples, config)[0], config, racks)
              for p in (base_results, tuned_results)]
     return bootstrap_map_difference(filter_boxes(gt, config, racks), *preds, groups, config, n, seed)

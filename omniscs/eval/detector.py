@@ -659,6 +659,12 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
     return model, record
 
 
+def regressed_depth(output: np.ndarray, focal_input: float, config: DetectorConfig) -> np.ndarray:
+    """Depth (m, optical axis) of the depth channel's output for a camera of ``focal_input`` px at the input size
+    (the inverse of the target ``targets`` writes)."""
+    return np.exp(np.clip(output, -10, 10)) * focal_input / config.reference_focal
+
+
 @torch.no_grad()
 def calibrate_depth(model: ProxyDetector, data: TrainingSet, n_images: int) -> dict:
     """The mean relative error of the regressed depth and the mean row error (input px) of the regressed ground
@@ -679,7 +685,7 @@ def calibrate_depth(model: ProxyDetector, data: TrainingSet, n_images: int) -> d
             cx = np.clip(c[:, 0], 0, ow - 1e-6).astype(int)
             cy = np.clip(c[:, 1], 0, oh - 1e-6).astype(int)
             r = regression[k][:, cy, cx].double().numpy()
-            depth = np.exp(np.clip(r[2], -10, 10)) * data.focal[i] / model.config.reference_focal
+            depth = regressed_depth(r[2], data.focal[i], model.config)
             rel.append(np.abs(depth / boxes.depth - 1.0))
             row.append(np.abs((cy + r[11]) * STRIDE - boxes.contact[:, 1]))
     if not rel or not np.concatenate(rel).size:
@@ -707,7 +713,7 @@ def _decode_view(heat_logits: torch.Tensor, regression: torch.Tensor, view: Came
     r = regression[:, cy, cx].double().numpy()  # [REGRESSION, K]
     sx, sy = config.input_width / view.width, config.input_height / view.height
     uv = np.stack([(cx + r[0]) * STRIDE / sx, (cy + r[1]) * STRIDE / sy], 1)
-    depth = np.exp(np.clip(r[2], -10, 10)) * (view.intrinsics[1, 1] * sy) / config.reference_focal
+    depth = regressed_depth(r[2], view.intrinsics[1, 1] * sy, config)
     prior = np.array([CLASS_SIZE[config.classes[i]] for i in label], np.float64)
     size = prior * np.exp(np.clip(r[3:6].T, -3, 3))
     contact = np.stack([(cx + r[10]) * STRIDE / sx, (cy + r[11]) * STRIDE / sy], 1)
@@ -727,6 +733,12 @@ def _decode_view(heat_logits: torch.Tensor, regression: torch.Tensor, view: Came
     return out
 
 
+def _ground_plane(view: CameraView) -> tuple[np.ndarray, float]:
+    """The ground's normal (the ego's z axis, global frame) and the camera's height above the ego's z = 0 plane."""
+    n = view.global_from_ego[:3, 2]
+    return n, float(n @ (view.global_from_camera[:3, 3] - view.global_from_ego[:3, 3]))
+
+
 def ground_contact_centres(contact: np.ndarray,  # [N, 2] px: where each box's bottom centre projects
                            height: np.ndarray,   # [N] box heights (m)
                            view: CameraView,
@@ -734,16 +746,15 @@ def ground_contact_centres(contact: np.ndarray,  # [N, 2] px: where each box's b
     """Box centres read from the ground: the ray through each contact pixel meets the ego's z = 0 plane at the
     bottom centre, the centre is half the height above it. Returns (centres [N, 3] global, their depths [N] along
     the optical axis, valid [N]: the ray meets the ground in front of the camera, which stands above it)."""
-    n, p0 = view.global_from_ego[:3, 2], view.global_from_ego[:3, 3]
+    n, above = _ground_plane(view)
     origin = view.global_from_camera[:3, 3]
     uv1 = np.concatenate([np.asarray(contact, np.float64), np.ones((len(contact), 1))], 1)
     rays = (uv1 @ np.linalg.inv(np.asarray(view.intrinsics, np.float64)).T) @ view.global_from_camera[:3, :3].T
     down = rays @ n
-    above = float(n @ (origin - p0))
     valid = (down < -1e-6) & (above > 1e-3)
     s = np.where(valid, -above / np.where(valid, down, -1.0), 0.0)
     centres = origin + s[:, None] * rays + np.asarray(height, np.float64)[:, None] / 2 * n
-    camera = (centres - view.global_from_camera[:3, 3]) @ view.global_from_camera[:3, :3]
+    camera = (centres - origin) @ view.global_from_camera[:3, :3]
     valid &= camera[:, 2] > 0.1
     return centres, camera[:, 2], valid
 
@@ -765,8 +776,7 @@ def fused_centres(uv: np.ndarray,       # [N, 2] px: projected centres
     ground, z_ground, valid = ground_contact_centres(contact, height, view)
     if not valid.any():
         return direct
-    n, p0 = view.global_from_ego[:3, 2], view.global_from_ego[:3, 3]
-    above = max(float(n @ (view.global_from_camera[:3, 3] - p0)), 1e-3)
+    above = max(_ground_plane(view)[1], 1e-3)
     focal = float(view.intrinsics[1, 1]) * input_scale
     z = np.clip(np.where(valid, z_ground, depth), 0.1, None)
     var_direct = (config.depth_error * np.clip(depth, 0.1, None)) ** 2
@@ -891,13 +901,13 @@ def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, 
     nuScenes protocol over the classes the dataroot's evaluated ground truth holds (a class absent from a set would
     only add a zero): mAP, NDS, AP per class, evaluated boxes per class, samples."""
     from omniscs.eval.detection import DetectionConfig, filter_boxes
-    from omniscs.eval.nuscenes_io import evaluate_detection_results, load_ground_truth
+    from omniscs.eval.nuscenes_io import evaluate_detection_results, evaluated_classes, load_ground_truth
 
     write_results(detect(model, dataroot, version, config=config), results_path)
     tables = NuScenesTables.load(dataroot, version)
     gt, racks = load_ground_truth(tables, tables.scene_samples())
     names = filter_boxes(gt, DetectionConfig(), racks).name
-    present = tuple(sorted(set(names)))
+    present = evaluated_classes(gt, racks)
     if not present:
         raise ValidationError(f"{Path(dataroot) / version} has no evaluated ground-truth box to score detections on")
     metrics, info = evaluate_detection_results(dataroot, version, results_path,

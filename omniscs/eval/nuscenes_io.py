@@ -202,6 +202,13 @@ def _checked_box(box, where: str) -> dict:
     return rec
 
 
+def evaluated_classes(gt: Boxes, racks: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """The detection classes among the ground-truth boxes the protocol evaluates (``filter_boxes``), sorted."""
+    from omniscs.eval.detection import filter_boxes
+
+    return tuple(sorted(set(filter_boxes(gt, DetectionConfig(), racks).name)))
+
+
 def evaluate_detection_results(dataroot: str | Path, version: str, results: str | Path,
                                scenes: list[str] | None = None, config: DetectionConfig = DetectionConfig()):
     """The protocol end to end: ground truth of ``scenes`` (all when None) of a dataroot, the results file's
