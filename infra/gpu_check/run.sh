@@ -1,0 +1,25 @@
+#!/bin/bash
+# The checks that need a CUDA GPU and gsplat (skipped on CPU machines), run from the repository root on a GPU
+# machine where `pip install gsplat` works (gsplat compiles its kernels on first use: about a minute on 16 cores).
+#   1. gsplat parity: tests/render/test_render_gsplat.py (images, depths and gradients against the CPU backend);
+#   2. render timing: both backends on one random scene at 640x360 (20k Gaussians) and 1600x900 (200k);
+#   3. a CUDA fit: the checks of tests/nsg/test_nsg_device.py's CUDA test on a tiny scene, then one fast-preset fit
+#      of a small two-camera scene on CUDA and on the CPU (seconds, held-out PSNR).
+# Scenes are written first with the test fixtures (GPU_CHECK_SCENES, default .gpu_check; pre-made copies are used
+# as they are, for a machine without the world's packages).
+set -u
+export MAX_JOBS=${MAX_JOBS:-16} PYTHONUNBUFFERED=1 OMP_WAIT_POLICY=PASSIVE
+SCENES=${GPU_CHECK_SCENES:-.gpu_check}
+PY=${PYTHON:-python3}
+if [ ! -d "$SCENES/scene_small" ]; then
+  $PY -c "from pathlib import Path; from tests.nsg_fixtures import nsg_world, write_nsg_scene; \
+write_nsg_scene(Path('$SCENES/scene_small'), nsg_world(n_frames=4)); \
+write_nsg_scene(Path('$SCENES/scene_big'), nsg_world(n_frames=10, n_cameras=2, width=480, height=270), scene_id='nsg-big')" || exit 1
+fi
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+t0=$(date +%s)
+$PY -c "from gsplat.cuda._backend import _C; print('gsplat kernels ready:', _C is not None)" || exit 1
+echo "gsplat build/load seconds: $(( $(date +%s) - t0 ))"
+$PY -m pytest -q --noconftest -o addopts="" -p no:cacheprovider tests/render/test_render_gsplat.py
+$PY infra/gpu_check/render_timing.py
+GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/fit_cuda.py 300
