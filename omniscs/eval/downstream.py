@@ -18,7 +18,8 @@ import numpy as np
 from omniscs.annotate.dataset import CARD_JSON
 from omniscs.annotate.variant import VARIANT_JSON
 from omniscs.errors import ValidationError
-from omniscs.eval.scenarios import PlanningExample, planning_examples, scenario_from_traffic, scenario_from_variant
+from omniscs.eval.scenarios import (PlanningExample, planning_examples, scenario_from_traffic, scenario_from_variant,
+                                   variant_keyframes)
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +33,8 @@ def dataset_card(dataset_path: str | Path) -> dict:
 
 
 def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], dict]:
-    """The behaviour-SCS examples of a dataset (one per solved variant long enough for a 3 s future) and counts."""
+    """The behaviour-SCS examples of a dataset (``variant_keyframes`` of each solved variant: its now step and the
+    keyframes after it with at least 1 s of known future) and counts."""
     from omniscs.scene import load_scene
     from omniscs.scs.behavior import traffic_from_scene
 
@@ -57,8 +59,7 @@ def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], d
         categories.update({k: "car" for k in missing})  # tracks the variant added without a box in the store
         scenario = scenario_from_variant(spec, categories, ego=np.asarray(solution["trajectory"], np.float64),
                                          drivable=traffic_from_scene(store).map)
-        now = int(spec["now_step"])
-        got = [e for e in planning_examples(scenario, start=now) if e.step == now]
+        got = variant_keyframes(scenario, int(spec["now_step"]))
         counts["too_short"] += 0 if got else 1
         out += got
     return out, counts
@@ -79,7 +80,7 @@ def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str
     """``evaluations`` rows of one planning evaluation (``omniscs.eval.planning.evaluate_planning``'s output)."""
     rows = []
     for convention in ("uniad", "stp3"):
-        for metric, key in (("L2", "L2"), ("collision", "obj_box_col")):
+        for metric, key in (("L2", "L2"), ("collision", "obj_box_col"), ("collision_known", "obj_box_col_known")):
             for horizon, value in metrics[convention][key].items():
                 rows.append({"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": "planning",
                              "split": split, "metric": metric, "class_name": "", "horizon": horizon,

@@ -9,7 +9,8 @@ Input (``features``), in UniAD's planning frame (x right, y forward; ``omniscs.e
   - a state vector: speed / 10, yaw rate, the driving command one-hot (right, left, forward), whether a map is there.
 Output: 6 waypoints as offsets from driving on straight at the current speed.
 Network: five stride-2 3x3 convolutions (16, 32, 64, 64, 64 channels, ReLU) over the raster, flattened, joined with the
-state, two fully connected layers (256, ReLU) to 12 numbers. Loss: mean L1 distance of the waypoints.
+state, two fully connected layers (256, ReLU) to 12 numbers. Loss: mean distance of the known waypoints (a keyframe
+near a scenario's end has its later ones masked out), plus an optional collision loss (``TrainConfig.collision_weight``).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import torch
 from torch import nn
 
 from omniscs.errors import ValidationError
-from omniscs.eval.planning import STEP_S, STEPS, footprints_on_grid
+from omniscs.eval.planning import EGO_LENGTH, EGO_SHIFT, EGO_WIDTH, STEP_S, STEPS, footprints_on_grid
 from omniscs.eval.scenarios import COMMANDS, PlanningExample, PlanningInput
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory, atomic_write_json
@@ -40,6 +41,15 @@ CONFIG = "planner_config.json"
 TRAINING = "training.json"
 #: The planner shipped with the package (trained by ``omniscs bench downstream --train-base``; see its training.json).
 DEFAULT_PLANNER = Path(__file__).parent / "checkpoints" / "planner"
+
+#: The collision loss's margins (m) and weights, as UniAD configures its planner's three collision losses.
+COLLISION_MARGINS = ((0.0, 2.5), (0.5, 1.0), (1.0, 0.25))
+#: The future vehicles the collision loss looks at per step: the nearest to the true waypoint, within this reach.
+COLLISION_BOXES, COLLISION_REACH_M = 8, 15.0
+#: The ego box (as the metric places it: centred EGO_SHIFT ahead of the waypoint, not turned) as three circles of
+#: its half width along its length.
+_EGO_RADIUS = EGO_WIDTH / 2
+_EGO_CIRCLES = EGO_SHIFT + np.array([-(EGO_LENGTH / 2 - _EGO_RADIUS), 0.0, EGO_LENGTH / 2 - _EGO_RADIUS])
 
 _XS = X_RANGE[0] + (np.arange(GRID_W) + 0.5) * CELL_M
 _YS = Y_RANGE[0] + (np.arange(GRID_H) + 0.5) * CELL_M
@@ -65,10 +75,15 @@ class TrainConfig:
     seed: int = 0
     mirror: bool = True
     """Add every example mirrored left-right (x -> -x, commands swapped)."""
+    collision_weight: float = 0.0
+    """Weight of the collision loss (UniAD's planner trains with one): how far the ego box at each planned waypoint
+    reaches into the true future vehicle boxes, with margins ``COLLISION_MARGINS``; 0 leaves it out."""
 
     def __post_init__(self):
-        if self.epochs < 1 or self.batch_size < 1 or not (self.lr > 0) or self.weight_decay < 0:
-            raise ValidationError("epochs and batch_size must be >= 1, lr > 0, weight_decay >= 0")
+        if self.epochs < 1 or self.batch_size < 1 or not (self.lr > 0) or self.weight_decay < 0 \
+                or not (self.collision_weight >= 0):
+            raise ValidationError("epochs and batch_size must be >= 1, lr > 0, weight_decay >= 0, "
+                                  "collision_weight >= 0")
 
 
 class ProxyPlanner(nn.Module):
@@ -116,26 +131,72 @@ def features_of(inp: PlanningInput, drivable) -> tuple[np.ndarray, np.ndarray, n
     return raster, state, base
 
 
-def _tensors(examples: list[PlanningExample], progress: Progress = no_progress):
-    rasters, states, bases, targets = [], [], [], []
+def future_boxes(example: PlanningExample) -> np.ndarray:  # [STEPS, COLLISION_BOXES, 6]
+    """The future vehicles the collision loss sees: per known step the ``COLLISION_BOXES`` nearest to the true
+    waypoint within ``COLLISION_REACH_M`` (x, y, length, width, yaw, valid; planning frame)."""
+    out = np.zeros((STEPS, COLLISION_BOXES, 6), np.float32)
+    sample = example.sample
+    for i, boxes in enumerate(sample.vehicles):
+        boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+        if not sample.mask[i] or not len(boxes):
+            continue
+        d = np.hypot(boxes[:, 0] - sample.trajectory[i, 0], boxes[:, 1] - sample.trajectory[i, 1])
+        keep = np.argsort(d)[:COLLISION_BOXES]
+        keep = keep[d[keep] <= COLLISION_REACH_M]
+        out[i, :len(keep), :5] = boxes[keep]
+        out[i, :len(keep), 5] = 1.0
+    return out
+
+
+def collision_penetration(waypoints: torch.Tensor, boxes: torch.Tensor, margin: float) -> torch.Tensor:
+    """[B, T, 2] waypoints, [B, T, K, 6] boxes -> [B, T]: how far (m) the ego's circles, grown by ``margin``, reach
+    into the boxes, summed over boxes and circles (0 when clear)."""
+    offsets = torch.zeros(len(_EGO_CIRCLES), 2, dtype=waypoints.dtype)
+    offsets[:, 1] = torch.as_tensor(_EGO_CIRCLES, dtype=waypoints.dtype)
+    centres = waypoints[:, :, None, None, :] + offsets  # [B, T, 1, 3, 2]
+    rel = centres - boxes[..., None, :2]  # [B, T, K, 3, 2]
+    c, s = torch.cos(boxes[..., 4:5]), torch.sin(boxes[..., 4:5])  # [B, T, K, 1]
+    along = (c * rel[..., 0] + s * rel[..., 1]).abs() - boxes[..., 2:3] / 2
+    across = (-s * rel[..., 0] + c * rel[..., 1]).abs() - boxes[..., 3:4] / 2
+    outside = torch.sqrt(torch.relu(along) ** 2 + torch.relu(across) ** 2 + 1e-12)
+    signed = outside + torch.clamp(torch.maximum(along, across), max=0.0)  # circle centre to box, < 0 inside
+    reach = torch.relu(_EGO_RADIUS + margin - signed) * boxes[..., 5:6]
+    return reach.sum((-1, -2))
+
+
+def collision_loss(waypoints: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor,
+                   boxes: torch.Tensor) -> torch.Tensor:
+    """UniAD-style collision loss per example (mean over the batch): the margins' weighted penetrations of the
+    planned waypoints at the known steps where the true waypoint itself is clear of every box."""
+    clear = mask * (collision_penetration(truth, boxes, 0.0) <= 0).to(mask.dtype)
+    total = sum(w * collision_penetration(waypoints, boxes, m) for m, w in COLLISION_MARGINS)
+    return (total * clear).sum() / max(len(waypoints), 1)
+
+
+def _tensors(examples: list[PlanningExample], progress: Progress = no_progress, with_boxes: bool = False):
+    rasters, states, bases, targets, masks, boxes = [], [], [], [], [], []
     for i, ex in enumerate(examples):
         r, s, b = features(ex)
         rasters.append(r)
         states.append(s)
         bases.append(b)
         targets.append(ex.sample.trajectory.astype(np.float32))
+        masks.append(ex.sample.mask.astype(np.float32))
+        boxes.append(future_boxes(ex) if with_boxes else np.zeros((STEPS, 0, 6), np.float32))
         progress(i + 1, len(examples), "rasterising")
-    return (torch.from_numpy(np.stack(rasters)), torch.from_numpy(np.stack(states)), torch.from_numpy(np.stack(bases)),
-            torch.from_numpy(np.stack(targets)))
+    return tuple(torch.from_numpy(np.stack(a)) for a in (rasters, states, bases, targets, masks, boxes))
 
 
-def _mirror(raster, state, base, target):
+def _mirror(raster, state, base, target, mask, boxes):
     r = torch.flip(raster, dims=[-1])  # x -> -x (columns run along x)
     s = state.clone()
     s[:, 2], s[:, 3] = state[:, 3], state[:, 2]  # right <-> left
     s[:, 1] = -state[:, 1]
     flip = torch.tensor([-1.0, 1.0])
-    return r, s, base * flip, target * flip
+    mirrored = boxes.clone()
+    mirrored[..., 0] = -boxes[..., 0]
+    mirrored[..., 4] = np.pi - boxes[..., 4]
+    return r, s, base * flip, target * flip, mask, mirrored
 
 
 def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainConfig(),
@@ -147,7 +208,7 @@ def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainCo
         raise ValidationError("no planning examples to train on")
     started = time.perf_counter()
     torch.manual_seed(config.seed)
-    data = _tensors(examples)
+    data = _tensors(examples, with_boxes=config.collision_weight > 0)
     if config.mirror:
         data = tuple(torch.cat([a, b]) for a, b in zip(data, _mirror(*data)))
     model = ProxyPlanner(init.config if init is not None else planner_config)
@@ -164,9 +225,11 @@ def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainCo
         total = 0.0
         for i in range(0, len(order), config.batch_size):
             idx = order[i:i + config.batch_size]
-            raster, state, base, target = (d[idx] for d in data)
+            raster, state, base, target, mask, boxes = (d[idx] for d in data)
             pred = model(raster, state, base)
-            loss = (pred - target).norm(dim=-1).mean()
+            loss = ((pred - target).norm(dim=-1) * mask).sum() / mask.sum().clamp(min=1.0)
+            if config.collision_weight > 0:
+                loss = loss + config.collision_weight * collision_loss(pred, target, mask, boxes)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -188,7 +251,7 @@ def plan(model: ProxyPlanner, examples: list[PlanningExample], batch_size: int =
     out = {}
     for i in range(0, len(examples), batch_size):
         chunk = examples[i:i + batch_size]
-        raster, state, base, _ = _tensors(chunk)
+        raster, state, base = _tensors(chunk)[:3]
         pred = model(raster, state, base).numpy().astype(np.float64)
         out.update({ex.sample.token: p for ex, p in zip(chunk, pred)})
     return out

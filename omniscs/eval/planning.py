@@ -10,6 +10,9 @@
   its cells is occupied. Steps where the true trajectory itself collides are left out of the count (not of the
   denominator, which is every sample). The box covers the 8 x 4 cells whose centres lie inside it, moved by the
   waypoint and truncated to cells as UniAD does; cells off the grid are clamped to its border.
+- **Known steps**: ``obj_box_col_known`` divides each step's collisions by the samples whose truth is known at
+  that step (``known_per_step``) rather than by every sample; the two agree when every future is whole. Not one of
+  UniAD's numbers: it reads sets of keyframes near a scenario's end, whose later steps are masked out.
 - **Horizons**: 1 / 2 / 3 s under both conventions UniAD's results have been reported in: ``"uniad"`` (the value
   at that step) and ``"stp3"`` (the mean of the steps up to it, as ST-P3 and VAD report).
 
@@ -98,16 +101,16 @@ class PlanningSample:
     command: str | None = None
 
 
-def evaluate_planning(samples: list[PlanningSample], predictions: dict[str, np.ndarray]) -> dict:
-    """Per-step L2 and collision rate over ``samples`` (``predictions``: token -> [T, 2]), and both horizon
-    conventions. Every sample needs a finite prediction of its length."""
+def per_sample_planning(samples: list[PlanningSample], predictions: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each sample's per-step L2 (0 where the truth is unknown), collision (the plan's box on an occupied cell where
+    the truth's is not), the truth's own collision and whether the truth is known: bool / float arrays [N, T].
+    Every sample needs a finite prediction of its length."""
     if not samples:
         raise ValidationError("no samples to evaluate")
     steps = len(samples[0].trajectory)
-    l2 = np.zeros(steps)
-    col = np.zeros(steps)
-    gt_col = np.zeros(steps)
-    for s in samples:
+    out = {k: np.zeros((len(samples), steps), dtype) for k, dtype in (("l2", np.float64), ("collision", bool),
+                                                                     ("truth_collision", bool), ("known", bool))}
+    for i, s in enumerate(samples):
         pred = predictions.get(s.token)
         if pred is None:
             raise ValidationError(f"no planned trajectory for sample {s.token!r}")
@@ -116,15 +119,30 @@ def evaluate_planning(samples: list[PlanningSample], predictions: dict[str, np.n
             raise ValidationError(f"the trajectory of sample {s.token!r} must be {steps} finite (x, y) waypoints; "
                                   f"got shape {pred.shape}")
         m = s.mask.astype(np.float64)
-        l2 += np.sqrt(((pred - s.trajectory) ** 2 * m[:, None]).sum(-1))
+        out["l2"][i] = np.sqrt(((pred - s.trajectory) ** 2 * m[:, None]).sum(-1))
         occupied = np.stack([occupancy(v) for v in s.vehicles])
         truth = box_collisions(s.trajectory, occupied)
-        col += box_collisions(pred, occupied) & ~truth
-        gt_col += truth
-    n = len(samples)
-    per_step = {"L2": l2 / n, "obj_box_col": col / n}
+        out["collision"][i] = box_collisions(pred, occupied) & ~truth
+        out["truth_collision"][i] = truth
+        out["known"][i] = s.mask
+    return out
+
+
+def evaluate_planning(samples: list[PlanningSample], predictions: dict[str, np.ndarray]) -> dict:
+    """Per-step L2 and collision rate over ``samples`` (``predictions``: token -> [T, 2]), and both horizon
+    conventions. Every sample needs a finite prediction of its length."""
+    return aggregate_planning(per_sample_planning(samples, predictions))
+
+
+def aggregate_planning(per: dict[str, np.ndarray]) -> dict:
+    """``evaluate_planning``'s numbers from ``per_sample_planning``'s arrays (of all samples or a resample)."""
+    n, steps = per["l2"].shape
+    col, known = per["collision"].sum(0).astype(np.float64), per["known"].sum(0).astype(np.float64)
+    per_step = {"L2": per["l2"].sum(0) / n, "obj_box_col": col / n,
+                "obj_box_col_known": np.divide(col, known, out=np.zeros(steps), where=known > 0)}
     out = {"n_samples": n, "per_step": {k: v.tolist() for k, v in per_step.items()},
-           "gt_collision_steps": gt_col.astype(int).tolist()}
+           "gt_collision_steps": per["truth_collision"].sum(0).astype(int).tolist(),
+           "known_per_step": known.astype(int).tolist()}
     for convention in CONVENTIONS:
         out[convention] = {k: horizons(v, convention) for k, v in per_step.items()}
     return out
@@ -138,3 +156,22 @@ def horizons(per_step: np.ndarray, convention: str) -> dict[str, float]:
     if convention == "uniad":
         return {h: float(v[i]) for h, i in HORIZONS.items() if i < len(v)}
     return {h: float(v[:i + 1].mean()) for h, i in HORIZONS.items() if i < len(v)}
+
+
+def bootstrap_planning(per_a: dict[str, np.ndarray], per_b: dict[str, np.ndarray], groups: list[str],
+                       statistic, n: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``statistic`` (``aggregate_planning``'s output -> float) of planners a and b on the same samples over ``n``
+    resamples that draw whole ``groups`` (one per sample, e.g. its scene: keyframes of one scene are far from
+    independent) with replacement: two arrays [n], paired draw by draw."""
+    names = sorted(set(groups))
+    if len(names) < 2 or n < 1:
+        raise ValidationError("a bootstrap needs at least two groups (scenes) and one draw")
+    g = np.asarray(groups, dtype=object)
+    members = [np.flatnonzero(g == name) for name in names]
+    rng = np.random.default_rng(seed)
+    a, b = np.zeros(n), np.zeros(n)
+    for k in range(n):
+        rows = np.concatenate([members[i] for i in rng.integers(0, len(names), len(names))])
+        a[k] = statistic(aggregate_planning({key: v[rows] for key, v in per_a.items()}))
+        b[k] = statistic(aggregate_planning({key: v[rows] for key, v in per_b.items()}))
+    return a, b

@@ -146,30 +146,51 @@ def boxes_in_frame(pose: np.ndarray,     # [N, 3] world x, y, yaw (NaN rows = ab
     return np.column_stack([xy, np.asarray(sizes)[keep], yaw, np.asarray(vehicle)[keep].astype(np.float64)])
 
 
-def planning_examples(scenario: Scenario, start: int = 0, stride_s: float = STEP_S) -> list[PlanningExample]:
-    """Every keyframe from ``start`` (one each ``stride_s``) that has STEPS future waypoints at STEP_S and the
-    HISTORY_S before it."""
+def planning_examples(scenario: Scenario, start: int = 0, stride_s: float = STEP_S,
+                      min_known: int = STEPS) -> list[PlanningExample]:
+    """Every keyframe from ``start`` (one each ``stride_s``) that has the HISTORY_S before it and at least
+    ``min_known`` of its STEPS future waypoints at STEP_S. Waypoints past the scenario's end are masked out (UniAD's
+    ``sdc_planning_mask``): zero, with no vehicles at those steps, so they add nothing to L2 or collisions; the
+    command then reads the last known waypoint."""
     per_step = STEP_S / scenario.dt
     k = int(round(per_step))
     if abs(per_step - k) > 1e-6 or k < 1:
         raise ValidationError(f"scenario {scenario.scenario_id}: dt {scenario.dt} s does not divide {STEP_S} s")
+    if not 1 <= min_known <= STEPS:
+        raise ValidationError(f"min_known must be 1..{STEPS} future waypoints; got {min_known}")
     back = int(round(HISTORY_S / scenario.dt))
     stride = max(1, int(round(stride_s / scenario.dt)))
     frames = waypoint_frames(scenario.ego)
+    S = len(scenario.ego)
     out = []
-    for t in range(max(start, back), len(scenario.ego) - STEPS * k, stride):
+    for t in range(max(start, back), S - min_known * k, stride):
         frame = frames[t]
         future = [t + k * (i + 1) for i in range(STEPS)]
-        trajectory = to_frame(frame, frames[future, :2, 2])
-        vehicles = tuple(_boxes(scenario, f, frame, vehicles_only=True)[:, :5] for f in future)
+        known = np.array([f < S for f in future])
+        trajectory = np.zeros((STEPS, 2))
+        trajectory[known] = to_frame(frame, frames[[f for f in future if f < S], :2, 2])
+        vehicles = tuple(_boxes(scenario, f, frame, vehicles_only=True)[:, :5] if f < S else np.zeros((0, 5))
+                         for f in future)
         now = _boxes(scenario, t, frame, vehicles_only=False)
         past = _boxes(scenario, t - back, frame, vehicles_only=False)
         moved = to_frame(frame, frames[t - back, :2, 2])
         speed = float(np.linalg.norm(moved) / (back * scenario.dt)) if back else 0.0
         yaw_rate = float(np.angle(np.exp(1j * (scenario.ego[t, 2] - scenario.ego[t - back, 2]))) / (back * scenario.dt)) \
             if back else 0.0
-        command = command_of(trajectory)
-        sample = PlanningSample(f"{scenario.scenario_id}@{t}", trajectory, np.ones(STEPS, bool), vehicles, command)
+        command = command_of(trajectory[known])
+        sample = PlanningSample(f"{scenario.scenario_id}@{t}", trajectory, known, vehicles, command)
         out.append(PlanningExample(sample, PlanningInput(now, past, speed, yaw_rate, command, frame),
                                    scenario, t))
     return out
+
+
+#: Behaviour-SCS keyframes need at least this many known future waypoints (1 s).
+SCS_MIN_KNOWN = 2
+
+
+def variant_keyframes(scenario: Scenario, now_step: int) -> list[PlanningExample]:
+    """The planning examples of a behaviour variant (ego on its solution): its now step and every 0.5 s after it
+    while at least ``SCS_MIN_KNOWN`` future waypoints are known. A variant spans the traffic model's 3 s future,
+    so only the now step has all six; the later keyframes are the ones that see the adversary leave its logged path
+    (the cut-in itself), with their future masked past the variant's end."""
+    return planning_examples(scenario, start=now_step, min_known=SCS_MIN_KNOWN)

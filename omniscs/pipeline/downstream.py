@@ -22,7 +22,7 @@ from omniscs.progress import Progress, no_progress
 
 log = logging.getLogger(__name__)
 
-FINETUNE_VERSION = 1
+FINETUNE_VERSION = 2  # 2: behaviour-SCS keyframes after the now step (variant_keyframes), masked loss
 #: Share of the fine-tuning examples that are behaviour-SCS (repeated to reach it; the rest are the logs).
 SCS_SHARE = 0.5
 BASE_MODEL_ID = "proxy-planner-base"
@@ -71,7 +71,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
     from omniscs.eval.planner import DEFAULT_PLANNER, TrainConfig, load_planner, save_planner, train_planner
 
     started = time.perf_counter()
-    config = config or TrainConfig(epochs=15, lr=1e-3, seed=1)
+    config = config or TrainConfig(epochs=15, lr=3e-4, seed=1)  # the setting the planning protocol kept (its bench)
     datasets = dataset_paths(workspace, dataset_ids)
     base_path = Path(base) if base is not None else DEFAULT_PLANNER
     base_hash = _folder_hash(base_path)
@@ -96,7 +96,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
                                    rows={"downstream_models": [dict(row, status="failed", n_examples=0,
                                                                     train_seconds=None, path=None,
                                                                     error="the datasets hold no solved variant with a "
-                                                                          "3 s future to learn from")]},
+                                                                          "1 s future to learn from")]},
                                    info={"status": "failed", "model_id": model_id})
             repeat = max(1, int(round(SCS_SHARE / (1 - SCS_SHARE) * len(logs) / len(scs)))) if logs else 1
             base_model = load_planner(base_path)
@@ -279,7 +279,7 @@ def evaluate_stage(model: StageRecord | None, dataset_ids: list[str], workspace:
         for split, examples in (("behaviour-SCS", scs), ("original", logs)):
             if not examples:
                 rows.append(failed_row(eval_id, model_id, did, "planning", split,
-                                       f"dataset {did} has no {split} example with a 3 s future"))
+                                       f"dataset {did} has no {split} example with a known future"))
                 continue
             rows += planner_rows(eval_id, model_id, did, split,
                                  evaluate_planning([e.sample for e in examples], plan(planner, examples)))

@@ -148,3 +148,26 @@ def test_the_eval_planning_command_prints_both_conventions(dataroot, tmp_path):
     assert table.returncode == 0 and "stp3" in table.stdout and "uniad" not in table.stdout
     bad = subprocess.run([*args, "--convention", "vad"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--convention" in bad.stderr
+
+
+def test_a_scene_bootstrap_resamples_whole_groups_and_pairs_the_two_planners():
+    from omniscs.eval.planning import aggregate_planning, bootstrap_planning, per_sample_planning
+
+    gt = _straight()
+    empty = tuple([np.zeros((0, 5))] * 6)
+    car = list(empty)
+    car[3] = np.array([[3.0, 8.0, 4.0, 2.0, np.pi / 2]])
+    samples = [PlanningSample(f"s{i}", gt, np.ones(6, bool), tuple(car) if i % 2 else empty) for i in range(8)]
+    straight = {s.token: gt for s in samples}
+    aside = {s.token: gt + np.array([3.0, 0.0]) for s in samples}  # 3 m right: into the car where there is one
+    per_a, per_b = per_sample_planning(samples, straight), per_sample_planning(samples, aside)
+    whole = aggregate_planning(per_b)
+    assert whole["per_step"]["obj_box_col"][3] == pytest.approx(0.5)
+    groups = [f"scene{i // 2}" for i in range(8)]  # each scene: one keyframe with the car, one without
+    col = lambda o: o["per_step"]["obj_box_col"][3]  # noqa: E731
+    a, b = bootstrap_planning(per_a, per_b, groups, col, n=50)
+    assert np.all(a == 0) and np.allclose(b, 0.5)  # whole scenes drawn: always half the keyframes have the car
+    l2a, l2b = bootstrap_planning(per_a, per_b, groups, lambda o: o["uniad"]["L2"]["3s"], n=5)
+    assert np.all(l2a == 0) and np.allclose(l2b, 3.0)
+    with pytest.raises(ValidationError, match="two groups"):
+        bootstrap_planning(per_a, per_b, ["one"] * 8, col)

@@ -131,3 +131,85 @@ def test_the_shipped_planner_loads_and_says_how_it_was_made():
     assert record["epoch_loss_m"][-1] < record["epoch_loss_m"][0]
     held = planning_examples(_scenario(7, lead_gap=12.0))
     assert all(np.isfinite(p).all() for p in plan(model, held).values())
+
+
+def test_variant_keyframes_run_past_the_now_step_with_the_unknown_future_masked():
+    from omniscs.eval.scenarios import SCS_MIN_KNOWN, variant_keyframes
+
+    sc = _scenario(4, steps=40, lead_gap=12.0)  # a variant's span: 1 s history and 3 s future at 0.1 s
+    full = planning_examples(sc, start=9)
+    assert [e.step for e in full] == [9]  # only the now step has all six waypoints
+    keys = variant_keyframes(sc, 9)
+    assert [e.step for e in keys] == [9, 14, 19, 24, 29]
+    assert [int(e.sample.mask.sum()) for e in keys] == [6, 5, 4, 3, 2]
+    assert SCS_MIN_KNOWN == 2
+    last = keys[-1].sample
+    assert np.all(last.trajectory[2:] == 0) and all(len(v) == 0 for v in last.vehicles[2:])
+    assert len(last.vehicles[0]) == 2  # the lead car and the parked car, where the truth is known
+    np.testing.assert_allclose(keys[0].sample.trajectory, full[0].sample.trajectory)
+    with pytest.raises(ValidationError, match="min_known"):
+        planning_examples(sc, min_known=0)
+
+
+def test_masked_steps_add_nothing_and_collisions_are_also_read_per_known_step():
+    sc = _scenario(5, steps=40, lead_gap=6.0)
+    from omniscs.eval.scenarios import variant_keyframes
+
+    keys = variant_keyframes(sc, 9)
+    samples = [e.sample for e in keys]
+    truth = {s.token: s.trajectory for s in samples}
+    out = evaluate_planning(samples, truth)
+    assert out["known_per_step"] == [5, 5, 4, 3, 2, 1]
+    assert out["per_step"]["L2"] == pytest.approx([0.0] * 6)
+    def onto_the_lead(s):  # each known waypoint on the lead car (the box nearest ahead)
+        out = s.trajectory.copy()
+        for i, boxes in enumerate(s.vehicles):
+            if len(boxes):
+                lead = boxes[np.argmin(np.abs(boxes[:, 0]))]
+                out[i] = lead[:2] - np.array([0.0, EGO_SHIFT])
+        return out
+
+    got = evaluate_planning(samples, {s.token: onto_the_lead(s) for s in samples})
+    col, known = np.array(got["per_step"]["obj_box_col"]), np.array(got["known_per_step"])
+    np.testing.assert_allclose(got["per_step"]["obj_box_col_known"], col * len(samples) / known)
+    assert col.max() > 0
+
+
+def test_collision_loss_is_zero_when_clear_and_pushes_the_plan_out_of_a_box():
+    import torch
+
+    from omniscs.eval.planner import collision_loss, collision_penetration, future_boxes
+
+    box = torch.zeros(1, 6, 1, 6)
+    box[0, :, 0] = torch.tensor([0.0, 8.0, 4.0, 2.0, np.pi / 2, 1.0])  # a car ahead, along +y
+    clear = torch.zeros(1, 6, 2)
+    clear[0, :, 1] = -5.0
+    assert collision_penetration(clear, box, 0.0).abs().max() == 0
+    into = clear.clone()
+    into[0, :, 1] = 6.0  # the ego box's front reaches into the car
+    reach = collision_penetration(into, box, 0.0)
+    assert (reach > 0).all() and (collision_penetration(into, box, 1.0) > reach).all()
+    plan_ = into.clone().requires_grad_(True)
+    mask = torch.ones(1, 6)
+    loss = collision_loss(plan_, clear, mask, box)
+    loss.backward()
+    assert loss.item() > 0 and (plan_.grad[0, :, 1] > 0).all()  # moving back (-y) lowers it
+    assert collision_loss(into, into, mask, box).item() == 0  # where the truth itself collides: left out
+    ex = planning_examples(_scenario(6, lead_gap=12.0))[0]
+    boxes = future_boxes(ex)
+    assert boxes.shape[0] == 6 and boxes[..., 5].sum() > 0 and np.isfinite(boxes).all()
+
+
+def test_training_with_the_collision_loss_learns_and_mirrors_its_boxes():
+    import torch
+
+    from omniscs.eval.planner import _mirror, _tensors
+
+    train = _examples(range(0, 6))
+    data = _tensors(train[:4], with_boxes=True)
+    m = _mirror(*data)
+    assert torch.equal(m[5][..., 0], -data[5][..., 0]) and torch.allclose(m[5][..., 4], np.pi - data[5][..., 4])
+    model, record = train_planner(train, TrainConfig(epochs=6, batch_size=16, lr=3e-3, collision_weight=1.0))
+    assert np.isfinite(record["epoch_loss_m"]).all() and record["epoch_loss_m"][-1] < record["epoch_loss_m"][0]
+    with pytest.raises(ValidationError, match="collision_weight"):
+        TrainConfig(collision_weight=-1.0)
