@@ -78,10 +78,15 @@ def log_examples(scene_paths: list[str | Path]) -> list[PlanningExample]:
 
 def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str, metrics: dict) -> list[dict]:
     """``evaluations`` rows of one planning evaluation (``omniscs.eval.planning.evaluate_planning``'s output)."""
+    from omniscs.eval.planning import HORIZONS
+
     rows = []
+    known = metrics.get("known_per_step")
     for convention in ("uniad", "stp3"):
         for metric, key in (("L2", "L2"), ("collision", "obj_box_col"), ("collision_known", "obj_box_col_known")):
             for horizon, value in metrics[convention][key].items():
+                if known is not None and known[HORIZONS[horizon]] == 0:
+                    value = np.nan  # no keyframe knows its truth that far ahead: no number, not a perfect 0
                 rows.append({"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": "planning",
                              "split": split, "metric": metric, "class_name": "", "horizon": horizon,
                              "convention": convention, "value": float(value) if np.isfinite(value) else None,

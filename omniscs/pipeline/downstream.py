@@ -279,7 +279,8 @@ def evaluate_stage(model: StageRecord | None, dataset_ids: list[str], workspace:
         for split, examples in (("behaviour-SCS", scs), ("original", logs)):
             if not examples:
                 rows.append(failed_row(eval_id, model_id, did, "planning", split,
-                                       f"dataset {did} has no {split} example with a known future"))
+                                       f"dataset {did} has no {split} example with "
+                                       + ("1 s of known future" if split == "behaviour-SCS" else "a whole 3 s future")))
                 continue
             rows += planner_rows(eval_id, model_id, did, split,
                                  evaluate_planning([e.sample for e in examples], plan(planner, examples)))

@@ -171,3 +171,18 @@ def test_a_scene_bootstrap_resamples_whole_groups_and_pairs_the_two_planners():
     assert np.all(l2a == 0) and np.allclose(l2b, 3.0)
     with pytest.raises(ValidationError, match="two groups"):
         bootstrap_planning(per_a, per_b, ["one"] * 8, col)
+
+
+def test_catalog_rows_leave_a_horizon_no_keyframe_knows_empty_not_zero():
+    from omniscs.eval.downstream import planner_rows
+
+    gt = _straight()
+    mask = np.array([1, 1, 1, 0, 0, 0], bool)  # only 1.5 s of the future known
+    sample = PlanningSample("a", gt * mask[:, None], mask, tuple([np.zeros((0, 5))] * 6))
+    out = evaluate_planning([sample], {"a": gt + 1.0})
+    rows = planner_rows("e", "m", "d", "behaviour-SCS", out)
+    value = {(r["convention"], r["metric"], r["horizon"]): r["value"] for r in rows}
+    assert value[("uniad", "L2", "1s")] == pytest.approx(np.sqrt(2))
+    assert all(value[(c, m, h)] is None for c in ("uniad", "stp3") for m in ("L2", "collision", "collision_known")
+               for h in ("2s", "3s"))
+    assert value[("uniad", "collision_known", "1s")] == 0.0
