@@ -57,11 +57,11 @@ class DownstreamBenchConfig:
     base: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=40, seed=0))
     finetune: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=15, lr=1e-3, seed=1))
     scs_share: float = 0.5
+    """Share of the fine-tuning examples that are behaviour-SCS (they are repeated to reach it; the rest are the
+    train logs, so the planner keeps what it knew)."""
     rehearse_base_logs: bool = True
     """Fine-tune on the behaviour-SCS examples with the logs base was trained on (its training record's seeds), not
     with train logs base never saw: the gain is then the behaviour-SCS data's, not more log data's."""
-    """Share of the fine-tuning examples that are behaviour-SCS (they are repeated to reach it; the rest are the
-    train logs, so the planner keeps what it knew)."""
     val_scenes: int = 24
     """Validation scenes (their own seeds): the fine-tuning settings are chosen on them, never on the test set."""
     val_seed: int = 320_000
@@ -140,13 +140,18 @@ def _gather(split: str, config: DownstreamBenchConfig, cache: Path, progress: Pr
     return out
 
 
+def _scene_id(example) -> str:
+    """The scene an example comes from (a variant's scenario id is "<scene id>/<variant id>")."""
+    return example.scenario.scenario_id.split("/")[0]
+
+
 def _base_logs(logs: list, base_record: dict) -> list:
     """The log examples of the scenes base was trained on (the seeds its training record names)."""
     seeds = (base_record.get("data") or {}).get("train_seeds")
     if not seeds:
         raise ValidationError("the base planner's training record names no train seeds; rehearse_base_logs needs them")
     lo, hi = int(seeds[0]), int(seeds[-1])
-    return [e for e in logs if lo <= int(e.scenario.scenario_id.split("/")[0].rsplit("-s", 1)[1]) <= hi]
+    return [e for e in logs if lo <= int(_scene_id(e).rsplit("-s", 1)[1]) <= hi]
 
 
 def _finetune(base, train: dict, config: DownstreamBenchConfig, progress: Progress):
@@ -162,16 +167,21 @@ def _finetune(base, train: dict, config: DownstreamBenchConfig, progress: Progre
     return tuned, record
 
 
-def _validation(base, tuned, val: dict) -> dict:
-    """What a fine-tuning candidate does on the validation scenes: relative collision reduction on their
-    behaviour-SCS examples and the change of L2 at 3 s on their logs."""
+def _val_scores(model, val: dict) -> dict:
+    """A planner's headline numbers on the validation scenes: collision rate on their behaviour-SCS examples, L2 at
+    3 s on their logs."""
     from omniscs.eval.planner import plan
 
-    col = {name: _collision(_metrics(val["scs"], plan(m, val["scs"]))) for name, m in (("base", base),
-                                                                                        ("tuned", tuned))} \
-        if val["scs"] else {"base": 0.0, "tuned": 0.0}
-    l2 = {name: _metrics(val["logs"], plan(m, val["logs"]))["L2"]["3s"] for name, m in (("base", base),
-                                                                                      ("tuned", tuned))}
+    return {"collision": _collision(_metrics(val["scs"], plan(model, val["scs"]))) if val["scs"] else 0.0,
+            "l2": _metrics(val["logs"], plan(model, val["logs"]))["L2"]["3s"]}
+
+
+def _validation(base_scores: dict, tuned, val: dict) -> dict:
+    """What a fine-tuning candidate does on the validation scenes against base (``_val_scores`` of base): relative
+    collision reduction on their behaviour-SCS examples and the change of L2 at 3 s on their logs."""
+    tuned_scores = _val_scores(tuned, val)
+    col = {"base": base_scores["collision"], "tuned": tuned_scores["collision"]}
+    l2 = {"base": base_scores["l2"], "tuned": tuned_scores["l2"]}
     return {"val_collision_base": col["base"], "val_collision_tuned": col["tuned"],
             "collision_reduction": (col["base"] - col["tuned"]) / col["base"] if col["base"] > 0 else None,
             "l2_change_3s": float(l2["tuned"] - l2["base"])}
@@ -206,16 +216,13 @@ def _summary_from(out: dict) -> dict:
             "L2_stp3": out["stp3"]["L2"], "collision_stp3": out["stp3"]["obj_box_col"]}
 
 
-def _intervals(examples, base_plans, tuned_plans, n: int = 200) -> dict | None:
-    """95 % intervals of the collision reduction and the L2 (3 s) change, fine-tuned against base, from resampling
-    the test scenes (``bootstrap_planning``)."""
-    from omniscs.eval.planning import bootstrap_planning, per_sample_planning
+def _intervals(groups: list[str], per_a: dict, per_b: dict, n: int = 200) -> dict | None:
+    """95 % intervals of the collision reduction and the L2 (3 s) change, b (fine-tuned) against a (base), from
+    resampling the test scenes (``groups``: each example's scene; ``bootstrap_planning``)."""
+    from omniscs.eval.planning import bootstrap_planning
 
-    samples = [e.sample for e in examples]
-    groups = [e.scenario.scenario_id.split("/")[0] for e in examples]
     if len(set(groups)) < 2:
         return None  # one scene: nothing to resample
-    per_a, per_b = per_sample_planning(samples, base_plans), per_sample_planning(samples, tuned_plans)
     col_a, col_b = bootstrap_planning(per_a, per_b, groups, lambda o: _collision(_summary_from(o)), n)
     l2_a, l2_b = bootstrap_planning(per_a, per_b, groups, lambda o: _summary_from(o)["L2"]["3s"], n)
     reduction = np.divide(col_a - col_b, col_a, out=np.zeros(n), where=col_a > 0)
@@ -229,6 +236,7 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
                              config: DownstreamBenchConfig = DownstreamBenchConfig(), train_base: bool = False,
                              progress: Progress = no_progress) -> dict:
     from omniscs.eval.planner import DEFAULT_PLANNER, features, load_planner, plan, save_planner, train_planner
+    from omniscs.eval.planning import per_sample_planning
 
     machine = machine_info()
     cache = workspace_root(workspace) / "bench-downstream"
@@ -249,12 +257,12 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
         train = dict(train, logs=_base_logs(train["logs"], base_record))
     val = _gather("val", config, cache, progress)
     progress(0, None, "fine-tuning on behaviour-SCS + logs, settings chosen on the validation scenes")
-    grid, chosen = [], None
+    grid, chosen, base_scores = [], None, _val_scores(base, val)
     for lr, epochs, share, weight in config.finetune_grid:
         cand = replace(config, scs_share=share, finetune=replace(config.finetune, lr=lr, epochs=epochs,
                                                                  collision_weight=weight))
         tuned_c, record_c = _finetune(base, train, cand, progress)
-        score = _validation(base, tuned_c, val)
+        score = _validation(base_scores, tuned_c, val)
         grid.append({"lr": lr, "epochs": epochs, "scs_share": share, "collision_weight": weight, **score})
         ok = score["l2_change_3s"] <= config.l2_regression_limit_m
         key = (ok, score["collision_reduction"] if ok and score["collision_reduction"] is not None
@@ -265,22 +273,23 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
     progress(0, None, "control: the kept setting on base's logs alone")
     control, _ = train_planner(train["logs"], config.finetune, init=base, progress=progress)
     sets = {"behaviour-SCS test": test["scs"], "original test": test["logs"]}
-    rows = {}
+    models = {"base": base, "fine-tuned": tuned, "logs-only control": control}
+    rows, per, intervals = {}, {}, {}
     for name, examples in sets.items():
+        samples = [e.sample for e in examples]
         straight = {e.sample.token: features(e)[2].astype(np.float64) for e in examples}
-        rows[name] = {"straight on": _metrics(examples, straight), "base": _metrics(examples, plan(base, examples)),
-                      "fine-tuned": _metrics(examples, plan(tuned, examples)),
-                      "logs-only control": _metrics(examples, plan(control, examples))}
-    progress(0, None, "95 % intervals from resampling the test scenes")
-    intervals = {name: _intervals(examples, plan(base, examples), plan(tuned, examples))
-                 for name, examples in sets.items()}
+        per[name] = {"straight on": per_sample_planning(samples, straight),
+                     **{model: per_sample_planning(samples, plan(m, examples)) for model, m in models.items()}}
+        rows[name] = {model: _summary(p) for model, p in per[name].items()}
+        progress(0, None, f"95 % intervals from resampling the scenes of the {name} set")
+        intervals[name] = _intervals([_scene_id(e) for e in examples], per[name]["base"], per[name]["fine-tuned"])
     by_template = {}
+    templates = np.array([_scene_id(e).rsplit("-s", 1)[0].removeprefix("syn-") for e in test["logs"]])
     for template in TEMPLATES:
-        examples = [e for e in test["logs"] if e.scenario.scenario_id.startswith(f"syn-{template}-s")]
-        if examples:
-            by_template[template] = {name: _metrics(examples, plan(m, examples))["L2"]["3s"]
-                                     for name, m in (("base", base), ("fine-tuned", tuned), ("logs-only control",
-                                                                                              control))}
+        keep = templates == template
+        if keep.any():
+            by_template[template] = {model: _summary({k: v[keep] for k, v in per["original test"][model].items()})
+                                     ["L2"]["3s"] for model in models}
     scs, orig = rows["behaviour-SCS test"], rows["original test"]
     col_b, col_f = _collision(scs["base"]), _collision(scs["fine-tuned"])
     reduction = (col_b - col_f) / col_b if col_b > 0 else None
