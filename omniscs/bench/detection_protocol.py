@@ -8,6 +8,10 @@ Data (procedural, rendered, all through the factory's own stages):
     ``det-scs-train``;
   - test: held-out logs (``test_scenes``) with held-out objects (indices ``test_objects`` of the same kinds, none in
     the training pool): the appearance-SCS test set ``det-scs-test``, and the original test set (the logs themselves).
+  - validation: other held-out logs (``val_scenes``) with other held-out objects (``val_objects``): the fine-tuning
+    setting is chosen there among ``candidates``, never on a test set;
+  - earlier test (``earlier_test_scenes``): the test logs of the protocol's first version, on which it was shaped;
+    reported apart from the fresh test set.
 Each set is exported as a nuScenes dataroot. *Base* is the shipped proxy detector (trained on other procedural logs
 without SCS); *fine-tuned* starts from base and trains on the train logs and their appearance-SCS variants, together
 with base's own training logs (``rehearse``). Both are
@@ -31,14 +35,23 @@ from omniscs.storage import workspace_root
 log = logging.getLogger(__name__)
 
 VERSION = DETECTOR_VERSION  # the dataroots the protocol exports and reads
+#: Split -> the names of its appearance-SCS set and of its logs' set.
+SET_NAMES = {"val": ("validation appearance-SCS", "validation logs"),
+             "test": ("appearance-SCS test", "original test"),
+             "earlier test": ("earlier appearance-SCS test", "earlier original test")}
 
 
 @dataclass(frozen=True)
 class DetectionProtocolConfig:
     train_scenes: tuple[str, ...] = ("straight:7201", "t_junction:7202", "intersection:7203", "straight:7204")
     """Training logs (template:seed); no other benchmark uses these seeds."""
-    test_scenes: tuple[str, ...] = ("straight:7301", "t_junction:7302", "intersection:7303")
-    """Held-out logs of both test sets."""
+    val_scenes: tuple[str, ...] = ("straight:7401", "t_junction:7402", "intersection:7403")
+    """Validation logs: the fine-tuning setting is chosen on them and their variants (empty: the first candidate)."""
+    test_scenes: tuple[str, ...] = ("straight:7501", "t_junction:7502", "intersection:7503", "straight:7504",
+                                    "t_junction:7505", "intersection:7506")
+    """Held-out logs of both test sets (fresh: never looked at while the protocol was shaped)."""
+    earlier_test_scenes: tuple[str, ...] = ("straight:7301", "t_junction:7302", "intersection:7303")
+    """The first version's test logs, looked at while the protocol was shaped: reported apart (empty: none)."""
     n_frames: int = 30
     preset: str = "fast"
     """Fit preset of the scene graphs the variants are rendered through."""
@@ -52,8 +65,15 @@ class DetectionProtocolConfig:
     """Pool-split index range per kind of the training objects."""
     test_objects: tuple[int, int] = (6, 8)
     """... and of the held-out test objects (disjoint from the training ones)."""
+    val_objects: tuple[int, int] = (8, 10)
+    """... and of the validation objects (disjoint from both)."""
     finetune: DetectorTrainConfig = field(default_factory=lambda: DetectorTrainConfig(steps=1200, lr=1e-3, seed=1))
-    """Fine-tuning from the shipped weights."""
+    """Fine-tuning from the shipped weights: the settings every candidate shares."""
+    candidates: tuple[dict, ...] = field(default_factory=lambda: (
+        {}, {"class_balance": 0.5}, {"class_balance": 1.0}, {"class_balance": 1.0, "steps": 2400}))
+    """Fine-tuning candidates (``DetectorTrainConfig`` fields over ``finetune``). The one kept gains most mAP on the
+    validation appearance-SCS set among those losing at most ``map_regression_limit`` on the validation logs (none
+    such: the one losing least)."""
     rehearse: bool = True
     """Fine-tune on the base detector's own training images too (the shipped detector's procedural logs,
     ``omniscs.bench.detector_data``), as the paper fine-tunes on the original training set plus the SCS data: trained
@@ -66,10 +86,11 @@ class DetectionProtocolConfig:
 
 def quick_config() -> DetectionProtocolConfig:
     """A smoke run: one train and one test scene, two variants, a few steps (not a measurement)."""
-    return DetectionProtocolConfig(train_scenes=("straight:7201",), test_scenes=("straight:7301",), n_frames=12,
-                                   appearance_variants=2, test_variants=2, object_kinds=("box_truck", "sedan"),
-                                   train_objects=(0, 3), finetune=DetectorTrainConfig(steps=5, batch_size=4, seed=1),
-                                   rehearse=False)
+    return DetectionProtocolConfig(train_scenes=("straight:7201",), val_scenes=(), test_scenes=("straight:7301",),
+                                   earlier_test_scenes=(), n_frames=12, appearance_variants=2, test_variants=2,
+                                   object_kinds=("box_truck", "sedan"), train_objects=(0, 3),
+                                   finetune=DetectorTrainConfig(steps=5, batch_size=4, seed=1),
+                                   candidates=({}, {"class_balance": 1.0}), rehearse=False)
 
 
 def _pool(workspace: Path, name: str, kinds, span: tuple[int, int]) -> tuple[Path, list[str]]:
@@ -105,14 +126,31 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
     return {"logs": logs, "scs": stores, "dataset": dataset.path}
 
 
-def _export(stores: list[str], out: Path, keyframe_every: int | None = None) -> Path:
-    """The stores as one nuScenes dataroot (``keyframe_every`` None: the 2 Hz keyframes the protocol evaluates;
-    training sets take every frame, as the shipped detector's training did)."""
+def _export(stores: list[str], root: Path, name: str, keyframe_every: int | None = None) -> Path:
+    """The stores as one nuScenes dataroot ``root/name-<digest of the stores>`` (``keyframe_every`` None: the 2 Hz
+    keyframes the protocol evaluates; training sets take every frame, as the shipped detector's training did); made
+    once, reused by later runs."""
+    import hashlib
+
     from omniscs.pipeline.downstream import export_dataroot
 
-    if not (out / VERSION / "sample.json").is_file():  # made by an earlier run: reused
+    digest = hashlib.sha1(json.dumps([sorted(stores), keyframe_every]).encode()).hexdigest()[:10]
+    out = root / f"{name}-{digest}"
+    if not (out / VERSION / "sample.json").is_file():
         export_dataroot(stores, out, keyframe_every)
     return out
+
+
+def choose_candidate(val: list[dict], regression_limit: float) -> int:
+    """Index of the kept fine-tuning candidate among ``val`` (per candidate its validation ``scs_gain`` and
+    ``logs_change`` in mAP): the largest gain among those losing at most ``regression_limit`` on the logs; when none
+    does, the one losing least."""
+    if not val:
+        raise ValueError("no candidate to choose from")
+    within = [i for i, v in enumerate(val) if v["logs_change"] >= -regression_limit]
+    if within:
+        return max(within, key=lambda i: (val[i]["scs_gain"], val[i]["logs_change"]))
+    return max(range(len(val)), key=lambda i: val[i]["logs_change"])
 
 
 def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: int = 200, seed: int = 0) -> dict | None:
@@ -137,22 +175,28 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
 def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = None,
                            config: DetectionProtocolConfig = DetectionProtocolConfig(),
                            progress: Progress = no_progress) -> dict:
-    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector, train_detector
+    from dataclasses import replace
+
+    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector, train_detector, training_set
 
     machine = machine_info()
     ws = workspace_root(workspace)
     root = ws / "bench-downstream" / "detection"
     started = time.perf_counter()
-    pools = {"train": _pool(ws, "train", config.object_kinds, config.train_objects),
-             "test": _pool(ws, "test", config.object_kinds, config.test_objects)}
-    scenes = {"train": config.train_scenes, "test": config.test_scenes}
-    splits = {s: build_split(s, scenes[s], *pools[s], config, ws, progress) for s in ("train", "test")}
-    tag = (f"{len(config.train_scenes)}x{config.appearance_variants}-{len(config.test_scenes)}x{config.test_variants}-"
-           f"{config.n_frames}f-{config.train_objects[0]}-{config.train_objects[1]}")
-    roots = {"train logs": _export(splits["train"]["logs"], root / f"train-logs-{tag}", 1),
-             "train appearance-SCS": _export(splits["train"]["scs"], root / f"train-scs-{tag}", 1),
-             "appearance-SCS test": _export(splits["test"]["scs"], root / f"test-scs-{tag}"),
-             "original test": _export(splits["test"]["logs"], root / f"test-logs-{tag}")}
+    objects = {"train": config.train_objects, "val": config.val_objects, "test": config.test_objects}
+    scenes = {"train": config.train_scenes, "val": config.val_scenes, "test": config.test_scenes,
+              "earlier test": config.earlier_test_scenes}
+    pool_of = {"train": "train", "val": "val", "test": "test", "earlier test": "test"}
+    pools = {s: _pool(ws, s, config.object_kinds, objects[s]) for s in sorted(set(pool_of[k] for k in scenes
+                                                                                  if scenes[k]))}
+    splits = {k: build_split("test" if k == "earlier test" else k, scenes[k], *pools[pool_of[k]], config, ws, progress)
+              for k in scenes if scenes[k]}
+    roots = {"train logs": _export(splits["train"]["logs"], root, "train-logs", 1),
+             "train appearance-SCS": _export(splits["train"]["scs"], root, "train-scs", 1)}
+    for k, (scs_name, logs_name) in SET_NAMES.items():
+        if k in splits:
+            roots[scs_name] = _export(splits[k]["scs"], root, f"{k.replace(' ', '-')}-scs")
+            roots[logs_name] = _export(splits[k]["logs"], root, f"{k.replace(' ', '-')}-logs")
     if config.rehearse:
         from omniscs.bench.detector_data import ShippedDetectorConfig, procedural_dataroot
 
@@ -162,18 +206,53 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
     data_s = time.perf_counter() - started
     base = load_detector()
     base_record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
-    progress(0, None, "fine-tuning the detector on the train logs and their appearance-SCS variants")
-    tick = time.perf_counter()
     tuning_set = [(roots["train logs"], VERSION), (roots["train appearance-SCS"], VERSION)]
     if config.rehearse:
         from omniscs.bench.detector_data import VERSION as SHIPPED_VERSION
 
         tuning_set.append((roots["base training logs"], SHIPPED_VERSION))
-    tuned, tune_record = train_detector(tuning_set, config.finetune, init=base, progress=progress)
-    tune_s = time.perf_counter() - tick
+    read: dict[tuple, object] = {}  # the fine-tuning images, read once per annotation filter the candidates use
+
+    def images_for(train_config) -> object:
+        key = tuple(getattr(train_config, f) for f in ("max_depth_m", "near_m", "min_visibility", "require_points"))
+        if key not in read:
+            progress(0, None, "reading the fine-tuning images")
+            read.clear()
+            read[key] = training_set(tuning_set, base.config, train_config)
+        return read[key]
+
+    def results_path(model: str, name: str) -> Path:
+        return root / f"results-{model}-{name.replace(' ', '_')}-{roots[name].name}.json"
+
+    val_sets = SET_NAMES["val"]
+    base_val = {n: evaluate_detector(base, roots[n], VERSION, results_path("base", n))["mAP"]
+                for n in val_sets if n in roots}
+    candidates, tuned, tune_record, tune_s = [], None, None, 0.0
+    for i, overrides in enumerate(config.candidates):
+        train_config = replace(config.finetune, **overrides)
+        progress(i, len(config.candidates), f"fine-tuning candidate {i + 1} of {len(config.candidates)}: {overrides}")
+        tick = time.perf_counter()
+        model, record = train_detector(tuning_set, train_config, init=base, data=images_for(train_config),
+                                       progress=progress)
+        row = {"overrides": dict(overrides), "seconds": time.perf_counter() - tick}
+        if base_val:
+            val = {n: evaluate_detector(model, roots[n], VERSION, results_path(f"candidate{i}", n))["mAP"]
+                   for n in val_sets}
+            row.update(scs_base=base_val[val_sets[0]], scs_tuned=val[val_sets[0]],
+                       scs_gain=val[val_sets[0]] - base_val[val_sets[0]], logs_base=base_val[val_sets[1]],
+                       logs_tuned=val[val_sets[1]], logs_change=val[val_sets[1]] - base_val[val_sets[1]])
+        candidates.append(row)
+        if not base_val:  # nothing to choose on: the first candidate is kept
+            tuned, tune_record, tune_s = model, record, row["seconds"]
+            break
+        kept = choose_candidate(candidates, config.map_regression_limit)
+        if kept == i:  # keep only the best so far in memory
+            tuned, tune_record, tune_s = model, record, row["seconds"]
+    kept = choose_candidate(candidates, config.map_regression_limit) if base_val else 0
+    tests = [n for n in SET_NAMES["test"] + SET_NAMES["earlier test"] if n in roots]
     rows, intervals = {}, {}
-    for name in ("appearance-SCS test", "original test"):
-        paths = {m: root / f"results-{m}-{name.replace(' ', '_')}-{tag}.json" for m in ("base", "fine-tuned")}
+    for name in tests:
+        paths = {m: results_path(m, name) for m in ("base", "fine-tuned")}
         rows[name] = {m: evaluate_detector(model, roots[name], VERSION, paths[m])
                       for m, model in (("base", base), ("fine-tuned", tuned))}
         progress(0, None, f"{name}: resampling its scenes for the gain's interval")
@@ -185,33 +264,38 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
                "meets_gain_target": gain >= config.map_gain_target,
                "meets_regression_limit": change >= -config.map_regression_limit, "intervals": intervals}
     report = {"config": asdict(config), "machine": finish(machine), "rows": rows, "summary": summary,
+              "candidates": candidates, "kept": kept,
               "pools": {s: {"path": str(p), "models": m} for s, (p, m) in pools.items()},
               "datasets": {s: splits[s]["dataset"] for s in splits}, "dataroots": {k: str(v) for k, v in roots.items()},
-              "seconds": {"data": data_s, "finetune": tune_s},
+              "seconds": {"data": data_s, "finetune": tune_s, "all": time.perf_counter() - started},
               "base_training": {k: base_record.get(k) for k in ("command", "data", "seconds", "train_config")},
-              "finetune_training": {k: tune_record.get(k) for k in ("n_images", "n_boxes", "seconds", "train_config")}}
+              "finetune_training": {k: tune_record.get(k) for k in ("n_images", "n_boxes", "seconds", "train_config",
+                                                                     "draws_showing_class")}}
     write_report(out_dir, "downstream_detection_bench", report, markdown(report), {"": lambda f: _plot(report, f)})
     return report
 
 
 def markdown(r: dict) -> str:
-    c, s = r["config"], r["summary"]
+    c, s, ft = r["config"], r["summary"], r["finetune_training"]
     lines = ["# Downstream benchmark: the detection protocol with the proxy camera detector", "", load_line(r["machine"]),
              "", "The detector is the embedded **proxy** (`omniscs.eval.detector`: a small CenterNet-style camera network "
              "trained here), not UniAD's perception: these numbers show the protocol running end to end on this "
              "machine, not what UniAD would do.", "",
-             f"Data: {len(c['train_scenes'])} train logs ({', '.join(c['train_scenes'])}) and {len(c['test_scenes'])} "
-             f"held-out test logs ({', '.join(c['test_scenes'])}), {c['n_frames']} frames, 3 cameras; "
-             f"{c['appearance_variants']} appearance variants per train log and {c['test_variants']} per test log "
-             f"(objects of kinds {', '.join(c['object_kinds'])} "
-             f"from the library's pool split: train indices {c['train_objects']}, held-out test objects "
+             f"Data: {len(c['train_scenes'])} train logs ({', '.join(c['train_scenes'])}), "
+             f"{len(c['val_scenes'])} validation logs ({', '.join(c['val_scenes']) or 'none'}) and "
+             f"{len(c['test_scenes'])} held-out test logs ({', '.join(c['test_scenes'])}), {c['n_frames']} frames, "
+             f"3 cameras; {c['appearance_variants']} appearance variants per train log and {c['test_variants']} per "
+             f"validation or test log (objects of kinds {', '.join(c['object_kinds'])} from the library's pool split: "
+             f"train indices {c['train_objects']}, validation objects {c['val_objects']}, held-out test objects "
              f"{c['test_objects']}), fast scene graphs. Base: the shipped proxy detector "
-             f"(`{r['base_training'].get('command')}`); fine-tuned: from base, {c['finetune']['steps']} steps on the "
-             "train logs and their appearance-SCS variants"
+             f"(`{r['base_training'].get('command')}`); fine-tuned: from base, {ft['train_config']['steps']} steps "
+             f"(class balance {ft['train_config'].get('class_balance', 0)}) on the train logs and their "
+             "appearance-SCS variants"
              + (" together with the base detector's own training logs (rehearsal, as the paper fine-tunes on the "
                 "original training set plus SCS data)" if c.get("rehearse") else "")
-             + f" ({r['finetune_training'].get('n_images')} images). mAP and NDS over the classes each test set "
-             "holds.", ""]
+             + f" ({ft.get('n_images')} images). mAP and NDS over the classes each test set holds. The test logs are "
+             "fresh: the protocol was shaped on the earlier test logs "
+             f"({', '.join(c['earlier_test_scenes']) or 'none'}), reported below apart.", ""]
     lines += [f"**appearance-SCS test set: mAP {100 * r['rows']['appearance-SCS test']['base']['mAP']:.1f} base, "
               f"{100 * r['rows']['appearance-SCS test']['fine-tuned']['mAP']:.1f} fine-tuned: "
               f"{100 * s['scs_map_gain']:+.1f} points (target +{100 * c['map_gain_target']:.0f}: "
@@ -237,6 +321,19 @@ def markdown(r: dict) -> str:
                 continue
             lines.append(f"| {name} | {100 * iv['difference']:+.1f} | [{100 * iv['low']:+.1f}, {100 * iv['high']:+.1f}] "
                          f"| {100 * iv['share_b_better']:.0f} % of draws | {iv['n_groups']} |")
+    if r.get("candidates") and "scs_gain" in r["candidates"][0]:
+        lines += ["", "Fine-tuning setting chosen on the validation sets (never on a test set): the candidate gaining "
+                  "most mAP on the validation appearance-SCS set among those losing at most "
+                  f"{100 * c['map_regression_limit']:.0f} point on the validation logs. Class balance: images drawn "
+                  "with weight sum over their classes of n_c^-b (0: every image equally often).", "",
+                  "| candidate | val appearance-SCS mAP base | tuned | gain | val logs mAP base | tuned | change | "
+                  "seconds |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for i, v in enumerate(r["candidates"]):
+            settings = {**{k: c["finetune"][k] for k in ("steps", "lr", "class_balance")}, **v["overrides"]}
+            lines.append(f"| {'**kept** ' if i == r['kept'] else ''}" + ", ".join(f"{k} {x}" for k, x in settings.items())
+                         + f" | {100 * v['scs_base']:.1f} | {100 * v['scs_tuned']:.1f} | {100 * v['scs_gain']:+.1f} | "
+                         f"{100 * v['logs_base']:.1f} | {100 * v['logs_tuned']:.1f} | {100 * v['logs_change']:+.1f} | "
+                         f"{v['seconds']:.0f} |")
     lines += ["", "Ground-truth boxes evaluated: " + "; ".join(
         f"{name}: " + ", ".join(f"{k} {n}" for k, n in models["base"]["gt_boxes"].items())
         for name, models in r["rows"].items()), "",

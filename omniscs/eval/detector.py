@@ -156,11 +156,18 @@ class DetectorTrainConfig:
     measured after training (0: not measured; the regressed depth is then used alone)."""
     log_every: int = 50
     """Steps per entry of the recorded loss curve."""
+    class_balance: float = 0.0
+    """Class-balanced sampling of the images (CBGS's idea, Zhu et al. 2019, on camera images): 0 draws every image
+    equally often, epoch by epoch; above 0 each image is drawn with replacement, with weight sum over the classes it
+    shows of n_c ** -class_balance (n_c: the images that show class c), so at 1 every class is shown about equally
+    often and the images of rare classes are repeated; images with no box weigh as one more class."""
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1 or self.threads < 1 or self.log_every < 1 \
                 or self.calibration_images < 0:
             raise ValidationError("steps, batch_size, threads and log_every must be >= 1, calibration_images >= 0")
+        if not (math.isfinite(self.class_balance) and 0 <= self.class_balance <= 1):
+            raise ValidationError(f"class_balance must be in [0, 1]; got {self.class_balance}")
         if not (self.lr > 0) or self.weight_decay < 0 or not 0 < self.near_m < self.max_depth_m:
             raise ValidationError("lr must be > 0, weight_decay >= 0 and 0 < near_m < max_depth_m")
         if self.min_visibility not in (1, 2, 3, 4) or not 0 < self.min_overlap < 1:
@@ -521,6 +528,17 @@ def training_set(dataroots: list[tuple[str | Path, str]], config: DetectorConfig
     return TrainingSet(torch.stack(images), boxes, np.array(focal, np.float64), sources)
 
 
+def sampling_weights(boxes: list[ViewBoxes], n_classes: int, balance: float) -> np.ndarray:
+    """Per image, the probability of drawing it under class-balanced sampling (``DetectorTrainConfig.class_balance``):
+    the sum over the classes the image shows of n_c ** -balance, images without a box counting as one more class
+    (index ``n_classes``); normalised to sum 1. ``balance`` 0 gives every image the same weight."""
+    shown = [np.unique(b.label) if len(b) else np.array([n_classes]) for b in boxes]
+    counts = np.bincount(np.concatenate(shown), minlength=n_classes + 1).astype(np.float64) if shown else np.ones(1)
+    per_class = np.where(counts > 0, np.maximum(counts, 1.0) ** -float(balance), 0.0)
+    weights = np.array([per_class[s].sum() for s in shown], np.float64)
+    return weights / weights.sum() if weights.sum() > 0 else np.full(len(boxes), 1.0 / max(len(boxes), 1))
+
+
 def _flipped(boxes: ViewBoxes, width: int) -> ViewBoxes:
     uv, contact = boxes.uv.copy(), boxes.contact.copy()
     uv[:, 0], contact[:, 0] = width - uv[:, 0], width - contact[:, 0]
@@ -616,14 +634,18 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
         opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps, pct_start=0.15)
         gen = torch.Generator().manual_seed(config.seed)
+        weights = torch.from_numpy(sampling_weights(data.boxes, len(net_config.classes), config.class_balance))
         order = torch.randperm(len(data), generator=gen)
         cursor, curve, window = 0, [], []
         model.train()
         for step in range(config.steps):
-            if cursor + config.batch_size > len(order):
-                order, cursor = torch.randperm(len(data), generator=gen), 0
-            idx = order[cursor:cursor + config.batch_size]
-            cursor += config.batch_size
+            if config.class_balance > 0:  # drawn with replacement, rare classes' images more often
+                idx = torch.multinomial(weights, config.batch_size, replacement=True, generator=gen)
+            else:  # every image once per epoch (the shipped detector's training)
+                if cursor + config.batch_size > len(order):
+                    order, cursor = torch.randperm(len(data), generator=gen), 0
+                idx = order[cursor:cursor + config.batch_size]
+                cursor += config.batch_size
             flips = (torch.rand(len(idx), generator=gen) < 0.5).tolist() if config.flip else [False] * len(idx)
             images = data.images[idx]
             batch = []
@@ -654,6 +676,9 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
               "n_parameters": n_parameters(model), "n_images": len(data), "n_boxes": n_boxes,
               "boxes_per_class": {c: int(sum((b.label == i).sum() for b in data.boxes))
                                   for i, c in enumerate(model.config.classes)},
+              "draws_showing_class": {c: float(sum(w for w, b in zip(weights.tolist(), data.boxes)
+                                                   if (b.label == i).any()))
+                                      for i, c in enumerate(model.config.classes)},
               "loss_curve": curve, "calibration": calibration, "read_seconds": read_s, "seconds": time.perf_counter() - started,
               "fine_tuned": init is not None}
     return model, record

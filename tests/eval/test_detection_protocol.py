@@ -29,3 +29,16 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
     scs = intervals["appearance-SCS test"]
     assert scs["n_groups"] >= 2 and scs["low"] <= scs["difference"] <= scs["high"]
     assert intervals["original test"] is None
+
+
+def test_the_kept_candidate_gains_most_within_the_regression_limit_else_loses_least():
+    from omniscs.bench.detection_protocol import choose_candidate
+
+    val = [{"scs_gain": 0.02, "logs_change": 0.0}, {"scs_gain": 0.08, "logs_change": -0.03},
+           {"scs_gain": 0.05, "logs_change": -0.005}]
+    assert choose_candidate(val, 0.01) == 2  # the largest gain (0.08) loses 3 points on the logs
+    assert choose_candidate(val, 0.05) == 1
+    worse = [{"scs_gain": 0.1, "logs_change": -0.04}, {"scs_gain": 0.0, "logs_change": -0.02}]
+    assert choose_candidate(worse, 0.01) == 1  # none within: the one losing least
+    with pytest.raises(ValueError):
+        choose_candidate([], 0.01)

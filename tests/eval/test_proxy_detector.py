@@ -291,3 +291,56 @@ def test_view_boxes_keep_only_annotations_in_front_within_range_and_in_the_image
             assert ((boxes.depth >= config.near_m) & (boxes.depth <= 30.0)).all()
             assert ((boxes.uv >= 0) & (boxes.uv < [view.width, view.height])).all()
             assert (boxes.extent > 0).all() and (boxes.size > 0).all()
+
+
+def _boxes(labels: list[int]):
+    from omniscs.eval.detector import ViewBoxes
+
+    n = len(labels)
+    return ViewBoxes(np.zeros((n, 2)), np.ones(n), np.ones((n, 3)), np.zeros(n), np.zeros((n, 2)),
+                     np.asarray(labels, np.int64).reshape(n), np.ones((n, 2)), np.zeros((n, 2)))
+
+
+def test_class_balanced_sampling_shows_each_class_about_equally_often_and_zero_balance_is_uniform():
+    """Eight images show only class 0 (cars), one shows class 3 and one shows nothing: at balance 1 each of the three
+    (class 0, class 3, no box) gets a third of the draws; at 0 every image a tenth; in between, in between."""
+    from omniscs.eval.detector import sampling_weights
+
+    boxes = [_boxes([0, 0])] * 8 + [_boxes([3])] + [_boxes([])]
+    full = sampling_weights(boxes, 10, 1.0)
+    np.testing.assert_allclose([full[:8].sum(), full[8], full[9]], [1 / 3] * 3)
+    np.testing.assert_allclose(sampling_weights(boxes, 10, 0.0), np.full(10, 0.1))
+    half = sampling_weights(boxes, 10, 0.5)
+    assert 0.1 < half[8] < 1 / 3 and half.sum() == pytest.approx(1.0)
+    # an image showing a car and the rare class is drawn more often than a car-only image
+    mixed = sampling_weights([_boxes([0])] * 4 + [_boxes([0, 3])], 10, 1.0)
+    assert mixed[4] > 4 * mixed[0]
+    # finite at the extremes: no image, one empty image
+    assert sampling_weights([], 10, 1.0).size == 0
+    np.testing.assert_allclose(sampling_weights([_boxes([])], 10, 1.0), [1.0])
+
+
+@pytest.mark.parametrize("balance", [-0.1, 1.5, float("nan")])
+def test_a_class_balance_outside_zero_to_one_is_a_clear_error(balance):
+    with pytest.raises(ValidationError, match="class_balance"):
+        DetectorTrainConfig(class_balance=balance)
+
+
+def test_class_balanced_training_is_deterministic_and_records_the_draws_per_class(dataroot):
+    train = DetectorTrainConfig(steps=6, batch_size=4, seed=3, threads=1, class_balance=1.0, calibration_images=0)
+    data = training_set([(dataroot, VERSION)], TINY, train)
+    a, rec = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    b, _ = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(x, y), name
+    # the store's images show one class or none: balanced, each of those and "no box" get the same share of draws;
+    # uniform, each class the share of images showing it
+    shown = [set(b.label.tolist()) for b in data.boxes]
+    classes = sorted(set().union(*shown))
+    assert classes and all(len(s) <= 1 for s in shown)
+    groups = len(classes) + any(not s for s in shown)
+    _, uniform = train_detector([(dataroot, VERSION)], replace(train, class_balance=0.0), TINY, data=data)
+    for i in classes:
+        name = TINY.classes[i]
+        assert rec["draws_showing_class"][name] == pytest.approx(1 / groups)
+        assert uniform["draws_showing_class"][name] == pytest.approx(sum(i in s for s in shown) / len(shown))
