@@ -42,3 +42,18 @@ def test_the_kept_candidate_gains_most_within_the_regression_limit_else_loses_le
     assert choose_candidate(worse, 0.01) == 1  # none within: the one losing least
     with pytest.raises(ValueError):
         choose_candidate([], 0.01)
+
+
+def test_object_ranges_that_overlap_between_train_validation_and_test_are_refused():
+    from omniscs.bench.detection_protocol import DetectionProtocolConfig
+    from omniscs.errors import ValidationError
+
+    DetectionProtocolConfig(train_objects=((0, 6), (10, 16)), val_objects=(8, 10), test_objects=(6, 8))
+    with pytest.raises(ValidationError, match="train_objects and test_objects share pool indices \\[6\\]"):
+        DetectionProtocolConfig(train_objects=(0, 7))
+    with pytest.raises(ValidationError, match="val_objects and test_objects"):
+        DetectionProtocolConfig(val_objects=(5, 7), train_objects=(0, 5))
+    with pytest.raises(ValidationError, match="start < stop"):
+        DetectionProtocolConfig(val_objects=(9, 8))
+    with pytest.raises(ValidationError, match="candidate"):
+        DetectionProtocolConfig(candidates=())
