@@ -349,6 +349,17 @@ def markdown(r: dict) -> str:
         for model, m in models.items():
             lines.append(f"| {name} | {model} | {100 * m['mAP']:.1f} | {100 * m['NDS']:.1f} | " + " | ".join(
                 f"{100 * m['AP'][k]:.1f}" if k in m["AP"] else "" for k in classes) + " |")
+    scs = r["rows"]["appearance-SCS test"]
+    if "AP_by_threshold" in scs["base"]:
+        thresholds = list(next(iter(scs["base"]["AP_by_threshold"].values())))
+        lines += ["", "AP on the appearance-SCS test set at each centre-distance threshold (m), base -> fine-tuned: "
+                  "where a class gains only at the wide thresholds, the detector finds the objects but places them "
+                  "that far off.", "", "| class | boxes | " + " | ".join(f"AP {t} m" for t in thresholds) + " |",
+                  "|---|---:|" + "---:|" * len(thresholds)]
+        for k in scs["base"]["classes"]:
+            b, f = scs["base"]["AP_by_threshold"][k], scs["fine-tuned"]["AP_by_threshold"][k]
+            lines.append(f"| {k} | {scs['base']['gt_boxes'][k]} | " + " | ".join(
+                f"{100 * b[t]:.1f} -> {100 * f[t]:.1f}" for t in thresholds) + " |")
     if s.get("intervals"):
         lines += ["", "How far the changes can be trusted: each test set's scenes (a log or one of its variants) drawn "
                   "with replacement 200 times and the change recomputed (whole scenes, since the frames of one scene "
@@ -393,8 +404,12 @@ def _plot(r: dict, f) -> None:
 
     names = list(r["rows"])
     classes = sorted({k for rows in r["rows"].values() for m in rows.values() for k in m["AP"]})
-    fig, axes = plt.subplots(1, len(names), figsize=(6 * len(names), 4), squeeze=False)
-    for ax, name in zip(axes[0], names):
+    cols = min(len(names), 2)
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(7 * cols, 4 * rows), squeeze=False)
+    for ax in axes.flat[len(names):]:
+        ax.set_visible(False)
+    for ax, name in zip(axes.flat, names):
         x = np.arange(len(classes) + 1)
         for j, (model, colour) in enumerate((("base", "#4c72b0"), ("fine-tuned", "#dd8452"))):
             m = r["rows"][name][model]

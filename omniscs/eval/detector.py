@@ -924,7 +924,8 @@ def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, 
                       config: DetectConfig = DetectConfig()) -> dict:
     """``model``'s detections of every keyframe of ``dataroot`` written to ``results_path`` and scored by the
     nuScenes protocol over the classes the dataroot's evaluated ground truth holds (a class absent from a set would
-    only add a zero): mAP, NDS, AP per class, evaluated boxes per class, samples."""
+    only add a zero): mAP, NDS, AP per class (the mean over the distance thresholds, and at each), evaluated boxes per
+    class, samples."""
     from omniscs.eval.detection import DetectionConfig, filter_boxes
     from omniscs.eval.nuscenes_io import evaluate_detection_results, evaluated_classes, load_ground_truth
 
@@ -939,4 +940,5 @@ def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, 
                                                config=DetectionConfig(class_names=present))
     return {"mAP": float(metrics.mean_ap), "NDS": float(metrics.nd_score), "classes": list(present),
             "AP": {c: float(v) for c, v in metrics.mean_dist_aps.items()},
+            "AP_by_threshold": {c: {f"{t:g}": float(a) for t, a in metrics.label_aps[c].items()} for c in present},
             "gt_boxes": {c: int((names == c).sum()) for c in present}, "n_samples": int(info["n_samples"])}

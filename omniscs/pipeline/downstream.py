@@ -118,8 +118,9 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
 
 
 DETECTOR_BASE_ID = "proxy-detector-base"
-#: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields; the detection protocol's).
-DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1}
+#: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields): the setting the detection
+#: protocol kept on its validation sets (reports/downstream_detection_bench.md).
+DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1, "class_balance": 0.5}
 DETECTOR_VERSION = "v1.0-trainval"
 
 

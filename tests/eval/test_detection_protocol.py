@@ -19,6 +19,9 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
         assert set(models) == {"base", "fine-tuned"}
         for m in models.values():
             assert m["n_samples"] > 0 and 0.0 <= m["mAP"] <= 1.0 and np.isfinite(m["NDS"]) and m["classes"]
+            for k in m["classes"]:  # the class's AP is the mean of its APs at the four distance thresholds
+                assert list(m["AP_by_threshold"][k]) == ["0.5", "1", "2", "4"]
+                assert np.mean(list(m["AP_by_threshold"][k].values())) == pytest.approx(m["AP"][k])
     # the appearance-SCS test set holds the composited objects' classes besides the log's own
     scs_boxes = report["rows"]["appearance-SCS test"]["base"]["gt_boxes"]
     assert sum(scs_boxes.values()) > sum(report["rows"]["original test"]["base"]["gt_boxes"].values())
