@@ -39,20 +39,23 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
                       run_id: str | None = None, upstream_flow_run: str | None = None,
                       external_template: str | None = None, external_values: dict | None = None,
                       external_timeout_s: float = 6 * 3600.0, external_export: str | None = "uniad",
-                      tasks: list[str] | None = None, detector_rehearsal: list[str] | None = None) -> dict:
+                      tasks: list[str] | None = None, detector_rehearsal: list[str] | None = None,
+                      planner_rehearsal: bool = True) -> dict:
     """Fine-tune and evaluate on ``dataset_ids`` (or the datasets of ``upstream_flow_run``). ``model="proxy"``:
     the embedded proxies of ``tasks`` (default ``["planning"]``; ``"detection"``: the proxy camera detector, made for
     datasets with appearance variants), each evaluated before (base) and after fine-tuning on ``test_dataset_ids``
     (default: the training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
     ``external_template`` run as a job (``omniscs.eval.external``) on the exported datasets. Returns the run id,
     model records and evaluation ids; a model that fails is recorded failed and the run ends failed.
-    ``detector_rehearsal``: nuScenes dataroots the base detector was trained on, mixed into its fine-tuning."""
+    ``detector_rehearsal``: nuScenes dataroots the base detector was trained on, mixed into its fine-tuning;
+    ``planner_rehearsal``: the planner's fine-tuning mixes in the logs its base was trained on (remade from its
+    training record) instead of the datasets' source logs."""
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
     config = {"dataset_ids": dataset_ids, "model": model, "test_dataset_ids": test_dataset_ids,
               "upstream_flow_run": upstream_flow_run, "external_template": external_template, "tasks": tasks,
-              "detector_rehearsal": detector_rehearsal}
+              "detector_rehearsal": detector_rehearsal, "planner_rehearsal": planner_rehearsal}
     records: list[StageRecord] = []
     try:
         if model not in MODELS:
@@ -66,7 +69,7 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
         if model == "proxy":
             tests = list(test_dataset_ids or datasets)
             if "planning" in wanted:
-                tuned = t.finetune(datasets, ws)
+                tuned = t.finetune(datasets, ws, planner_rehearsal)
                 records.append(tuned)
                 records.append(t.evaluate(None, tests, ws, "base"))
                 if tuned.info.get("status") == "trained":

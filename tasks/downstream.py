@@ -10,8 +10,9 @@ from tasks.retries import STAGE_TASK_OPTIONS
 
 
 @task(name="finetune-proxy-planner", **STAGE_TASK_OPTIONS)
-def finetune(dataset_ids: list[str], workspace: str) -> StageRecord:
-    return d.finetune_stage(dataset_ids, workspace, progress=artifact_progress("fine-tune the proxy planner"))
+def finetune(dataset_ids: list[str], workspace: str, rehearse: bool = True) -> StageRecord:
+    return d.finetune_stage(dataset_ids, workspace, rehearse=rehearse,
+                            progress=artifact_progress("fine-tune the proxy planner"))
 
 
 @task(name="evaluate-planner", task_run_name="evaluate-{label}", **STAGE_TASK_OPTIONS)

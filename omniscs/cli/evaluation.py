@@ -103,6 +103,9 @@ def finetune(
                                                                "was trained on, mixed into the fine-tuning so it "
                                                                "does not forget it (repeat; the shipped detector's: "
                                                                "python -m omniscs.bench.detector_data)."),
+    planner_rehearsal: bool = typer.Option(True, "--planner-rehearsal/--no-planner-rehearsal",
+                                           help="planning: mix in the logs the base planner was trained on (remade "
+                                                "from its training record) instead of the datasets' source logs."),
 ) -> None:
     """Fine-tune on generated datasets and evaluate (the finetune_evaluate flow); results go to the catalog
     (downstream_models, evaluations)."""
@@ -130,7 +133,8 @@ def finetune(
                                 workspace=str(ws), run_id=run_id, external_template=external_template,
                                 external_values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
                                 external_timeout_s=timeout_s, tasks=list(task) or None,
-                                detector_rehearsal=[str(r) for r in rehearse] or None)
+                                detector_rehearsal=[str(r) for r in rehearse] or None,
+                                planner_rehearsal=planner_rehearsal)
     console.print(f"run {out['run_id']}: " + ", ".join(f"{m.get('model_id')} ({m.get('status', 'evaluated')})"
                                                     for m in out["models"]))
     console.print(f"see: omniscs catalog query \"SELECT model_id, split, metric, horizon, value FROM evaluations "

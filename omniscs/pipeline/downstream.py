@@ -63,10 +63,34 @@ def _model_row(model_id: str, kind: str, base_model_id: str, dataset_ids: list[s
             "path": str(out), "command": None, "log_path": None, "config_json": json.dumps(settings, sort_keys=True)}
 
 
+def base_planner_logs(base_path: str | Path, progress: Progress = no_progress) -> list:
+    """Planning examples of the procedural logs a base planner was trained on, remade from the ``data`` its training
+    record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs bench
+    downstream --train-base`` trains the shipped one); [] for a base whose record names none."""
+    from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
+    from omniscs.pipeline.procedural import procedural_traffic
+
+    path = Path(base_path) / "training.json"
+    data = (json.loads(path.read_text()).get("data") or {}) if path.is_file() else {}
+    seeds, templates, n_frames = data.get("train_seeds"), data.get("templates"), data.get("n_frames")
+    if not (seeds and templates and n_frames):
+        return []
+    scenes = [(templates[k % len(templates)], seed) for k, seed in enumerate(range(int(seeds[0]), int(seeds[-1]) + 1))]
+    out = []
+    for i, (template, seed) in enumerate(scenes):
+        progress(i, len(scenes), f"the base planner's training log {template}:{seed} (rehearsal)")
+        traffic = procedural_traffic(template, seed, int(n_frames), scene_id=f"syn-{template}-s{seed}")
+        out += planning_examples(scenario_from_traffic(traffic))
+    return out
+
+
 def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, base: str | Path | None = None,
-                   progress: Progress = no_progress, reuse: bool = True) -> StageRecord:
+                   progress: Progress = no_progress, reuse: bool = True, rehearse: bool = True) -> StageRecord:
     """The proxy planner fine-tuned from ``base`` (default: the shipped one) on the datasets' behaviour-SCS
-    examples mixed with their source logs' examples (SCS_SHARE of them SCS)."""
+    examples mixed with log examples (SCS_SHARE of them SCS). ``rehearse``: the logs are those base was trained on
+    (``base_planner_logs``), as the planning protocol fine-tunes (reports/downstream_bench.md: no log base has not
+    seen, so it keeps what it knew); otherwise, or for a base whose record names no logs, the datasets' source
+    logs."""
     from omniscs.eval.downstream import content_id, dataset_card, log_examples, variant_examples
     from omniscs.eval.planner import DEFAULT_PLANNER, TrainConfig, load_planner, save_planner, train_planner
 
@@ -76,7 +100,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
     base_path = Path(base) if base is not None else DEFAULT_PLANNER
     base_hash = _folder_hash(base_path)
     inputs = {"datasets": {d.name: dataset_card(d).get("counts") for d in datasets}, "base": base_hash}
-    settings = {"train": dataclasses.asdict(config), "scs_share": SCS_SHARE}
+    settings = {"train": dataclasses.asdict(config), "scs_share": SCS_SHARE, "rehearse": bool(rehearse)}
     key = StageKey.of("finetune", FINETUNE_VERSION, inputs, settings)
     model_id = content_id("proxy-planner", {"key": key.digest})
     out = layout.downstream_folder(workspace, model_id)
@@ -86,7 +110,11 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
         manifest = reusable(out, key) if reuse else None
         reused = manifest is not None
         if manifest is None:
-            scs, logs, counts = [], log_examples(_source_scenes(workspace, datasets)), []
+            logs = base_planner_logs(base_path, progress) if rehearse else []
+            log_source = "base's training logs (rehearsal)" if logs else "the datasets' source logs"
+            if not logs:
+                logs = log_examples(_source_scenes(workspace, datasets))
+            scs, counts = [], []
             for d in datasets:
                 got, c = variant_examples(d)
                 scs += got
@@ -104,7 +132,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
             def make(tmp: Path) -> dict:
                 model, record = train_planner(scs * repeat + logs, config, init=base_model, progress=progress)
                 record.update(datasets=list(dataset_ids), scs_examples=len(scs), log_examples=len(logs),
-                              scs_repeat=repeat, base=str(base_path), counts=counts)
+                              log_source=log_source, scs_repeat=repeat, base=str(base_path), counts=counts)
                 save_planner(model, tmp / "planner", record)
                 return {"n_examples": record["n_examples"], "train_seconds": record["seconds"]}
 

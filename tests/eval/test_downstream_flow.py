@@ -53,14 +53,30 @@ def workspace(tmp_path_factory):
     return ws
 
 
+def _two_base_logs(monkeypatch, tmp_path):
+    """The base planner's rehearsal remade from a record naming two of its training logs instead of 40 (time)."""
+    real = d.base_planner_logs
+    record = json.loads((Path(d.__file__).parents[1] / "eval/checkpoints/planner/training.json").read_text())
+    seeds = record["data"]["train_seeds"]
+    (tmp_path / "training.json").write_text(json.dumps({"data": {**record["data"],
+                                                                 "train_seeds": [seeds[0], seeds[0] + 1]}}))
+    monkeypatch.setattr(d, "base_planner_logs", lambda base_path, progress=None: real(tmp_path))
+
+
 def test_finetune_evaluate_catalogues_base_and_fine_tuned_on_both_splits_and_reuses_the_model(prefect_harness,
-                                                                                            workspace):
+                                                                                            workspace, monkeypatch,
+                                                                                            tmp_path):
     from flows.downstream import finetune_evaluate
 
+    _two_base_logs(monkeypatch, tmp_path)
     first = finetune_evaluate(["ds-test"], workspace=str(workspace), run_id="ft1")
     second = finetune_evaluate(["ds-test"], workspace=str(workspace), run_id="ft2")
     tuned = first["models"][0]["model_id"]
     assert tuned.startswith("proxy-planner-") and second["models"][0]["model_id"] == tuned
+    # rehearsal: the logs mixed in are the base's own training logs (two here), not the dataset's source log
+    training = json.loads((layout.downstream_folder(workspace, tuned) / "planner" / "training.json").read_text())
+    assert training["log_source"] == "base's training logs (rehearsal)"
+    assert training["log_examples"] == len(d.base_planner_logs(None)) > 0
     root = catalog.catalog_root(workspace)
     models = catalog.query(root, "SELECT model_id, status, n_examples FROM downstream_models").to_pylist()
     assert models == [{"model_id": tuned, "status": "trained", "n_examples": models[0]["n_examples"]}]
@@ -144,3 +160,15 @@ def test_the_finetune_command_refuses_unknown_datasets_and_options_in_one_line(w
                           (["ds-test", "--model", "external", "--workspace", str(workspace)], "--external-template")):
         proc = subprocess.run(base + args, capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2 and message in proc.stderr and proc.stderr.strip().count("\n") == 0, proc.stderr
+
+
+def test_the_base_planners_training_logs_are_remade_from_its_record_and_a_base_without_one_has_none(tmp_path):
+    (tmp_path / "training.json").write_text(json.dumps({"data": {"templates": ["straight", "t_junction"],
+                                                                 "train_seeds": [5000, 5002], "n_frames": 60}}))
+    examples = d.base_planner_logs(tmp_path)
+    scenes = sorted({e.scenario.scenario_id.split("/")[0] for e in examples})
+    assert scenes == ["syn-straight-s5000", "syn-straight-s5002", "syn-t_junction-s5001"]  # templates in turn
+    assert examples and all(e.sample.trajectory.shape == (6, 2) and e.sample.mask.all() for e in examples)  # logs: known
+    (tmp_path / "training.json").write_text(json.dumps({"command": "someone's own planner"}))
+    assert d.base_planner_logs(tmp_path) == []
+    assert d.base_planner_logs(tmp_path / "missing") == []
