@@ -415,6 +415,10 @@ def _plot(r: dict, f) -> None:
             m = r["rows"][name][model]
             vals = [100 * m["mAP"]] + [100 * m["AP"].get(k, np.nan) for k in classes]
             ax.bar(x + (j - 0.5) * 0.38, vals, 0.38, label=model, color=colour)
+        present = r["rows"][name]["base"]["AP"]
+        for i, k in enumerate(classes, start=1):  # an empty slot is a class the set does not hold, not an AP of 0
+            ax.text(i, 0, "0" if k in present and max(r["rows"][name][m]["AP"][k] for m in ("base", "fine-tuned")) == 0
+                    else "none" if k not in present else "", ha="center", va="bottom", fontsize=7, color="#555555")
         ax.set_xticks(x, ["mAP"] + classes, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel("AP, %")
         ax.set_title(name)
