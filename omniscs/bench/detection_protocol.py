@@ -126,6 +126,23 @@ def _pool(workspace: Path, name: str, kinds, spans) -> tuple[Path, list[str]]:
     return root, [pool_asset_stage(a, root).info["model_id"] for a in ids]
 
 
+def check_dataset_free(workspace: Path, dataset_id: str, scene_ids: set[str]) -> None:
+    """A clear error when the workspace's dataset ``dataset_id`` holds other scenes than ``scene_ids``: the protocol
+    names its datasets by split and size, so a split of that size with other logs would replace that dataset and
+    leave every result made from it unreproducible."""
+    from omniscs.annotate.dataset import CARD_JSON
+    from omniscs.pipeline import layout
+
+    card = layout.dataset_folder(workspace, dataset_id) / CARD_JSON
+    if not card.is_file():
+        return
+    held = {v["scene_id"] for v in json.loads(card.read_text()).get("variants", [])}
+    if held and held != set(scene_ids):
+        raise ValidationError(f"dataset {dataset_id} in {workspace} already holds other scenes ({len(held)}: "
+                              f"{sorted(held)[0]}, ...); this split ({len(scene_ids)} scenes) would replace it. "
+                              "Use another workspace, or give the split a different size")
+
+
 def build_split(split: str, scenes, pool: Path, objects: list[str], config: DetectionProtocolConfig, workspace: Path,
                 progress: Progress = no_progress) -> dict:
     """The split's logs (scene store paths) and its appearance-SCS dataset (the factory's stages; reused)."""
@@ -144,8 +161,9 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
                             workspace)
         logs.append(records[0].path)
         annotated.append(next(r for r in records if r.stage == "annotate"))
-    dataset = dataset_stage(annotated, workspace, f"det-scs-{split}-{len(scenes)}x{n_variants}",
-                            {"protocol": "detection", "split": split})
+    dataset_id = f"det-scs-{split}-{len(scenes)}x{n_variants}"
+    check_dataset_free(workspace, dataset_id, {r.scene_id for r in annotated})
+    dataset = dataset_stage(annotated, workspace, dataset_id, {"protocol": "detection", "split": split})
     stores = sorted(str(p) for p in (Path(dataset.path) / "scenes").iterdir() if p.is_dir())
     return {"logs": logs, "scs": stores, "dataset": dataset.path}
 

@@ -60,3 +60,20 @@ def test_object_ranges_that_overlap_between_train_validation_and_test_are_refuse
         DetectionProtocolConfig(val_objects=(9, 8))
     with pytest.raises(ValidationError, match="candidate"):
         DetectionProtocolConfig(candidates=())
+
+
+def test_a_split_whose_dataset_name_holds_other_scenes_is_refused_not_overwritten(tmp_path):
+    import json
+
+    from omniscs.bench.detection_protocol import check_dataset_free
+    from omniscs.errors import ValidationError
+    from omniscs.pipeline import layout
+
+    check_dataset_free(tmp_path, "det-scs-test-2x4", {"a", "b"})  # no such dataset yet: free
+    folder = layout.dataset_folder(tmp_path, "det-scs-test-2x4")
+    folder.mkdir(parents=True)
+    (folder / "dataset.json").write_text(json.dumps({"variants": [{"scene_id": "a"}, {"scene_id": "b"}]}))
+    check_dataset_free(tmp_path, "det-scs-test-2x4", {"a", "b"})  # the same scenes: reused
+    with pytest.raises(ValidationError, match="already holds other scenes"):
+        check_dataset_free(tmp_path, "det-scs-test-2x4", {"a", "c"})
+    assert json.loads((folder / "dataset.json").read_text())["variants"][1]["scene_id"] == "b"  # untouched
