@@ -231,23 +231,14 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
     return bootstrap_map_difference(filter_boxes(gt, config, racks), *preds, groups, config, n, seed)
 
 
-def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = None,
-                           config: DetectionProtocolConfig = DetectionProtocolConfig(),
-                           progress: Progress = no_progress) -> dict:
-    from dataclasses import replace
-
-    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector, training_set
-
-    machine = machine_info()
-    ws = workspace_root(workspace)
-    root = ws / "bench-downstream" / "detection"
-    started = time.perf_counter()
+def _data(config: DetectionProtocolConfig, ws: Path, root: Path, progress: Progress) -> tuple[dict, dict, dict]:
+    """(pools, splits, dataroots): each split's pool, logs and appearance-SCS dataset (the factory's stages), and the
+    sets the protocol trains and evaluates on, exported as nuScenes dataroots (all reused when made before)."""
     objects = {"train": config.train_objects, "val": config.val_objects, "test": config.test_objects}
     scenes = {"train": config.train_scenes, "val": config.val_scenes, "test": config.test_scenes,
               "earlier test": config.earlier_test_scenes}
     pool_of = {"train": "train", "val": "val", "test": "test", "earlier test": "test"}
-    pools = {s: _pool(ws, s, config.object_kinds, objects[s]) for s in sorted(set(pool_of[k] for k in scenes
-                                                                                  if scenes[k]))}
+    pools = {s: _pool(ws, s, config.object_kinds, objects[s]) for s in sorted({pool_of[k] for k in scenes if scenes[k]})}
     splits = {k: build_split("test" if k == "earlier test" else k, scenes[k], *pools[pool_of[k]], config, ws, progress)
               for k in scenes if scenes[k]}
     roots = {"train logs": _export(splits["train"]["logs"], root, "train-logs", 1),
@@ -262,14 +253,22 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
         shipped = ShippedDetectorConfig()
         progress(0, None, "the base detector's training logs (for rehearsal)")
         roots["base training logs"] = procedural_dataroot(ws, "train", shipped, shipped.train_keyframe_every, progress)
-    data_s = time.perf_counter() - started
-    base = load_detector()
-    base_record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
-    tuning_set = [(roots["train logs"], VERSION), (roots["train appearance-SCS"], VERSION)]
-    if config.rehearse:
-        from omniscs.bench.detector_data import VERSION as SHIPPED_VERSION
+    return pools, splits, roots
 
-        tuning_set.append((roots["base training logs"], SHIPPED_VERSION))
+
+def _results_path(root: Path, roots: dict, model: str, name: str) -> Path:
+    return root / f"results-{model}-{name.replace(' ', '_')}-{roots[name].name}.json"
+
+
+def _choose_fine_tuning(config: DetectionProtocolConfig, root: Path, roots: dict, base, tuning_set: list,
+                        progress: Progress) -> tuple[list[dict], int, object, dict]:
+    """(candidates' validation rows, the kept one's index, its model, its training record): each candidate of
+    ``config.candidates`` fine-tuned from ``base`` (or reused) and scored on the validation sets; without validation
+    sets the first candidate is kept."""
+    from dataclasses import replace
+
+    from omniscs.eval.detector import evaluate_detector, training_set
+
     read: dict[tuple, object] = {}  # the fine-tuning images, read once per annotation filter the candidates use
 
     def images_for(train_config) -> object:
@@ -280,36 +279,50 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
             read[key] = training_set(tuning_set, base.config, train_config)
         return read[key]
 
-    def results_path(model: str, name: str) -> Path:
-        return root / f"results-{model}-{name.replace(' ', '_')}-{roots[name].name}.json"
-
-    val_sets = SET_NAMES["val"]
-    base_val = {n: evaluate_detector(base, roots[n], VERSION, results_path("base", n))["mAP"]
-                for n in val_sets if n in roots}
-    candidates, tuned, tune_record, tune_s = [], None, None, 0.0
+    scs_set, logs_set = SET_NAMES["val"]
+    base_val = {n: evaluate_detector(base, roots[n], VERSION, _results_path(root, roots, "base", n))["mAP"]
+                for n in (scs_set, logs_set) if n in roots}
+    candidates, best = [], None
     for i, overrides in enumerate(config.candidates):
         train_config = replace(config.finetune, **overrides)
         progress(i, len(config.candidates), f"fine-tuning candidate {i + 1} of {len(config.candidates)}: {overrides}")
         model, record = _fine_tuned(root, tuning_set, train_config, base, lambda: images_for(train_config), progress)
         row = {"overrides": dict(overrides), "seconds": float(record["seconds"])}  # the training's, also when reused
-        if base_val:
-            val = {n: evaluate_detector(model, roots[n], VERSION, results_path(f"candidate{i}", n))["mAP"]
-                   for n in val_sets}
-            row.update(scs_base=base_val[val_sets[0]], scs_tuned=val[val_sets[0]],
-                       scs_gain=val[val_sets[0]] - base_val[val_sets[0]], logs_base=base_val[val_sets[1]],
-                       logs_tuned=val[val_sets[1]], logs_change=val[val_sets[1]] - base_val[val_sets[1]])
-        candidates.append(row)
         if not base_val:  # nothing to choose on: the first candidate is kept
-            tuned, tune_record, tune_s = model, record, row["seconds"]
-            break
-        kept = choose_candidate(candidates, config.map_regression_limit)
-        if kept == i:  # keep only the best so far in memory
-            tuned, tune_record, tune_s = model, record, row["seconds"]
-    kept = choose_candidate(candidates, config.map_regression_limit) if base_val else 0
-    tests = [n for n in SET_NAMES["test"] + SET_NAMES["earlier test"] if n in roots]
+            return [row], 0, model, record
+        val = {n: evaluate_detector(model, roots[n], VERSION, _results_path(root, roots, f"candidate{i}", n))["mAP"]
+               for n in (scs_set, logs_set)}
+        row.update(scs_base=base_val[scs_set], scs_tuned=val[scs_set], scs_gain=val[scs_set] - base_val[scs_set],
+                   logs_base=base_val[logs_set], logs_tuned=val[logs_set],
+                   logs_change=val[logs_set] - base_val[logs_set])
+        candidates.append(row)
+        if choose_candidate(candidates, config.map_regression_limit) == i:  # keep only the best so far in memory
+            best = (model, record)
+    return candidates, choose_candidate(candidates, config.map_regression_limit), *best
+
+
+def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = None,
+                           config: DetectionProtocolConfig = DetectionProtocolConfig(),
+                           progress: Progress = no_progress) -> dict:
+    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector
+
+    machine = machine_info()
+    ws = workspace_root(workspace)
+    root = ws / "bench-downstream" / "detection"
+    started = time.perf_counter()
+    pools, splits, roots = _data(config, ws, root, progress)
+    data_s = time.perf_counter() - started
+    base = load_detector()
+    base_record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
+    tuning_set = [(roots["train logs"], VERSION), (roots["train appearance-SCS"], VERSION)]
+    if config.rehearse:
+        from omniscs.bench.detector_data import VERSION as SHIPPED_VERSION
+
+        tuning_set.append((roots["base training logs"], SHIPPED_VERSION))
+    candidates, kept, tuned, tune_record = _choose_fine_tuning(config, root, roots, base, tuning_set, progress)
     rows, intervals = {}, {}
-    for name in tests:
-        paths = {m: results_path(m, name) for m in ("base", "fine-tuned")}
+    for name in [n for n in SET_NAMES["test"] + SET_NAMES["earlier test"] if n in roots]:
+        paths = {m: _results_path(root, roots, m, name) for m in ("base", "fine-tuned")}
         rows[name] = {m: evaluate_detector(model, roots[name], VERSION, paths[m])
                       for m, model in (("base", base), ("fine-tuned", tuned))}
         progress(0, None, f"{name}: resampling its scenes for the gain's interval")
@@ -324,7 +337,8 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
               "candidates": candidates, "kept": kept,
               "pools": {s: {"path": str(p), "models": m} for s, (p, m) in pools.items()},
               "datasets": {s: splits[s]["dataset"] for s in splits}, "dataroots": {k: str(v) for k, v in roots.items()},
-              "seconds": {"data": data_s, "finetune": tune_s, "all": time.perf_counter() - started},
+              "seconds": {"data": data_s, "finetune": candidates[kept]["seconds"],
+                          "all": time.perf_counter() - started},
               "base_training": {k: base_record.get(k) for k in ("command", "data", "seconds", "train_config")},
               "finetune_training": {k: tune_record.get(k) for k in ("n_images", "n_boxes", "seconds", "train_config",
                                                                      "draws_showing_class")}}
