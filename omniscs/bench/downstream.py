@@ -80,20 +80,22 @@ class DownstreamBenchConfig:
     def scenes(self, split: str) -> list[tuple[str, int]]:
         n, first = {"train": (self.train_scenes, self.train_seed), "val": (self.val_scenes, self.val_seed),
                     "test": (self.test_scenes, self.test_seed)}[split]
-        return [(TEMPLATES[k % len(TEMPLATES)], first + k) for k in range(n)]
+        from omniscs.pipeline.procedural import procedural_scenes
+
+        return procedural_scenes(TEMPLATES, first, n)
 
 
 def scene_examples(template: str, seed: int, config: DownstreamBenchConfig, cache: Path) -> dict:
     """Log and behaviour-SCS planning examples of one procedural scene (variants and solutions cached)."""
     from omniscs.eval.scenarios import planning_examples, scenario_from_traffic, scenario_from_variant, variant_keyframes
-    from omniscs.pipeline.procedural import procedural_traffic
+    from omniscs.pipeline.procedural import procedural_scene_id, procedural_traffic
     from omniscs.scs.behavior import adversarial_preset
     from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
     from omniscs.scs.behavior.generation import generate_variants
     from omniscs.scs.behavior.solution import solve_ego
     from omniscs.scs.behavior.variants import variant_spec
 
-    traffic = procedural_traffic(template, seed, config.n_frames, scene_id=f"syn-{template}-s{seed}")
+    traffic = procedural_traffic(template, seed, config.n_frames, scene_id=procedural_scene_id(template, seed))
     logs = planning_examples(scenario_from_traffic(traffic))
     folder = cache / f"{template}-s{seed}-{config.n_frames}f-{config.variants}v-{config.behavior_preset}"
     path = folder / "variants.json"

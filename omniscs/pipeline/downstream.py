@@ -68,18 +68,18 @@ def base_planner_logs(base_path: str | Path, progress: Progress = no_progress) -
     record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs bench
     downstream --train-base`` trains the shipped one); [] for a base whose record names none."""
     from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
-    from omniscs.pipeline.procedural import procedural_traffic
+    from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
 
     path = Path(base_path) / "training.json"
     data = (json.loads(path.read_text()).get("data") or {}) if path.is_file() else {}
     seeds, templates, n_frames = data.get("train_seeds"), data.get("templates"), data.get("n_frames")
     if not (seeds and templates and n_frames):
         return []
-    scenes = [(templates[k % len(templates)], seed) for k, seed in enumerate(range(int(seeds[0]), int(seeds[-1]) + 1))]
+    scenes = procedural_scenes(templates, int(seeds[0]), int(seeds[-1]) - int(seeds[0]) + 1)
     out = []
     for i, (template, seed) in enumerate(scenes):
         progress(i, len(scenes), f"the base planner's training log {template}:{seed} (rehearsal)")
-        traffic = procedural_traffic(template, seed, int(n_frames), scene_id=f"syn-{template}-s{seed}")
+        traffic = procedural_traffic(template, seed, int(n_frames), scene_id=procedural_scene_id(template, seed))
         out += planning_examples(scenario_from_traffic(traffic))
     return out
 

@@ -43,6 +43,17 @@ def procedural_traffic(template: str, seed: int, n_frames: int, scene_id: str | 
     return traffic_from_world(world, scene_id=scene_id)
 
 
+def procedural_scenes(templates, first_seed: int, n: int) -> list[tuple[str, int]]:
+    """(template, seed) of ``n`` procedural logs from ``first_seed`` on, the templates in turn: how the planning
+    protocol lays out its scenes, and so how a planner's training record (templates, seed range) names its logs."""
+    return [(templates[k % len(templates)], int(first_seed) + k) for k in range(int(n))]
+
+
+def procedural_scene_id(template: str, seed: int) -> str:
+    """The scene id the planning protocol gives the procedural log (template, seed)."""
+    return f"syn-{template}-s{seed}"
+
+
 def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
     """The traffic of a parsed source (``omniscs.scene.parse_source``): a ``syn:`` log is generated, not rendered
     (scene id ``syn-TEMPLATE-sSEED``; lighting does not change traffic); a scene store is read on a ``dt`` grid."""
