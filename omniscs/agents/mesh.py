@@ -1,9 +1,11 @@
 """Pool models from meshes (the world's asset library, or any mesh trimesh reads): flat Gaussians on the surface,
 and the views that check and refine them.
 
-- ``gaussians_from_mesh``: ``n`` points sampled on the surface by area; each becomes a flat Gaussian lying in its
-  triangle (two in-plane scales from the area each point stands for, a thin one along the normal), coloured with
-  the triangle's colour under a fixed light (``shade``: ambient + one direction, the look of the keyframes).
+- ``gaussians_from_mesh``: ``n`` points sampled by area on the part of the surface seen from outside (meshes built
+  from overlapping parts, as the asset library's are, hold faces inside other parts: their points are dropped, see
+  ``outside_visible``); each becomes a flat Gaussian lying in its triangle (two in-plane scales from the area each
+  point stands for, a thin one along the normal), coloured with the triangle's colour under a fixed light
+  (``shade``: ambient + one direction, the look of the keyframes).
 - ``raycast_views``: the mesh itself seen by pinhole cameras (open3d ray casting; colour, alpha), the reference a
   model is scored and refined against.
 - ``orbit_cameras`` / ``keyframes``: views around the model at a fixed elevation and distance (the pool's 30
@@ -32,6 +34,15 @@ THICKNESS_M = 0.004
 KEYFRAMES = 30
 KEYFRAME_ELEVATION_DEG = 15.0
 KEYFRAME_SIZE = 96
+#: Version of the mesh-to-Gaussians build, recorded with every model it makes (``model.json`` "build"): 1 sampled
+#: the whole surface, buried faces included; 2 keeps only the surface seen from outside (``outside_visible``).
+MESH_BUILD_VERSION = 2
+#: Surface points are drawn this many times over before those not seen from outside are dropped.
+OVERSAMPLE = 3
+#: Directions tried per surface point when testing whether it is seen from outside the mesh.
+VISIBILITY_DIRECTIONS = 48
+#: Rays testing a surface point start this far off its face (metres), so they do not hit it again.
+SURFACE_OFFSET_M = 1e-3
 
 
 def _srgb(linear: np.ndarray) -> np.ndarray:
@@ -58,8 +69,44 @@ def _check_mesh(vertices, faces, face_colours):
     return v, f, c
 
 
+def _sphere_directions(n: int) -> np.ndarray:  # [n, 3] unit vectors spread evenly (Fibonacci sphere)
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def outside_visible(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                    directions: int = VISIBILITY_DIRECTIONS) -> np.ndarray:  # -> [N] bool
+    """Which surface ``points`` can be seen from outside the mesh: a ray from the point (lifted off its face by
+    SURFACE_OFFSET_M on the side it leaves from) along at least one of ``directions`` directions spread over the
+    sphere meets no triangle. Points on faces buried inside other parts (the top of a car's body under its cabin,
+    the body's side inside a wheel) see none."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    dirs = _sphere_directions(directions)
+    seen = np.zeros(len(points), bool)
+    for d in dirs:
+        side = np.sign(normals @ d)[:, None]
+        side[side == 0] = 1.0
+        origin = points + side * SURFACE_OFFSET_M * normals + SURFACE_OFFSET_M * d
+        rays = np.concatenate([origin, np.broadcast_to(d, origin.shape)], 1).astype(np.float32)
+        todo = np.flatnonzero(~seen)
+        if not len(todo):
+            break
+        hit = scene.cast_rays(o3d.core.Tensor(rays[todo]))["t_hit"].numpy()
+        seen[todo[~np.isfinite(hit)]] = True
+    return seen
+
+
 def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: int = 0) -> GaussianParams:
-    """Flat, oriented Gaussians on the mesh surface (degree-0 colours), ``n`` of them."""
+    """Flat, oriented Gaussians on the outside of the mesh surface (degree-0 colours), ``n`` of them: points are
+    drawn by area, those ``outside_visible`` does not see are dropped (up to OVERSAMPLE draws in all), so the
+    Gaussians stand for the surface a camera can see and none shows through it from inside."""
     import trimesh
 
     from omniscs.quaternions import rotmat_to_quat
@@ -69,15 +116,21 @@ def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: in
     area = float(mesh.area)
     if not area > 0:
         raise ValidationError("the mesh has no surface area")
-    points, face = trimesh.sample.sample_surface(mesh, int(n), seed=int(seed))
+    points, face = trimesh.sample.sample_surface(mesh, OVERSAMPLE * int(n), seed=int(seed))
     tri = v[f[face]]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    visible = outside_visible(v, f, points, normal)
+    if not visible.any():  # a degenerate mesh (e.g. one flat sheet seen edge-on everywhere): keep what there is
+        visible[:] = True
+    outside_area = area * float(visible.mean())
+    keep = np.flatnonzero(visible)[:int(n)]
+    points, face, tri, normal = points[keep], face[keep], tri[keep], normal[keep]
     t1 = tri[:, 1] - tri[:, 0]
     t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
     t2 = np.cross(normal, t1)
     rot = np.stack([t1, t2, normal], -1)  # columns: the Gaussian's axes
-    in_plane = 0.75 * np.sqrt(area / len(points))
+    in_plane = 0.75 * np.sqrt(outside_area / len(points))
     scales = np.tile([in_plane, in_plane, THICKNESS_M], (len(points), 1))
     colours = shade(c[face], normal)
     return params_from_values(torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(scales, dtype=torch.float32),
@@ -219,4 +272,6 @@ def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps
         params, info = refine(params, rgb, alpha, train, steps=refine_steps, seed=seed)
     hrgb, halpha = raycast_views(v, f, c, held)
     return params, {"quality_psnr": view_psnr(params, hrgb, halpha, held), "seconds": time.perf_counter() - started,
-                    "n_gaussians": len(params), "refine": info}
+                    "n_gaussians": len(params), "refine": info,
+                    "build": {"method": "mesh", "version": MESH_BUILD_VERSION, "gaussians": int(n),
+                              "refine_steps": int(refine_steps), "seed": int(seed)}}

@@ -59,9 +59,10 @@ class Pool:
             raise ValidationError(f"pool {self.root} is a file, not a folder")
 
     def add(self, params: GaussianParams, category: str, provenance: str, source: str,
-            quality: float | None = None, calibration: dict | None = None) -> str:
+            quality: float | None = None, calibration: dict | None = None, build: dict | None = None) -> str:
         """Put a model (already in its vehicle frame) into the pool; returns its id (the same model: the same id,
-        nothing written twice)."""
+        nothing written twice). ``build``: how the model was made (e.g. ``model_from_mesh``'s "build": method,
+        version, settings), kept in its ``model.json``."""
         if category not in CATEGORIES:
             raise ValidationError(f"unknown category {category!r}; one of {list(CATEGORIES)}")
         if provenance not in PROVENANCES:
@@ -78,7 +79,7 @@ class Pool:
         meta = {"model_id": model_id, "category": category, "size": size.tolist(), "n_gaussians": len(params),
                 "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
                 "quality": None if quality is None or not np.isfinite(quality) else float(quality),
-                "version": POOL_VERSION, "calibration": calibration, "added_at_us": int(time.time() * 1e6)}
+                "version": POOL_VERSION, "calibration": calibration, "build": build, "added_at_us": int(time.time() * 1e6)}
         if not (folder / META).is_file():
             from safetensors.torch import save_file
 
@@ -178,7 +179,7 @@ class Pool:
         if calibrate:
             params, calibration = calibrated(params, category)
         return self.add(params, category, "imported", str(Path(path).name), quality=info["quality_psnr"],
-                        calibration=calibration)
+                        calibration=calibration, build=info["build"])
 
     def import_file(self, path: str | Path, category: str, calibrate: bool = True) -> str:
         """A 3D Gaussian splatting PLY (``import_ply``) or any mesh (``import_mesh``), told apart by content."""

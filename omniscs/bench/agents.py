@@ -350,6 +350,7 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
     import shutil
 
     from omniscs.agents.matching import HOG, ColourHistogram, RawPixels
+    from omniscs.agents.mesh import MESH_BUILD_VERSION
     from omniscs.agents.msnet import MSNet, MSNetEmbedder
     from omniscs.agents.pool import Pool
 
@@ -361,7 +362,8 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
     shutil.rmtree(timing_pool, ignore_errors=True)
     ids = pool_ids(config.quota)
     timing = build_pool(timing_pool, ids[:config.build_timing_models], progress)
-    pool = Pool(root / "pool")
+    # one benchmark pool per mesh build version: a pool keeps the models it holds (pipeline.pool)
+    pool = Pool(root / f"pool-mesh-v{MESH_BUILD_VERSION}")
     started = time.perf_counter()
     build_pool(pool.root, ids, progress)
     pool_seconds = time.perf_counter() - started

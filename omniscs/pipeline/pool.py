@@ -36,7 +36,9 @@ def asset_ids(items: list[str]) -> list[str]:
 
 def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, refine_steps: int = 100) -> StageRecord:
     """``asset_id`` (a mesh of the asset library) as a pool model of ``pool`` (added once: the same model again is
-    the same entry, ``new`` false)."""
+    the same entry, ``new`` false). A pool keeps the model it holds of an asset even when the mesh build has changed
+    since (its ``model.json`` "build" says which made it; none: version 1), so the datasets made from a pool stay
+    reproducible; build into a new pool to get the current build's models."""
     from omniscs.agents.mesh import model_from_mesh
     from omniscs.agents.pool import Pool, model_id_of
     from omniscs.world.assets import build_asset
@@ -53,7 +55,7 @@ def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, r
         s = asset.surface
         params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps)
         existed = model_id_of(params, asset.category) in set(table.model_id) if len(table) else False
-        model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"])
+        model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"], build=info["build"])
     meta = p.get(model_id).meta
     length, width, height = meta["size"]
     row = {"pool_path": str(Path(pool).resolve()), "model_id": model_id, "category": meta["category"],

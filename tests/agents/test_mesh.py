@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniscs.agents.mesh import (gaussians_from_mesh, keyframes, model_from_mesh, orbit_cameras, raycast_views,
-                                 view_psnr)
+from omniscs.agents.mesh import (MESH_BUILD_VERSION, gaussians_from_mesh, keyframes, model_from_mesh, orbit_cameras,
+                                 raycast_views, view_psnr)
 from omniscs.errors import ValidationError
 
 
@@ -27,6 +27,36 @@ def test_gaussians_lie_flat_on_the_surface_with_the_mesh_colours(sedan):
     assert np.all(scales[:, 0] < 0.2 * scales[:, 1])  # one thin axis: flat
 
 
+def _box(centre, size):
+    import trimesh
+
+    m = trimesh.creation.box(extents=size)
+    return np.asarray(m.vertices) + centre, np.asarray(m.faces)
+
+
+def test_faces_buried_inside_other_parts_get_no_gaussians():
+    # a body with a cabin sunk into it (the asset library builds vehicles so): the body's top under the cabin and
+    # the cabin's lower part inside the body are seen from nowhere outside
+    bv, bf = _box(np.zeros(3), [4.0, 2.0, 1.0])
+    cv, cf = _box(np.array([0.0, 0.0, 0.6]), [2.0, 1.6, 1.0])
+    v = np.concatenate([bv, cv])
+    f = np.concatenate([bf, cf + len(bv)])
+    colours = np.concatenate([np.full((len(bf), 3), 0.8), np.full((len(cf), 3), 0.1)])
+    g = gaussians_from_mesh(v, f, colours, n=4000)
+    m = g.means.numpy()
+    inside_body = np.all(np.abs(m) < [2.0 - 1e-3, 1.0 - 1e-3, 0.5 - 1e-3], 1)
+    inside_cabin = np.all(np.abs(m - [0.0, 0.0, 0.6]) < [1.0 - 1e-3, 0.8 - 1e-3, 0.5 - 1e-3], 1)
+    assert len(g) == 4000 and not inside_body.any() and not inside_cabin.any()
+    # the whole-surface sampling this replaced put about a tenth of its points there
+    raw, _ = __import__("trimesh").sample.sample_surface(__import__("trimesh").Trimesh(v, f, process=False), 4000,
+                                                         seed=0)
+    buried = np.all(np.abs(raw) < [2.0 - 1e-3, 1.0 - 1e-3, 0.5 - 1e-3], 1) | \
+        np.all(np.abs(raw - [0.0, 0.0, 0.6]) < [1.0 - 1e-3, 0.8 - 1e-3, 0.5 - 1e-3], 1)
+    assert buried.mean() > 0.05
+    # a closed box alone loses nothing
+    assert len(gaussians_from_mesh(bv, bf, np.full((len(bf), 3), 0.5), n=500)) == 500
+
+
 def test_the_model_looks_like_the_mesh_from_views_it_was_not_refined_on(sedan):
     s = sedan.surface
     params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, n=8000, refine_steps=40)
@@ -35,6 +65,7 @@ def test_the_model_looks_like_the_mesh_from_views_it_was_not_refined_on(sedan):
     raw = gaussians_from_mesh(s.vertices, s.faces, s.face_colour, n=8000)
     assert view_psnr(params, rgb, alpha, held) > view_psnr(raw, rgb, alpha, held) > 15.0
     assert info["quality_psnr"] > 15.0 and info["seconds"] < 30.0
+    assert info["build"]["version"] == MESH_BUILD_VERSION and info["build"]["gaussians"] == 8000
     k = keyframes(params, sedan.size)
     assert k.shape == (30, 96, 96, 4) and k.dtype == np.uint8
     covered = (k[..., 3] > 128).mean((1, 2))
@@ -70,6 +101,8 @@ def test_pool_build_over_asset_ids_and_kinds(tmp_path):
     assert len(table) == 13 and set(table.category) == {"car", "traffic_cone"}
     assert set(table.provenance) == {"mesh"} and table.quality.notna().all()
     assert pool.keyframes(table.model_id[0]).shape == (30, 96, 96, 4)
+    build = pool.get(table.model_id[0]).meta["build"]  # which build made it, kept with the model
+    assert build["version"] == MESH_BUILD_VERSION and build["gaussians"] == 2000 and build["refine_steps"] == 5
     bad = subprocess.run(cli + ["--assets", "spaceship-0001", "--out", str(tmp_path / "p2")], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
