@@ -69,6 +69,16 @@ def _check_mesh(vertices, faces, face_colours):
     return v, f, c
 
 
+def _raycaster(vertices: np.ndarray, faces: np.ndarray):
+    """An open3d ray-casting scene of the triangles."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    return scene
+
+
 def _sphere_directions(n: int) -> np.ndarray:  # [n, 3] unit vectors spread evenly (Fibonacci sphere)
     k = np.arange(n) + 0.5
     z = 1.0 - 2.0 * k / n
@@ -85,20 +95,17 @@ def outside_visible(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
     the body's side inside a wheel) see none."""
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    dirs = _sphere_directions(directions)
+    scene = _raycaster(vertices, faces)
     seen = np.zeros(len(points), bool)
-    for d in dirs:
-        side = np.sign(normals @ d)[:, None]
-        side[side == 0] = 1.0
-        origin = points + side * SURFACE_OFFSET_M * normals + SURFACE_OFFSET_M * d
-        rays = np.concatenate([origin, np.broadcast_to(d, origin.shape)], 1).astype(np.float32)
-        todo = np.flatnonzero(~seen)
+    for d in _sphere_directions(directions):
+        todo = np.flatnonzero(~seen)  # only points no earlier direction has seen out
         if not len(todo):
             break
-        hit = scene.cast_rays(o3d.core.Tensor(rays[todo]))["t_hit"].numpy()
+        side = np.sign(normals[todo] @ d)[:, None]
+        side[side == 0] = 1.0
+        origin = points[todo] + side * SURFACE_OFFSET_M * normals[todo] + SURFACE_OFFSET_M * d
+        rays = np.concatenate([origin, np.broadcast_to(d, origin.shape)], 1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
         seen[todo[~np.isfinite(hit)]] = True
     return seen
 
@@ -175,8 +182,7 @@ def raycast_views(vertices, faces, face_colours, cameras: list[Camera]) -> tuple
     import open3d as o3d
 
     v, f, c = _check_mesh(vertices, faces, face_colours)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    scene = _raycaster(v, f)
     normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     face_rgb = shade(c, normals)

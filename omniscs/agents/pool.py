@@ -79,7 +79,8 @@ class Pool:
         meta = {"model_id": model_id, "category": category, "size": size.tolist(), "n_gaussians": len(params),
                 "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
                 "quality": None if quality is None or not np.isfinite(quality) else float(quality),
-                "version": POOL_VERSION, "calibration": calibration, "build": build, "added_at_us": int(time.time() * 1e6)}
+                "version": POOL_VERSION, "calibration": calibration, "build": build,
+                "added_at_us": int(time.time() * 1e6)}
         if not (folder / META).is_file():
             from safetensors.torch import save_file
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from omniscs.agents.mesh import (MESH_BUILD_VERSION, gaussians_from_mesh, keyframes, model_from_mesh, orbit_cameras,
                                  raycast_views, view_psnr)
@@ -28,8 +29,6 @@ def test_gaussians_lie_flat_on_the_surface_with_the_mesh_colours(sedan):
 
 
 def _box(centre, size):
-    import trimesh
-
     m = trimesh.creation.box(extents=size)
     return np.asarray(m.vertices) + centre, np.asarray(m.faces)
 
@@ -48,8 +47,7 @@ def test_faces_buried_inside_other_parts_get_no_gaussians():
     inside_cabin = np.all(np.abs(m - [0.0, 0.0, 0.6]) < [1.0 - 1e-3, 0.8 - 1e-3, 0.5 - 1e-3], 1)
     assert len(g) == 4000 and not inside_body.any() and not inside_cabin.any()
     # the whole-surface sampling this replaced put about a tenth of its points there
-    raw, _ = __import__("trimesh").sample.sample_surface(__import__("trimesh").Trimesh(v, f, process=False), 4000,
-                                                         seed=0)
+    raw, _ = trimesh.sample.sample_surface(trimesh.Trimesh(v, f, process=False), 4000, seed=0)
     buried = np.all(np.abs(raw) < [2.0 - 1e-3, 1.0 - 1e-3, 0.5 - 1e-3], 1) | \
         np.all(np.abs(raw - [0.0, 0.0, 0.6]) < [1.0 - 1e-3, 0.8 - 1e-3, 0.5 - 1e-3], 1)
     assert buried.mean() > 0.05
