@@ -161,6 +161,10 @@ class DetectorTrainConfig:
     equally often, epoch by epoch; above 0 each image is drawn with replacement, with weight sum over the classes it
     shows of n_c ** -class_balance (n_c: the images that show class c), so at 1 every class is shown about equally
     often and the images of rare classes are repeated; images with no box weigh as one more class."""
+    photometric: float = 0.0
+    """Strength s of random photometric changes, drawn per training image: brightness, contrast about the image's
+    mean, per-channel gain and gamma, each a factor exp(u) with u uniform in [-s, s] (the gains in [-s/2, s/2]).
+    They leave every box where it is; 0: none (and no random numbers drawn)."""
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1 or self.threads < 1 or self.log_every < 1 \
@@ -168,6 +172,8 @@ class DetectorTrainConfig:
             raise ValidationError("steps, batch_size, threads and log_every must be >= 1, calibration_images >= 0")
         if not (math.isfinite(self.class_balance) and 0 <= self.class_balance <= 1):
             raise ValidationError(f"class_balance must be in [0, 1]; got {self.class_balance}")
+        if not (math.isfinite(self.photometric) and 0 <= self.photometric <= 1):
+            raise ValidationError(f"photometric must be in [0, 1]; got {self.photometric}")
         if not (self.lr > 0) or self.weight_decay < 0 or not 0 < self.near_m < self.max_depth_m:
             raise ValidationError("lr must be > 0, weight_decay >= 0 and 0 < near_m < max_depth_m")
         if self.min_visibility not in (1, 2, 3, 4) or not 0 < self.min_overlap < 1:
@@ -606,14 +612,31 @@ def detection_losses(heat_logits: torch.Tensor, regression: torch.Tensor, heat: 
     return terms
 
 
+def photometric_jitter(images: torch.Tensor, strength: float, gen: torch.Generator) -> torch.Tensor:
+    """float [B, 3, H, W] (0..255) images with a random brightness, contrast (about each image's mean), per-channel
+    gain and gamma each (factors exp(u), u uniform in [-strength, strength], the gains in half that range), drawn
+    from ``gen``; clipped to 0..255."""
+    b = len(images)
+    u = (torch.rand(b, 6, generator=gen) * 2.0 - 1.0) * strength
+    u[:, 2:5] *= 0.5
+    x = images.float() / 255.0
+    x = x.clamp_min(1e-6) ** torch.exp(u[:, 5]).view(b, 1, 1, 1)
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = (x - mean) * torch.exp(u[:, 1]).view(b, 1, 1, 1) + mean
+    x = x * torch.exp(u[:, 0]).view(b, 1, 1, 1) * torch.exp(u[:, 2:5]).view(b, 3, 1, 1)
+    return (x * 255.0).clamp(0.0, 255.0)
+
+
 def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrainConfig = DetectorTrainConfig(),
                    detector_config: DetectorConfig = DetectorConfig(), init: ProxyDetector | None = None,
-                   progress: Progress = no_progress, data: TrainingSet | None = None
-                   ) -> tuple[ProxyDetector, dict]:
+                   progress: Progress = no_progress, data: TrainingSet | None = None,
+                   calibration_data: TrainingSet | None = None) -> tuple[ProxyDetector, dict]:
     """Fit a detector (from ``init``'s weights when given: fine-tuning) on every keyframe camera image of
     ``dataroots`` ((path, version) pairs; ``data``: their ``training_set`` when already read). Returns it and a
     record of the training (configs, image and box counts, loss curve, seconds). The same seed and thread count
-    give the same weights."""
+    give the same weights. ``calibration_data``: images not trained on (read with the same network config) on which
+    the depth errors that weigh the two depth readings are measured; None: the training images (errors on images
+    the network has learned are smaller than on new ones)."""
     if not dataroots and data is None:
         raise ValidationError("name at least one (dataroot, version) to train the detector on")
     started = time.perf_counter()
@@ -653,6 +676,8 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
                 batch.append(_flipped(data.boxes[i], net_config.input_width) if flip else data.boxes[i])
                 if flip:
                     images[k] = torch.flip(images[k], dims=[-1])
+            if config.photometric > 0:
+                images = photometric_jitter(images, config.photometric, gen)
             heat, reg, mask = targets(batch, data.focal[idx.numpy()], net_config, config)
             heat_logits, regression = model(images)
             losses = detection_losses(heat_logits, regression, heat, reg, mask, config)
@@ -666,7 +691,9 @@ def train_detector(dataroots: list[tuple[str | Path, str]], config: DetectorTrai
                 window = []
             progress(step + 1, config.steps, f"loss {losses['total'].item():.3f}")
         model.eval()
-        calibration = calibrate_depth(model, data, config.calibration_images)
+        calibration = calibrate_depth(model, data if calibration_data is None else calibration_data,
+                                      config.calibration_images)
+        calibration["on"] = "training images" if calibration_data is None else "held-out calibration images"
         if calibration["depth_error"] is not None:
             model.config = replace(model.config, depth_error=calibration["depth_error"],
                                    contact_error_px=calibration["contact_error_px"])

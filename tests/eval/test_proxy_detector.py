@@ -27,6 +27,7 @@ from omniscs.eval.detector import (
     load_detector,
     observation_angle,
     output_size,
+    photometric_jitter,
     project_to_camera,
     save_detector,
     targets,
@@ -228,6 +229,52 @@ def test_training_measures_the_errors_that_weigh_the_two_depths(dataroot):
     assert model.config.depth_error == cal["depth_error"] > 0 and model.config.contact_error_px == cal["contact_error_px"] > 0
     off, _ = train_detector([(dataroot, VERSION)], replace(train, calibration_images=0), TINY)
     assert off.config.depth_error is None and off.config.contact_error_px is None
+    assert cal["on"] == "training images"
+
+
+def test_the_depth_errors_are_measured_on_the_calibration_images_when_given(dataroot):
+    train = DetectorTrainConfig(steps=3, batch_size=4, seed=3, threads=1, calibration_images=6)
+    data = training_set([(dataroot, VERSION)], TINY, train)
+    own, rec = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    # the same weights measured on other images: a darkened copy of the set reads the depths differently
+    darker = replace(data, images=(data.images.float() * 0.4).to(torch.uint8))
+    other, rec_other = train_detector([(dataroot, VERSION)], train, TINY, data=data, calibration_data=darker)
+    for (name, x), y in zip(own.state_dict().items(), other.state_dict().values()):
+        assert torch.equal(x, y), name
+    assert rec_other["calibration"]["on"] == "held-out calibration images"
+    assert rec_other["calibration"]["depth_error"] != rec["calibration"]["depth_error"]
+    assert other.config.depth_error == rec_other["calibration"]["depth_error"] > 0
+
+
+def test_photometric_jitter_changes_colours_within_range_and_repeats_with_the_seed():
+    images = torch.stack([torch.zeros(3, 8, 10), torch.full((3, 8, 10), 255.0),
+                          torch.linspace(0, 255, 240).reshape(3, 8, 10)]).to(torch.uint8)
+    a = photometric_jitter(images, 0.3, torch.Generator().manual_seed(1))
+    b = photometric_jitter(images, 0.3, torch.Generator().manual_seed(1))
+    c = photometric_jitter(images, 0.3, torch.Generator().manual_seed(2))
+    assert a.shape == images.shape and torch.isfinite(a).all() and a.min() >= 0 and a.max() <= 255
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert (a[2] - images[2].float()).abs().max() > 1.0  # the ramp changed
+    assert a[0].max() <= 1e-3 * 255  # black stays (nearly) black under every change
+    for strength in (1.0, 1e-6):  # the extremes stay finite and in range
+        x = photometric_jitter(images, strength, torch.Generator().manual_seed(3))
+        assert torch.isfinite(x).all() and x.min() >= 0 and x.max() <= 255
+
+
+@pytest.mark.parametrize("strength", [-0.1, 1.5, float("nan")])
+def test_a_photometric_strength_outside_zero_to_one_is_a_clear_error(strength):
+    with pytest.raises(ValidationError, match="photometric"):
+        DetectorTrainConfig(photometric=strength)
+
+
+def test_training_with_photometric_jitter_is_deterministic(dataroot):
+    train = DetectorTrainConfig(steps=3, batch_size=4, seed=3, threads=1, calibration_images=0, photometric=0.3)
+    data = training_set([(dataroot, VERSION)], TINY, train)
+    a, _ = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    b, _ = train_detector([(dataroot, VERSION)], train, TINY, data=data)
+    plain, _ = train_detector([(dataroot, VERSION)], replace(train, photometric=0.0), TINY, data=data)
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+    assert not all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), plain.state_dict().values()))
 
 
 def test_a_saved_detector_loads_with_the_same_outputs_and_a_bad_folder_is_a_clear_error(tmp_path):
@@ -344,3 +391,24 @@ def test_class_balanced_training_is_deterministic_and_records_the_draws_per_clas
         name = TINY.classes[i]
         assert rec["draws_showing_class"][name] == pytest.approx(1 / groups)
         assert uniform["draws_showing_class"][name] == pytest.approx(sum(i in s for s in shown) / len(shown))
+
+
+def test_the_shipped_detectors_logs_of_each_split_are_disjoint():
+    from omniscs.bench.detector_data import ShippedDetectorConfig
+
+    config = ShippedDetectorConfig()
+    splits = {s: {seed for _, seed in config.logs(s)} for s in ("train", "calibration", "validation", "test")}
+    assert all(len(v) == n for v, n in zip(splits.values(), (config.train_logs, config.calibration_logs,
+                                                             config.validation_logs, config.test_logs)))
+    names = list(splits)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            assert not splits[a] & splits[b], (a, b)
+    assert config.frames("calibration") == config.frames("train") and config.frames("validation") == config.n_frames
+
+
+def test_shipped_detector_splits_that_share_a_log_are_a_clear_error():
+    from omniscs.bench.detector_data import ShippedDetectorConfig
+
+    with pytest.raises(ValidationError, match="train and calibration logs"):
+        ShippedDetectorConfig(train_logs=10, calibration_seed=610_005)
