@@ -5,9 +5,9 @@ Data (procedural, rendered, all through the factory's own stages):
   - train: procedural logs (``train_scenes``) and their appearance-SCS variants: objects of a pool built from the
     library's pool split (``object_kinds``, indices ``train_objects``) replacing vehicles or inserted upright, on their
     side and overturned (the ``appearance`` and ``annotate`` stages, fast scene graphs), as the dataset
-    ``det-scs-train``;
+    ``det-scs-train-<size>-<digest of its logs>``;
   - test: held-out logs (``test_scenes``) with held-out objects (indices ``test_objects`` of the same kinds, none in
-    the training pool): the appearance-SCS test set ``det-scs-test``, and the original test set (the logs themselves).
+    the training pool): the appearance-SCS test set ``det-scs-test-...``, and the original test set (the logs themselves).
   - validation: other held-out logs (``val_scenes``) with other held-out objects (``val_objects``): the fine-tuning
     setting is chosen there among ``candidates``, never on a test set;
   - earlier test (``earlier_test_scenes``): the test logs of the protocol's first version, on which it was shaped;
@@ -48,11 +48,14 @@ class DetectionProtocolConfig:
     """Training logs (template:seed); no other benchmark uses these seeds."""
     val_scenes: tuple[str, ...] = ("straight:7401", "t_junction:7402", "intersection:7403")
     """Validation logs: the fine-tuning setting is chosen on them and their variants (empty: the first candidate)."""
-    test_scenes: tuple[str, ...] = ("straight:7501", "t_junction:7502", "intersection:7503", "straight:7504",
-                                    "t_junction:7505", "intersection:7506")
+    test_scenes: tuple[str, ...] = ("straight:7601", "t_junction:7602", "intersection:7603", "straight:7604",
+                                    "t_junction:7605", "intersection:7606")
     """Held-out logs of both test sets (fresh: never looked at while the protocol was shaped)."""
-    earlier_test_scenes: tuple[str, ...] = ("straight:7301", "t_junction:7302", "intersection:7303")
-    """The first version's test logs, looked at while the protocol was shaped: reported apart (empty: none)."""
+    earlier_test_scenes: tuple[str, ...] = ("straight:7301", "t_junction:7302", "intersection:7303", "straight:7501",
+                                            "t_junction:7502", "intersection:7503", "straight:7504", "t_junction:7505",
+                                            "intersection:7506")
+    """The test logs of the protocol's earlier versions (7301-7303 its first, 7501-7506 its second), looked at while
+    it was shaped: reported apart (empty: none)."""
     n_frames: int = 30
     preset: str = "fast"
     """Fit preset of the scene graphs the variants are rendered through."""
@@ -126,10 +129,20 @@ def _pool(workspace: Path, name: str, kinds, spans) -> tuple[Path, list[str]]:
     return root, [pool_asset_stage(a, root).info["model_id"] for a in ids]
 
 
+def split_dataset_id(split: str, scenes, n_variants: int) -> str:
+    """The appearance-SCS dataset of a split, named by the split, its size and a digest of its logs
+    (``det-scs-test-6x4-<digest>``): a split with other logs is another dataset, and never replaces one that
+    results were made from."""
+    import hashlib
+
+    digest = hashlib.sha1(json.dumps(list(scenes)).encode()).hexdigest()[:8]
+    return f"det-scs-{split}-{len(scenes)}x{n_variants}-{digest}"
+
+
 def check_dataset_free(workspace: Path, dataset_id: str, scene_ids: set[str]) -> None:
-    """A clear error when the workspace's dataset ``dataset_id`` holds other scenes than ``scene_ids``: the protocol
-    names its datasets by split and size, so a split of that size with other logs would replace that dataset and
-    leave every result made from it unreproducible."""
+    """A clear error when the workspace's dataset ``dataset_id`` holds other scenes than ``scene_ids`` (the ids
+    name the logs, so only a changed scene id of the same log gets here): replacing that dataset would leave every
+    result made from it unreproducible."""
     from omniscs.annotate.dataset import CARD_JSON
     from omniscs.pipeline import layout
 
@@ -161,7 +174,7 @@ def build_split(split: str, scenes, pool: Path, objects: list[str], config: Dete
                             workspace)
         logs.append(records[0].path)
         annotated.append(next(r for r in records if r.stage == "annotate"))
-    dataset_id = f"det-scs-{split}-{len(scenes)}x{n_variants}"
+    dataset_id = split_dataset_id(split, scenes, n_variants)
     check_dataset_free(workspace, dataset_id, {r.scene_id for r in annotated})
     dataset = dataset_stage(annotated, workspace, dataset_id, {"protocol": "detection", "split": split})
     stores = sorted(str(p) for p in (Path(dataset.path) / "scenes").iterdir() if p.is_dir())

@@ -77,3 +77,15 @@ def test_a_split_whose_dataset_name_holds_other_scenes_is_refused_not_overwritte
     with pytest.raises(ValidationError, match="already holds other scenes"):
         check_dataset_free(tmp_path, "det-scs-test-2x4", {"a", "c"})
     assert json.loads((folder / "dataset.json").read_text())["variants"][1]["scene_id"] == "b"  # untouched
+
+
+def test_a_split_with_other_logs_gets_another_dataset_name():
+    from omniscs.bench.detection_protocol import split_dataset_id
+
+    a = split_dataset_id("test", ("straight:7501", "t_junction:7502"), 4)
+    assert a == split_dataset_id("test", ("straight:7501", "t_junction:7502"), 4)  # the same split: the same dataset
+    assert a.startswith("det-scs-test-2x4-")
+    others = {split_dataset_id("test", ("straight:7601", "t_junction:7602"), 4),
+              split_dataset_id("val", ("straight:7501", "t_junction:7502"), 4),
+              split_dataset_id("test", ("straight:7501", "t_junction:7502"), 2)}
+    assert a not in others and len(others) == 3

@@ -396,7 +396,7 @@ def test_class_balanced_training_is_deterministic_and_records_the_draws_per_clas
 def test_the_shipped_detectors_logs_of_each_split_are_disjoint():
     from omniscs.bench.detector_data import ShippedDetectorConfig
 
-    config = ShippedDetectorConfig()
+    config = ShippedDetectorConfig(calibration_logs=12)
     splits = {s: {seed for _, seed in config.logs(s)} for s in ("train", "calibration", "validation", "test")}
     assert all(len(v) == n for v, n in zip(splits.values(), (config.train_logs, config.calibration_logs,
                                                              config.validation_logs, config.test_logs)))
@@ -411,4 +411,4 @@ def test_shipped_detector_splits_that_share_a_log_are_a_clear_error():
     from omniscs.bench.detector_data import ShippedDetectorConfig
 
     with pytest.raises(ValidationError, match="train and calibration logs"):
-        ShippedDetectorConfig(train_logs=10, calibration_seed=610_005)
+        ShippedDetectorConfig(train_logs=10, calibration_logs=12, calibration_seed=610_005)
