@@ -14,6 +14,7 @@ unknowable inside of a randomly inpainted patch) are left out of the loss.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -307,6 +308,27 @@ class DepthTrainConfig:
     """Augmentations applied to every training sample."""
     log_every: int = 50
     """Steps per entry of the loss curve kept in the history."""
+    workers: int = 0
+    """Processes that augment batches ahead of the optimiser (0: augment in this process). Each step's batch is
+    drawn and augmented from its own seed (``seed``, step), so the weights do not depend on this number."""
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DepthTrainConfig":
+        """The configuration ``asdict`` gave (as training.json keeps it); fields it lacks take their defaults."""
+        d = dict(d)
+        arch = d.pop("architecture", None)
+        aug = d.pop("augment", None)
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValidationError(f"unknown relative-depth training settings {sorted(unknown)}")
+        out = cls(**d)
+        if arch is not None:
+            out = dataclasses.replace(out, architecture=DepthNetConfig(tuple(int(w) for w in arch["widths"]),
+                                                                       int(arch["long_side"])))
+        if aug is not None:
+            out = dataclasses.replace(out, augment=DepthAugmentConfig(**aug))
+        return out
 
 
 def _check_training_arrays(images: np.ndarray, inv_depths: np.ndarray, valid: np.ndarray | None,
@@ -333,6 +355,7 @@ def train_depth_net(images: np.ndarray,      # [N, H, W, 3] uint8 at the working
                     config: DepthTrainConfig = DepthTrainConfig(),
                     progress: Progress = no_progress,
                     valid: np.ndarray | None = None,  # [N, H, W] bool: pixels that count (all when None)
+                    device: str = "cpu",
                     ) -> tuple[dict[str, Tensor], dict]:  # state dict of a DepthNet, history
     """Train a DepthNet from scratch with the SSI loss; every sample is augmented afresh. Raises an OmniscsError
     when the loss stops being finite (divergence, or NaN/Inf in the data)."""
@@ -340,22 +363,19 @@ def train_depth_net(images: np.ndarray,      # [N, H, W, 3] uint8 at the working
     _check_training_arrays(images, inv_depths, valid, arch.multiple)
     if config.steps < 1 or config.batch < 1:
         raise OmniscsError(f"steps and batch must be positive; got steps={config.steps}, batch={config.batch}")
-    rng = np.random.default_rng(config.seed)
     torch.manual_seed(config.seed)
-    net = DepthNet(arch)
+    net = DepthNet(arch).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps)
-    all_valid = np.ones(inv_depths.shape[1:], bool)
+    batches = torch.utils.data.DataLoader(_AugmentedBatches(images, inv_depths, valid, config), batch_size=None,
+                                          num_workers=config.workers, shuffle=False,
+                                          persistent_workers=False, prefetch_factor=4 if config.workers else None)
     started, losses = time.perf_counter(), []
     net.train()
-    for step in range(config.steps):
-        idx = rng.integers(0, len(images), config.batch)
-        batch = [augment(images[i], inv_depths[i], all_valid if valid is None else valid[i], config.augment, rng)
-                 for i in idx]
-        x = torch.from_numpy(np.stack([b[0] for b in batch])).permute(0, 3, 1, 2).float() / 255.0
-        target = torch.from_numpy(np.stack([b[1] for b in batch]))
-        mask = torch.from_numpy(np.stack([b[2] for b in batch]))
-        loss = ssi_loss(net(x), target, mask, config.grad_weight, config.grad_scales)
+    for step, (x, target, mask) in enumerate(batches):
+        x = x.to(device, non_blocking=True).permute(0, 3, 1, 2).float() / 255.0
+        loss = ssi_loss(net(x), target.to(device, non_blocking=True), mask.to(device, non_blocking=True),
+                        config.grad_weight, config.grad_scales)
         if not torch.isfinite(loss):
             raise OmniscsError(f"relative-depth training diverged at step {step} (the loss is not finite); check the "
                                "training images and inverse depths for NaN/Inf, or lower the learning rate")
@@ -371,9 +391,28 @@ def train_depth_net(images: np.ndarray,      # [N, H, W, 3] uint8 at the working
                "loss_last": float(np.mean(losses[-window:])),
                "loss_curve": [[s, float(np.mean(losses[max(0, s - config.log_every):s + 1]))]
                               for s in range(0, config.steps, config.log_every)],
-               "seconds": time.perf_counter() - started, "n_images": int(len(images)),
+               "seconds": time.perf_counter() - started, "n_images": int(len(images)), "device": str(device),
                "n_parameters": int(sum(p.numel() for p in net.parameters()))}
-    return {k: v.detach().clone() for k, v in net.state_dict().items()}, history
+    return {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}, history
+
+
+class _AugmentedBatches(torch.utils.data.Dataset):
+    """Item ``step``: that step's batch (images [B, H, W, 3] uint8, inverse depths [B, H, W], valid [B, H, W]),
+    its samples and augmentations drawn from a generator seeded by (``config.seed``, step)."""
+
+    def __init__(self, images: np.ndarray, inv_depths: np.ndarray, valid: np.ndarray | None,
+                 config: DepthTrainConfig) -> None:
+        self.images, self.inv_depths, self.valid, self.config = images, inv_depths, valid, config
+        self.all_valid = np.ones(inv_depths.shape[1:], bool)
+
+    def __len__(self) -> int:
+        return self.config.steps
+
+    def __getitem__(self, step: int) -> tuple[Tensor, Tensor, Tensor]:
+        rng = np.random.default_rng([self.config.seed, int(step)])
+        batch = [augment(self.images[i], self.inv_depths[i], self.all_valid if self.valid is None else self.valid[i],
+                         self.config.augment, rng) for i in rng.integers(0, len(self.images), self.config.batch)]
+        return tuple(torch.from_numpy(np.stack([b[k] for b in batch])) for k in range(3))
 
 
 # ----------------------------------------------------------------------------- weights on disk

@@ -265,12 +265,7 @@ def _cached_training_data(config: DepthDataConfig, workspace: Path, progress: Pr
     return data
 
 
-def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig = DepthTrainConfig(),
-                        progress: Progress = no_progress, data: DepthDataConfig = DepthDataConfig(),
-                        out: Path = SHIPPED) -> dict:
-    """Render (or reuse) the training data under the workspace, train the embedded relative-depth network,
-    evaluate it and two trivial baselines on the held-out worlds, and write its weights and ``training.json``
-    to ``out`` (the shipped ones by default). Returns what training.json holds."""
+def _check_data_config(data: DepthDataConfig, config: DepthTrainConfig) -> None:
     if any(s < FIRST_DEPTH_SEED for s in data.train_seeds + data.eval_seeds):
         raise OmniscsError(f"depth data use seeds >= {FIRST_DEPTH_SEED} (the benchmarks use the lower ones)")
     if set(data.train_seeds) & set(data.eval_seeds):
@@ -278,12 +273,48 @@ def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig 
     if data.long_side != config.architecture.long_side:
         raise OmniscsError(f"the training images' long side ({data.long_side}) must be the network's working "
                            f"resolution ({config.architecture.long_side})")
+
+
+def export_depth_data(path: Path, workspace: Path | None = None, data: DepthDataConfig = DepthDataConfig(),
+                      progress: Progress = no_progress) -> dict:
+    """Render (or reuse) the training arrays and write them as a depth pack (omniscs.background.depth_pack) to
+    ``path``, to train the network on a machine without the procedural world (``install_shipped_depth`` then
+    evaluates and installs what it made). Returns the pack's facts."""
+    from omniscs.background.depth_pack import write_pack
+
+    _check_data_config(data, DepthTrainConfig())
+    arrays = _cached_training_data(data, workspace_root(workspace), progress)
+    size = write_pack(path, arrays["images"], arrays["inv_depths"], arrays["repair"])
+    return {"path": str(path), "bytes": size, "n_images": int(len(arrays["images"])),
+            "n_repair_pairs": int(arrays["repair"].sum()), "data": asdict(data)}
+
+
+def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig = DepthTrainConfig(),
+                        progress: Progress = no_progress, data: DepthDataConfig = DepthDataConfig(),
+                        out: Path = SHIPPED, device: str = "cpu") -> dict:
+    """Render (or reuse) the training data under the workspace, train the embedded relative-depth network on
+    ``device``, evaluate it and two trivial baselines on the held-out worlds, and write its weights and
+    ``training.json`` to ``out`` (the shipped ones by default). Returns what training.json holds."""
+    _check_data_config(data, config)
     machine = machine_info()
     started = time.perf_counter()
     arrays = _cached_training_data(data, workspace_root(workspace), progress)
     seconds_data = time.perf_counter() - started
     log.info("relative depth: %d training images (%d repair pairs)", len(arrays["images"]), arrays["repair"].sum())
-    state, history = train_depth_net(arrays["images"], arrays["inv_depths"], config, progress)
+    state, history = train_depth_net(arrays["images"], arrays["inv_depths"], config, progress, device=device)
+    info = install_shipped_depth(state, history, data, out, arrays)
+    info.update(seconds_data=seconds_data, seconds_total=time.perf_counter() - started, machine=finish(machine))
+    save_depth_net(state, config.architecture, out, info)
+    return info
+
+
+def install_shipped_depth(state: dict, history: dict, data: DepthDataConfig = DepthDataConfig(), out: Path = SHIPPED,
+                          arrays: dict | None = None, trained_elsewhere: str | None = None) -> dict:
+    """Evaluate weights ``state`` (trained with ``history['config']``) and the two trivial baselines on the held-out
+    worlds, and write weights and ``training.json`` to ``out``. ``trained_elsewhere``: how the weights were made
+    when not by ``train_shipped_depth`` on this machine (recorded)."""
+    config = DepthTrainConfig.from_dict(history["config"])
+    _check_data_config(data, config)
     started_eval = time.perf_counter()
     net = DepthNet(config.architecture)
     net.load_state_dict(state)
@@ -292,9 +323,7 @@ def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig 
     evaluation = evaluate_depth_models(
         {"embedded": lambda rgb: predict_inverse_depth(net, rgb), "baseline_row": row_baseline,
          "baseline_constant": constant_baseline}, views, data.max_eval_depth)
-    info = {"command": TRAIN_COMMAND, "data": asdict(data), "data_version": DATA_VERSION,
-            "n_train_images": int(len(arrays["images"])), "n_repair_pairs": int(arrays["repair"].sum()),
-            **history,
+    info = {"command": TRAIN_COMMAND, "data": asdict(data), "data_version": DATA_VERSION, **history,
             "evaluation": {"held_out_seeds": list(data.eval_seeds), "n_views": len(views),
                            "n_repair_pairs": sum("inpainted" in v for v in views),
                            "max_depth_m": data.max_eval_depth,
@@ -303,7 +332,30 @@ def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig 
                                        "delta<1.25 of the resulting depth; repair_hole: the inpainted image against "
                                        "the depth of the world without the agent, scored inside the hole",
                            **evaluation},
-            "seconds_data": seconds_data, "seconds_eval": time.perf_counter() - started_eval,
-            "seconds_total": time.perf_counter() - started, "machine": finish(machine)}
-    save_depth_net(state, config.architecture, out, info)
+            "seconds_eval": time.perf_counter() - started_eval}
+    if arrays is not None:
+        info.update(n_train_images=int(len(arrays["images"])), n_repair_pairs=int(arrays["repair"].sum()))
+    if trained_elsewhere:
+        info["trained_elsewhere"] = trained_elsewhere
+        info["machine_eval"] = finish(machine_info())
+        save_depth_net(state, config.architecture, out, info)
     return info
+
+
+def install_trained_depth(folder: Path, data: DepthDataConfig = DepthDataConfig(), out: Path = SHIPPED) -> dict:
+    """``install_shipped_depth`` of what infra/depth_gpu/train.py wrote into ``folder`` (state.safetensors,
+    history.json)."""
+    import json
+
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    try:
+        state = load_file(str(folder / "state.safetensors"))
+        history = json.loads((folder / "history.json").read_text())
+    except (OSError, ValueError) as e:
+        raise OmniscsError(f"{folder} holds no weights from infra/depth_gpu/train.py ({type(e).__name__}: {e})") from e
+    how = (f"trained on {history.get('device_name', history.get('device'))} (torch {history.get('torch')}) by "
+           f"infra/depth_gpu/train.py from the pack of `{TRAIN_COMMAND.replace('--train-depth', '--export-depth-data')}"
+           f" PACK`; evaluated and installed here with --install-depth")
+    return install_shipped_depth(state, history, data, out, trained_elsewhere=how)

@@ -310,17 +310,41 @@ def bench_background(
                                                                   "on procedural renders and write it into the "
                                                                   "package (its shipped weights) before the "
                                                                   "benchmark."),
+    depth_device: str = typer.Option("cpu", "--depth-device", help="Device of --train-depth ('cuda' on a GPU "
+                                                                   "machine: minutes; on 2 CPUs: hours)."),
+    export_depth_data: Optional[Path] = typer.Option(None, "--export-depth-data", help="Only write the relative-"
+                                                     "depth network's training data to this file (a depth pack) "
+                                                     "for infra/depth_gpu/train.py on a GPU machine, and stop."),
+    install_depth: Optional[Path] = typer.Option(None, "--install-depth", help="Only evaluate the weights that "
+                                                 "infra/depth_gpu/train.py wrote into this folder on the held-out "
+                                                 "worlds and install them as the shipped ones, and stop."),
 ) -> None:
     """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet and DRNet +
     RoI refit against the world re-rendered without it (hole PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds),
     at held-out logged and novel views; RoI refit vs a full background refit."""
     from omniscs.bench.background import BackgroundBenchConfig, quick_config, run_background_benchmark
 
+    if export_depth_data is not None:
+        from omniscs.bench.depth_data import export_depth_data as export
+
+        with progress_bars() as bars:
+            facts = export(export_depth_data, workspace, progress=bars.sink("depth data"))
+        console.print(f"wrote {facts['n_images']} training images ({facts['bytes'] / 2**20:.1f} MiB) to "
+                      f"{export_depth_data}")
+        return
+    if install_depth is not None:
+        from omniscs.bench.depth_data import install_trained_depth
+
+        info = install_trained_depth(install_depth)
+        console.print(f"installed the relative-depth weights from {install_depth}: held-out AbsRel "
+                      f"{info['evaluation']['embedded']['images']['absrel_mean']:.3f}, in repair holes "
+                      f"{info['evaluation']['embedded']['repair_hole']['absrel_mean']:.3f}")
+        return
     if train_depth:
         from omniscs.bench.depth_data import train_shipped_depth
 
         with progress_bars() as bars:
-            info = train_shipped_depth(workspace, progress=bars.sink("relative depth"))
+            info = train_shipped_depth(workspace, progress=bars.sink("relative depth"), device=depth_device)
         console.print(f"relative depth: {info['n_images']} images, loss {info['loss_first']:.3f} -> "
                       f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
     with progress_bars() as bars:

@@ -3,6 +3,7 @@ checked, the Depth Anything adapter runs a tiny local model and refuses with wha
 loop learns and reports divergence."""
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import numpy as np
@@ -225,3 +226,44 @@ def test_training_arrays_of_the_wrong_shape_are_refused():
         train_depth_net(images, inv[:1], config)
     with pytest.raises(OmniscsError, match="multiples of 4"):
         train_depth_net(images[:, :30], inv[:, :30], config)
+
+
+def test_training_gives_the_same_weights_with_augmenting_workers():
+    # each step's batch comes from its own seed, so handing augmentation to worker processes changes nothing
+    images, inv = _synthetic_scenes(4)
+    base = DepthTrainConfig(steps=6, batch=2, architecture=DepthNetConfig(widths=(8, 16), long_side=48))
+    serial, _ = train_depth_net(images, inv, base)
+    parallel, history = train_depth_net(images, inv, dataclasses.replace(base, workers=2))
+    assert history["device"] == "cpu"
+    assert serial.keys() == parallel.keys()
+    assert all(torch.equal(serial[k], parallel[k]) for k in serial)
+    other, _ = train_depth_net(images, inv, dataclasses.replace(base, seed=1))
+    assert not all(torch.equal(serial[k], other[k]) for k in serial)
+
+
+def test_a_depth_pack_gives_back_the_training_arrays(tmp_path):
+    from omniscs.background.depth_pack import read_pack, write_pack
+    from omniscs.errors import ValidationError
+
+    images, inv = _synthetic_scenes(3)
+    repair = np.array([False, True, False])
+    write_pack(tmp_path / "pack.zip", images, inv, repair)
+    im2, inv2, rep2 = read_pack(tmp_path / "pack.zip")
+    assert np.array_equal(im2, images) and np.array_equal(rep2, repair)
+    assert inv2.dtype == np.float32 and np.allclose(inv2, inv, rtol=1e-3, atol=1e-6)  # stored as float16
+    bad = inv.copy()
+    bad[1, 0, 0] = np.inf
+    with pytest.raises(OmniscsError, match="NaN or Inf"):
+        write_pack(tmp_path / "bad.zip", images, bad, repair)
+    assert not (tmp_path / "bad.zip").exists()
+    (tmp_path / "junk.zip").write_bytes(b"not a zip")
+    with pytest.raises(ValidationError, match="not a readable depth pack"):
+        read_pack(tmp_path / "junk.zip")
+
+
+def test_a_training_configuration_survives_its_dictionary():
+    config = DepthTrainConfig(steps=7, workers=3, architecture=DepthNetConfig(widths=(8, 16), long_side=48),
+                              augment=QUIET)
+    assert DepthTrainConfig.from_dict(dataclasses.asdict(config)) == config
+    with pytest.raises(OmniscsError, match="unknown relative-depth training settings"):
+        DepthTrainConfig.from_dict({"steps": 3, "colour": 1})
