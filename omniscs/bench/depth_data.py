@@ -41,7 +41,7 @@ class DepthDataConfig:
     """Which procedural camera images train and evaluate the embedded relative-depth network, and how the
     background-repair pairs among them are made."""
 
-    train_seeds: tuple[int, ...] = tuple(range(3000, 3064))
+    train_seeds: tuple[int, ...] = tuple(range(3000, 3128))
     """Training worlds (one per seed; template and lighting follow from the seed)."""
     eval_seeds: tuple[int, ...] = tuple(range(3900, 3910))
     """Held-out worlds of the evaluation in training.json."""

@@ -249,7 +249,8 @@ def test_a_depth_pack_gives_back_the_training_arrays(tmp_path):
     repair = np.array([False, True, False])
     write_pack(tmp_path / "pack.zip", images, inv, repair)
     im2, inv2, rep2 = read_pack(tmp_path / "pack.zip")
-    assert np.array_equal(im2, images) and np.array_equal(rep2, repair)
+    assert im2.shape == images.shape and np.array_equal(rep2, repair)
+    assert np.abs(im2.astype(float) - images).mean() < 12  # lossy WebP; a decoding mix-up would be far off
     assert inv2.dtype == np.float32 and np.allclose(inv2, inv, rtol=1e-3, atol=1e-6)  # stored as float16
     bad = inv.copy()
     bad[1, 0, 0] = np.inf
