@@ -41,8 +41,10 @@ MIN_PREDICTION_VARIANCE = 1e-8
 class DepthNetConfig:
     """The architecture of the embedded relative-depth network (stored in ``training.json`` beside its weights)."""
 
-    widths: tuple[int, ...] = (16, 24, 32, 40, 56)
-    """Channels of the U-Net's levels, full resolution first; each further level halves the resolution."""
+    widths: tuple[int, ...] = (32, 64, 96, 128, 192)
+    """Channels of the U-Net's levels, full resolution first; each further level halves the resolution (the shipped
+    network: 1.69 M parameters; the first one, (16, 24, 32, 40, 56) with 0.17 M trained for 800 steps, reached a
+    held-out AbsRel of 0.218 against 0.072)."""
     long_side: int = 256
     """Working resolution: an image is resized so that its longer side has this many pixels (then padded)."""
 
@@ -288,9 +290,10 @@ def augment(rgb: np.ndarray,    # [H, W, 3] uint8
 class DepthTrainConfig:
     """Training of the embedded relative-depth network (AdamW, one-cycle learning rate, the SSI loss)."""
 
-    steps: int = 800
-    """Optimiser steps."""
-    batch: int = 8
+    steps: int = 12_000
+    """Optimiser steps (the shipped weights: 6.3 min on one H100 with 14 augmenting workers; on 2 CPUs the same
+    training takes many hours)."""
+    batch: int = 16
     """Images per step."""
     lr: float = 2e-3
     """Peak learning rate of the one-cycle schedule."""

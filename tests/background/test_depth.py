@@ -17,10 +17,11 @@ from omniscs.background.depthnet import (DepthAugmentConfig, DepthNet, DepthNetC
 from omniscs.errors import OmniscsError
 
 #: A held-out view (template, seed, lighting; frame 0 of CAM_FRONT at 320x180) and the Spearman correlation that the
-#: output must reach there with the true inverse depth over the non-sky pixels. Measured: the shipped weights 0.947;
-#: the row prior (inverse depth = rows below the horizon) 0.819; ten randomly initialised networks -0.57 to 0.39.
+#: output must reach there with the true inverse depth over the non-sky pixels. Measured: the shipped weights 0.984
+#: (the first, smaller shipped network 0.947); the row prior (inverse depth = rows below the horizon) 0.819; ten
+#: randomly initialised networks of the shipped architecture -0.33 to 0.62.
 HELD_OUT_VIEW = ("intersection", 3906, "day")
-SPEARMAN_THRESHOLD = 0.88
+SPEARMAN_THRESHOLD = 0.95
 
 
 def _rank_correlation(a: np.ndarray, b: np.ndarray) -> float:
