@@ -229,16 +229,41 @@ def test_training_arrays_of_the_wrong_shape_are_refused():
         train_depth_net(images[:, :30], inv[:, :30], config)
 
 
-def test_training_gives_the_same_weights_with_augmenting_workers():
-    # each step's batch comes from its own seed, so handing augmentation to worker processes changes nothing
-    images, inv = _synthetic_scenes(4)
-    base = DepthTrainConfig(steps=6, batch=2, architecture=DepthNetConfig(widths=(8, 16), long_side=48))
-    serial, _ = train_depth_net(images, inv, base)
-    parallel, history = train_depth_net(images, inv, dataclasses.replace(base, workers=2))
-    assert history["device"] == "cpu"
+_WORKERS_SCRIPT = """
+import dataclasses, sys
+import torch
+from safetensors.torch import save_file
+sys.path.insert(0, {root!r})
+from tests.background.test_depth import _synthetic_scenes
+from omniscs.background.depthnet import DepthNetConfig, DepthTrainConfig, train_depth_net
+images, inv = _synthetic_scenes(4)
+base = DepthTrainConfig(steps=6, batch=2, seed={seed}, workers={workers},
+                        architecture=DepthNetConfig(widths=(8, 16), long_side=48))
+state, history = train_depth_net(images, inv, base)
+assert history["device"] == "cpu"
+save_file(state, {out!r})
+"""
+
+
+def test_training_gives_the_same_weights_with_augmenting_workers(tmp_path):
+    # each step's batch comes from its own seed, so handing augmentation to worker processes changes nothing. Run
+    # in fresh interpreters, as the training command runs: forking worker processes out of a test process that
+    # holds other tests' threads (a server, thread pools) is not what is under test here
+    import subprocess
+    from pathlib import Path
+
+    from safetensors.torch import load_file
+
+    root = str(Path(__file__).resolve().parents[2])
+    states = {}
+    for seed, workers in [(0, 0), (0, 2), (1, 0)]:
+        out = str(tmp_path / f"s{seed}w{workers}.safetensors")
+        subprocess.run([sys.executable, "-c", _WORKERS_SCRIPT.format(root=root, seed=seed, workers=workers, out=out)],
+                       check=True, cwd=root, timeout=300)
+        states[seed, workers] = load_file(out)
+    serial, parallel, other = states[0, 0], states[0, 2], states[1, 0]
     assert serial.keys() == parallel.keys()
     assert all(torch.equal(serial[k], parallel[k]) for k in serial)
-    other, _ = train_depth_net(images, inv, dataclasses.replace(base, seed=1))
     assert not all(torch.equal(serial[k], other[k]) for k in serial)
 
 
