@@ -2,15 +2,14 @@
 
 The lent GPU machines lack the procedural world's packages (open3d), so `omniscs bench background --train-depth
 --depth-device cuda` cannot run there whole. Its three parts run apart instead, with the same code:
-  1. here:  omniscs bench background --export-depth-data infra/depth_gpu/data/pack.npz
-  2. there: python3 infra/depth_gpu/train.py infra/depth_gpu/data/pack.npz OUT --steps N [--workers 14]
+  1. here:  omniscs bench background --export-depth-data infra/depth_gpu/data/pack.zip
+  2. there: python3 infra/depth_gpu/train.py infra/depth_gpu/data/pack.zip OUT --steps N [--workers 14]
   3. here:  omniscs bench background --install-depth OUT   (held-out evaluation, training.json, shipped weights)
 Step 2 needs only torch, numpy, OpenCV and safetensors. The configuration is DepthTrainConfig's defaults with the
 overrides given here (all recorded in OUT/history.json).
 """
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -20,7 +19,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import torch  # noqa: E402
 
 from omniscs.background.depth_pack import read_pack  # noqa: E402
-from omniscs.background.depthnet import DepthNetConfig, DepthTrainConfig, train_depth_net  # noqa: E402
+from omniscs.background.depthnet import (DepthNetConfig, DepthTrainConfig, save_depth_net,  # noqa: E402
+                                         train_depth_net)
 
 
 def main() -> None:
@@ -71,16 +71,10 @@ def main() -> None:
             print(f"step {i}/{n} {msg} {time.perf_counter() - t0:.0f}s", flush=True)
 
     state, history = train_depth_net(images, inv, cfg, progress, device=args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    from safetensors.torch import save_file
-
-    save_file({k: v.float().contiguous() if v.is_floating_point() else v.contiguous() for k, v in state.items()},
-              str(out / "state.safetensors"))
     history["device_name"] = torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu"
     history["torch"] = torch.__version__
     history["calibration"] = calibration
-    (out / "history.json").write_text(json.dumps(history, indent=1, default=str))
+    save_depth_net(state, cfg.architecture, Path(args.out), history)
     print("loss", history["loss_first"], "->", history["loss_last"], "in", round(history["seconds"]), "s")
 
 

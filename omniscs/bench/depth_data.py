@@ -7,6 +7,7 @@ benchmarks' worlds).
 """
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -17,8 +18,8 @@ import cv2
 import numpy as np
 
 from omniscs.background.depth import SHIPPED, TRAIN_COMMAND
-from omniscs.background.depthnet import (DepthTrainConfig, DepthNet, predict_inverse_depth, save_depth_net,
-                                         scale_shift_align, train_depth_net, working_size)
+from omniscs.background.depthnet import (INFO_FILE, WEIGHTS_FILE, DepthNet, DepthTrainConfig, predict_inverse_depth,
+                                         save_depth_net, scale_shift_align, train_depth_net, working_size)
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
@@ -278,7 +279,7 @@ def _check_data_config(data: DepthDataConfig, config: DepthTrainConfig) -> None:
 def export_depth_data(path: Path, workspace: Path | None = None, data: DepthDataConfig = DepthDataConfig(),
                       progress: Progress = no_progress) -> dict:
     """Render (or reuse) the training arrays and write them as a depth pack (omniscs.background.depth_pack) to
-    ``path``, to train the network on a machine without the procedural world (``install_shipped_depth`` then
+    ``path``, to train the network on a machine without the procedural world (``install_trained_depth`` then
     evaluates and installs what it made). Returns the pack's facts."""
     from omniscs.background.depth_pack import write_pack
 
@@ -302,17 +303,16 @@ def train_shipped_depth(workspace: Path | None = None, config: DepthTrainConfig 
     seconds_data = time.perf_counter() - started
     log.info("relative depth: %d training images (%d repair pairs)", len(arrays["images"]), arrays["repair"].sum())
     state, history = train_depth_net(arrays["images"], arrays["inv_depths"], config, progress, device=device)
-    info = install_shipped_depth(state, history, data, out, arrays)
-    info.update(seconds_data=seconds_data, seconds_total=time.perf_counter() - started, machine=finish(machine))
+    info = shipping_info(state, history, data)
+    info.update(n_train_images=int(len(arrays["images"])), n_repair_pairs=int(arrays["repair"].sum()),
+                seconds_data=seconds_data, seconds_total=time.perf_counter() - started, machine=finish(machine))
     save_depth_net(state, config.architecture, out, info)
     return info
 
 
-def install_shipped_depth(state: dict, history: dict, data: DepthDataConfig = DepthDataConfig(), out: Path = SHIPPED,
-                          arrays: dict | None = None, trained_elsewhere: str | None = None) -> dict:
-    """Evaluate weights ``state`` (trained with ``history['config']``) and the two trivial baselines on the held-out
-    worlds, and write weights and ``training.json`` to ``out``. ``trained_elsewhere``: how the weights were made
-    when not by ``train_shipped_depth`` on this machine (recorded)."""
+def shipping_info(state: dict, history: dict, data: DepthDataConfig = DepthDataConfig()) -> dict:
+    """What training.json holds for weights ``state`` trained with ``history['config']``: the history and the
+    evaluation of the weights and the two trivial baselines on the held-out worlds."""
     config = DepthTrainConfig.from_dict(history["config"])
     _check_data_config(data, config)
     started_eval = time.perf_counter()
@@ -333,29 +333,26 @@ def install_shipped_depth(state: dict, history: dict, data: DepthDataConfig = De
                                        "the depth of the world without the agent, scored inside the hole",
                            **evaluation},
             "seconds_eval": time.perf_counter() - started_eval}
-    if arrays is not None:
-        info.update(n_train_images=int(len(arrays["images"])), n_repair_pairs=int(arrays["repair"].sum()))
-    if trained_elsewhere:
-        info["trained_elsewhere"] = trained_elsewhere
-        info["machine_eval"] = finish(machine_info())
-        save_depth_net(state, config.architecture, out, info)
     return info
 
 
 def install_trained_depth(folder: Path, data: DepthDataConfig = DepthDataConfig(), out: Path = SHIPPED) -> dict:
-    """``install_shipped_depth`` of what infra/depth_gpu/train.py wrote into ``folder`` (state.safetensors,
-    history.json)."""
-    import json
-
+    """Evaluate the weights infra/depth_gpu/train.py saved into ``folder`` (``save_depth_net``'s files, its
+    training history as the info) on the held-out worlds and write them with that evaluation to ``out``."""
     from safetensors.torch import load_file
 
     folder = Path(folder)
     try:
-        state = load_file(str(folder / "state.safetensors"))
-        history = json.loads((folder / "history.json").read_text())
+        state = load_file(str(folder / WEIGHTS_FILE))
+        history = json.loads((folder / INFO_FILE).read_text())
     except (OSError, ValueError) as e:
         raise OmniscsError(f"{folder} holds no weights from infra/depth_gpu/train.py ({type(e).__name__}: {e})") from e
-    how = (f"trained on {history.get('device_name', history.get('device'))} (torch {history.get('torch')}) by "
-           f"infra/depth_gpu/train.py from the pack of `{TRAIN_COMMAND.replace('--train-depth', '--export-depth-data')}"
-           f" PACK`; evaluated and installed here with --install-depth")
-    return install_shipped_depth(state, history, data, out, trained_elsewhere=how)
+    history.pop("architecture", None)  # save_depth_net's; the configuration in the history names it too
+    info = shipping_info(state, history, data)
+    info["trained_elsewhere"] = (
+        f"trained on {history.get('device_name', history.get('device'))} (torch {history.get('torch')}) by "
+        f"infra/depth_gpu/train.py from the pack of `{TRAIN_COMMAND.replace('--train-depth', '--export-depth-data')}"
+        " PACK`; evaluated and installed here with --install-depth")
+    info["machine_eval"] = finish(machine_info())
+    save_depth_net(state, DepthTrainConfig.from_dict(history["config"]).architecture, out, info)
+    return info
