@@ -30,6 +30,7 @@ DIFFUSERS_SIZE_MULTIPLE = 8
 """Stable Diffusion's VAE works on 8x8 pixel cells: the pipeline's height and width are multiples of this."""
 
 SPEC_FORMS = ("None or 'fsr' (the default, OpenCV FSR fast)", "'fsr_fast'", "'fsr_best'", "'telea'", "'ns'",
+              "'embedded' (the shipped inpainting network)", "'net:FOLDER' (inpainting network weights saved there)",
               "'lama:PATH' (a TorchScript LaMa file)", "'diffusers:PATH' (a diffusers inpainting pipeline folder)",
               "'diffusers:PATH?controlnet=CN_PATH' (with an inpainting ControlNet folder)")
 """The inpainter specs load_inpainter accepts, as listed in its error message."""
@@ -338,7 +339,8 @@ class DiffusersInpainter(_HoleFiller):
 
 def load_inpainter(spec: str | None = None, *, device: str = "cpu") -> Inpainter:
     """The inpainter a spec names (see SPEC_FORMS): None or 'fsr' is the default OpenCV FSR fast;
-    'fsr_fast', 'fsr_best', 'telea', 'ns' pick an OpenCV method; 'lama:PATH' loads a TorchScript LaMa file;
+    'fsr_fast', 'fsr_best', 'telea', 'ns' pick an OpenCV method; 'embedded' is the shipped inpainting network
+    (omniscs.background.inpaintnet) and 'net:FOLDER' the same network with weights saved there; 'lama:PATH' loads a TorchScript LaMa file;
     'diffusers:PATH' a saved diffusers inpainting pipeline, and 'diffusers:PATH?controlnet=CN_PATH' the same
     steered by an inpainting ControlNet. `device` is where weight-based models run."""
     if spec is None or spec == "fsr":
@@ -348,14 +350,25 @@ def load_inpainter(spec: str | None = None, *, device: str = "cpu") -> Inpainter
                            f"{', '.join(SPEC_FORMS)}")
     if spec in OPENCV_METHODS:
         return OpenCVInpainter(spec)
+    if spec == "embedded":
+        return _network_inpainter(None, device)
     kind, sep, rest = spec.partition(":")
     builders: dict[str, Callable[[str], Inpainter]] = {
+        "net": lambda folder: _network_inpainter(folder, device),
         "lama": lambda path: LamaInpainter(path, device=device),
         "diffusers": lambda target: _diffusers_from_spec(target, device),
     }
     if sep and kind in builders and rest:
         return builders[kind](rest)
     raise OmniscsError(f"unknown inpainter spec {spec!r}; use one of {', '.join(SPEC_FORMS)}")
+
+
+def _network_inpainter(folder: str | None, device: str) -> Inpainter:
+    """The embedded inpainting network from the shipped weights (folder None) or another folder of them."""
+    from omniscs.background.inpaintnet import SHIPPED, NetInpainter, load_inpaint_net
+
+    return NetInpainter(load_inpaint_net(SHIPPED if folder is None else folder),
+                        "embedded" if folder is None else f"net:{folder}", resolve_device(device))
 
 
 def _diffusers_from_spec(target: str, device: str) -> DiffusersInpainter:

@@ -104,8 +104,9 @@ def _grow(mask: np.ndarray, px: int) -> np.ndarray:  # [H, W] bool -> [H, W] boo
 
 def rendered_views(seed: int, config: DepthDataConfig) -> Iterator[dict]:
     """Every configured frame and camera of the world of ``seed``: ``rgb`` uint8 [H, W, 3], ``depth`` float32
-    [H, W] (m, 0 = sky), ``lighting``; and where one agent covers enough of the view, ``removed_depth`` (the depth
-    of the same view of the world without that agent) and ``agent`` [H, W] bool (its pixels)."""
+    [H, W] (m, 0 = sky), ``lighting``; and where one agent covers enough of the view, ``removed_depth`` and
+    ``removed_rgb`` (the same view of the world without that agent) and ``agent`` [H, W] bool (its pixels).
+    ``config`` is a DepthDataConfig or anything with its world fields (templates ... removal_min_fraction)."""
     from omniscs.world import WorldRenderer, generate_world
 
     if seed < FIRST_DEPTH_SEED:
@@ -123,7 +124,8 @@ def rendered_views(seed: int, config: DepthDataConfig) -> Iterator[dict]:
             if len(ids) and counts.max() >= config.removal_min_fraction * view.instance.size:
                 track = int(ids[counts.argmax()])
                 without = world.replace(agents=tuple(a for a in world.agents if a.track_id != track))
-                out["removed_depth"] = WorldRenderer(without).render_camera(frame, cam.name).depth
+                removed = WorldRenderer(without).render_camera(frame, cam.name)
+                out["removed_depth"], out["removed_rgb"] = removed.depth, removed.rgb
                 out["agent"] = view.instance == track
             yield out
 

@@ -318,6 +318,15 @@ def bench_background(
     install_depth: Optional[Path] = typer.Option(None, "--install-depth", help="Only evaluate the weights that "
                                                  "infra/depth_gpu/train.py wrote into this folder on the held-out "
                                                  "worlds and install them as the shipped ones, and stop."),
+    export_inpaint_data: Optional[Path] = typer.Option(None, "--export-inpaint-data", help="Only write the "
+                                                       "inpainting network's repair pairs to this file (an inpainting "
+                                                       "pack) for infra/inpaint_gpu/train.py, and stop."),
+    inpaint_seeds: int = typer.Option(0, "--inpaint-seeds", help="With --export-inpaint-data: only this many of the "
+                                                                 "training worlds (0: all), to fit a transfer limit."),
+    install_inpaint: Optional[Path] = typer.Option(None, "--install-inpaint", help="Only evaluate the weights that "
+                                                   "infra/inpaint_gpu/train.py wrote into this folder on the held-out "
+                                                   "worlds against OpenCV's inpainters and install them as the "
+                                                   "shipped ones, and stop."),
 ) -> None:
     """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet and DRNet +
     RoI refit against the world re-rendered without it (hole PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds),
@@ -331,6 +340,28 @@ def bench_background(
             facts = export(export_depth_data, workspace, progress=bars.sink("depth data"))
         console.print(f"wrote {facts['n_images']} training images ({facts['bytes'] / 2**20:.1f} MiB) to "
                       f"{export_depth_data}")
+        return
+    if export_inpaint_data is not None:
+        import dataclasses
+
+        from omniscs.bench.inpaint_data import InpaintDataConfig, export_inpaint_data as export_pairs
+
+        data = InpaintDataConfig()
+        if inpaint_seeds:
+            data = dataclasses.replace(data, train_seeds=data.train_seeds[:inpaint_seeds])
+        with progress_bars() as bars:
+            facts = export_pairs(export_inpaint_data, workspace, data, progress=bars.sink("inpainting data"))
+        console.print(f"wrote {facts['n_pairs']} repair pairs ({facts['bytes'] / 2**20:.1f} MiB) to "
+                      f"{export_inpaint_data}")
+        return
+    if install_inpaint is not None:
+        from omniscs.bench.inpaint_data import install_trained_inpaint
+
+        info = install_trained_inpaint(install_inpaint, workspace=workspace)
+        ev = info["evaluation"]
+        console.print(f"installed the inpainting weights from {install_inpaint}: held-out hole PSNR "
+                      f"{ev['embedded']['hole_psnr_mean']:.2f} dB (OpenCV FSR {ev['fsr_fast']['hole_psnr_mean']:.2f}, "
+                      f"Telea {ev['telea']['hole_psnr_mean']:.2f}) over {ev['n_pairs']} pairs")
         return
     if install_depth is not None:
         from omniscs.bench.depth_data import install_trained_depth
