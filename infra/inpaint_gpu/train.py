@@ -33,6 +33,8 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=None)
     ap.add_argument("--workers", type=int, default=14)
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--init", default=None, help="a folder this script wrote: train on from its weights (a second "
+                                                 "phase; its training.json is kept in the new one under 'first_phase')")
     args = ap.parse_args()
     pairs = read_pack(args.pack)
     images, holes, targets = pairs["images"], pairs["holes"], pairs["targets"]
@@ -43,6 +45,15 @@ def main() -> None:
     if args.lr:
         over["lr"] = args.lr
     cfg = dataclasses.replace(InpaintTrainConfig(), **over)
+    init, first = None, None
+    if args.init:
+        import json
+
+        from safetensors.torch import load_file
+
+        from omniscs.background.inpaintnet import INFO_FILE, WEIGHTS_FILE
+        init = load_file(str(Path(args.init) / WEIGHTS_FILE))
+        first = json.loads((Path(args.init) / INFO_FILE).read_text())
     calibration = None
     if args.steps is None:
         if args.budget_s is None:
@@ -53,7 +64,7 @@ def main() -> None:
             if i in (50, n):
                 t[i] = time.perf_counter()
 
-        train_inpaint_net(images, holes, targets, cfg, clock, device=args.device)
+        train_inpaint_net(images, holes, targets, cfg, clock, device=args.device, init=init)
         per_step = (t[cfg.steps] - t[50]) / (cfg.steps - 50)
         steps = max(500, int(args.budget_s / per_step) // 500 * 500)
         calibration = {"seconds_per_step": per_step, "budget_s": args.budget_s, "steps": steps}
@@ -65,10 +76,13 @@ def main() -> None:
         if i % 500 == 0 or i == n:
             print(f"step {i}/{n} {msg} {time.perf_counter() - t0:.0f}s", flush=True)
 
-    state, history = train_inpaint_net(images, holes, targets, cfg, progress, device=args.device)
+    state, history = train_inpaint_net(images, holes, targets, cfg, progress, device=args.device, init=init)
     history["device_name"] = torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu"
     history["torch"] = torch.__version__
     history["calibration"] = calibration
+    if first is not None:
+        first.pop("architecture", None)
+        history["first_phase"] = first
     save_inpaint_net(state, cfg.architecture, Path(args.out), history)
     print("loss", history["loss_first"], "->", history["loss_last"], "in", round(history["seconds"]), "s")
 

@@ -264,14 +264,23 @@ def train_inpaint_net(images: np.ndarray,   # [N, H, W, 3] uint8, with the objec
                       config: InpaintTrainConfig = InpaintTrainConfig(),
                       progress: Progress = no_progress,
                       device: str = "cpu",
+                      init: dict[str, Tensor] | None = None,  # weights to start from (default: a fresh network)
                       ) -> tuple[dict[str, Tensor], dict]:
-    """Train an InpaintNet from scratch. Raises an OmniscsError when the loss stops being finite."""
+    """Train an InpaintNet, from scratch or on from ``init`` (a state dict of the same architecture: a second
+    phase of training). Raises an OmniscsError when the loss stops being finite."""
     arch = config.architecture
     check_pairs(images, holes, targets, arch.multiple)
     if config.steps < 1 or config.batch < 1:
         raise OmniscsError(f"steps and batch must be positive; got steps={config.steps}, batch={config.batch}")
     torch.manual_seed(config.seed)
-    net = InpaintNet(arch).to(device)
+    net = InpaintNet(arch)
+    if init is not None:
+        try:
+            net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in init.items()})
+        except RuntimeError as e:
+            raise OmniscsError(f"the initial weights do not fit the architecture {arch} ({str(e).splitlines()[0]})") \
+                from None
+    net = net.to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.lr, total_steps=config.steps)
     batches = torch.utils.data.DataLoader(_PairBatches(images, holes, targets, config), batch_size=None,
@@ -300,6 +309,7 @@ def train_inpaint_net(images: np.ndarray,   # [N, H, W, 3] uint8, with the objec
                "loss_curve": [[s, float(np.mean(losses[max(0, s - config.log_every):s + 1]))]
                               for s in range(0, config.steps, config.log_every)],
                "seconds": time.perf_counter() - started, "n_pairs": int(len(images)), "device": str(device),
+               "initialised_from_weights": init is not None,
                "n_parameters": int(sum(p.numel() for p in net.parameters()))}
     return {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}, history
 

@@ -79,6 +79,9 @@ class RepairConfig:
     """Carry pixels filled in earlier views into later ones through their 3D points (one texture for all views);
     False (the default: better on the development logs, where carried pixels sat at their source view's depth
     errors) inpaints every view on its own and lets the refit reconcile them."""
+    keep_observed: bool = True
+    """Hole pixels the cleaned background covers keep its render (what other views observed there); False
+    inpaints every hole pixel from the image around the hole."""
     min_context: float = 0.2
     """A view is inpainted only if at least this share of its pixels is known (outside the hole, or carried);
     otherwise only carried pixels fill it and the rest is not supervised."""
@@ -313,7 +316,7 @@ def fill_views(hole_views: list[HoleView], cleaned: SceneGraph, config: RepairCo
         rendered = cleaned.render(hv.view)
         # where the cleaned background is solid, and how far (z): seeds must not end up in front of it
         hv.solid_z = np.where(rendered.alpha.cpu().numpy() > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
-        seen = todo & (rendered.alpha.cpu().numpy() > OBSERVED_ALPHA)
+        seen = todo & (rendered.alpha.cpu().numpy() > OBSERVED_ALPHA) & config.keep_observed
         image[seen] = _uint8(rendered.rgb)[seen]
         depth[seen] = (rendered.depth.cpu().numpy() * ray_norms(hv.view))[seen]
         todo &= ~seen

@@ -31,7 +31,12 @@ log = logging.getLogger(__name__)
 
 ARMS = ("naive", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit")
 EXTRA_ARMS = ("hidden Gaussians removed", "least squares + RoI refit", "DRNet + full refit",
-              "DRNet + RoI refit, carrying between views")
+              "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
+              "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole")
+"""The comparisons: the last three use the embedded inpainting network instead of the configured inpainter, the last
+one inpainting every hole pixel (the cleaned background's render of the hole is not kept)."""
+STRIP_ARMS = ("naive", "DRNet + RoI refit", "DRNet + RoI refit, embedded inpainter, whole hole")
+"""The arms shown in the PNG strips, after the ground truth."""
 
 
 @dataclass(frozen=True)
@@ -217,6 +222,7 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
               progress: Progress = no_progress) -> dict:
     import copy
 
+    from omniscs.background.inpaint import load_inpainter
     from omniscs.background.repair import (cleaned_graph, fill_views, prepare_views, refit_background, removed_objects,
                                            seeded_graph)
     from omniscs.nsg.checkpoint import load_checkpoint, read_checkpoint_meta
@@ -259,14 +265,20 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
         arms[name] = {"graph": g, "seconds": seconds + time.perf_counter() - t0, "refit_seconds": info["refit_seconds"],
                       "trainable": info["trainable"]}
-    if config.full_comparison:
-        cfg = dataclasses.replace(rc, carry=True)
+    def refit_arm(cfg, filler) -> dict:
         views = copy.deepcopy(base_views)
         t0 = time.perf_counter()
-        fill_views(views, cleaned, cfg, inpainter, depth_model, progress)
+        fill_views(views, cleaned, cfg, filler, depth_model, progress)
         seeded, n_seeds = seeded_graph(cleaned, views, cfg)
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
-        arms["DRNet + RoI refit, carrying between views"] = {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0}
+        return {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0}
+
+    network = load_inpainter("embedded") if config.full_comparison else None
+    if config.full_comparison:
+        arms["DRNet + RoI refit, carrying between views"] = refit_arm(dataclasses.replace(rc, carry=True), inpainter)
+        arms["DRNet + RoI refit, embedded inpainter"] = refit_arm(rc, network)
+        arms["DRNet + RoI refit, embedded inpainter, whole hole"] = refit_arm(
+            dataclasses.replace(rc, keep_observed=False), network)
     arms["naive"] = {"graph": naive, "seconds": 0.0}
     arms["hidden Gaussians removed"] = {"graph": cleaned, "seconds": hole_seconds}
     arms["least squares"] = {"graph": fills["lsq"][1], "seconds": fills["lsq"][3]}
@@ -278,17 +290,17 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         per_view = []
         t_inpaint = 0.0
         for ev in evs:
-            if name == "2D inpainting only":
+            if name.startswith("2D inpainting only"):
                 t0 = time.perf_counter()
-                rgb, depth = inpaint_render(naive, objects[0], inpainter, ev), None
+                rgb, depth = inpaint_render(naive, objects[0], network if "embedded" in name else inpainter, ev), None
                 t_inpaint += time.perf_counter() - t0
             else:
                 rgb, depth = render_eval(arms[name]["graph"], ev)
             per_view.append({"kind": ev.kind, **score_view(rgb, depth, ev)})
-            if ev is strip_view and name in ("naive", "DRNet + RoI refit"):
+            if ev is strip_view and name in STRIP_ARMS:
                 strip = (strip or {"gt": ev.gt_rgb, "hole": ev.hole, "label": f"{ev.camera} frame {ev.frame} {ev.kind}"})
                 strip[name] = rgb
-        seconds = t_inpaint if name == "2D inpainting only" else arms[name]["seconds"]
+        seconds = t_inpaint if name.startswith("2D inpainting only") else arms[name]["seconds"]
         for kind in ("logged", "novel"):
             sel = [v for v in per_view if v["kind"].startswith(kind)]
             rows.append({"scene_id": scene.scene_id, "track_id": track, "arm": name, "views": kind, "n_views": len(sel),
@@ -426,8 +438,9 @@ def background_markdown(report: dict) -> str:
               f"- RoI refit ≤ 20 % of a full refit's time: {f(t['roi_over_full_time'], 3)} "
               f"({'met' if t['roi_time_met'] else 'NOT met'})", "",
               "![strips](background_bench.png)", "",
-              "Strips (one novel view per scene): ground truth without the object, naive removal, DRNet + RoI refit; "
-              "the object's outline in red.", ""]
+              "Strips (one novel view per scene): ground truth without the object, naive removal, DRNet + RoI refit, "
+              "and (with the comparisons) DRNet + RoI refit with the embedded inpainter over the whole hole; the "
+              "object's outline in red.", ""]
     return "\n".join(lines)
 
 
@@ -438,7 +451,9 @@ def _strip_png(strips: list[dict], buf) -> None:
     rows = []
     for s in strips:
         tiles = []
-        for key in ("gt", "naive", "DRNet + RoI refit"):
+        for key in ("gt",) + STRIP_ARMS:
+            if key not in s:
+                continue
             img = s[key].copy()
             edge = cv2.morphologyEx(s["hole"].astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
             img[edge] = (255, 0, 0)

@@ -85,7 +85,13 @@ def _model_ids(config) -> dict:
         from omniscs.background.depth import SHIPPED
         from omniscs.background.depthnet import WEIGHTS_FILE
         weights = hashlib.sha256((SHIPPED / WEIGHTS_FILE).read_bytes()).hexdigest()
-    return {"inpainter": load_inpainter(config.inpainter).name, "depth_model": depth.name, "depth_weights": weights}
+    ids = {"inpainter": load_inpainter(config.inpainter).name, "depth_model": depth.name, "depth_weights": weights}
+    if ids["inpainter"] == "embedded":  # so do retrained inpainting weights
+        import hashlib
+
+        from omniscs.background.inpaintnet import SHIPPED as INPAINT_SHIPPED, WEIGHTS_FILE as INPAINT_WEIGHTS
+        ids["inpaint_weights"] = hashlib.sha256((INPAINT_SHIPPED / INPAINT_WEIGHTS).read_bytes()).hexdigest()
+    return ids
 
 
 def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name: str, progress: Progress) -> list[dict]:

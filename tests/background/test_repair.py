@@ -1,6 +1,7 @@
 """The repair on a small fitted log with a parked box truck beside the road: holes against the world's own masks,
 what the repair returns and keeps, the background stage (checkpoint, files, catalog rows, reuse, skip), and the
 clear errors when nothing pins the depth."""
+import dataclasses
 import json
 from pathlib import Path
 
@@ -93,6 +94,28 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     removed = apply_graph_edits(g, [REMOVE])
     out = removed.render(removed.view(plan.cameras[0], plan.train_frames[0]))
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+
+
+def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_pixel(fitted):
+    from omniscs.background.inpaintnet import SHIPPED
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.observations import Observations
+    from omniscs.scene import load_scene
+
+    if not (SHIPPED / "inpaint.safetensors").is_file():
+        pytest.skip("no shipped inpainting weights")
+    store, plan, record, _ = fitted
+    scene = load_scene(store)
+    graph = load_checkpoint(record.path, scene)
+    views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
+    config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none")
+    result = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60), config)
+    f = result.facts
+    assert f["observed_pixels"] == 0 and f["inpainted_pixels"] > 0 and f["seeds"] > 0
+    assert f["inpainted_pixels"] + f["unfilled_pixels"] == f["hole_pixels"]
+    for hv in result.views:  # a view is inpainted whole or (too little context) left unsupervised whole
+        assert np.array_equal(hv.new | hv.unfilled, hv.mask)
+        assert np.array_equal(hv.filled[~hv.mask], hv.image[~hv.mask])
 
 
 def test_fill_views_refuses_when_no_view_knows_any_depth():
