@@ -177,3 +177,23 @@ def test_the_shipped_network_fills_held_out_repair_holes_better_than_fsr(held_ou
                                  held_out_pairs)
     # measured 28.0 against 18.9 dB (15 pairs); a network no better than FSR fails
     assert report["embedded"]["hole_psnr_pooled"] > report["fsr"]["hole_psnr_pooled"] + 1.0, report
+
+
+def test_repair_pairs_hide_the_agent_and_their_targets_differ_inside_the_hole(held_out_pairs):
+    images, holes, targets = held_out_pairs["images"], held_out_pairs["holes"], held_out_pairs["targets"]
+    assert images.shape[1:3] == (144, 256) and holes.dtype == np.bool_
+    shares = holes.reshape(len(holes), -1).mean(1)
+    assert (shares > 0).all() and (shares <= 0.7).all()
+    inside = [np.abs(i[h].astype(int) - t[h]).mean() for i, h, t in zip(images, holes, targets)]
+    outside = [np.abs(i[~h].astype(int) - t[~h]).mean() for i, h, t in zip(images, holes, targets)]
+    assert np.median(inside) > 5 * np.median(outside)  # the agent stood in the hole (outside: shadows only)
+
+
+def test_inpainting_data_refuse_benchmark_seeds_and_a_folder_without_weights(tmp_path):
+    from omniscs.bench.inpaint_data import InpaintDataConfig, cached_pairs, install_trained_inpaint
+
+    with pytest.raises(OmniscsError, match=">= 3000"):
+        cached_pairs([101], InpaintDataConfig(), tmp_path)
+    with pytest.raises(OmniscsError, match="no weights"):
+        install_trained_inpaint(tmp_path, out=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
