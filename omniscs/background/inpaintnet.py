@@ -343,5 +343,5 @@ def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
         raise ValidationError(f"{folder} holds no inpainting weights this version reads ({type(e).__name__}: {e}); "
                               "train them with `omniscs bench background --export-inpaint-data`, "
-                              "infra/gpu_train/inpaint.py and `--install-inpaint`") from e
+                              "infra/inpaint_gpu/train.py and `--install-inpaint`") from e
     return net.eval()

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 #: Bump when the way samples are made changes, so that cached data are made again.
 DATA_VERSION = 1
 
-TRAIN_COMMAND = "omniscs bench background --export-inpaint-data PACK (then infra/gpu_train/inpaint.py, " \
+TRAIN_COMMAND = "omniscs bench background --export-inpaint-data PACK (then infra/inpaint_gpu/train.py, " \
                 "--install-inpaint)"
 
 
@@ -198,7 +198,7 @@ def shipping_info(state: dict, history: dict, data: InpaintDataConfig = InpaintD
 
 def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataConfig(), out: Path | None = None,
                             workspace: Path | None = None) -> dict:
-    """Evaluate the weights infra/gpu_train/inpaint.py saved into ``folder`` on the held-out worlds and write them
+    """Evaluate the weights infra/inpaint_gpu/train.py saved into ``folder`` on the held-out worlds and write them
     with that evaluation to ``out`` (the shipped weights by default)."""
     from safetensors.torch import load_file
 
@@ -209,12 +209,12 @@ def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataC
         state = load_file(str(folder / WEIGHTS_FILE))
         history = json.loads((folder / INFO_FILE).read_text())
     except (OSError, ValueError) as e:
-        raise OmniscsError(f"{folder} holds no weights from infra/gpu_train/inpaint.py ({type(e).__name__}: {e})") \
+        raise OmniscsError(f"{folder} holds no weights from infra/inpaint_gpu/train.py ({type(e).__name__}: {e})") \
             from e
     history.pop("architecture", None)
     info = shipping_info(state, history, data, workspace)
     info["trained_elsewhere"] = (f"trained on {history.get('device_name', history.get('device'))} (torch "
-                                 f"{history.get('torch')}) by infra/gpu_train/inpaint.py from the pack of "
+                                 f"{history.get('torch')}) by infra/inpaint_gpu/train.py from the pack of "
                                  "--export-inpaint-data; evaluated and installed here with --install-inpaint")
     info["machine_eval"] = finish(machine_info())
     save_inpaint_net(state, InpaintNetConfig.from_dict(history["config"]["architecture"]), out or SHIPPED, info)
