@@ -172,14 +172,16 @@ def test_sigterm_stops_generate_records_the_run_and_leaves_no_server_or_temporar
 
 
 def test_sigkilled_runs_rerun_to_the_clean_result(tmp_path):
-    """Fault injection, short form (3 kill moments; `omniscs bench reliability` runs 10): SIGKILL at random
-    moments, then the same command again; the rerun's catalog and files equal one clean run's."""
+    """Fault injection, short form (one kill moment; the slow test below and `omniscs bench reliability` run 10):
+    SIGKILL at a random moment, then the same command again; the rerun's catalog and files equal one clean
+    run's."""
     from omniscs.bench.reliability import ReliabilityConfig, fault_injection
 
     config = ReliabilityConfig(sources=("syn:straight:46", "syn:t_junction:47:night"),
                                options=("--frames", "10", "--cameras", "1", "--width", "96", "--height", "54"),
-                               kills=3, seed=7)
+                               kills=1, seed=7)
     result = fault_injection(config, tmp_path)
+    assert len(result["kills"]) == 1
     assert result["clean_rows"]["scenes"] == 2 and result["clean_rows"]["agents"] > 0
     for kill in result["kills"]:
         assert kill["orphaned_processes"] == 0, kill
