@@ -154,6 +154,7 @@ class _Frame:
     table: _FaceTable  # static faces, then the present agents' faces
     agent_from_world: np.ndarray  # [A, 4, 4] per present agent (unscaled local frame)
     agent_scale: np.ndarray  # [A, 3] mesh scale that fits the asset into the track's box
+    casters: o3d.t.geometry.RaycastingScene | None = None  # shadow casters present (not seen by camera or LiDAR)
 
 
 @dataclass
@@ -167,8 +168,11 @@ class _Hits:
 class WorldRenderer:
     """Renders a World frame by frame: static geometry is built once, agents are placed per frame."""
 
-    def __init__(self, world: World) -> None:
+    def __init__(self, world: World, shadow_casters=()) -> None:
+        """``shadow_casters``: agent tracks (of this or another world: e.g. removed ones) that shade this world (sun
+        shadows, ambient occlusion) without being seen by camera or LiDAR rays; a removed object's light stays."""
         self.world = world
+        self.shadow_casters = tuple(shadow_casters)
         self.layout = layout_for(world)
         if world.lighting not in LIGHTING_MODELS:
             raise OmniscsError(f"unknown lighting {world.lighting!r}; use one of {list(LIGHTING_MODELS)}")
@@ -186,7 +190,10 @@ class WorldRenderer:
         self._frame: _Frame | None = None
         self._ray_cache: dict = {}
         self._lidar_dirs = lidar_model.beam_directions(world.lidar)  # [R, 3] lidar frame
-        for track in world.agents:
+        for track in world.agents + self.shadow_casters:
+            if track.poses.shape[0] != world.n_frames:
+                raise OmniscsError(f"track {track.track_id} has {track.poses.shape[0]} poses; this world has "
+                                   f"{world.n_frames} frames")
             build_asset(track.asset_id)  # fail early on unknown assets
 
     # -- per-frame agent scene ---------------------------------------------------------------
@@ -222,14 +229,27 @@ class WorldRenderer:
             inv_poses.append(invert_transform(pose))
             scales.append(scale)
         scene = _o3d_scene(np.concatenate(verts), np.concatenate(faces)) if verts else None
+        casters = self._caster_scene(frame_idx)
         st = self.static_table
         # One table per frame, static faces first, so a hit's attributes are a single gather.
         table = _FaceTable(np.concatenate([st.colour] + cols), np.concatenate([st.material] + mats),
                            np.concatenate([st.semantic] + sems), np.concatenate([st.params] + pars),
                            np.concatenate([st.track] + tracks), np.concatenate([st.agent] + agents))
         self._frame = _Frame(frame_idx, scene, table, np.array(inv_poses).reshape(-1, 4, 4),
-                             np.array(scales).reshape(-1, 3))
+                             np.array(scales).reshape(-1, 3), casters)
         return self._frame
+
+    def _caster_scene(self, frame_idx: int) -> o3d.t.geometry.RaycastingScene | None:
+        verts, faces, offset = [], [], 0
+        for track in self.shadow_casters:
+            if not track.present[frame_idx]:
+                continue
+            asset = build_asset(track.asset_id)
+            verts.append(transform_points(track.poses[frame_idx],
+                                          asset.surface.vertices * (np.asarray(track.size) / asset.size)))
+            faces.append(asset.surface.faces + offset)
+            offset += len(asset.surface.vertices)
+        return _o3d_scene(np.concatenate(verts), np.concatenate(faces)) if verts else None
 
     # -- ray casting -------------------------------------------------------------------------
     def _cast(self, fr: _Frame, rays: np.ndarray) -> _Hits:  # rays [N, 6] float32
@@ -253,8 +273,9 @@ class WorldRenderer:
             return np.zeros(0, dtype=bool)
         tensor = o3d.core.Tensor(np.ascontiguousarray(rays, dtype=np.float32))
         occ = self.static_scene.test_occlusions(tensor, tnear=0.0, tfar=1.0).numpy().astype(bool)
-        if fr.scene is not None:
-            occ |= fr.scene.test_occlusions(tensor, tnear=0.0, tfar=1.0).numpy().astype(bool)
+        for scene in (fr.scene, fr.casters):
+            if scene is not None:
+                occ |= scene.test_occlusions(tensor, tnear=0.0, tfar=1.0).numpy().astype(bool)
         return occ
 
     def _attr(self, fr: _Frame, hits: _Hits, sel: np.ndarray, name: str) -> np.ndarray:

@@ -150,3 +150,26 @@ def test_bad_edits_raise_a_domain_error(world, edits):
     assert world.agent(1)
     with pytest.raises(OmniscsError):
         apply_edits(world, edits)
+
+
+def test_a_removed_agent_kept_as_a_shadow_caster_is_unseen_but_still_shades(world, front):
+    """The bench's second reference: the world without an object, shaded as if it were there."""
+    tid = _most_visible(front)
+    removed = apply_edits(world, [Remove(tid)])
+    plain = WorldRenderer(removed).render_camera(0, "CAM_FRONT")
+    caster = [a for a in world.agents if a.track_id == tid]
+    kept = WorldRenderer(removed, shadow_casters=caster).render_camera(0, "CAM_FRONT")
+    assert tid not in kept.instance
+    np.testing.assert_array_equal(kept.depth, plain.depth)  # not seen by camera rays
+    np.testing.assert_array_equal(kept.instance, plain.instance)
+    darker = kept.rgb.astype(int).sum(-1) < plain.rgb.astype(int).sum(-1) - 8
+    assert darker.any()  # its shadow or ambient occlusion on what lies around it
+    assert not (kept.rgb.astype(int).sum(-1) > plain.rgb.astype(int).sum(-1) + 8).any()  # light is only taken away
+    np.testing.assert_array_equal(WorldRenderer(removed, shadow_casters=()).render_camera(0, "CAM_FRONT").rgb,
+                                  plain.rgb)
+
+
+def test_a_shadow_caster_from_a_log_of_another_length_is_refused(world):
+    short = generate_world("straight", 12, n_frames=2, n_cameras=1, width=W, height=H)
+    with pytest.raises(OmniscsError, match="poses"):
+        WorldRenderer(world, shadow_casters=short.agents[:1])
