@@ -165,6 +165,14 @@ class _Hits:
     face: np.ndarray  # [N] int64 row in the frame's face table (agent faces follow the static ones)
 
 
+def _placed_mesh(track, frame_idx: int):
+    """A track's asset, the scale that fits its mesh into the track's box, and the mesh's vertices in the world at
+    ``frame_idx``."""
+    asset = build_asset(track.asset_id)
+    scale = np.asarray(track.size, dtype=np.float64) / asset.size
+    return asset, scale, transform_points(track.poses[frame_idx], asset.surface.vertices * scale)
+
+
 class WorldRenderer:
     """Renders a World frame by frame: static geometry is built once, agents are placed per frame."""
 
@@ -212,11 +220,10 @@ class WorldRenderer:
         for track in self.world.agents:
             if not track.present[frame_idx]:
                 continue
-            asset = build_asset(track.asset_id)
-            scale = np.asarray(track.size, dtype=np.float64) / asset.size
+            asset, scale, placed = _placed_mesh(track, frame_idx)
             pose = track.poses[frame_idx]
             s = asset.surface
-            verts.append(transform_points(pose, s.vertices * scale))
+            verts.append(placed)
             faces.append(s.faces + offset)
             offset += len(s.vertices)
             nf = len(s.faces)
@@ -244,9 +251,8 @@ class WorldRenderer:
         for track in self.shadow_casters:
             if not track.present[frame_idx]:
                 continue
-            asset = build_asset(track.asset_id)
-            verts.append(transform_points(track.poses[frame_idx],
-                                          asset.surface.vertices * (np.asarray(track.size) / asset.size)))
+            asset, _, placed = _placed_mesh(track, frame_idx)
+            verts.append(placed)
             faces.append(asset.surface.faces + offset)
             offset += len(asset.surface.vertices)
         return _o3d_scene(np.concatenate(verts), np.concatenate(faces)) if verts else None

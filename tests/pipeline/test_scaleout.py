@@ -125,6 +125,7 @@ def _kill_the_fitting_worker(ws, killed: list) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.slow  # about 2 minutes (a fit, a killed worker, the rerun); `make test-slow` runs it
 def test_a_worker_killed_mid_fit_has_its_scene_rerun_elsewhere_and_nothing_duplicated(prefect_harness, tmp_path):
     from flows.generate import generate_dataset
 
