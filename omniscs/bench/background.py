@@ -23,7 +23,6 @@ import numpy as np
 import torch
 
 from omniscs.background.repair import RepairConfig
-from omniscs.nsg.metrics import MAX_PSNR_DB
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import workspace_root
@@ -179,15 +178,17 @@ def object_light_cost(evs: list[EvalView]) -> dict:
     that light (the world without the object, shaded as if it were there) against the world without it, and the
     share of hole pixels that light changes by more than 8 grey levels. A repair that reproduces what the other
     views observed behind the object is bounded by it."""
+    from omniscs.nsg.metrics import psnr
+
     out = {}
     for kind in ("logged", "novel"):
         sel = [ev for ev in evs if ev.kind.startswith(kind) and ev.lit_rgb is not None]
         if not sel:
             continue
-        diff = np.concatenate([(ev.lit_rgb.astype(np.float64) - ev.gt_rgb)[ev.hole] for ev in sel])
-        mse = float(np.mean(diff ** 2)) / 255.0 ** 2
-        out[kind] = {"pooled_hole_psnr": MAX_PSNR_DB if mse <= 10 ** (-MAX_PSNR_DB / 10) else float(-10 * np.log10(mse)),
-                     "changed_share": float(np.mean(np.abs(diff).max(1) > 8)), "views": len(sel)}
+        lit = np.concatenate([ev.lit_rgb[ev.hole] for ev in sel]).astype(np.float64)
+        gt = np.concatenate([ev.gt_rgb[ev.hole] for ev in sel]).astype(np.float64)
+        out[kind] = {"pooled_hole_psnr": psnr(torch.from_numpy(lit[None] / 255.0), torch.from_numpy(gt[None] / 255.0)),
+                     "changed_share": float(np.mean(np.abs(lit - gt).max(1) > 8)), "views": len(sel)}
     return out
 
 
@@ -341,7 +342,8 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
              "carried_pixels": sum(h.carried for h in views), "inpainted_pixels": sum(h.inpainted for h in views),
              "unfilled_pixels": sum(int(h.unfilled.sum()) for h in views),
              "hole_pixels": sum(int(h.mask.sum()) for h in views),
-             "depth_maps": maps, "object_light": object_light_cost(evs), "eval_views": {k: sum(ev.kind.startswith(k) for ev in evs) for k in ("logged", "novel")}}
+             "depth_maps": maps, "object_light": object_light_cost(evs),
+             "eval_views": {k: sum(ev.kind.startswith(k) for ev in evs) for k in ("logged", "novel")}}
     for name in ("DRNet + RoI refit", "DRNet + full refit"):
         if name in arms:
             facts[name] = {"refit_seconds": arms[name]["refit_seconds"], "trainable": arms[name]["trainable"]}
@@ -355,9 +357,9 @@ def summary(rows: list[dict]) -> list[dict]:
         for kind in ("logged", "novel"):
             sel = [r for r in rows if r["arm"] == arm and r["views"] == kind]
             out.append({"arm": arm, "views": kind, "scenes": len(sel),
-                        **{k: _mean([r.get(k) for r in sel]) for k in ("hole_psnr", "hole_ssim", "depth_absrel",
-                                                                        "depth_delta", "full_psnr", "hole_psnr_lit",
-                                                                        "seconds")}})
+                        **{k: _mean([r[k] for r in sel]) for k in ("hole_psnr", "hole_ssim", "depth_absrel",
+                                                                    "depth_delta", "full_psnr", "hole_psnr_lit",
+                                                                    "seconds")}})
     return out
 
 
@@ -437,14 +439,14 @@ def background_markdown(report: dict) -> str:
     for r in report["summary"]:
         lines.append(f"| {r['arm']} | {r['views']} | {f(r['hole_psnr'])} | {f(r['hole_ssim'], 3)} | "
                      f"{f(r['depth_absrel'], 3)} | {f(r['depth_delta'], 3)} | {f(r['full_psnr'])} | {f(r['seconds'], 1)} | "
-                     f"{f(r.get('hole_psnr_lit'))} |")
+                     f"{f(r['hole_psnr_lit'])} |")
     lines += ["", "The object's own light: the world without the object but shaded as if it were there (its sun shadow "
               "and ambient occlusion kept) against the world without it, in the hole. What the other views observed "
               "behind the object carries that light, so a repair that reproduces it exactly scores this (pooled over "
               "the views' hole pixels):", "",
               "| scene | logged: hole PSNR | changed pixels | novel: hole PSNR | changed pixels |", "|---|---|---|---|---|"]
     for s in report["scenes"]:
-        lt = s.get("object_light", {})
+        lt = s["object_light"]
         cells = [f"{f(lt[k]['pooled_hole_psnr'])} | {100 * lt[k]['changed_share']:.0f} %" if k in lt else "— | —"
                  for k in ("logged", "novel")]
         lines.append(f"| {s['scene_id']} | {cells[0]} | {cells[1]} |")
