@@ -219,23 +219,31 @@ def bench_agents(
                                                         "reused)."),
     quick: bool = typer.Option(False, "--quick", help="One small scene, the fast preset, a small pool (a smoke run, "
                                                       "not a measurement)."),
-    train_msnet: bool = typer.Option(False, "--train-msnet", help="Train MSNet again on the library's world split "
+    train_msnet: bool = typer.Option(False, "--train-msnet", help="Train MSNet again (MSNetDataConfig's data) "
                                                                   "and write it into the package (its shipped "
                                                                   "weights) before the benchmark."),
+    matching_only: bool = typer.Option(False, "--matching-only", help="Matching alone (agents_matching.json/.md): "
+                                                                      "minutes instead of hours, for a new MSNet."),
 ) -> None:
     """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
     (naive / online / pool / dual / pool with the vehicles' own models, after translate, rotate and overturn) on
     held-out worlds."""
-    from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark, train_shipped_msnet
+    from omniscs.bench.agents import (AgentsBenchConfig, quick_config, run_agents_benchmark, run_matching_benchmark,
+                                      train_shipped_msnet)
 
     if train_msnet:
         with progress_bars() as bars:
             info = train_shipped_msnet(workspace, progress=bars.sink("MSNet"))
         console.print(f"MSNet: {info['n_assets']} assets, loss {info['loss_first']:.3f} -> "
                       f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
+    config = quick_config() if quick else AgentsBenchConfig()
+    if matching_only:
+        with progress_bars() as bars:
+            run_matching_benchmark(out, workspace, config, progress=bars.sink("agents matching"))
+        console.print((out / "agents_matching.md").read_text())
+        return
     with progress_bars() as bars:
-        run_agents_benchmark(out, workspace, quick_config() if quick else AgentsBenchConfig(),
-                             progress=bars.sink("agents bench"))
+        run_agents_benchmark(out, workspace, config, progress=bars.sink("agents bench"))
     console.print((out / "agents_bench.md").read_text())
     console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
 

@@ -1,6 +1,7 @@
 """``bench agents``' report: Table 4's summary, the targets and the Markdown, from hand-made rows; matching ranks
 queries against a pool."""
 import numpy as np
+import pytest
 
 from omniscs.bench.agents import ARMS, MATCH_LEVELS, TABLE4_EDITS, _targets, agents_markdown, run_matching, table4_summary
 
@@ -62,3 +63,49 @@ def test_matching_ranks_keyframe_queries_first_within_their_category(tmp_path):
     clean = [r for r in rows if r["level"] == "clean"]
     assert all(r["top1"] == 1.0 and r["top5"] == 1.0 for r in clean)
     assert all(0.0 <= r["top1"] <= r["top5"] <= 1.0 for r in rows)
+
+
+def test_swapping_a_worlds_vehicles_keeps_them_on_the_same_ground():
+    from omniscs.bench.agents import swap_vehicles
+    from omniscs.taxonomy import VEHICLE_CATEGORIES
+    from omniscs.world import build_asset, generate_world
+    from omniscs.world.assets import list_asset_ids
+
+    world = generate_world("straight", 81)
+    cars = list_asset_ids("sedan", "pool")[:2]
+    new, swapped = swap_vehicles(world, {"car": list(cars)})
+    before = {a.track_id: a for a in world.agents}
+    assert sorted(swapped.values()) == sorted(cars) and len(new.agents) == len(world.agents)
+    for track in new.agents:
+        old = before[track.track_id]
+        if track.track_id not in swapped:  # the rest of the world is untouched
+            assert track.asset_id == old.asset_id and np.array_equal(track.poses, old.poses)
+            continue
+        assert old.category == "car" and old.category in VEHICLE_CATEGORIES
+        assert np.allclose(track.size, build_asset(swapped[track.track_id]).size)
+        bottom = lambda t: t.poses[:, :3, 3] - 0.5 * t.size[2] * t.poses[:, :3, 2]  # noqa: E731
+        assert np.allclose(bottom(track), bottom(old))
+
+
+def test_msnet_learns_only_from_pool_assets_no_benchmark_uses():
+    from omniscs.bench.agents import POOL_QUOTA, pool_ids, unbenched_pool_assets
+    from omniscs.world.assets import asset_split, list_asset_ids
+
+    quota = tuple(POOL_QUOTA.items())
+    extra, bench = set(unbenched_pool_assets(quota)), set(pool_ids(quota))
+    assert extra and not extra & bench and all(asset_split(a) == "pool" for a in extra)
+    assert extra | bench == {a for kind, _ in quota for a in list_asset_ids(kind, "pool")}
+
+
+@pytest.mark.slow
+def test_the_matching_only_benchmark_writes_its_report(tmp_path):
+    import json
+
+    from omniscs.bench.agents import quick_config, run_matching_benchmark
+
+    report = run_matching_benchmark(tmp_path / "out", tmp_path / "ws", quick_config())
+    written = json.loads((tmp_path / "out" / "agents_matching.json").read_text())
+    assert written["target"] == report["target"] and 0 <= report["target"]["top1"] <= 1
+    levels = {r["level"] for r in report["matching"]}
+    assert levels == {lv for lv, _ in MATCH_LEVELS} and report["pool_size"] == 12
+    assert "## Matching" in (tmp_path / "out" / "agents_matching.md").read_text()
