@@ -170,7 +170,7 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3]) per query: benchmark-pool vehicles put in
     the place of world vehicles (``swap_vehicles``), each seen in the view that shows most of it whole (not cut by
     the image border), cropped by its ground-truth mask (other pixels black, as in the keyframes)."""
-    from omniscs.world import build_asset, generate_world
+    from omniscs.world import generate_world
 
     by_category: dict[str, list[str]] = {}
     model_of = {}
@@ -190,8 +190,7 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
                 best[tid] = (n, crop)
         for tid, (_, crop) in sorted(best.items()):
             model_id, category = model_of[swapped[tid]]
-            size = np.asarray(build_asset(swapped[tid]).size, dtype=np.float64)
-            queries.append((crop, category, model_id, size))
+            queries.append((crop, category, model_id, world.agent(tid).size))
         progress(len(queries), config.match_queries, f"matching queries from {item}")
         if len(queries) >= config.match_queries:
             break
@@ -580,9 +579,9 @@ UNBENCHED_WORLDS = tuple(f"{t}:{s}" for s in range(1100, 1132) for t in ("straig
 class MSNetDataConfig:
     """The training data of the shipped MSNet, none from a benchmark world or of a benchmark pool's vehicle: the
     library's *world* split, and (with ``extra_worlds``) the pool split's vehicles beyond the benchmark pool
-    (``unbenched_pool_assets``), each seen two ways: its pool model's keyframes, and camera images of procedural worlds cropped by their
-    ground-truth masks (positives across the two). The world split is seen in the worlds that hold it; the
-    unbenched vehicles are swapped into other worlds (``swapped_world_crops``)."""
+    (``unbenched_pool_assets``), each seen two ways: its pool model's keyframes, and camera images of procedural
+    worlds cropped by their ground-truth masks (positives across the two). The world split is seen in the worlds
+    that hold it; the unbenched vehicles are swapped into other worlds (``swapped_world_crops``)."""
 
     worlds: tuple[str, ...] = tuple(f"{t}:{s}" for s in range(1000, 1012)
                                     for t in ("straight", "t_junction", "intersection"))
@@ -599,6 +598,23 @@ class MSNetDataConfig:
     benchmark's queries it did not (57 % both; appearance alone 41 % -> 33 %)."""
 
 
+def _spread_views(world, asset_of: dict[int, str], frame_step: int, min_pixels: int, per_track: int,
+                  min_views: int = 1) -> tuple[list[np.ndarray], list[str]]:
+    """Up to ``per_track`` crops (``whole_views``, spread over the log) of each track of ``asset_of`` seen whole at
+    least ``min_views`` times, and its asset id per crop."""
+    seen: dict[int, list[np.ndarray]] = {}
+    for tid, _, crop in whole_views(world, asset_of, frame_step, min_pixels):
+        seen.setdefault(tid, []).append(crop)
+    crops, labels = [], []
+    for tid, views in seen.items():
+        if len(views) < min_views:
+            continue
+        pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
+        crops += [views[i] for i in pick]
+        labels += [asset_of[tid]] * len(pick)
+    return crops, labels
+
+
 def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progress: Progress = no_progress):
     """crops uint8 [N, CROP, CROP, 3] and asset ids [N] of the vehicles of procedural worlds, up to ``per_track``
     views each (spread over the log), whole in the image, cropped by their ground-truth masks."""
@@ -611,13 +627,9 @@ def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progres
         template, _, seed = item.partition(":")
         world = generate_world(template, int(seed))
         vehicles = {a.track_id: a.asset_id for a in world.agents if a.category in VEHICLE_CATEGORIES}
-        seen: dict[int, list[np.ndarray]] = {}
-        for tid, _, crop in whole_views(world, vehicles, frame_step, min_pixels):
-            seen.setdefault(tid, []).append(crop)
-        for tid, views in seen.items():
-            pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
-            crops += [views[i] for i in pick]
-            labels += [vehicles[tid]] * len(pick)
+        c, lab = _spread_views(world, vehicles, frame_step, min_pixels, per_track)
+        crops += c
+        labels += lab
     return np.stack(crops), np.array(labels)
 
 
@@ -649,15 +661,9 @@ def swapped_world_crops(items, assets: list[str], frame_step: int, min_pixels: i
                 options[c] = [str(a) for a in rng.permutation(ids)] + options[c]
         template, _, s = item.partition(":")
         world, swapped = swap_vehicles(generate_world(template, int(s)), options)
-        seen: dict[int, list[np.ndarray]] = {}
-        for tid, _, crop in whole_views(world, swapped, frame_step, min_pixels):
-            seen.setdefault(tid, []).append(crop)
-        for tid, views in seen.items():
-            if len(views) < 2:  # one view is no positive pair
-                continue
-            pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
-            crops += [views[i] for i in pick]
-            labels += [swapped[tid]] * len(pick)
+        c, lab = _spread_views(world, swapped, frame_step, min_pixels, per_track, min_views=2)  # 1: no positive
+        crops += c
+        labels += lab
     return np.stack(crops), np.array(labels)
 
 
