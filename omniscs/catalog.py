@@ -276,6 +276,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("hole_views", pa.int64(), nullable=False),       # training views it shows in
         pa.field("hole_pixels", pa.int64(), nullable=False),      # at the repair's working resolution
         pa.field("observed_pixels", pa.int64(), nullable=False),  # filled by what other views observed
+        pa.field("plane_pixels", pa.int64()),                     # filled from a plane's texture (null: before planes)
         pa.field("carried_pixels", pa.int64(), nullable=False),   # filled from earlier views' inpainting
         pa.field("inpainted_pixels", pa.int64(), nullable=False),  # filled by the 2D inpainter
         pa.field("unfilled_pixels", pa.int64(), nullable=False),  # left unsupervised (no context)

@@ -336,9 +336,10 @@ def bench_background(
                                                    "worlds against OpenCV's inpainters and install them as the "
                                                    "shipped ones, and stop."),
 ) -> None:
-    """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet and DRNet +
-    RoI refit against the world re-rendered without it (hole PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds),
-    at held-out logged and novel views; RoI refit vs a full background refit."""
+    """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet, DRNet +
+    RoI refit and the default repair (planes + DRNet + RoI refit) against the world re-rendered without it (hole
+    PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds), at held-out logged and novel views; RoI refit vs a full
+    background refit."""
     from omniscs.bench.background import BackgroundBenchConfig, quick_config, run_background_benchmark
 
     if export_depth_data is not None:

@@ -93,7 +93,8 @@ def fit(
                                         progress=bars.sink(f"background repair of {planned.scene_id}"))
             for row in repaired.rows["background_repairs"]:
                 console.print(f"track {row['track_id']}: background repaired in {row['hole_views']} views "
-                              f"({row['observed_pixels']:,} px observed elsewhere, {row['carried_pixels']:,} carried, "
+                              f"({row['observed_pixels']:,} px observed elsewhere, {row['plane_pixels']:,} from planes, "
+                              f"{row['carried_pixels']:,} carried, "
                               f"{row['inpainted_pixels']:,} inpainted), {row['seeds']:,} Gaussians seeded, "
                               f"{row['seconds']:.0f} s")
     if not complete and pool is not None:

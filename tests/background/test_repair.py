@@ -84,8 +84,14 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     assert np.array_equal(g.agent(TRUCK).world_from_agent, graph.agent(TRUCK).world_from_agent)
     f = result.facts
     assert f["seeds"] > 0 and f["hole_views"] == len(result.views)
-    assert f["observed_pixels"] + f["carried_pixels"] + f["inpainted_pixels"] + f["unfilled_pixels"] == f["hole_pixels"]
+    assert (f["observed_pixels"] + f["plane_filled_pixels"] + f["carried_pixels"] + f["inpainted_pixels"]
+            + f["unfilled_pixels"]) == f["hole_pixels"]
     assert g.background.is_finite() and result.drnet is not None and f["refit"]["iterations"] == 15
+    # the road and the sidewalk around the truck are planes: they fill part of the hole, at their depth
+    assert f["planes"] >= 1 and f["plane_filled_pixels"] > 0
+    for hv in result.views:
+        planar = hv.mask & hv.planar & ~np.isnan(hv.filled_depth)
+        assert np.array_equal(hv.filled_depth[planar & hv.new], hv.plane_dist[planar & hv.new])
     seeds_only = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60),
                                    RepairConfig(factor=1, refit="none", depth_method="lsq"))
     s = seeds_only.facts
@@ -108,7 +114,7 @@ def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_p
     scene = load_scene(store)
     graph = load_checkpoint(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
-    config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none")
+    config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none", planes=False)
     result = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60), config)
     f = result.facts
     assert f["observed_pixels"] == 0 and f["inpainted_pixels"] > 0 and f["seeds"] > 0

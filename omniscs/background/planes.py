@@ -1,0 +1,278 @@
+"""Planar proxies of what a removed object hid: the road, the sidewalk and the facades behind it are planes, and
+their texture can be gathered from every view and inpainted once, on the plane itself.
+
+What stands behind a parked truck in a street is mostly flat: the carriageway, the raised sidewalk, a facade.
+The planes are found with RANSAC (open3d) among the LiDAR returns around the object (outside its box), or among
+the background's Gaussian centres where a log has no LiDAR. A hole pixel takes the nearest plane its ray meets
+behind the object's front, within that plane's support (the convex hull of its inliers): an exact depth where the
+world is flat, in place of a monocular estimate.
+
+Each plane gets a texture (texels ``texel_m`` on a side, in the plane's own 2D coordinates) over the part of it
+the hole pixels see, plus a ring of context. Every training view gives colour to the texels it sees (inside the
+image, outside its own hole, at the depth of its solid background within ``visible_tolerance``); the nearest view
+wins, as it resolves the plane best. What no view saw is inpainted on the texture, where the kerb lines and the
+rows of windows run straight, and every view then reads the same texture: one consistent fill for all views.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from omniscs.background.holes import RemovedObject, pixel_rays, points_in_box
+from omniscs.geometry import invert_transform, transform_points
+from omniscs.nsg.observations import View, project_points
+
+#: Points around the object that can carry its planes: this many metres beyond its box sideways and lengthwise,
+#: from a metre below its bottom to this many metres above its top.
+REGION_MARGIN_M = 8.0
+REGION_ABOVE_M = 6.0
+
+#: Points inside the object's box grown by this factor belong to the object, not to its surroundings.
+OBJECT_GROW = 1.05
+
+
+@dataclass(frozen=True)
+class PlaneConfig:
+    """How planes are found and textured."""
+
+    distance_m: float = 0.05
+    """RANSAC inlier distance."""
+    voxel_m: float = 0.1
+    """The region's points are thinned to one per voxel of this size first (even density near and far)."""
+    max_planes: int = 6
+    """Planes are taken one after another from what is left, up to this many."""
+    min_share: float = 0.03
+    """A plane needs at least this share of the region's (thinned) points ..."""
+    min_points: int = 100
+    """... and at least this many."""
+    iterations: int = 2_000
+    """RANSAC iterations per plane."""
+    texel_m: float = 0.04
+    """Texture resolution on the plane."""
+    context_m: float = 2.0
+    """The texture covers the hole's hits on the plane plus this much around them (the inpainter's context)."""
+    max_texels: int = 1_000_000
+    """Texels per plane at most (the texel grows for very large extents)."""
+    visible_tolerance: float = 0.05
+    """A view sees a texel where its solid background's depth is within this share of the texel's depth."""
+    seed: int = 0
+
+
+@dataclass
+class Plane:
+    """n . x + d = 0 (unit n, world frame), with 2D coordinates (u, v) on it and its support polygon."""
+
+    normal: np.ndarray   # [3]
+    offset: float
+    u: np.ndarray        # [3] unit, in the plane
+    v: np.ndarray        # [3] unit, in the plane
+    hull: np.ndarray     # [K, 2] convex polygon of the inliers in (u, v), counter-clockwise
+    inliers: int
+
+    def coords(self, points: np.ndarray) -> np.ndarray:  # [N, 3] -> [N, 2]
+        return np.stack([points @ self.u, points @ self.v], axis=1)
+
+    def point(self, uv: np.ndarray) -> np.ndarray:  # [N, 2] -> [N, 3] on the plane
+        return (-self.offset * self.normal)[None] + uv[:, :1] * self.u[None] + uv[:, 1:2] * self.v[None]
+
+    def supports(self, uv: np.ndarray) -> np.ndarray:  # [N, 2] -> [N] bool: inside the convex hull
+        inside = np.ones(len(uv), bool)
+        k = len(self.hull)
+        for i in range(k):
+            a, b = self.hull[i], self.hull[(i + 1) % k]
+            inside &= (b[0] - a[0]) * (uv[:, 1] - a[1]) - (b[1] - a[1]) * (uv[:, 0] - a[0]) >= -1e-9
+        return inside
+
+
+def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(n, a)
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def region_points(points: np.ndarray, obj: RemovedObject) -> np.ndarray:
+    """The world ``points`` [N, 3] around ``obj`` (REGION_MARGIN_M, REGION_ABOVE_M) and outside its box."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pose, size = obj.roi()[0], obj.size
+    local = transform_points(invert_transform(pose), points)
+    half = 0.5 * size
+    near = ((np.abs(local[:, 0]) < half[0] + REGION_MARGIN_M) & (np.abs(local[:, 1]) < half[1] + REGION_MARGIN_M)
+            & (local[:, 2] > -half[2] - 1.0) & (local[:, 2] < half[2] + REGION_ABOVE_M))
+    near &= np.isfinite(points).all(axis=1)
+    near &= ~points_in_box(points, pose, size * OBJECT_GROW)
+    return points[near]
+
+
+def fit_planes(points: np.ndarray, config: PlaneConfig = PlaneConfig()) -> list[Plane]:
+    """Planes among ``points`` [N, 3] (world), largest first; [] when none has enough inliers."""
+    import open3d as o3d
+    from scipy.spatial import ConvexHull, QhullError
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < max(3, config.min_points):
+        return []
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(config.voxel_m)
+    total = len(cloud.points)
+    need = max(config.min_points, int(np.ceil(config.min_share * total)))
+    o3d.utility.random.seed(config.seed)
+    planes: list[Plane] = []
+    rest = cloud
+    while len(planes) < config.max_planes and len(rest.points) >= need:
+        model, inliers = rest.segment_plane(config.distance_m, 3, config.iterations)
+        inliers = np.asarray(inliers, dtype=np.int64)
+        if len(inliers) < need:
+            break
+        pts = np.asarray(rest.points)[inliers]
+        rest = rest.select_by_index(inliers.tolist(), invert=True)
+        n = np.asarray(model[:3], dtype=np.float64)
+        norm = float(np.linalg.norm(n))
+        if not np.isfinite(norm) or norm < 1e-9:
+            continue
+        n, d = n / norm, float(model[3]) / norm
+        u, v = _basis(n)
+        uv = np.stack([pts @ u, pts @ v], axis=1)
+        try:
+            hull = uv[ConvexHull(uv).vertices]  # counter-clockwise in 2D
+        except QhullError:  # inliers on a line: no area to support a hit
+            continue
+        planes.append(Plane(n, d, u, v, hull, len(inliers)))
+    return planes
+
+
+def plane_hits(view: View, mask: np.ndarray, planes: list[Plane], entry: np.ndarray,
+               behind_share: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """For the ``mask`` pixels of ``view``: the distance to the camera centre at which the ray meets the nearest
+    plane, within the plane's support and beyond ``behind_share`` of ``entry`` (the z-depth where the ray enters
+    the object's box: what the object hid lies behind its front), and which plane; NaN / -1 where none."""
+    h, w = mask.shape
+    dist = np.full((h, w), np.nan, np.float32)
+    which = np.full((h, w), -1, np.int64)
+    if not planes or not mask.any():
+        return dist, which
+    rays = pixel_rays(view)[mask]
+    zscale = np.linalg.norm(rays, axis=1)
+    dirs = rays / zscale[:, None]
+    origin = view.world_from_camera[:3, 3]
+    best = np.full(len(dirs), np.inf)
+    best_k = np.full(len(dirs), -1)
+    floor = behind_share * np.where(np.isfinite(entry[mask]), entry[mask], 0.0) * zscale
+    for k, p in enumerate(planes):
+        den = dirs @ p.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -(origin @ p.normal + p.offset) / np.where(np.abs(den) > 1e-9, den, np.nan)
+        ok = np.isfinite(t) & (t > floor) & (t < best)
+        if ok.any():
+            idx = np.flatnonzero(ok)
+            hit = origin[None] + dirs[idx] * t[idx, None]
+            idx = idx[p.supports(p.coords(hit))]
+            best[idx], best_k[idx] = t[idx], k
+    found = np.isfinite(best)
+    d = np.where(found, best, np.nan)
+    dist[mask], which[mask] = d.astype(np.float32), np.where(found, best_k, -1)
+    return dist, which
+
+
+@dataclass
+class Donor:
+    """A training view lending colour: its image, its solid background's z-depth (inf where not solid or where
+    its own hole is) at the working resolution."""
+
+    view: View
+    image: np.ndarray     # [h, w, 3] uint8
+    solid_z: np.ndarray   # [h, w] float
+
+
+@dataclass
+class PlaneTexture:
+    """A plane's texture: texel (i, j) is centred at uv0 + ((j + 0.5), (i + 0.5)) * texel."""
+
+    plane: Plane
+    uv0: np.ndarray       # [2]
+    texel: float
+    rgb: np.ndarray       # [H, W, 3] uint8
+    observed: np.ndarray  # [H, W] bool: some view saw the texel
+    needed: np.ndarray    # [H, W] bool: a hole pixel reads it
+
+    def lookup(self, uv: np.ndarray) -> np.ndarray:  # [N, 2] -> [N, 3] uint8, bilinear
+        h, w = self.rgb.shape[:2]
+        x = (uv[:, 0] - self.uv0[0]) / self.texel - 0.5
+        y = (uv[:, 1] - self.uv0[1]) / self.texel - 0.5
+        x0 = np.clip(np.floor(x).astype(np.int64), 0, w - 1)
+        y0 = np.clip(np.floor(y).astype(np.int64), 0, h - 1)
+        x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+        fx = np.clip(x - x0, 0.0, 1.0)[:, None]
+        fy = np.clip(y - y0, 0.0, 1.0)[:, None]
+        c = self.rgb.astype(np.float64)
+        out = ((c[y0, x0] * (1 - fx) + c[y0, x1] * fx) * (1 - fy) + (c[y1, x0] * (1 - fx) + c[y1, x1] * fx) * fy)
+        return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def _hit_points(view: View, dist: np.ndarray, which: np.ndarray, k: int) -> np.ndarray:
+    sel = which == k
+    rays = pixel_rays(view)[sel]
+    dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return view.world_from_camera[:3, 3] + dirs * dist[sel][:, None].astype(np.float64)
+
+
+def build_textures(planes: list[Plane], hits: list[tuple[View, np.ndarray, np.ndarray]], donors: list[Donor],
+                   inpainter, config: PlaneConfig = PlaneConfig()) -> list[PlaneTexture | None]:
+    """One texture per plane that a hole pixel hits (None for the others): ``hits`` are (view, distance, which)
+    from plane_hits; every donor colours the texels it sees; the rest is inpainted with ``inpainter``."""
+    out: list[PlaneTexture | None] = []
+    for k, plane in enumerate(planes):
+        uvs = [plane.coords(_hit_points(v, d, w, k)) for v, d, w in hits if (w == k).any()]
+        if not uvs:
+            out.append(None)
+            continue
+        uv = np.concatenate(uvs)
+        lo, hi = uv.min(axis=0) - config.context_m, uv.max(axis=0) + config.context_m
+        texel = max(config.texel_m, float(np.sqrt(np.prod(hi - lo) / config.max_texels)))
+        w, h = (np.ceil((hi - lo) / texel).astype(np.int64) + 1).tolist()
+        jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+        centres = np.stack([lo[0] + (jj.ravel() + 0.5) * texel, lo[1] + (ii.ravel() + 0.5) * texel], axis=1)
+        pts = plane.point(centres)
+        rgb = np.zeros((h * w, 3), np.uint8)
+        best = np.full(h * w, np.inf)
+        for dn in donors:
+            uvp, z, inside = project_points(dn.view, pts)
+            idx = np.flatnonzero(inside)
+            if not len(idx):
+                continue
+            px = np.floor(uvp[idx]).astype(np.int64)
+            solid = dn.solid_z[px[:, 1], px[:, 0]]
+            ok = np.isfinite(solid) & (np.abs(z[idx] - solid) <= config.visible_tolerance * z[idx])
+            ok &= z[idx] < best[idx]
+            idx, px = idx[ok], px[ok]
+            best[idx] = z[idx]
+            rgb[idx] = dn.image[px[:, 1], px[:, 0]]
+        observed = np.isfinite(best).reshape(h, w)
+        rgb = rgb.reshape(h, w, 3)
+        needed = np.zeros((h, w), bool)
+        x = np.clip(((uv[:, 0] - lo[0]) / texel).astype(np.int64), 0, w - 1)
+        y = np.clip(((uv[:, 1] - lo[1]) / texel).astype(np.int64), 0, h - 1)
+        needed[y, x] = True
+        if (~observed).any() and observed.any():
+            rgb = inpainter.inpaint(rgb, ~observed)
+        elif not observed.any():
+            out.append(None)  # nothing seen anywhere on it: no texture to continue
+            continue
+        out.append(PlaneTexture(plane, lo, texel, rgb, observed, needed))
+    return out
+
+
+def texture_colours(view: View, dist: np.ndarray, which: np.ndarray,
+                    textures: list[PlaneTexture | None]) -> tuple[np.ndarray, np.ndarray]:
+    """Colour [h, w, 3] uint8 of the pixels whose plane has a texture, and where that is [h, w] bool."""
+    h, w = dist.shape
+    colour = np.zeros((h, w, 3), np.uint8)
+    done = np.zeros((h, w), bool)
+    for k, tex in enumerate(textures):
+        if tex is None or not (which == k).any():
+            continue
+        sel = which == k
+        colour[sel] = tex.lookup(tex.plane.coords(_hit_points(view, dist, which, k)))
+        done |= sel
+    return colour, done
+

@@ -1,0 +1,128 @@
+"""Planar proxies behind a removed object: planes found among noisy points with outliers, ray hits against known
+geometry (in front of the object's front refused, outside the support refused), and textures that carry the
+colours a view saw and inpaint the rest."""
+import numpy as np
+
+from omniscs.background.holes import RemovedObject
+from omniscs.background.inpaint import load_inpainter
+from omniscs.background.planes import (Donor, PlaneConfig, build_textures, fit_planes, plane_hits, region_points,
+                                       texture_colours)
+from omniscs.nsg.observations import View
+
+RNG = np.random.default_rng(7)
+
+
+def _street(n_ground=6000, n_wall=3000, n_noise=300, noise=0.01):
+    """A road at z = 0 over x in [0, 30], y in [-10, 10], and a facade at y = -8 (x in [0, 30], z in [0, 10])."""
+    g = np.stack([RNG.uniform(0, 30, n_ground), RNG.uniform(-10, 10, n_ground), RNG.normal(0, noise, n_ground)], 1)
+    w = np.stack([RNG.uniform(0, 30, n_wall), RNG.normal(-8, noise, n_wall), RNG.uniform(0, 10, n_wall)], 1)
+    junk = RNG.uniform([0, -10, 0], [30, 10, 10], (n_noise, 3))
+    return np.concatenate([g, w, junk])
+
+
+def _view(position, look_at, width=64, height=48, f=40.0) -> View:
+    """A pinhole camera (x right, y down, z forward) at ``position`` looking at ``look_at``, world z up."""
+    z = np.asarray(look_at, float) - np.asarray(position, float)
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, :3] = np.stack([x, y, z], 1)
+    m[:3, 3] = position
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    return View(0, m, K, width, height, "cam")
+
+
+def test_the_road_and_the_facade_are_found_and_the_outliers_are_not():
+    planes = fit_planes(_street(), PlaneConfig(max_planes=4))
+    normals = [np.abs(p.normal) for p in planes[:2]]
+    assert any(np.allclose(n, [0, 0, 1], atol=0.02) for n in normals)
+    assert any(np.allclose(n, [0, 1, 0], atol=0.02) for n in normals)
+    for p in planes[:2]:
+        on = p.normal @ np.array([10.0, -8.0, 0.0]) + p.offset  # a point on both planes
+        assert abs(on) < 0.05
+    # uniform junk carries no plane of its own
+    assert len(planes) == 2
+
+
+def test_too_few_points_or_points_on_a_line_give_no_plane():
+    assert fit_planes(np.zeros((0, 3))) == []
+    assert fit_planes(RNG.uniform(0, 1, (50, 3))) == []
+    line = np.stack([np.linspace(0, 10, 500), np.zeros(500), np.zeros(500)], 1)
+    assert fit_planes(line) == []
+
+
+def test_region_points_keep_the_surroundings_and_drop_the_object_and_far_points():
+    obj = RemovedObject(1, np.array([8.0, 2.5, 3.5]), np.eye(4)[None].repeat(2, 0), np.array([True, True]))
+    pts = np.array([[0.0, 0.0, 0.0],      # inside the object
+                    [6.0, 0.0, -1.75],    # on the ground beside it
+                    [30.0, 0.0, 0.0],     # too far
+                    [0.0, 0.0, 20.0],     # too high
+                    [np.nan, 0.0, 0.0]])  # not finite
+    assert np.array_equal(region_points(pts, obj), pts[1:2])
+
+
+def test_hits_are_exact_on_the_ground_and_refused_before_the_front_or_off_the_support():
+    planes = fit_planes(_street(noise=0.0, n_noise=0))
+    view = _view([15.0, 5.0, 1.5], [15.0, -8.0, 0.0])
+    mask = np.ones((view.height, view.width), bool)
+    dist, which = plane_hits(view, mask, planes, np.zeros(mask.shape))
+    # the exact first surface of road and facade along each ray
+    from omniscs.background.holes import pixel_rays
+
+    rays = pixel_rays(view)
+    dirs = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    o = view.world_from_camera[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(dirs[..., 2] < 0, -o[2] / dirs[..., 2], np.inf)
+        t_wall = np.where(dirs[..., 1] < 0, (-8.0 - o[1]) / dirs[..., 1], np.inf)
+    p_wall = o + dirs * t_wall[..., None]
+    t_wall = np.where((p_wall[..., 2] >= 0) & (p_wall[..., 2] <= 10), t_wall, np.inf)
+    truth = np.minimum(t_ground, t_wall)
+    found = np.isfinite(dist)
+    assert found.mean() > 0.9
+    assert np.allclose(dist[found], truth[found], rtol=0.01)
+    # what lies in front of the object's front is not behind it: an entry beyond every surface leaves no hit
+    far = np.full(mask.shape, 1e3)
+    assert np.isnan(plane_hits(view, mask, planes, far)[0]).all()
+    # rays that leave the support (above the facade's top) find nothing
+    up = _view([15.0, 5.0, 1.5], [15.0, -8.0, 40.0])
+    d_up, w_up = plane_hits(up, np.ones((up.height, up.width), bool), planes, np.zeros((up.height, up.width)))
+    assert np.isnan(d_up[:5]).all() and (w_up[:5] == -1).all()
+
+
+def test_a_texture_keeps_what_a_view_saw_and_fills_what_none_saw():
+    ground = np.stack([RNG.uniform(0, 30, 4000), RNG.uniform(-10, 10, 4000), np.zeros(4000)], 1)
+    planes = fit_planes(ground)
+    assert len(planes) == 1
+    view = _view([15.0, 0.0, 3.0], [15.0, 1.0, 0.0], width=48, height=48, f=24.0)  # looking down
+    h, w = view.height, view.width
+    from omniscs.background.holes import ray_norms
+
+    everywhere, _ = plane_hits(view, np.ones((h, w), bool), planes, np.zeros((h, w)))
+    assert np.isfinite(everywhere).all()
+    image = np.zeros((h, w, 3), np.uint8)
+    image[:, : w // 2] = (200, 40, 40)
+    image[:, w // 2:] = (40, 40, 200)
+    hole = np.zeros((h, w), bool)
+    hole[16:32, 20:28] = True  # a hole straddling the colour edge
+    # the donor sees the ground everywhere except in its own hole
+    solid = everywhere / ray_norms(view)  # z-depth of the ground
+    solid[hole] = np.inf
+    hits = [(view, *plane_hits(view, hole, planes, np.zeros((h, w))))]
+    cfg = PlaneConfig(texel_m=0.05, context_m=1.0)
+    textures = build_textures(planes, hits, [Donor(view, image, solid)], load_inpainter(None), cfg)
+    tex = textures[0]
+    assert tex is not None and tex.observed.any() and not tex.observed[tex.needed].all()
+    colour, done = texture_colours(view, hits[0][1], hits[0][2], textures)
+    assert done[hole].all() and not done[~hole].any()
+    # inpainted from both sides: reddish on the left half of the hole, bluish on the right
+    left, right = colour[16:32, 20:22].reshape(-1, 3).mean(0), colour[16:32, 26:28].reshape(-1, 3).mean(0)
+    assert left[0] > left[2] and right[2] > right[0]
+    # a second, unobstructed view of the same texels reads the same texture where they were observed
+    other = _view([14.0, 0.5, 3.0], [14.0, 1.5, 0.0], width=48, height=48, f=24.0)
+    mask = np.ones((h, w), bool)
+    d2, w2 = plane_hits(other, mask, planes, np.zeros((h, w)))
+    c2, ok2 = texture_colours(other, d2, w2, textures)
+    assert ok2.any() and np.all(np.isfinite(c2.astype(float)))
