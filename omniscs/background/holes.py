@@ -84,6 +84,14 @@ def pixel_rays(view: View) -> np.ndarray:  # [H, W, 3] float64 world-frame direc
     return d @ view.world_from_camera[:3, :3].T
 
 
+def lift_pixels(view: View, which: np.ndarray, distance: np.ndarray) -> np.ndarray:  # -> [N, 3] world
+    """The world points of the ``which`` pixels [H, W] bool of ``view`` at ``distance`` [H, W] (metres from the
+    camera centre along each pixel's ray)."""
+    rays = pixel_rays(view)[which]
+    dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return view.world_from_camera[:3, 3] + dirs * np.asarray(distance)[which][:, None].astype(np.float64)
+
+
 def box_entry_distance(view: View, world_from_box: np.ndarray, size: np.ndarray) -> np.ndarray:
     """Per pixel, the z-depth at which the pixel's ray enters the box (inf where it misses; 0 from inside)."""
     rays = pixel_rays(view).reshape(-1, 3)

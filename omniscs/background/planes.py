@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omniscs.background.holes import RemovedObject, pixel_rays, points_in_box
+from omniscs.background.holes import RemovedObject, lift_pixels, pixel_rays, points_in_box
 from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.observations import View, project_points
 
@@ -57,6 +57,7 @@ class PlaneConfig:
     visible_tolerance: float = 0.05
     """A view sees a texel where its solid background's depth is within this share of the texel's depth."""
     seed: int = 0
+    """open3d's RANSAC seed (the planes are the same from run to run)."""
 
 
 @dataclass
@@ -209,20 +210,13 @@ class PlaneTexture:
         return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
-def _hit_points(view: View, dist: np.ndarray, which: np.ndarray, k: int) -> np.ndarray:
-    sel = which == k
-    rays = pixel_rays(view)[sel]
-    dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    return view.world_from_camera[:3, 3] + dirs * dist[sel][:, None].astype(np.float64)
-
-
 def build_textures(planes: list[Plane], hits: list[tuple[View, np.ndarray, np.ndarray]], donors: list[Donor],
                    inpainter, config: PlaneConfig = PlaneConfig()) -> list[PlaneTexture | None]:
     """One texture per plane that a hole pixel hits (None for the others): ``hits`` are (view, distance, which)
     from plane_hits; every donor colours the texels it sees; the rest is inpainted with ``inpainter``."""
     out: list[PlaneTexture | None] = []
     for k, plane in enumerate(planes):
-        uvs = [plane.coords(_hit_points(v, d, w, k)) for v, d, w in hits if (w == k).any()]
+        uvs = [plane.coords(lift_pixels(v, w == k, d)) for v, d, w in hits if (w == k).any()]
         if not uvs:
             out.append(None)
             continue
@@ -272,7 +266,7 @@ def texture_colours(view: View, dist: np.ndarray, which: np.ndarray,
         if tex is None or not (which == k).any():
             continue
         sel = which == k
-        colour[sel] = tex.lookup(tex.plane.coords(_hit_points(view, dist, which, k)))
+        colour[sel] = tex.lookup(tex.plane.coords(lift_pixels(view, sel, dist)))
         done |= sel
     return colour, done
 

@@ -33,7 +33,7 @@ from omniscs.background.drnet import DRNetConfig, FittedDRNet, aligned_inverse, 
 from omniscs.background.planes import (Donor, PlaneConfig, build_textures, fit_planes, plane_hits, region_points,
                                        texture_colours)
 from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, dilate, hole_bbox, hole_mask,
-                                      pixel_rays, points_in_box, ray_norms)
+                                      lift_pixels, points_in_box, ray_norms)
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate, concat_params, with_sh_degree
 from omniscs.nsg.background import init_background, voxel_subsample
@@ -422,10 +422,7 @@ def fill_views(hole_views: list[HoleView], cleaned: SceneGraph, config: RepairCo
         hv.filled, hv.filled_depth, hv.unfilled, hv.new = (image, np.where(hv.mask, depth, np.nan).astype(np.float32),
                                                            todo, new)
         if new.any():
-            rays = pixel_rays(hv.view)[new]
-            dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-            pts = hv.view.world_from_camera[:3, 3] + dirs * depth[new][:, None].astype(np.float64)
-            points = np.concatenate([points, pts])
+            points = np.concatenate([points, lift_pixels(hv.view, new, depth)])
             colours = np.concatenate([colours, image[new]])
     return drnet
 
@@ -471,9 +468,7 @@ def seeded_graph(cleaned: SceneGraph, hole_views: list[HoleView], config: Repair
         ok = hv.new & np.isfinite(hv.filled_depth)
         if not ok.any():
             continue
-        rays = pixel_rays(hv.view)[ok]
-        dirs = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-        pts.append(hv.view.world_from_camera[:3, 3] + dirs * hv.filled_depth[ok][:, None].astype(np.float64))
+        pts.append(lift_pixels(hv.view, ok, hv.filled_depth))
         cols.append(hv.filled[ok].astype(np.float64) / 255.0)
     if not pts:
         return cleaned, 0

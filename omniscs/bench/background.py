@@ -299,20 +299,14 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
     def refit_arm(cfg, filler) -> dict:
         views = copy.deepcopy(base_views)
         t0 = time.perf_counter()
+        facts = plane_fill(views, cleaned, obs, objects, train_views, cfg, filler, progress) if cfg.planes else {}
         fill_views(views, cleaned, cfg, filler, depth_model, progress)
         seeded, n_seeds = seeded_graph(cleaned, views, cfg)
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
-        return {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0}
+        return {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0, "views": views, "facts": facts}
 
-    views = copy.deepcopy(base_views)
-    t0 = time.perf_counter()
-    prc = dataclasses.replace(rc, planes=True)
-    plane_facts = plane_fill(views, cleaned, obs, objects, train_views, prc, inpainter, progress)
-    fill_views(views, cleaned, prc, inpainter, depth_model, progress)
-    maps["planes"] = map_errors(views, scene, track, rc.factor)
-    seeded, n_seeds = seeded_graph(cleaned, views, prc)
-    g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, prc, progress)
-    arms[PLANES_ARM] = {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0}
+    arms[PLANES_ARM] = refit_arm(dataclasses.replace(rc, planes=True), inpainter)
+    maps["planes"] = map_errors(arms[PLANES_ARM]["views"], scene, track, rc.factor)
 
     network = load_inpainter("embedded") if config.full_comparison else None
     if config.full_comparison:
@@ -356,7 +350,7 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
              "carried_pixels": sum(h.carried for h in views), "inpainted_pixels": sum(h.inpainted for h in views),
              "unfilled_pixels": sum(int(h.unfilled.sum()) for h in views),
              "hole_pixels": sum(int(h.mask.sum()) for h in views),
-             "depth_maps": maps, "object_light": object_light_cost(evs), "planes": plane_facts,
+             "depth_maps": maps, "object_light": object_light_cost(evs), "planes": arms[PLANES_ARM]["facts"],
              "eval_views": {k: sum(ev.kind.startswith(k) for ev in evs) for k in ("logged", "novel")}}
     for name in ("DRNet + RoI refit", "DRNet + full refit"):
         if name in arms:

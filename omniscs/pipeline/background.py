@@ -114,7 +114,8 @@ def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name:
     f = result.facts
     return [{"scene_id": scene.scene_id, "model_id": name, "fit_model_id": fit_id, "track_id": int(t),
              "hole_views": f["hole_views"], "hole_pixels": f["hole_pixels"], "observed_pixels": f["observed_pixels"],
-             "plane_pixels": f["plane_filled_pixels"], "carried_pixels": f["carried_pixels"], "inpainted_pixels": f["inpainted_pixels"],
+             "plane_pixels": f["plane_filled_pixels"], "carried_pixels": f["carried_pixels"],
+             "inpainted_pixels": f["inpainted_pixels"],
              "unfilled_pixels": f["unfilled_pixels"], "seeds": f["seeds"], "dropped_gaussians": f["dropped_gaussians"],
              "depth_method": config.depth_method, "refit": config.refit, "seconds": seconds,
              "repair_path": str((out / REPAIR_DIR).name)}
@@ -137,7 +138,8 @@ def write_repair_files(result, folder: Path, config) -> None:
         cm = np.where(np.isfinite(hv.filled_depth), np.clip(hv.filled_depth * 100.0, 0, 65535), 0).astype(np.uint16)
         Image.fromarray(cm).save(folder / f"{stem}-depth.png")
         views.append({"camera": hv.camera, "frame": hv.frame, "hole_share": hv.hole_share, "observed": hv.observed,
-                      "planes": hv.plane_filled, "carried": hv.carried, "inpainted": hv.inpainted, "unfilled": int(hv.unfilled.sum()),
+                      "planes": hv.plane_filled, "carried": hv.carried, "inpainted": hv.inpainted,
+                      "unfilled": int(hv.unfilled.sum()),
                       "files": [f"{stem}-mask.png", f"{stem}-filled.png", f"{stem}-depth.png"]})
     Image.fromarray(preview_sheet(result.views)).save(folder / "preview.png")
     atomic_write_json(folder / "repair.json", {
