@@ -48,6 +48,7 @@ SPAWN_TRIES = 40
 LARGE_OBJECT_CHANCE = 0.35
 LARGE_OBJECT_AHEAD = (10.0, 22.0)  # world x range of the first kerbside slot the large object takes
 LARGE_OBJECT_AHEAD_FALLBACK = (10.0, 40.0)  # tried last, when no placement in LARGE_OBJECT_AHEAD is free
+KERB_NUDGE_STEP_M, KERB_NUDGE_MAX_M = 0.05, 0.3  # a required large object that fits nowhere moves towards the kerb
 CONSTRUCTION_CHANCE = 0.3
 DEBRIS_CHANCE = 0.35
 PARKED_OCCUPANCY = (0.35, 0.7)  # range of the fraction of visible kerbside slots that are taken
@@ -250,22 +251,38 @@ class _TrafficBuilder:
         first = self.pick_asset(kinds)
         # The drawn asset first; if no kerbside run takes it (every placement collides), the other kind,
         # drawn only then so that worlds which never need it keep their random stream.
+        tried = []
         for attempt in range(3):
             aid = first if attempt == 0 else self.pick_asset({k: 1 for k in kinds if not first.startswith(k)})
-            size = build_asset(aid).size
+            tried.append(aid)
             x_range = LARGE_OBJECT_AHEAD if attempt < 2 else LARGE_OBJECT_AHEAD_FALLBACK
-            for side in (-1, 1):
-                for run in self.slot_runs(size[0], x_range, side):
-                    slots = [self.layout.parking_slots[i] for i in run]
-                    x = 0.5 * (slots[0].x + slots[-1].x)
-                    cand = self.static(aid, x, slots[0].y, slots[0].yaw)
-                    if self.try_accept(cand):
-                        # Keep the slot on the ego's side of it free, so nothing parked hides the object itself.
-                        near_end = min(run, key=lambda i: abs(self.layout.parking_slots[i].x))
-                        self.used_slots.update(run + [near_end - 1, near_end + 1])
-                        return True
+            if self._park_large(aid, x_range, 0.0):
+                return True
         if required:
+            # Last resort, reached only where the placements above all collide (so every world that had its object
+            # before is unchanged): in a layout whose kerbside lane lies close to the ego's lane, the object hugs
+            # the kerb, moved outwards in steps until it clears the collision margin.
+            for nudge in np.arange(KERB_NUDGE_STEP_M, KERB_NUDGE_MAX_M + 1e-9, KERB_NUDGE_STEP_M):
+                for aid in tried:
+                    if self._park_large(aid, LARGE_OBJECT_AHEAD_FALLBACK, float(nudge)):
+                        return True
             raise OmniscsError(f"internal: no kerbside room for the large static object in {self.template!r}")
+        return False
+
+    def _park_large(self, aid: str, x_range: tuple[float, float], nudge: float) -> bool:
+        """``aid`` parked over a free kerbside run starting in ``x_range`` (either side), ``nudge`` metres
+        further from the lanes than the slots' centre line; True once one placement is accepted."""
+        size = build_asset(aid).size
+        for side in (-1, 1):
+            for run in self.slot_runs(size[0], x_range, side):
+                slots = [self.layout.parking_slots[i] for i in run]
+                x = 0.5 * (slots[0].x + slots[-1].x)
+                cand = self.static(aid, x, slots[0].y + side * nudge, slots[0].yaw)
+                if self.try_accept(cand):
+                    # Keep the slot on the ego's side of it free, so nothing parked hides the object itself.
+                    near_end = min(run, key=lambda i: abs(self.layout.parking_slots[i].x))
+                    self.used_slots.update(run + [near_end - 1, near_end + 1])
+                    return True
         return False
 
     def construction_zone(self) -> None:

@@ -284,3 +284,25 @@ def test_parked_truck_template_places_its_large_object_even_when_the_first_kerbs
     big = [a for a in world.agents if a.category in ("truck", "trailer") and a.size[0] > 6
            and np.ptp(a.poses[:, :3, 3], axis=0).max() < 0.1]
     assert len(big) == 1
+
+
+def test_parked_truck_template_moves_its_large_object_towards_the_kerb_when_the_kerbside_lane_is_too_close():
+    """Seed 340027: the ego drives the lane next to the kerbside lane, whose slots leave less room beside it than
+    the collision margin asks. The object moves outwards (at most KERB_NUDGE_MAX_M) instead of failing; it still
+    clears the ego's path by the margin and stands on the ego's right, beyond its lane."""
+    from omniscs.world.layouts import build_layout
+    from omniscs.world.traffic import COLLISION_MARGIN, EGO_WIDTH, KERB_NUDGE_MAX_M
+
+    world = generate_world("straight_parked_truck", 340027, n_frames=40, width=W, height=H)
+    layout = build_layout("straight_parked_truck", 340027)
+    big = [a for a in world.agents if a.category in ("truck", "trailer") and a.size[0] > 6
+           and np.ptp(a.poses[:, :3, 3], axis=0).max() < 0.1]
+    assert len(big) == 1
+    y = big[0].poses[0, 1, 3]
+    slot_ys = {round(s.y, 6) for s in layout.parking_slots if s.side == -1}
+    nearest = min(slot_ys, key=lambda s: abs(s - y))
+    assert 0.0 < nearest - y <= KERB_NUDGE_MAX_M + 1e-9  # moved outwards, by no more than the limit
+    ego_y = world.ego_poses[:, 1, 3]
+    assert np.ptp(ego_y) < 1e-6
+    gap = (ego_y[0] - EGO_WIDTH / 2) - (y + big[0].size[1] / 2)
+    assert gap >= COLLISION_MARGIN - 1e-9
