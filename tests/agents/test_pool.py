@@ -41,6 +41,19 @@ def test_a_model_added_twice_is_one_entry_stored_exactly(tmp_path):
     assert table.set_index("model_id").loc[a, "length"] == pytest.approx(float(np.ptp(params.means[:, 0].numpy())))
 
 
+def test_the_table_reads_rows_without_a_quality_as_missing_numbers(tmp_path):
+    """A row written with no quality (an imported model) stores a null column; read with rows that have one, or
+    alone, the quality is a float column with NaN, and the other columns keep their types."""
+    pool = Pool(tmp_path / "pool")
+    a = pool.add(_model(2), "car", "imported", "a.ply")
+    alone = pool.table()
+    assert alone.quality.dtype == np.float64 and np.isnan(alone.quality.iloc[0])
+    b = pool.add(_model(3), "truck", "mesh", "box_truck-0001", quality=20.25)
+    table = pool.table().set_index("model_id")
+    assert np.isnan(table.loc[a, "quality"]) and table.loc[b, "quality"] == 20.25
+    assert table.n_gaussians.dtype == np.int64 and table.loc[b, "category"] == "truck"
+
+
 def test_rigid_motion_turns_positions_orientations_and_view_dependent_colour():
     from omniscs.render.sh import sh_basis
 
