@@ -43,6 +43,10 @@ def test_the_yaml_and_the_registry_agree_on_schedule_parameters_and_trigger():
     built = {d.name: d for d in reg.deployments()}
     assert set(built) == set(y)
     assert built[reg.GENERATE_NIGHTLY].schedules[0].schedule.cron == reg.NIGHTLY_CRON
+    pooled = {d.name: d for d in reg.deployments(work_pool=True)}
+    for name, d in y.items():  # every run sends heartbeats at the rate the zombie automation expects
+        assert d["work_pool"]["job_variables"]["env"]["PREFECT_FLOWS_HEARTBEAT_FREQUENCY"] == str(reg.HEARTBEAT_SECONDS)
+        assert pooled[name].job_variables["env"]["PREFECT_FLOWS_HEARTBEAT_FREQUENCY"] == str(reg.HEARTBEAT_SECONDS)
 
 
 def test_a_completed_generation_run_creates_a_fine_tune_run_with_it(prefect_harness):
@@ -67,3 +71,42 @@ def test_a_completed_generation_run_creates_a_fine_tune_run_with_it(prefect_harn
     assert runs, "no fine-tune run was created by the completed generation run"
     assert runs[0].parameters["upstream_flow_run"] == f"prefect.flow-run.{flow_run}"
     assert runs[0].parameters["model"] == "proxy"
+
+
+def test_a_run_whose_heartbeats_stop_is_marked_crashed_and_one_that_finishes_is_not(prefect_harness):
+    """The zombie automation on the harness's server (its proactive triggers run every few seconds), with a 10 s
+    window instead of 3 minutes: a Running flow run that sent one heartbeat and then nothing becomes Crashed; one
+    that sent a heartbeat and then its Completed event stays as it is. Creating it twice keeps one automation."""
+    from datetime import timedelta
+
+    from prefect import flow
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.objects import StateType
+    from prefect.events import emit_event
+    from prefect.states import Running
+
+    @flow(name="zombie-probe")
+    def probe():
+        return None
+
+    name = f"zombie-test-{uuid.uuid4().hex[:8]}"
+    made = reg.ensure_zombie_automation(reg.zombie_automation(timedelta(seconds=10), name=name))
+    again = reg.ensure_zombie_automation(reg.zombie_automation(timedelta(seconds=10), name=name))
+    assert made.id == again.id
+    time.sleep(2)  # the server's triggers service loads the automation
+    with get_client(sync_client=True) as client:
+        dead, done = (client.create_flow_run(probe, state=Running()) for _ in range(2))
+        for run in (dead, done):
+            emit_event(event="prefect.flow-run.heartbeat", resource={"prefect.resource.id": f"prefect.flow-run.{run.id}"})
+        time.sleep(2)  # a run's terminal event comes after its last heartbeat
+        emit_event(event="prefect.flow-run.Completed", resource={"prefect.resource.id": f"prefect.flow-run.{done.id}"})
+        deadline = time.time() + 90
+        state = None
+        while time.time() < deadline:
+            state = client.read_flow_run(dead.id).state
+            if state.type == StateType.CRASHED:
+                break
+            time.sleep(1)
+        assert state is not None and state.type == StateType.CRASHED, state
+        assert "heartbeat" in (state.message or "")
+        assert client.read_flow_run(done.id).state.type == StateType.RUNNING
