@@ -17,9 +17,10 @@ from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
+from omniscs.locks import clean_stale_temps
 from omniscs.pipeline.records import SceneRequest, StageRecord, new_run_id
 from omniscs.pipeline.validate import check_request, check_run_id, check_sources, run_config
-from omniscs.storage import clean_stale_temps, workspace_root
+from omniscs.storage import workspace_root
 from flows.runners import MAX_PARALLEL_SCENES, check_runner, scene_task_runner
 from tasks import stages as t
 from tasks.progress import run_summary_artifact

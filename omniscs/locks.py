@@ -4,16 +4,22 @@ A lock is the hidden file ``.<name>.lock`` beside the output, held with ``flock`
 holder dies, however it dies (SIGKILL included), so a lock can never outlive its writer — that is how stale locks
 are detected. The file names the holder (pid, host, start time) for the message a waiting writer prints, and the
 holder removes it when done. Locks are for one machine's file system (local disks; not NFS).
+
+``clean_stale_temps`` removes what dead writers left behind: their temporary siblings (``omniscs.storage``) and
+their lock files.
 """
 from __future__ import annotations
 
 import contextlib
 import fcntl
 import os
+import shutil
 import socket
 import time
 from pathlib import Path
 from typing import Callable, Iterator
+
+from omniscs.storage import make_parents, pid_alive, remove_empty, temp_owner
 
 #: How often a waiting writer retries (seconds).
 POLL_SECONDS = 0.2
@@ -36,8 +42,6 @@ def holder(target: str | os.PathLike) -> str:
 def output_lock(target: str | os.PathLike, waiting: Callable[[str], None] | None = None) -> Iterator[None]:
     """Hold ``target``'s lock for the block; wait (calling ``waiting(holder)`` once) while another writer has
     it. Inside the block, check again whether the output is already there: the other writer may have made it."""
-    from omniscs.storage import make_parents, remove_empty
-
     path = lock_path(target)
     created: list[Path] = []
     told = False
@@ -108,3 +112,39 @@ def remove_if_stale(path: str | os.PathLike) -> bool:
         return True
     finally:
         os.close(fd)
+
+
+def clean_stale_temps(root: str | os.PathLike, max_depth: int = 4, include_own: bool = False) -> list[Path]:
+    """Remove the temporary files and folders (and stale lock files) under ``root``, down to ``max_depth``
+    levels, whose writer is no longer running (``include_own``: this process's too, when it is being stopped).
+    Returns what was removed."""
+    root = Path(root)
+    removed: list[Path] = []
+    if not root.is_dir():
+        return removed
+    own = os.getpid()
+    for dirpath, dirnames, filenames in os.walk(root):
+        depth = len(Path(dirpath).relative_to(root).parts)
+        for name in list(dirnames) + filenames:
+            path = Path(dirpath) / name
+            pid = temp_owner(path)
+            if pid is not None and (not pid_alive(pid) or (include_own and pid == own)):
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink(missing_ok=True)
+                removed.append(path)
+            elif pid is None and name.endswith(".lock") and name.startswith("."):
+                if remove_if_stale(path) or (include_own and holder_pid(path) == own and _unlink(path)):
+                    removed.append(path)
+        dirnames[:] = [d for d in dirnames if temp_owner(d) is None and depth + 1 < max_depth
+                       and (Path(dirpath) / d).exists() and not (Path(dirpath) / d).is_symlink()]
+    return removed
+
+
+def _unlink(path: Path) -> bool:
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        return False
+    return True

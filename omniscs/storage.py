@@ -114,44 +114,6 @@ def check_replaceable(path: str | os.PathLike) -> None:
         raise OmniscsError(f"refusing to overwrite {path}: it is {what}; move it away or choose another --out")
 
 
-def clean_stale_temps(root: str | os.PathLike, max_depth: int = 4, include_own: bool = False) -> list[Path]:
-    """Remove the temporary files and folders (and stale lock files) under ``root``, down to ``max_depth``
-    levels, whose writer is no longer running (``include_own``: this process's too, when it is being stopped).
-    Returns what was removed."""
-    from omniscs.locks import holder_pid, remove_if_stale
-
-    root = Path(root)
-    removed: list[Path] = []
-    if not root.is_dir():
-        return removed
-    own = os.getpid()
-    for dirpath, dirnames, filenames in os.walk(root):
-        depth = len(Path(dirpath).relative_to(root).parts)
-        for name in list(dirnames) + filenames:
-            path = Path(dirpath) / name
-            pid = temp_owner(path)
-            if pid is not None and (not pid_alive(pid) or (include_own and pid == own)):
-                if path.is_dir() and not path.is_symlink():
-                    shutil.rmtree(path, ignore_errors=True)
-                else:
-                    path.unlink(missing_ok=True)
-                removed.append(path)
-            elif pid is None and name.endswith(".lock") and name.startswith("."):
-                if remove_if_stale(path) or (include_own and holder_pid(path) == own and _unlink(path)):
-                    removed.append(path)
-        dirnames[:] = [d for d in dirnames if temp_owner(d) is None and depth + 1 < max_depth
-                       and (Path(dirpath) / d).exists() and not (Path(dirpath) / d).is_symlink()]
-    return removed
-
-
-def _unlink(path: Path) -> bool:
-    try:
-        path.unlink()
-    except FileNotFoundError:
-        return False
-    return True
-
-
 def make_parents(path: Path) -> list[Path]:
     """Create ``path``'s missing parent folders; returns those created (outermost first)."""
     missing = []

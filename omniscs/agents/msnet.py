@@ -125,7 +125,7 @@ def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSN
     models with ``views_per_model`` crops each, every crop degraded by one of ``degradations`` at random. With
     ``domains`` [N] (e.g. 0 = the pool's keyframes, 1 = camera images), a model's crops in a batch are drawn from
     each of its domains in turn, so that positives cross the domains a query and the gallery come from."""
-    from omniscs.agents.matching import degrade
+    from omniscs.agents.degradation import degrade
 
     labels = np.unique(np.asarray(labels), return_inverse=True)[1].reshape(-1)  # any label type -> 0..M-1
     models = np.unique(labels)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from omniscs.background.inpaint_base import HoleFiller, unit_float_to_uint8
 from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
 
@@ -52,62 +53,8 @@ class Inpainter(Protocol):
         ...
 
 
-def check_image_and_mask(rgb: np.ndarray, mask: np.ndarray) -> None:
-    """Raise an OmniscsError unless rgb is an [H, W, 3] uint8 array and mask an [H, W] bool array of the same size."""
-    if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.shape[0] < 1 or rgb.shape[1] < 1:
-        shape = getattr(rgb, "shape", type(rgb).__name__)
-        raise OmniscsError(f"the image to inpaint must be an [H, W, 3] RGB numpy array; got {shape}")
-    if rgb.dtype != np.uint8:
-        raise OmniscsError(f"the image to inpaint must be uint8 (0..255); got {rgb.dtype}: convert it first")
-    if not isinstance(mask, np.ndarray) or mask.ndim != 2:
-        shape = getattr(mask, "shape", type(mask).__name__)
-        raise OmniscsError(f"the inpainting mask must be an [H, W] numpy array; got {shape}")
-    if mask.dtype != np.bool_:
-        raise OmniscsError(f"the inpainting mask must be bool (True = fill this pixel); got {mask.dtype}: "
-                           "pass mask.astype(bool) or a comparison such as mask > 0")
-    if mask.shape != rgb.shape[:2]:
-        raise OmniscsError(f"the inpainting mask is {mask.shape[0]}x{mask.shape[1]} (HxW) but the image is "
-                           f"{rgb.shape[0]}x{rgb.shape[1]}: they must be the same size")
-
-
-class _HoleFiller:
-    """Shared inpaint(): validate, skip empty masks, refuse full ones, let the subclass fill, composite."""
-
-    def _fill(self, rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8 (contiguous), [H, W] bool
-        """The method's full-frame result, [H, W, 3] uint8; only its pixels inside the mask are kept."""
-        raise NotImplementedError
-
-    def inpaint(self, rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        """rgb [H, W, 3] uint8 with the pixels where mask [H, W] bool is True filled; all others exactly rgb."""
-        check_image_and_mask(rgb, mask)
-        if not mask.any():
-            return rgb.copy()
-        if mask.all():
-            raise OmniscsError(f"the inpainting mask covers all {mask.size} pixels: there is nothing to inpaint "
-                               "from; mark only the pixels to fill (True) and keep some known pixels (False)")
-        filled = self._fill(np.ascontiguousarray(rgb), mask)
-        if filled.shape != rgb.shape or filled.dtype != np.uint8:
-            raise OmniscsError(f"inpainter {self.name!r} returned {filled.shape} {filled.dtype}, expected "
-                               f"{rgb.shape} uint8: the model or export does not fit this adapter")
-        out = rgb.copy()
-        out[mask] = filled[mask]
-        return out
-
-    @property
-    def name(self) -> str:  # overridden by every inpainter
-        raise NotImplementedError
-
-
-def _unit_float_to_uint8(image: np.ndarray, what: str) -> np.ndarray:
-    """[..., 3] float in [0, 1] (a model's output) as uint8; a non-finite value is an error, never passed on."""
-    if not np.isfinite(image).all():
-        raise OmniscsError(f"{what} returned NaN or Inf pixels: the weights are broken or do not fit this "
-                           "adapter; check the model file")
-    return np.rint(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
 @dataclass(frozen=True)
-class OpenCVInpainter(_HoleFiller):
+class OpenCVInpainter(HoleFiller):
     """Classical inpainting with OpenCV: the embedded default, needs no weights.
 
     Seconds for one 480x270 image with a 15 % rectangular hole (162x120), textured content, on the 2-core
@@ -156,7 +103,7 @@ _LAMA_HOW_TO = ("supply a TorchScript LaMa file (e.g. big-lama exported with tor
 
 
 @dataclass(frozen=True)
-class LamaInpainter(_HoleFiller):
+class LamaInpainter(HoleFiller):
     """LaMa (large-mask inpainting, Suvorov et al. 2022) from a local TorchScript export.
 
     The image goes in as [1, 3, H, W] float in [0, 1] with the hole zeroed (so nothing of the removed object can
@@ -217,7 +164,7 @@ class LamaInpainter(_HoleFiller):
             raise OmniscsError(f"LaMa model {str(self.path)!r} returned {got}, expected a tensor {expected}; "
                                f"{_LAMA_HOW_TO}")
         filled = out[0, :, :h, :w].permute(1, 2, 0).float().cpu().numpy()
-        return _unit_float_to_uint8(filled, f"LaMa model {str(self.path)!r}")
+        return unit_float_to_uint8(filled, f"LaMa model {str(self.path)!r}")
 
 
 _DIFFUSERS_HOW_TO = ("supply a folder written by save_pretrained() from an inpainting checkpoint (e.g. a Stable "
@@ -238,7 +185,7 @@ def _resized(image: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class DiffusersInpainter(_HoleFiller):
+class DiffusersInpainter(HoleFiller):
     """A local diffusers inpainting pipeline (Stable Diffusion inpainting), optionally steered by an inpainting
     ControlNet (the OmniSCS paper repairs backgrounds with ControlNet).
 
@@ -334,7 +281,7 @@ class DiffusersInpainter(_HoleFiller):
         if generated.shape != (height, width, 3):
             raise OmniscsError(f"diffusers pipeline {str(self.path)!r} returned {generated.shape}, expected "
                                f"{(height, width, 3)}; {_DIFFUSERS_HOW_TO}")
-        return _unit_float_to_uint8(_resized(generated, h, w), f"diffusers pipeline {str(self.path)!r}")
+        return unit_float_to_uint8(_resized(generated, h, w), f"diffusers pipeline {str(self.path)!r}")
 
 
 def load_inpainter(spec: str | None = None, *, device: str = "cpu") -> Inpainter:

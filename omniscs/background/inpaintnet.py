@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from omniscs.background.inpaint import _HoleFiller, _unit_float_to_uint8
+from omniscs.background.inpaint_base import HoleFiller, unit_float_to_uint8
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.progress import Progress, no_progress
 
@@ -110,7 +110,7 @@ class InpaintNet(nn.Module):
         return torch.sigmoid(self.head(x))
 
 
-class NetInpainter(_HoleFiller):
+class NetInpainter(HoleFiller):
     """An InpaintNet as an Inpainter (omniscs.background.inpaint): the image (shrunk to the working resolution
     when it is much larger, see NATIVE_LIMIT) is padded by reflection to a multiple of the network's levels."""
 
@@ -144,7 +144,7 @@ class NetInpainter(_HoleFiller):
         out = self.net(x, k)[0, :, :h, :w].permute(1, 2, 0).float().cpu().numpy()
         if out.shape[:2] != (height, width):
             out = cv2.resize(out, (width, height), interpolation=cv2.INTER_LINEAR)
-        return _unit_float_to_uint8(out, f"inpainting network {self._name!r}")
+        return unit_float_to_uint8(out, f"inpainting network {self._name!r}")
 
 
 # ----------------------------------------------------------------------------- training

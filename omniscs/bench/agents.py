@@ -222,7 +222,7 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     the box-shape term the dual strategy adds (the query's size as a detector measures it: ``size_noise`` relative
     error per axis)."""
     from omniscs.agents.matching import pool_gallery
-    from omniscs.agents.matching import Degradation, degrade
+    from omniscs.agents.degradation import Degradation, degrade
 
     rows = []
     crops = np.stack([q[0] for q in queries])
@@ -705,7 +705,7 @@ def train_shipped_msnet(workspace: Path | None = None, config: MSNetDataConfig =
                         out: Path = MSNET_CHECKPOINT, progress: Progress = no_progress) -> dict:
     """Train MSNet on ``config``'s data (``MSNetDataConfig``; positives across keyframes and camera crops) and write
     its weights to ``out`` (the shipped ones by default)."""
-    from omniscs.agents.matching import Degradation
+    from omniscs.agents.degradation import Degradation
     from omniscs.agents.msnet import MSNetTrainConfig, save_msnet, train_msnet
     from omniscs.agents.pool import Pool
 

@@ -399,10 +399,23 @@ def _environment(cwd: Path, env: dict[str, str]) -> Iterator[None]:
         sys.argv = old_argv
 
 
+def console_main():
+    """The function the installed ``omniscs`` console script calls (the project's entry point, found through the
+    package metadata: the bench exercises what a user runs, and the CLI that offers the bench is not imported
+    back)."""
+    from importlib.metadata import entry_points
+
+    found = entry_points(group="console_scripts", name="omniscs")
+    if not found:
+        raise RuntimeError("the omniscs console script is not installed in this environment; install the project "
+                           "(pip install -e .) before the bad-inputs benchmark")
+    return next(iter(found)).load()
+
+
 def invoke(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[int | None, str, str, bool]:
     """Run ``omniscs argv`` in this process as the console script does; returns exit code, stdout, stderr and
     whether an exception escaped ``main`` (a traceback the user would see)."""
-    from omniscs.cli import main
+    main = console_main()
 
     out, err = io.StringIO(), io.StringIO()
     escaped = False

@@ -67,7 +67,7 @@ def stops_cleanly(run_id: str, workspace: Path, config: dict, n_scenes: int) -> 
     from omniscs import catalog
     from omniscs.cli.prefect_api import stop_server
     from omniscs.pipeline.stages import catalog_run_stage
-    from omniscs.storage import clean_stale_temps
+    from omniscs.locks import clean_stale_temps
 
     started = int(time.time() * 1e6)
 

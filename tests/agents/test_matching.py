@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omniscs.agents.matching import (ColourHistogram, Degradation, HOG, RawPixels, assign, crop_square, degrade,
-                                     model_scores, top_k_accuracy)
+from omniscs.agents.degradation import Degradation, degrade
+from omniscs.agents.matching import (ColourHistogram, HOG, RawPixels, assign, crop_square, model_scores,
+                                     top_k_accuracy)
 from omniscs.errors import ValidationError
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from omniscs.agents.matching import Degradation
+from omniscs.agents.degradation import Degradation
 from omniscs.agents.msnet import MSNet, MSNetEmbedder, MSNetTrainConfig, batch_hard_triplet, train_msnet
 from omniscs.errors import ValidationError
 

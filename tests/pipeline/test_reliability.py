@@ -13,8 +13,8 @@ import pytest
 
 from omniscs import catalog
 from omniscs.errors import OmniscsError
-from omniscs.locks import holder, lock_path, output_lock
-from omniscs.storage import OWNER_MARKER, atomic_directory, clean_stale_temps, is_owned
+from omniscs.locks import clean_stale_temps, holder, lock_path, output_lock
+from omniscs.storage import OWNER_MARKER, atomic_directory, is_owned
 
 
 def _dead_pid() -> int:
