@@ -15,7 +15,7 @@ import torch
 from omniscs.edits import Insert, ReplaceModel, edit_to_dict, parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, with_sh_degree
-from omniscs.geometry import make_transform, pose_from_xyz_yaw
+from omniscs.geometry import pose_from_xyz_yaw
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.edit import AgentModel, ModelResolver, apply_graph_edits
 from omniscs.nsg.graph import SceneGraph
