@@ -70,7 +70,8 @@ REFIT_MODES = ("roi", "full", "none")
 
 @dataclass(frozen=True)
 class RepairConfig:
-    """How the background behind removed objects is repaired; the defaults are the paper's method."""
+    """How the background behind removed objects is repaired. The paper's method is planes=False,
+    seed_inpainted=True; the defaults add the planes and seed only their pixels."""
 
     factor: int = 2
     """Views are repaired at 1/factor of the logged resolution (holes, inpainting, depth, refit)."""
@@ -101,6 +102,11 @@ class RepairConfig:
     consistent_seeds)."""
     seed_max_scale_m: float = 0.3
     """Largest initial size of a seeded Gaussian."""
+    seed_inpainted: bool = False
+    """Seed Gaussians also at the pixels the 2D inpainter filled, at their DRNet (or least-squares) depth, as the
+    paper does (True: the paper's method); False (the default) seeds only the pixels the planes fill, at their exact
+    depth, and leaves the inpainted pixels to the refit's existing Gaussians (they stay targets of its colour and
+    depth losses). Without planes, False seeds nothing."""
     refit: str = "roi"
     """'roi' (optimise only background Gaussians in the enlarged box, on crops around the holes), 'full'
     (every background Gaussian on whole images: the comparison) or 'none' (seeds only)."""
@@ -117,8 +123,8 @@ class RepairConfig:
     planes: bool = True
     """Hole pixels that the cleaned background does not cover and whose ray meets a plane found around the object
     (road, sidewalk, facade: see omniscs.background.planes) take that plane's depth and its texture, gathered from
-    every view and inpainted on the plane; DRNet and the 2D inpainter fill only the rest. False: the paper's
-    method. Chosen on the development logs 90/91 (+0.8 / +0.4 dB hole PSNR at novel views, depth AbsRel 0.09 / 0.12
+    every view and inpainted on the plane; DRNet and the 2D inpainter fill only the rest. False (with
+    seed_inpainted=True): the paper's method. Chosen on the development logs 90/91 (+0.8 / +0.4 dB hole PSNR at novel views, depth AbsRel 0.09 / 0.12
     against 0.32 / 0.21); on the held-out logs 101-105 +0.14 dB (18.31 against 18.17, 1.6 dB worse on one log whose
     views saw 4 % of the texture), depth AbsRel 0.184 against 0.269 (reports/background_bench)."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
@@ -466,6 +472,8 @@ def seeded_graph(cleaned: SceneGraph, hole_views: list[HoleView], config: Repair
     pts, cols = [], []
     for hv in hole_views:
         ok = hv.new & np.isfinite(hv.filled_depth)
+        if not config.seed_inpainted:
+            ok &= hv.planar if hv.planar is not None else np.zeros_like(ok)
         if not ok.any():
             continue
         pts.append(lift_pixels(hv.view, ok, hv.filled_depth))

@@ -30,14 +30,19 @@ from omniscs.storage import workspace_root
 log = logging.getLogger(__name__)
 
 PLANES_ARM = "planes + DRNet + RoI refit"
-ARMS = ("naive", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit", PLANES_ARM)
-"""The issue's rows, then the factory's default repair: planes found around the object give depth and a texture
-inpainted on the plane where their rays meet one (omniscs.background.planes), DRNet and the 2D inpainter the rest."""
-EXTRA_ARMS = ("hidden Gaussians removed", "least squares + RoI refit", "DRNet + full refit",
+PLANES_SEEDED_ARM = "planes + DRNet + RoI refit, inpainted pixels seeded"
+ARMS = ("naive", "hidden Gaussians removed", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit",
+        PLANES_ARM)
+"""The issue's rows and the starting point of every 3D repair (the object's node and the background Gaussians only
+it hid removed), then the factory's default repair: planes found around the object give depth and a texture
+inpainted on the plane where their rays meet one (omniscs.background.planes), Gaussians are seeded there only, and
+the RoI refit fits the rest of the hole to the 2D inpainter's fill at DRNet's depth."""
+EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_ARM,
               "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
               "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole")
-"""The comparisons: the last three use the embedded inpainting network instead of the configured inpainter, the last
-one inpainting every hole pixel (the cleaned background's render of the hole is not kept)."""
+"""The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
+2026-11-27); the last three use the embedded inpainting network instead of the configured inpainter, the last one
+inpainting every hole pixel (the cleaned background's render of the hole is not kept)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 
@@ -61,8 +66,8 @@ class BackgroundBenchConfig:
     """The repair's settings (the planes arm; the paper's arms turn the planes off); the other arms change one
     field of it."""
     full_comparison: bool = True
-    """Also run the ablations: hidden Gaussians removed only, least squares + RoI refit, the full background refit
-    and carrying inpainted pixels between views."""
+    """Also run the ablations (EXTRA_ARMS): least squares + RoI refit, the full background refit, the planes arm
+    seeding inpainted pixels, carrying inpainted pixels between views, the embedded inpainter."""
 
 
 def quick_config() -> BackgroundBenchConfig:
@@ -268,7 +273,8 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
     objects = removed_objects(graph, [track])
     naive = graph.replace(agents=tuple(a for a in graph.agents if a.track_id != track))
     evs = evaluation_views(scene, plan.heldout_frames, track, config)
-    rc = dataclasses.replace(config.repair, planes=False)  # the paper's method; the planes arm turns them on
+    # the paper's method (no planes, Gaussians seeded at every inpainted pixel); the planes arms turn them on
+    rc = dataclasses.replace(config.repair, planes=False, seed_inpainted=True)
 
     t0 = time.perf_counter()
     holes = prepare_views(graph, obs, objects, train_views, rc, progress)
@@ -305,11 +311,13 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
         return {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0, "views": views, "facts": facts}
 
-    arms[PLANES_ARM] = refit_arm(dataclasses.replace(rc, planes=True), inpainter)
+    arms[PLANES_ARM] = refit_arm(dataclasses.replace(config.repair, planes=True), inpainter)
     maps["planes"] = map_errors(arms[PLANES_ARM]["views"], scene, track, rc.factor)
 
     network = load_inpainter("embedded") if config.full_comparison else None
     if config.full_comparison:
+        arms[PLANES_SEEDED_ARM] = refit_arm(dataclasses.replace(config.repair, planes=True, seed_inpainted=True),
+                                            inpainter)
         arms["DRNet + RoI refit, carrying between views"] = refit_arm(dataclasses.replace(rc, carry=True), inpainter)
         arms["DRNet + RoI refit, embedded inpainter"] = refit_arm(rc, network)
         arms["DRNet + RoI refit, embedded inpainter, whole hole"] = refit_arm(

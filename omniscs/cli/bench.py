@@ -1,6 +1,7 @@
 """``omniscs bench``: the benchmarks (``omniscs.bench``); results go to reports/."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Optional
 
@@ -335,6 +336,9 @@ def bench_background(
                                                    "infra/inpaint_gpu/train.py wrote into this folder on the held-out "
                                                    "worlds against OpenCV's inpainters and install them as the "
                                                    "shipped ones, and stop."),
+    no_ablations: bool = typer.Option(False, "--no-ablations", help="Only the main rows (naive, hidden Gaussians "
+                                                                    "removed, the issue's rows, the default repair): "
+                                                                    "about half the time."),
 ) -> None:
     """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet, DRNet +
     RoI refit and the default repair (planes + DRNet + RoI refit) against the world re-rendered without it (hole
@@ -351,8 +355,6 @@ def bench_background(
                       f"{export_depth_data}")
         return
     if export_inpaint_data is not None:
-        import dataclasses
-
         from omniscs.bench.inpaint_data import InpaintDataConfig, export_inpaint_data as export_pairs
 
         data = InpaintDataConfig()
@@ -388,8 +390,10 @@ def bench_background(
         console.print(f"relative depth: {info['n_images']} images, loss {info['loss_first']:.3f} -> "
                       f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
     with progress_bars() as bars:
-        run_background_benchmark(out, workspace, quick_config() if quick else BackgroundBenchConfig(),
-                                 progress=bars.sink("background bench"))
+        config = quick_config() if quick else BackgroundBenchConfig()
+        if no_ablations:
+            config = dataclasses.replace(config, full_comparison=False)
+        run_background_benchmark(out, workspace, config, progress=bars.sink("background bench"))
     console.print((out / "background_bench.md").read_text())
     console.print(f"wrote {out / 'background_bench.json'} and {out / 'background_bench.png'}")
 

@@ -97,6 +97,10 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     s = seeds_only.facts
     assert len(seeds_only.graph.background) == len(graph.background) - s["dropped_gaussians"] + s["seeds"]
     assert seeds_only.drnet is None and "refit" not in s
+    # the default seeds the planes' pixels only; the paper's way also seeds every inpainted pixel
+    paper = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60),
+                              RepairConfig(factor=1, refit="none", depth_method="lsq", seed_inpainted=True)).facts
+    assert 0 < s["seeds"] < paper["seeds"] and paper["inpainted_pixels"] > 0
     removed = apply_graph_edits(g, [REMOVE])
     out = removed.render(removed.view(plan.cameras[0], plan.train_frames[0]))
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
@@ -114,7 +118,8 @@ def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_p
     scene = load_scene(store)
     graph = load_checkpoint(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
-    config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none", planes=False)
+    config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none", planes=False,
+                                 seed_inpainted=True)
     result = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60), config)
     f = result.facts
     assert f["observed_pixels"] == 0 and f["inpainted_pixels"] > 0 and f["seeds"] > 0
