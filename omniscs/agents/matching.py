@@ -1,6 +1,6 @@
 """Matching degraded road users to pool models (the degradations a scene's agents suffer are in
-``omniscs.agents.degradation``): the embedders that map a crop to a vector (hand-made baselines here; the trained MSNet plugs in through the same ``Embedder`` interface),
-ranking against the pool's keyframes (embeddings cached per pool and embedder), appearance plus box shape, and the
+``omniscs.agents.degradation``): the embedders that map a crop to a vector (hand-made baselines here; the trained
+MSNet plugs in through the same ``Embedder`` interface), ranking against the pool's keyframes (embeddings cached per pool and embedder), appearance plus box shape, and the
 one-to-one assignment (Hungarian, scipy) gated by category.
 
 A pool model is represented by its 30 keyframes; a query's similarity to a model is the best cosine similarity

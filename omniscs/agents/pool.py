@@ -117,7 +117,7 @@ class Pool:
         files = sorted((self.root / INDEX).glob("pm-*.parquet"))
         if not files:
             return pd.DataFrame(columns=list(INDEX_COLUMNS))
-        # one scan over the row files (about 8x faster than reading them one by one: 0.2 s for 320 rows)
+        # one scan over the row files: 0.26 s for 320 rows, against 1.6 s reading them one by one
         table = ds.dataset([str(f) for f in files], format="parquet", schema=INDEX_SCHEMA).to_table()
         return table.to_pandas().sort_values("model_id", ignore_index=True)
 

@@ -97,7 +97,8 @@ def test_a_run_whose_heartbeats_stop_is_marked_crashed_and_one_that_finishes_is_
     with get_client(sync_client=True) as client:
         dead, done = (client.create_flow_run(probe, state=Running()) for _ in range(2))
         for run in (dead, done):
-            emit_event(event="prefect.flow-run.heartbeat", resource={"prefect.resource.id": f"prefect.flow-run.{run.id}"})
+            emit_event(event="prefect.flow-run.heartbeat",
+                       resource={"prefect.resource.id": f"prefect.flow-run.{run.id}"})
         time.sleep(2)  # a run's terminal event comes after its last heartbeat
         emit_event(event="prefect.flow-run.Completed", resource={"prefect.resource.id": f"prefect.flow-run.{done.id}"})
         deadline = time.time() + 90
