@@ -66,12 +66,22 @@ class DualConfig:
     appearance match alone decides."""
     size_weight: float = 1.0
     """Weight of the box-shape mismatch (mean |log size ratio|) against appearance similarity in matching."""
+    min_online_pixels: float = 0.0
+    """Median box area (pixels) of its views a track needs for its fitted Gaussians to serve: for the online model,
+    and to be kept on the seen sides of a pool model. A model fitted from small observations blurs on the sides
+    a turn shows; such a track gets the whole pool model."""
+    relight: bool = False
+    """A pool model that replaces the whole node (``pool_keeps_observed`` off) gets its albedo and normals and the
+    scene's light fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the light
+    when the agent turns; off: the colour correction and refinement alone."""
+    relight_steps: int = 200
+    """Steps of the light's fit."""
 
     def __post_init__(self) -> None:
         if not (self.min_view_pixels >= 1 and self.good_pixels > 0 and self.sharp_reference > 0
                 and self.azimuth_bins >= 4 and 0 <= self.min_clarity <= 1 and 0 <= self.min_coverage <= 1
                 and self.box_margin_m >= 0 and self.match_views >= 1 and self.colour_views >= 1
-                and self.colour_steps >= 0
+                and self.colour_steps >= 0 and self.min_online_pixels >= 0 and self.relight_steps >= 0
                 and self.size_weight >= 0 and self.verify_top_k >= 0):
             raise OmniscsError(f"bad dual-strategy settings {self}")
 
@@ -118,6 +128,7 @@ class Decision:
     distance: float | None = None  # its matching distance (1 - similarity + shape term)
     mirrored: bool = False         # the online model's unseen side came from mirror symmetry
     colour: list | None = None     # the pool model's colour correction [3, 4] (A | b)
+    lighting: list | None = None   # the relit pool model's light [5, 3] (omniscs.nsg.relight)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -214,12 +225,14 @@ def choose(c: Clarity | None, needs_360: bool, pool_has_category: bool,
     if not needs_360:
         return "fitted", "no edit turns it off its observed views: the fitted node is kept"
     clear = c.score >= config.min_clarity
+    large = c.pixels >= config.min_online_pixels
     covered = c.coverage_mirrored >= config.min_coverage
-    seen = (f"clarity {c.score:.2f} (min {config.min_clarity:.2f}), seen from {c.coverage_mirrored:.0%} of azimuths "
+    seen = (f"clarity {c.score:.2f} (min {config.min_clarity:.2f}), {c.pixels:.0f} pixels "
+            f"(min {config.min_online_pixels:.0f}), seen from {c.coverage_mirrored:.0%} of azimuths "
             f"with mirror images (min {config.min_coverage:.0%}), {c.n_views} view(s)")
-    if clear and covered:
+    if clear and large and covered:
         return "online", f"clear and well covered: {seen}"
-    why = "unclear" if not clear else "too few sides seen"
+    why = "unclear" if not clear else "seen too small" if not large else "too few sides seen"
     if pool_has_category:
         return "pool", f"{why}: {seen}"
     return "online", f"{why} ({seen}), but the pool has no {c.category} model: the fitted node, mirrored"
@@ -375,6 +388,27 @@ def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, 
                           candidate.sh_rest)
 
 
+def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams, pool: Pool, model_id: str,
+                    node_size: np.ndarray, samples: list[tuple], steps: int):
+    """``candidate`` (the pool model placed in the track's box, its own colours) and its Relight with the scene's
+    light fitted to the track's views; the Gaussians' stored colours become the relit ones at the track's first
+    logged pose (what a reader that ignores the relight data shows)."""
+    from omniscs.agents.relight import fit_lighting, relight_base
+    from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
+
+    meta = pool.get(model_id).meta
+    scale = np.asarray(node_size, dtype=np.float64) / np.maximum(np.asarray(meta["size"], dtype=np.float64), 1e-3)
+    base = relight_base(candidate, meta.get("provenance") == "mesh", scale)
+    relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps)
+    node = graph.agent(track_id)
+    first = int(np.flatnonzero(node.present)[0]) if node.present.any() else 0
+    with torch.no_grad():
+        dc = (relight.colours(node.world_from_agent[first][:3, :3]) - SH_COLOR_OFFSET) / SH_C0
+    g = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits,
+                       dc.to(candidate.sh_dc.dtype), torch.zeros_like(candidate.sh_rest))
+    return g, relight
+
+
 # ----------------------------------------------------------------------------- matching
 def query_crops(graph: SceneGraph, scene, track_id: int, views: list[TrackView], n: int) -> np.ndarray:
     """uint8 [k, CROP, CROP, 3] crops of the track in its ``n`` largest logged views: the logged pixels the fitted
@@ -520,21 +554,29 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
         node = nodes[tid]
         if d.strategy == "pool" and tid in matches:
             model_id, distance, error, affine = matches[tid]
-            g = placed_candidate(pool, model_id, node.size, graph.sh_degree, graph.device)
+            raw = placed_candidate(pool, model_id, node.size, graph.sh_degree, graph.device)
             if affine is None:
-                affine = fit_colour_correction(cropped, tid, g, samples[tid])
-            g = refine_colours(cropped, tid, colour_corrected(g, affine), samples[tid], config.colour_steps)
-            keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity
+                affine = fit_colour_correction(cropped, tid, raw, samples[tid])
+            keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity \
+                and d.clarity.pixels >= config.min_online_pixels
+            relight = None
+            if config.relight and not keep:
+                g, relight = relit_candidate(cropped, tid, raw, pool, model_id, node.size, samples[tid],
+                                             config.relight_steps)
+            else:
+                g = refine_colours(cropped, tid, colour_corrected(raw, affine), samples[tid], config.colour_steps)
             if keep:  # the seen sides (and their mirror images) from the fit, the rest from the pool model
                 seen = node.gaussians
                 if d.clarity.coverage < config.min_coverage:
                     seen = mirror_completed(seen, seen_side(views[tid]))
                 g = _concat(seen, scale_to_box(g, node.size, np.asarray(node.size) * config.pool_inset))
-            nodes[tid] = node.with_changes(gaussians=g)
+            nodes[tid] = node.with_changes(gaussians=g, relight=relight)
             checked = "" if error is None else f"; rendered into the scene: error {error:.3f}"
-            decisions[tid] = Decision(tid, "pool", d.reason + checked + ("; the fitted Gaussians kept on the seen sides"
-                                                                         if keep else ""),
-                                      d.clarity, model_id, distance, False, np.round(affine, 5).tolist())
+            how = "; the fitted Gaussians kept on the seen sides" if keep else \
+                "; relit by the scene's light fitted to its views" if relight is not None else ""
+            decisions[tid] = Decision(tid, "pool", d.reason + checked + how, d.clarity, model_id, distance, False,
+                                      np.round(affine, 5).tolist(),
+                                      None if relight is None else np.round(relight.lighting.cpu().numpy(), 5).tolist())
             continue
         reason = d.reason if d.strategy == "online" else f"{d.reason}; no pool model matched: the fitted node, mirrored"
         mirror = d.clarity is not None and d.clarity.coverage < config.min_coverage

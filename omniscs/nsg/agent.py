@@ -11,6 +11,7 @@ from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, params_from_values
 from omniscs.geometry import invert_transform, make_transform, transform_points
 from omniscs.nsg.background import neighbour_scales
+from omniscs.nsg.relight import Relight
 from omniscs.quaternions import quat_to_rotmat
 
 
@@ -24,15 +25,24 @@ class AgentNode:
     world_from_agent: np.ndarray  # [F, 4, 4] float64; frames where the agent is absent hold any rigid pose
     present: np.ndarray           # [F] bool
     gaussians: GaussianParams     # agent frame
+    relight: Relight | None = None
+    """Albedo and normals of the Gaussians and the scene's light: their colours then follow the node's pose in
+    each frame (``omniscs.nsg.relight``) instead of the colours the Gaussians hold."""
 
     def __post_init__(self) -> None:
         for array in (self.size, self.world_from_agent, self.present):
             array.flags.writeable = False  # a graph is a value: edits make new arrays
+        if self.relight is not None and len(self.relight) != len(self.gaussians):
+            raise OmniscsError(f"agent {self.track_id}: relight data for {len(self.relight)} Gaussians, "
+                               f"the node has {len(self.gaussians)}")
 
     def with_changes(self, **changes) -> "AgentNode":
+        """A copy with ``changes``; new Gaussians drop the relight data unless ``relight`` comes with them."""
         fields = dict(track_id=self.track_id, category=self.category, size=self.size.copy(),
                       world_from_agent=self.world_from_agent.copy(), present=self.present.copy(),
-                      gaussians=self.gaussians)
+                      gaussians=self.gaussians, relight=self.relight)
+        if "gaussians" in changes and "relight" not in changes:
+            fields["relight"] = None
         fields.update(changes)
         return AgentNode(**fields)
 

@@ -14,6 +14,7 @@ from omniscs.gaussians import PARAM_NAMES, GaussianParams
 from omniscs.nsg.agent import AgentNode
 from omniscs.devices import resolve_device
 from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
+from omniscs.nsg.relight import LIGHTING_ROWS, Relight
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan
 from omniscs.scene.store import CameraRecord
@@ -28,6 +29,8 @@ TENSORS = "gaussians.safetensors"
 PLAN_JSON = "plan.json"
 METRICS_JSON = "metrics.json"
 KIND = "omniscs-nsg"
+#: Tensors of a relightable agent node (``omniscs.nsg.relight``), saved as ``agent.<id>.relight.<name>``.
+RELIGHT_NAMES = ("albedo", "normals", "lighting")
 
 
 def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
@@ -41,6 +44,9 @@ def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
         tensors[f"{key}.world_from_agent"] = torch.from_numpy(np.array(a.world_from_agent))
         tensors[f"{key}.present"] = torch.from_numpy(a.present.astype(np.uint8))
         tensors[f"{key}.size"] = torch.from_numpy(np.array(a.size))
+        if a.relight is not None:
+            for name in RELIGHT_NAMES:
+                tensors[f"{key}.relight.{name}"] = getattr(a.relight, name)
     tensors["sky.texture"] = graph.sky.texture
     for cam, affine in graph.exposure.items():
         tensors[f"exposure.{cam}"] = affine
@@ -69,8 +75,8 @@ def write_checkpoint_files(graph: SceneGraph, folder: Path, plan: ScenePlan | No
         "sh_degree": graph.sh_degree, "settings": graph.settings.__dict__,
         "cameras": [{"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
                      "ego_from_camera": c.ego_from_camera.tolist()} for c in graph.cameras],
-        "agents": [{"track_id": a.track_id, "category": a.category, "n_gaussians": len(a.gaussians)}
-                   for a in graph.agents],
+        "agents": [{"track_id": a.track_id, "category": a.category, "n_gaussians": len(a.gaussians),
+                    **({"relight": True} if a.relight is not None else {})} for a in graph.agents],
         "exposure_cameras": list(graph.exposure), "n_gaussians": graph.n_gaussians, "config": config,
     }
     save_file(_graph_tensors(graph), str(folder / TENSORS))
@@ -123,6 +129,8 @@ def _check_meta(path: Path, meta: dict) -> None:
         if not (isinstance(a, dict) and is_int(a.get("track_id")) and a["track_id"] >= 0
                 and isinstance(a.get("category"), str)):
             bad(f"agents.{i}", "an agent: non-negative integer track_id and a category")
+        if not isinstance(a.get("relight", False), bool):
+            bad(f"agents.{i}.relight", "true or false")
     if not all(isinstance(c, str) for c in meta["exposure_cameras"]):
         bad("exposure_cameras", "a list of camera names")
     record = meta.get(TENSORS_RECORD)
@@ -210,9 +218,16 @@ def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str
     for a in meta["agents"]:
         key = agent_key(a["track_id"])
         present = _tensor(t, path, f"{key}.present", (n_frames,), floating=False)
+        gaussians = params(key)
+        relight = None
+        if a.get("relight"):
+            n = len(gaussians)
+            relight = Relight(_tensor(t, path, f"{key}.relight.albedo", (n, 3)),
+                              _tensor(t, path, f"{key}.relight.normals", (n, 3)),
+                              _tensor(t, path, f"{key}.relight.lighting", (LIGHTING_ROWS, 3)))
         agents.append(AgentNode(int(a["track_id"]), a["category"], _tensor(t, path, f"{key}.size", (3,)).numpy().copy(),
                                 _tensor(t, path, f"{key}.world_from_agent", (n_frames, 4, 4)).numpy().copy(),
-                                present.numpy().astype(bool), params(key)))
+                                present.numpy().astype(bool), gaussians, relight))
     cameras = tuple(CameraRecord(c["name"], int(c["width"]), int(c["height"]), np.array(c["K"], dtype=np.float64),
                                  np.array(c["ego_from_camera"], dtype=np.float64)) for c in meta["cameras"])
     exposure = {c: _tensor(t, path, f"exposure.{c}", (3, 4)) for c in meta["exposure_cameras"]}

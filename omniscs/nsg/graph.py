@@ -17,6 +17,7 @@ from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
+from omniscs.nsg.relight import Relight
 from omniscs.nsg.sky import SkyParams, sky_colors
 from omniscs.render import rasterize
 from omniscs.render.sh import colors_from_sh
@@ -117,7 +118,9 @@ class SceneGraph:
 
     def to(self, device: torch.device | str) -> "SceneGraph":
         """The same graph with every tensor on ``device`` (shares the tensors already there)."""
-        agents = tuple(a.with_changes(gaussians=a.gaussians.to(device)) for a in self.agents)
+        agents = tuple(a.with_changes(gaussians=a.gaussians.to(device),
+                                      relight=None if a.relight is None else a.relight.to(device))
+                       for a in self.agents)
         return self.replace(background=self.background.to(device), agents=agents,
                             sky=SkyParams(self.sky.texture.to(device)),
                             exposure={c: t.to(device) for c, t in self.exposure.items()})
@@ -261,11 +264,11 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     degree = graph.sh_degree if sh_degree is None else min(sh_degree, graph.sh_degree)
     f = graph.check_frame(view.frame_idx)
     camera_centre = view.world_from_camera[:3, 3]
-    nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams]] = []
+    nodes: list[tuple[str, np.ndarray | NodePose | None, GaussianParams, Relight | None]] = []
     if static is None:
-        nodes.append((BACKGROUND, None, graph.background))
+        nodes.append((BACKGROUND, None, graph.background, None))
     keep = None if only_agents is None else set(int(t) for t in only_agents)
-    nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians)
+    nodes += [(agent_key(a.track_id), agent_poses.get(a.track_id, a.world_from_agent[f]), a.gaussians, a.relight)
               for a in graph.agents if a.present[f] and (keep is None or a.track_id in keep)]
     parts, slices, start = [], {}, 0
     n_labels = 0 if labels is None else _label_width(labels)
@@ -273,14 +276,19 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         parts.append((static, static.colours))
         slices[BACKGROUND] = slice(0, len(static.means))
         start = len(static.means)
-    for key, world_from_node, params in nodes:
+    for key, world_from_node, params, relight in nodes:
         if len(params) == 0:
             continue
         local = activated.get(key) if activated is not None else None
         if local is None or len(local) != len(params):
             local = activate(params)
-        dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device, local.means.dtype)
-        colours = colors_from_sh(degree, local.sh, dirs[None])[0]
+        if relight is not None:  # lit by the scene's light at this frame's pose (omniscs.nsg.relight)
+            colours = relight.colours(world_from_node.rotmat() if isinstance(world_from_node, NodePose)
+                                      else world_from_node[:3, :3]).to(local.means.dtype)
+        else:
+            dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device,
+                                                                                      local.means.dtype)
+            colours = colors_from_sh(degree, local.sh, dirs[None])[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)
         if n_labels:
             colours = torch.cat([colours, _node_labels(labels, key, len(local), n_labels, colours)], -1)
