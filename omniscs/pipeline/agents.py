@@ -16,8 +16,8 @@ from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
 
-#: Bumped when the agents stage changes what it writes.
-AGENTS_VERSION = 1
+#: Bumped when the agents stage changes what it writes (2: relit pool models, the size rule).
+AGENTS_VERSION = 2
 
 DECISIONS = "decisions.json"
 

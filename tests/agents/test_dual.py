@@ -179,7 +179,8 @@ def test_matching_picks_the_model_a_query_was_made_from_within_its_category(pool
 def test_the_dual_strategy_completes_only_the_tracks_that_need_it(scene, graph, pool):
     frames = range(scene.n_frames)
     before = {a.track_id: a.gaussians.means.clone() for a in graph.agents}
-    completed, decisions = complete_agents(graph, scene, [1], frames, pool)
+    large = DualConfig(min_online_pixels=0.0)  # the tiny log's car counts as seen large enough for its fit to serve
+    completed, decisions = complete_agents(graph, scene, [1], frames, pool, large)
     by = {d.track_id: d for d in decisions}
     assert by[2].strategy == "fitted" and by[1].strategy == "pool"
     assert by[1].model_id in set(pool.table().model_id) and np.isfinite(by[1].distance)

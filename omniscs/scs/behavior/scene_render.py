@@ -72,7 +72,8 @@ class GraphTrajectoryRenderer:
         if config.frames < 1 or config.downscale < 1:
             raise OmniscsError("appearance rendering needs frames >= 1 and downscale >= 1")
         self.graph = graph.replace(background=graph.background.detached(),
-                                   agents=tuple(a.with_changes(gaussians=a.gaussians.detached()) for a in graph.agents))
+                                   agents=tuple(a.with_changes(gaussians=a.gaussians.detached(), relight=a.relight)
+                                                for a in graph.agents))
         self.camera = config.camera or graph.cameras[0].name
         graph.camera(self.camera)
         horizon_steps = np.asarray(horizon_steps, dtype=np.int64)
