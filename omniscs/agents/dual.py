@@ -609,8 +609,9 @@ def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: in
 
 def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool, min_psnr: float,
               config: DualConfig = DualConfig()) -> dict[int, tuple[str | None, float | None]]:
-    """Every vehicle node of ``graph`` that is clear and seen from enough sides (mirror images included) over the
-    training frames, completed by mirror symmetry where one side is missing, scored on its held-out views; those at
+    """Every vehicle node of ``graph`` that is clear, seen large enough and from enough sides (mirror images
+    included) over the training frames (the tracks whose fit serves as their online model; relit pool models are
+    left out), completed by mirror symmetry where one side is missing, scored on its held-out views; those at
     ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>'). Returns, per
     candidate track, (pool model id or None, held-out PSNR or None)."""
     from omniscs.taxonomy import VEHICLE_CATEGORIES
@@ -620,8 +621,9 @@ def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool
         if node.category not in VEHICLE_CATEGORIES:
             continue
         c = clarity(scene, node.track_id, train_frames, config)
-        if c.score < config.min_clarity or c.coverage_mirrored < config.min_coverage:
-            continue
+        if c.score < config.min_clarity or c.coverage_mirrored < config.min_coverage \
+                or c.pixels < config.min_online_pixels or node.relight is not None:
+            continue  # not clear, covered and large enough for its fit to serve, or a pool model already
         quality = heldout_psnr(graph, scene, node.track_id, heldout_frames)
         model_id = None
         if quality is not None and quality >= min_psnr:

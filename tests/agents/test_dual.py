@@ -240,7 +240,7 @@ def test_clear_well_covered_tracks_grow_the_pool_only_above_the_quality_gate(sce
         a.gaussians.means, a.gaussians.quats, a.gaussians.log_scales + 0.5, a.gaussians.opacity_logits + 6.0,
         a.gaussians.sh_dc, a.gaussians.sh_rest)) for a in graph.agents))
     grown_pool = Pool(tmp_path / "grown")
-    loose = DualConfig(min_clarity=0.1, min_coverage=0.1)  # the tiny log sees its cars from few sides
+    loose = DualConfig(min_clarity=0.1, min_coverage=0.1, min_online_pixels=0.0)  # the tiny log's cars: few sides
     assert grow_pool(graph, scene, frames[:4], frames[4:], grown_pool, 1e9, loose)  # candidates, none good enough
     assert grown_pool.table().empty
     got = grow_pool(graph, scene, frames[:4], frames[4:], grown_pool, -1e9, loose)
@@ -249,6 +249,9 @@ def test_clear_well_covered_tracks_grow_the_pool_only_above_the_quality_gate(sce
     table = grown_pool.table().set_index("model_id")
     for t, m in added.items():
         assert table.loc[m, "provenance"] == "scene_track" and table.loc[m, "source"] == f"{scene.scene_id}/track-{t}"
+    # a track seen too small is no candidate: its fit does not serve as its model
+    small = DualConfig(min_clarity=0.1, min_coverage=0.1, min_online_pixels=1e9)
+    assert grow_pool(graph, scene, frames[:4], frames[4:], Pool(tmp_path / "small"), -1e9, small) == {}
     # the default gates: nothing in this log is clear and covered enough
     assert grow_pool(graph, scene, frames[:4], frames[4:], Pool(tmp_path / "strict"), 24.0) == {}
 
