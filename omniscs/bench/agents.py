@@ -516,8 +516,10 @@ def agents_markdown(report: dict) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", f"Agents per edit: {by[(TABLE4_EDITS[0][0], 'naive')]['agents']}. Arms: naive = the fitted node "
               "as it is; online = the fitted node cut to its box, its unseen side filled by mirror symmetry; pool = "
-              "the matched pool model (colour-corrected to the track's views, the fitted Gaussians kept on seen sides "
-              "when the track is clear); dual = the clarity/coverage choice between the two; pool in-pool = the "
+              "the matched pool model (for a clear track seen large enough, colour-corrected to the track's views "
+              "under the fitted Gaussians kept on the seen sides; for a track seen small, the whole model relit by "
+              "the scene's light fitted to its views); dual = the clarity/size/coverage choice between the two; "
+              "pool in-pool = the "
               "pool arm with the edited vehicles' own models added to the pool (an upper bound on matching). "
               "Pool candidates are ranked by "
               f"{report.get('pool_ranking_embedder', 'colour histogram')} and box shape, the best five checked by "
@@ -527,7 +529,8 @@ def agents_markdown(report: dict) -> str:
               f"{p['size']} models ({', '.join(f'{k} {v}' for k, v in sorted(p['by_category'].items()))}); median "
               f"held-out quality {f(p['quality_db_median'], 1)} dB against ray-cast views; fresh builds "
               f"{', '.join(f(s, 1) for s in p['build_seconds_per_model'])} s per model.", "",
-              "Growth from scene tracks (clear, seen from enough sides with mirror images, held-out masked PSNR at "
+              "Growth from scene tracks (clear, seen large enough and from enough sides with mirror images, held-out "
+              "masked PSNR at "
               "least the gate): " + "; ".join(f"after {g['scene_id']}: {g['candidates']} candidate(s), "
                                                 f"{len(g['added'])} added, pool {g['pool_size']}" for g in p["growth"])
               + ".", "",
