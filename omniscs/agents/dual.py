@@ -357,21 +357,28 @@ def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianP
     return affine if np.all(np.isfinite(affine)) else identity
 
 
+def shared_masks(alone: SceneGraph, samples: list[tuple]) -> list[tuple]:
+    """Per colour sample (``colour_samples``), the pixels both the fitted track (weight > 0.9) and the candidate
+    (``alone``: the graph holding only its node) cover, eroded by 2 pixels so that no background colour leaks onto
+    the model's rim: (view, target, mask) where at least 20 pixels remain."""
+    kernel = np.ones((5, 5), np.uint8)
+    out = []
+    with torch.no_grad():
+        for view, target, weight in samples:
+            covered = render_view(alone, view).alpha.cpu().numpy() > 0.9
+            shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
+            if shared.sum() >= 20:
+                out.append((view, target, torch.from_numpy(shared)))
+    return out
+
+
 def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, samples: list[tuple],
                    steps: int = 40, lr: float = 0.02) -> GaussianParams:
     """``candidate``'s colours (view-independent band) fitted for ``steps`` Adam steps to the logged images, only
     where the fitted track is what the camera saw *and* the candidate covers the pixel (a silhouette the two
     share, eroded by 2 pixels, so that no background colour leaks onto the model's rim); Gaussians no such pixel
     sees keep their colours. ``samples``: ``colour_samples`` of the track."""
-    masked = []
-    alone = _alone(graph, track_id, candidate)
-    kernel = np.ones((5, 5), np.uint8)
-    with torch.no_grad():
-        for view, target, weight in samples:
-            covered = render_view(alone, view).alpha.numpy() > 0.9
-            shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
-            if shared.sum() >= 20:
-                masked.append((view, target, torch.from_numpy(shared)))
+    masked = shared_masks(_alone(graph, track_id, candidate), samples)
     if not masked or steps <= 0:
         return candidate
     dc = candidate.sh_dc.detach().clone().requires_grad_(True)

@@ -11,7 +11,6 @@ fitted to what the cameras saw of the track.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
@@ -68,30 +67,16 @@ def relight_base(params: GaussianParams, mesh_light: bool, scale: np.ndarray | N
     return Relight(albedo, normals, flat_lighting(dtype=normals.dtype).to(normals.device))
 
 
-def _shared_masks(graph: SceneGraph, alone, samples: list[tuple]) -> list[tuple]:
-    """Per colour sample, the pixels both the fitted track (``weight`` > 0.9) and the model cover, eroded by 2
-    pixels so that no background colour leaks onto the model's rim."""
-    kernel = np.ones((5, 5), np.uint8)
-    out = []
-    with torch.no_grad():
-        for view, target, weight in samples:
-            covered = render_view(alone, view).alpha.cpu().numpy() > 0.9
-            shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
-            if shared.sum() >= 20:
-                out.append((view, target, torch.from_numpy(shared)))
-    return out
-
-
 def fit_lighting(graph: SceneGraph, track_id: int, candidate: GaussianParams, relight: Relight,
                  samples: list[tuple], steps: int = 200, lr: float = 0.03) -> tuple[Relight, dict]:
     """``relight`` with the light fitted so that ``candidate`` (in the track's node, alone) looks like the logged
     images (``dual.colour_samples``); returns it and {loss_first, loss_last, views}. With no usable view, or a fit
     that does not stay finite, the even light comes back unchanged."""
-    from omniscs.agents.dual import _alone
+    from omniscs.agents.dual import _alone, shared_masks
 
     node = graph.agent(track_id).with_changes(gaussians=candidate, relight=relight)
     alone = _alone(graph, track_id, candidate).replace(agents=(node,))
-    masked = _shared_masks(graph, alone, samples)
+    masked = shared_masks(alone, samples)
     info = {"views": len(masked), "loss_first": None, "loss_last": None}
     if not masked or steps <= 0:
         return relight, info

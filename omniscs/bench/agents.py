@@ -310,13 +310,15 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                      "assets": {str(t): scene.world.agent(t).asset_id for t in targets}})
         for arm, (_, ds) in arms.items():
             decisions += [{"scene_id": scene.scene_id, "arm": arm, **d.to_dict()} for d in ds if d.track_id in targets]
+        # the strip shows each scene's first edited agent and every agent the dual arm gave a pool model
+        shown = {targets[0]} | {d.track_id for d in arms["dual"][1] if d.strategy == "pool"} if targets else set()
         for tid in targets:
             for name, spec in TABLE4_EDITS:
                 edit = edit_from_dict({**spec, "track_id": tid})
                 progress(len(rows), None, f"{scene.scene_id} track {tid}: {name}")
                 renderer = WorldRenderer(apply_edits(scene.world, [edit]))
                 views = evaluation_views(renderer, scene, tid, config.views_per_edit, config.min_pixels)
-                strip = [] if tid != targets[0] or not views else [views[len(views) // 2][2].rgb]
+                strip = [] if tid not in shown or not views else [views[len(views) // 2][2].rgb]
                 for arm, (g, _) in arms.items():
                     edited = apply_graph_edits(g, [edit])
                     per_view = []
