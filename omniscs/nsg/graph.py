@@ -251,6 +251,7 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     front of it is taken off (auto-annotation); nodes without an entry blend zeros. Not with ``static``.
     ``activated`` ({node key: the node's Gaussians already activated}) spares activating them again when one
     unchanging graph is rendered many times (no gradients reach the raw parameters through it).
+    Agent nodes with relight data (``omniscs.nsg.relight``) take their colours from it, lit at this frame's pose.
     """
     agent_poses = dict(agent_poses or {})
     if labels is not None and static is not None:
