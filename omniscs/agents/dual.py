@@ -70,10 +70,10 @@ class DualConfig:
     """Median box area (pixels) of its views a track needs for its fitted Gaussians to serve: for the online model,
     and to be kept on the seen sides of a pool model. A model fitted from small observations blurs on the sides
     a turn shows; such a track gets the whole pool model. Chosen on the development logs straight:51 and
-    t_junction:52 (balanced fits): the two vehicles seen at 1,500-1,600 pixels gained 2-4 dB at 90/180/270 degrees
-    from the whole relit pool model over the online one, the two seen at 5,000 pixels and more lost 0.5-6 dB; checked
-    on straight:56, whose vehicles at 3,600 and 4,200 pixels did better online at five of six turns (0: no size
-    rule)."""
+    t_junction:52 (balanced fits): the two vehicles seen at 1,500-1,600 pixels gained 1.1-4.7 dB at 90/180/270
+    degrees from the whole relit pool model over the online one; the two seen at 5,000 pixels and more lost 0.6-5.3
+    dB at five of their six turns (0.5 dB gained at the sixth). Checked on straight:56, whose vehicles at 3,600 and
+    4,200 pixels did better online at four of six turns. 0: no size rule."""
     relight: bool = True
     """A pool model that replaces the whole node (``pool_keeps_observed`` off) gets its albedo and normals and the
     scene's light fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the light
