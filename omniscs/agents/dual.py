@@ -399,22 +399,21 @@ def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, 
                           candidate.sh_rest)
 
 
-def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams, pool: Pool, model_id: str,
+def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams, meta: dict,
                     node_size: np.ndarray, samples: list[tuple], steps: int):
-    """``candidate`` (the pool model placed in the track's box, its own colours) and its Relight with the scene's
-    light fitted to the track's views; the Gaussians' stored colours become the relit ones at the track's first
-    logged pose (what a reader that ignores the relight data shows)."""
+    """``candidate`` (the pool model placed in the track's box, its own colours; ``meta`` the model's metadata) and
+    its Relight with the scene's light fitted to the track's views; the Gaussians' stored colours become the relit
+    ones at the track's first logged pose (what a reader that ignores the relight data shows)."""
     from omniscs.agents.relight import fit_lighting, relight_base
-    from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
+    from omniscs.render.sh import rgb_to_sh_dc
 
-    meta = pool.get(model_id).meta
     scale = np.asarray(node_size, dtype=np.float64) / np.maximum(np.asarray(meta["size"], dtype=np.float64), 1e-3)
     base = relight_base(candidate, meta.get("provenance") == "mesh", scale)
     relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps)
     node = graph.agent(track_id)
     first = int(np.flatnonzero(node.present)[0]) if node.present.any() else 0
     with torch.no_grad():
-        dc = (relight.colours(node.world_from_agent[first][:3, :3]) - SH_COLOR_OFFSET) / SH_C0
+        dc = rgb_to_sh_dc(relight.colours(node.world_from_agent[first][:3, :3]))
     g = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits,
                        dc.to(candidate.sh_dc.dtype), torch.zeros_like(candidate.sh_rest))
     return g, relight
@@ -454,7 +453,11 @@ def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> n
 
 def placed_candidate(pool: Pool, model_id: str, node_size: np.ndarray, sh_degree: int, device) -> GaussianParams:
     """A pool model with the graph's SH bands, stretched to fill the track's box."""
-    model = pool.get(model_id)
+    return placed_model(pool.get(model_id), node_size, sh_degree, device)
+
+
+def placed_model(model, node_size: np.ndarray, sh_degree: int, device) -> GaussianParams:
+    """``placed_candidate`` of a pool model already read (``Pool.get``)."""
     g = with_sh_degree(model.params, sh_degree).to(device)
     return scale_to_box(g, np.maximum(np.asarray(model.meta["size"], dtype=np.float64), 1e-3), node_size)
 
@@ -565,14 +568,15 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
         node = nodes[tid]
         if d.strategy == "pool" and tid in matches:
             model_id, distance, error, affine = matches[tid]
-            raw = placed_candidate(pool, model_id, node.size, graph.sh_degree, graph.device)
+            model = pool.get(model_id)
+            raw = placed_model(model, node.size, graph.sh_degree, graph.device)
             if affine is None:
                 affine = fit_colour_correction(cropped, tid, raw, samples[tid])
             keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity \
                 and d.clarity.pixels >= config.min_online_pixels
             relight = None
             if config.relight and not keep:
-                g, relight = relit_candidate(cropped, tid, raw, pool, model_id, node.size, samples[tid],
+                g, relight = relit_candidate(cropped, tid, raw, model.meta, node.size, samples[tid],
                                              config.relight_steps)
             else:
                 g = refine_colours(cropped, tid, colour_corrected(raw, affine), samples[tid], config.colour_steps)
