@@ -26,6 +26,9 @@ def detection(
     scene: list[str] = SCENES,
     classes: list[str] = typer.Option([], "--class", help="Average mAP and NDS over these classes only (repeat; "
                                                           "default the ten nuScenes classes, absent ones AP 0)."),
+    camera_view: bool = typer.Option(False, "--camera-view", help="Score only the boxes (ground truth and "
+                                     "predictions) a camera of the sample sees: for rigs whose cameras do not look all "
+                                     "round, such as the factory's three front cameras."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as one JSON object."),
 ) -> None:
     """mAP, the true-positive errors and NDS by the nuScenes protocol (centre distance 0.5/1/2/4 m)."""
@@ -33,14 +36,16 @@ def detection(
     from omniscs.eval.nuscenes_io import evaluate_detection_results
 
     config = DetectionConfig(class_names=tuple(classes) or DETECTION_NAMES)
-    metrics, info = evaluate_detection_results(dataroot, version, results, scenes=scene or None, config=config)
-    out = {**metrics.to_dict(), "n_samples": info["n_samples"]}
+    metrics, info = evaluate_detection_results(dataroot, version, results, scenes=scene or None, config=config,
+                                               camera_view=camera_view)
+    out = {**metrics.to_dict(), "n_samples": info["n_samples"], "camera_view": camera_view}
     if as_json:
         print(json.dumps(out))
         return
     from rich.table import Table
 
-    table = Table(title=f"detection: mAP {out['mAP']:.4f}  NDS {out['NDS']:.4f}  ({info['n_samples']} samples)")
+    table = Table(title=f"detection: mAP {out['mAP']:.4f}  NDS {out['NDS']:.4f}  ({info['n_samples']} samples"
+                        f"{', boxes in the cameras view' if camera_view else ''})")
     for col in ("class", "GT", "pred", *(f"AP@{t:g}" for t in config.dist_ths), "AP", "ATE", "ASE", "AOE", "AVE",
                 "AAE"):
         table.add_column(col, justify="left" if col == "class" else "right")

@@ -948,24 +948,32 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
 
 
 def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, results_path: str | Path,
-                      config: DetectConfig = DetectConfig()) -> dict:
-    """``model``'s detections of every keyframe of ``dataroot`` written to ``results_path`` and scored by the
-    nuScenes protocol over the classes the dataroot's evaluated ground truth holds (a class absent from a set would
-    only add a zero): mAP, NDS, AP per class (the mean over the distance thresholds, and at each), evaluated boxes per
-    class, samples."""
-    from omniscs.eval.detection import DetectionConfig, filter_boxes
-    from omniscs.eval.nuscenes_io import evaluate_detection_results, evaluated_classes, load_ground_truth
-
+                      config: DetectConfig = DetectConfig(), camera_view: bool = False) -> dict:
+    """``model``'s detections of every keyframe of ``dataroot`` written to ``results_path`` and scored
+    (``score_detections``)."""
     write_results(detect(model, dataroot, version, config=config), results_path)
+    return score_detections(dataroot, version, results_path, camera_view)
+
+
+def score_detections(dataroot: str | Path, version: str, results_path: str | Path, camera_view: bool = False) -> dict:
+    """A results file scored by the nuScenes protocol over the classes the dataroot's evaluated ground truth holds (a
+    class absent from a set would only add a zero): mAP, NDS, AP per class (the mean over the distance thresholds,
+    and at each), evaluated boxes per class, samples. ``camera_view``: only the boxes a camera sees count
+    (``nuscenes_io.in_camera_view``)."""
+    from omniscs.eval.detection import DetectionConfig, filter_boxes
+    from omniscs.eval.nuscenes_io import evaluate_detection_results, evaluated_classes, evaluated_ground_truth
+
     tables = NuScenesTables.load(dataroot, version)
-    gt, racks = load_ground_truth(tables, tables.scene_samples())
+    gt, racks = evaluated_ground_truth(tables, tables.scene_samples(), camera_view)
     names = filter_boxes(gt, DetectionConfig(), racks).name
     present = evaluated_classes(gt, racks)
     if not present:
-        raise ValidationError(f"{Path(dataroot) / version} has no evaluated ground-truth box to score detections on")
+        raise ValidationError(f"{Path(dataroot) / version} has no evaluated ground-truth box"
+                              f"{' in a camera view' if camera_view else ''} to score detections on")
     metrics, info = evaluate_detection_results(dataroot, version, results_path,
-                                               config=DetectionConfig(class_names=present))
+                                               config=DetectionConfig(class_names=present), camera_view=camera_view)
     return {"mAP": float(metrics.mean_ap), "NDS": float(metrics.nd_score), "classes": list(present),
             "AP": {c: float(v) for c, v in metrics.mean_dist_aps.items()},
             "AP_by_threshold": {c: {f"{t:g}": float(a) for t, a in metrics.label_aps[c].items()} for c in present},
-            "gt_boxes": {c: int((names == c).sum()) for c in present}, "n_samples": int(info["n_samples"])}
+            "gt_boxes": {c: int((names == c).sum()) for c in present}, "n_samples": int(info["n_samples"]),
+            "camera_view": bool(camera_view)}

@@ -129,6 +129,56 @@ def load_ground_truth(tables: NuScenesTables, samples: list[str]) -> tuple[Boxes
             {k: np.stack(v) for k, v in racks.items()})
 
 
+#: Points of a box tested against the cameras, in the unit cube [-0.5, 0.5]^3 (its frame from ``_unit_frame``): the
+#: 3 x 3 x 3 grid of corners, edge and face midpoints and centre, so that a box reaching across an image with every
+#: corner outside it still counts.
+BOX_PROBES = np.array([[x, y, z] for x in (-0.5, 0, 0.5) for y in (-0.5, 0, 0.5) for z in (-0.5, 0, 0.5)], np.float64)
+#: Least depth (m, along a camera's optical axis) of a point that counts as in front of the camera.
+NEAR_M = 0.1
+
+
+def camera_frustums(tables: NuScenesTables, samples: list[str]) -> dict[str, list[tuple]]:
+    """{sample token: [(camera_from_global [4, 4], intrinsics [3, 3], width, height) of each camera keyframe]}."""
+    channel = {t: tables["sensor"][c["sensor_token"]]["channel"] for t, c in tables["calibrated_sensor"].items()}
+    wanted = set(samples)
+    out: dict[str, list[tuple]] = {t: [] for t in samples}
+    for sd in tables["sample_data"].values():
+        if not (sd.get("is_key_frame") and sd["sample_token"] in wanted
+                and channel.get(sd["calibrated_sensor_token"], "").startswith("CAM_")):
+            continue
+        calib = tables["calibrated_sensor"][sd["calibrated_sensor_token"]]
+        K = np.asarray(calib.get("camera_intrinsic") or [], np.float64)
+        if K.shape != (3, 3) or not sd.get("width") or not sd.get("height"):
+            raise ValidationError(f"camera sample_data {sd['token']} needs a 3x3 camera_intrinsic, a width and a "
+                                  "height to tell which boxes its camera sees")
+        global_from_camera = _transform(tables["ego_pose"][sd["ego_pose_token"]]) @ _transform(calib)
+        out[sd["sample_token"]].append((np.linalg.inv(global_from_camera), K, int(sd["width"]), int(sd["height"])))
+    return out
+
+
+def in_camera_view(boxes: Boxes, frustums: dict[str, list[tuple]]) -> np.ndarray:
+    """[N] bool: a point of the box (``BOX_PROBES``) lies in front of a camera of its sample and inside that camera's
+    image (the devkit's ``BoxVisibility.ANY``, with edge and face midpoints besides the corners; occlusion does not
+    count). A camera-only detector cannot find boxes outside every view: on a rig that does not look all round (the
+    factory's three front cameras) they are a recall no detector reaches. A sample with no camera sees nothing."""
+    seen = np.zeros(len(boxes), bool)
+    for i in range(len(boxes)):
+        record = {"translation": boxes.translation[i], "rotation": boxes.rotation[i], "size": boxes.size[i]}
+        frame = _unit_frame(record)
+        corners = BOX_PROBES @ frame[:3, :3].T + frame[:3, 3]
+        for camera_from_global, K, width, height in frustums.get(str(boxes.sample_token[i]), ()):
+            cam = corners @ camera_from_global[:3, :3].T + camera_from_global[:3, 3]
+            front = cam[:, 2] > NEAR_M
+            if not front.any():
+                continue
+            uv = cam[front] @ K.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            if np.any((uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)):
+                seen[i] = True
+                break
+    return seen
+
+
 def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
     T = _transform(ann)
     T[:3, :3] = T[:3, :3] @ np.diag(np.asarray(ann["size"], np.float64)[[1, 0, 2]])  # sizes are w, l, h; x: length
@@ -209,20 +259,35 @@ def evaluated_classes(gt: Boxes, racks: dict[str, np.ndarray]) -> tuple[str, ...
     return tuple(sorted(set(filter_boxes(gt, DetectionConfig(), racks).name)))
 
 
+def evaluated_ground_truth(tables: NuScenesTables, samples: list[str], camera_view: bool = False
+                           ) -> tuple[Boxes, dict[str, np.ndarray]]:
+    """``load_ground_truth``, less the boxes no camera of their sample sees when ``camera_view``
+    (``in_camera_view``)."""
+    gt, racks = load_ground_truth(tables, samples)
+    if camera_view:
+        gt = gt.take(in_camera_view(gt, camera_frustums(tables, samples)))
+    return gt, racks
+
+
 def evaluate_detection_results(dataroot: str | Path, version: str, results: str | Path,
-                               scenes: list[str] | None = None, config: DetectionConfig = DetectionConfig()):
+                               scenes: list[str] | None = None, config: DetectionConfig = DetectionConfig(),
+                               camera_view: bool = False):
     """The protocol end to end: ground truth of ``scenes`` (all when None) of a dataroot, the results file's
-    predictions for exactly those samples, both filtered, then ``detection.evaluate``."""
+    predictions for exactly those samples, both filtered, then ``detection.evaluate``. ``camera_view``: ground
+    truth and predictions alike only where a camera sees them (``in_camera_view``); nuScenes' own protocol has no
+    such filter, as its six cameras look all round."""
     from omniscs.eval.detection import evaluate, filter_boxes
 
     tables = NuScenesTables.load(dataroot, version)
     samples = tables.scene_samples(scenes)
     if not samples:
         raise ValidationError(f"{Path(dataroot) / version} has no samples to evaluate")
-    gt, racks = load_ground_truth(tables, samples)
+    gt, racks = evaluated_ground_truth(tables, samples, camera_view)
     pred, meta = load_results(results, tables, samples, config)
+    if camera_view:
+        pred = pred.take(in_camera_view(pred, camera_frustums(tables, samples)))
     metrics = evaluate(filter_boxes(gt, config, racks), filter_boxes(pred, config, racks), config)
-    return metrics, {"n_samples": len(samples), "meta": meta}
+    return metrics, {"n_samples": len(samples), "meta": meta, "camera_view": bool(camera_view)}
 
 
 # ----------------------------------------------------------------------------- planning

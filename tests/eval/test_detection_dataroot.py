@@ -187,3 +187,80 @@ def test_the_eval_detection_command_prints_the_protocols_json_and_refuses_bad_re
     path.write_text(json.dumps({"results": {"unknown-token": []}}))
     bad = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "unknown to the dataroot" in bad.stderr
+
+
+# ----------------------------------------------------------------------------- boxes a camera sees
+def _front_camera() -> tuple:
+    """A 100 x 100 px camera at the origin looking along global +x (camera x right = global -y, y down = -z)."""
+    camera_from_global = np.eye(4)
+    camera_from_global[:3, :3] = [[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]
+    return camera_from_global, np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]]), 100, 100
+
+
+def test_a_box_is_in_view_when_a_point_of_it_is_in_front_of_a_camera_and_inside_its_image():
+    from omniscs.eval.detection import Boxes
+    from omniscs.eval.nuscenes_io import in_camera_view
+
+    def box(token, x, y, w=2.0, length=4.0):
+        return {"sample_token": token, "translation": [x, y, 0.0], "size": [w, length, 1.5],
+                "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": "car",
+                "detection_score": -1.0, "attribute_name": ""}
+
+    boxes = Boxes.from_records([
+        box("s", 10.0, 0.0),                  # ahead: seen
+        box("s", -10.0, 0.0),                 # behind the camera
+        box("s", 10.0, 30.0),                 # ahead but far off to the left, outside the image
+        box("s", 2.0, 0.0, w=40.0, length=1.0),  # a wall across the view: every corner outside, its middle inside
+        box("other", 10.0, 0.0),              # a sample with no camera sees nothing
+    ])
+    assert in_camera_view(boxes, {"s": [_front_camera()], "other": []}).tolist() == [True, False, False, True, False]
+
+
+def test_scoring_in_the_cameras_view_leaves_out_the_boxes_no_camera_sees(dataroot, tmp_path):
+    import shutil
+
+    from omniscs.eval.nuscenes_io import (camera_frustums, evaluated_classes, evaluated_ground_truth, in_camera_view,
+                                          load_ground_truth)
+
+    # the fixture's cameras see every box: a copy whose odd samples lost their camera images sees half of them
+    dataroot = shutil.copytree(dataroot, tmp_path / "root")
+    tables = NuScenesTables.load(dataroot, VERSION)
+    samples = tables.scene_samples()
+    blind = set(samples[1::2])
+    cameras = {t for t, c in tables["calibrated_sensor"].items()
+               if tables["sensor"][c["sensor_token"]]["channel"].startswith("CAM_")}
+    rows = [sd for sd in tables["sample_data"].values()
+            if not (sd["sample_token"] in blind and sd["calibrated_sensor_token"] in cameras)]
+    (dataroot / VERSION / "sample_data.json").write_text(json.dumps(rows))
+    tables = NuScenesTables.load(dataroot, VERSION)
+    everything, _ = load_ground_truth(tables, samples)
+    seen = in_camera_view(everything, camera_frustums(tables, samples))
+    assert seen.any() and not seen[np.isin(everything.sample_token, list(blind))].any()
+    in_view, racks = evaluated_ground_truth(tables, samples, camera_view=True)
+    assert len(in_view) == int(seen.sum())
+    # predictions exactly on the boxes a camera sees: perfect in view, missed ones all round
+    results = {t: [] for t in samples}
+    for i in np.flatnonzero(seen):
+        results[everything.sample_token[i]].append({
+            "sample_token": everything.sample_token[i], "translation": everything.translation[i].tolist(),
+            "size": everything.size[i].tolist(), "rotation": everything.rotation[i].tolist(),
+            "velocity": np.nan_to_num(everything.velocity[i]).tolist(), "detection_name": everything.name[i],
+            "detection_score": 0.9, "attribute_name": everything.attribute[i]})
+    path = tmp_path / "seen.json"
+    path.write_text(json.dumps({"meta": {"use_camera": True}, "results": results}))
+    config = DetectionConfig(class_names=evaluated_classes(in_view, racks))
+    viewed, info = evaluate_detection_results(dataroot, VERSION, path, config=config, camera_view=True)
+    round_, _ = evaluate_detection_results(dataroot, VERSION, path, config=config)
+    assert info["camera_view"] and viewed.mean_ap == pytest.approx(1.0)
+    assert round_.mean_ap < viewed.mean_ap
+    # the command line's --camera-view scores the same
+    import subprocess
+    import sys
+
+    args = [sys.executable, "-c", "from omniscs.cli import main; main()", "eval", "detection", "--dataroot",
+            str(dataroot), "--version", VERSION, "--results", str(path), "--json", "--camera-view",
+            *(x for c in config.class_names for x in ("--class", c))]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["camera_view"] and out["mAP"] == pytest.approx(1.0)

@@ -32,6 +32,13 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
     scs = intervals["appearance-SCS test"]
     assert scs["n_groups"] >= 2 and scs["low"] <= scs["difference"] <= scs["high"]
     assert intervals["original test"] is None
+    # scored in the cameras' view, and the same detections all round: a box in view is counted all round too
+    assert report["config"]["camera_view"] and set(report["all_round_rows"]) == set(report["rows"])
+    for name, models in report["rows"].items():
+        for k, n in models["base"]["gt_boxes"].items():
+            assert n <= report["all_round_rows"][name]["base"]["gt_boxes"][k]
+    assert set(report["summary"]["all_round"]) >= {"scs_map_gain", "original_map_change", "intervals"}
+    assert "all round" in (tmp_path / "reports" / "downstream_detection_bench.md").read_text()
 
 
 def test_the_kept_candidate_gains_most_within_the_regression_limit_else_loses_least():
