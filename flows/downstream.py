@@ -46,7 +46,9 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
     datasets with appearance variants), each evaluated before (base) and after fine-tuning on ``test_dataset_ids``
     (default: the training datasets themselves, then a fit to the training data, not a test). ``model="external"``:
     ``external_template`` run as a job (``omniscs.eval.external``) on the exported datasets. Returns the run id,
-    model records and evaluation ids; a model that fails is recorded failed and the run ends failed.
+    model records and evaluation ids and the comparison plot of its evaluations
+    (``<workspace>/evaluations/<run_id>/comparison.png``); a model that fails is recorded failed and the run ends
+    failed.
     ``detector_rehearsal``: nuScenes dataroots the base detector was trained on, mixed into its fine-tuning;
     ``planner_rehearsal``: the planner's fine-tuning mixes in the logs its base was trained on (remade from its
     training record) instead of the datasets' source logs."""
@@ -85,6 +87,7 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
             records.append(t.external(external_template, datasets, ws, external_values or {}, external_timeout_s,
                                       external_export))
         t.catalog(run_id, ws, records)
+        plot = t.comparison_plot(run_id, ws, records)
     except BaseException as exc:
         status = "failed" if isinstance(exc, Exception) else "cancelled"
         ts.catalog_run.fn(run_id, ws, "finetune_evaluate", status, started, _now_us(), 0, config,
@@ -96,7 +99,8 @@ def finetune_evaluate(dataset_ids: list[str] | None = None, model: str = "proxy"
     if failed:
         get_run_logger().error("downstream model failed: %s", "; ".join(failed))
         raise OmniscsError(f"run {run_id}: " + "; ".join(failed))
-    return {"run_id": run_id, "workspace": ws, "datasets": datasets, "models": [r.info for r in records]}
+    return {"run_id": run_id, "workspace": ws, "datasets": datasets, "models": [r.info for r in records],
+            "plot": plot}
 
 
 @flow(name="evaluate", log_prints=False)
@@ -119,9 +123,10 @@ def evaluate(model: str, dataset_ids: list[str], workspace: str | None = None, r
             record = StageRecord("finetune", "-", str(path), info={"model_id": model, "status": "trained"})
         result = t.evaluate(record, dataset_ids, ws, model)
         t.catalog(run_id, ws, [result])
+        plot = t.comparison_plot(run_id, ws, [result])
     except BaseException as exc:
         ts.catalog_run.fn(run_id, ws, "evaluate", "failed" if isinstance(exc, Exception) else "cancelled", started,
                           _now_us(), 0, config, error=one_line(exc))
         raise
     ts.catalog_run(run_id, ws, "evaluate", "completed", started, _now_us(), 0, config)
-    return {"run_id": run_id, "eval_id": result.info["eval_id"], "model_id": result.info["model_id"]}
+    return {"run_id": run_id, "eval_id": result.info["eval_id"], "model_id": result.info["model_id"], "plot": plot}

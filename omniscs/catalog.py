@@ -310,7 +310,8 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("metric", pa.string(), nullable=False),          # L2 | collision | mAP | NDS | AP | trans_err ...
         pa.field("class_name", pa.string(), nullable=False),      # detection metrics per class; '' = all classes
         pa.field("horizon", pa.string(), nullable=False),         # 1s | 2s | 3s (planning); '' = none
-        pa.field("convention", pa.string(), nullable=False),      # uniad | stp3 (planning); '' = none
+        pa.field("convention", pa.string(), nullable=False),      # uniad | stp3 (planning); camera_view
+                                                                  # (detection, boxes in view); '' = none
         pa.field("value", pa.float64()),                          # null when undefined or failed
         pa.field("n", pa.int64()),                                # examples or samples evaluated
         pa.field("status", pa.string(), nullable=False),          # ok | failed

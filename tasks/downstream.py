@@ -40,3 +40,8 @@ def external(template: str, dataset_ids: list[str], workspace: str, values: dict
 @task(name="catalog-records", task_run_name="catalog-{writer}", **STAGE_TASK_OPTIONS)
 def catalog(run_id: str, workspace: str, records: list[StageRecord], writer: str = "downstream") -> list[str]:
     return d.catalog_records_stage(run_id, workspace, records, writer=writer)
+
+
+@task(name="comparison-plot", **STAGE_TASK_OPTIONS)
+def comparison_plot(run_id: str, workspace: str, records: list[StageRecord]) -> str | None:
+    return d.comparison_plot_stage(run_id, workspace, records)

@@ -94,12 +94,19 @@ def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str
     return rows
 
 
+#: ``evaluations.convention`` of detection scores counting only the boxes a camera sees (``score_detections``);
+#: nuScenes' own scoring (all round) has none.
+CAMERA_VIEW = "camera_view"
+
+
 def detection_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str, metrics: dict) -> list[dict]:
     """``evaluations`` rows of one detection evaluation (``omniscs.eval.detector.evaluate_detector``'s output): mAP,
-    NDS and the AP of every class the set holds."""
+    NDS and the AP of every class the set holds; scored in the cameras' view, their convention is ``CAMERA_VIEW``."""
+    convention = CAMERA_VIEW if metrics.get("camera_view") else ""
+
     def row(metric: str, value: float, class_name: str = "") -> dict:
         return {"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": "detection",
-                "split": split, "metric": metric, "class_name": class_name, "horizon": "", "convention": "",
+                "split": split, "metric": metric, "class_name": class_name, "horizon": "", "convention": convention,
                 "value": float(value) if np.isfinite(value) else None, "n": int(metrics["n_samples"]), "status": "ok",
                 "error": None}
 
@@ -107,9 +114,10 @@ def detection_rows(eval_id: str, model_id: str, dataset_id: str | None, split: s
                                                                        for c, v in sorted(metrics["AP"].items())]
 
 
-def failed_row(eval_id: str, model_id: str, dataset_id: str | None, task: str, split: str, error: str) -> dict:
+def failed_row(eval_id: str, model_id: str, dataset_id: str | None, task: str, split: str, error: str,
+               convention: str = "") -> dict:
     return {"eval_id": eval_id, "model_id": model_id, "dataset_id": dataset_id, "task": task, "split": split,
-            "metric": "run", "class_name": "", "horizon": "", "convention": "", "value": None, "n": None,
+            "metric": "run", "class_name": "", "horizon": "", "convention": convention, "value": None, "n": None,
             "status": "failed", "error": error}
 
 

@@ -242,12 +242,13 @@ def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], w
                             eval_id: str | None = None) -> StageRecord:
     """A proxy detector (``model``: a detector fine-tune's record; None: the shipped base) on each dataset's variant
     stores and on its source logs ("original"), 2 Hz keyframes, by nuScenes mAP / NDS / AP per class over the classes
-    each set holds; rows for ``evaluations``."""
+    each set holds, scored all round (nuScenes' protocol) and in the cameras' view (convention ``camera_view``);
+    rows for ``evaluations``."""
     import shutil
     import tempfile
 
-    from omniscs.eval.detector import evaluate_detector, load_detector
-    from omniscs.eval.downstream import content_id, detection_rows, failed_row
+    from omniscs.eval.detector import evaluate_detector, load_detector, score_detections
+    from omniscs.eval.downstream import CAMERA_VIEW, content_id, detection_rows, failed_row
 
     started = time.perf_counter()
     model_id = DETECTOR_BASE_ID if model is None else model.info["model_id"]
@@ -264,13 +265,18 @@ def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], w
                     rows.append(failed_row(eval_id, model_id, did, "detection", split,
                                            f"dataset {did} has no {split} scene store in this workspace"))
                     continue
+                root, results = export_dataroot(stores, data / split, None), data / f"{split}-results.json"
                 try:
-                    metrics = evaluate_detector(detector, export_dataroot(stores, data / split, None), DETECTOR_VERSION,
-                                                data / f"{split}-results.json")
+                    metrics = evaluate_detector(detector, root, DETECTOR_VERSION, results)
                 except ValidationError as exc:  # e.g. no evaluated box: recorded, not a lost run
                     rows.append(failed_row(eval_id, model_id, did, "detection", split, str(exc)))
                     continue
                 rows += detection_rows(eval_id, model_id, did, split, metrics)
+                try:  # the same detections, only the boxes a camera sees
+                    rows += detection_rows(eval_id, model_id, did, split,
+                                           score_detections(root, DETECTOR_VERSION, results, camera_view=True))
+                except ValidationError as exc:
+                    rows.append(failed_row(eval_id, model_id, did, "detection", split, str(exc), CAMERA_VIEW))
         finally:
             shutil.rmtree(data, ignore_errors=True)
     return StageRecord("evaluate", "-", None, seconds=time.perf_counter() - started,
@@ -384,6 +390,21 @@ def datasets_of_flow_run(workspace: str | Path, flow_run_id: str) -> list[str]:
         raise OmniscsError(f"flow run {fid} made no dataset in workspace {workspace} (a run without --annotate, "
                            "or another workspace)")
     return [r["dataset_id"] for r in rows]
+
+
+def comparison_plot_stage(run_id: str, workspace: str | Path, records: list[StageRecord]) -> str | None:
+    """The run's comparison plot (``omniscs.eval.comparison``) of the evaluation rows of ``records``, written to
+    ``<workspace>/evaluations/<run_id>/comparison.png``; None when no row can be drawn (every evaluation failed)."""
+    from omniscs.eval.comparison import write_comparison
+
+    rows = [row for r in records for row in r.rows.get("evaluations", [])]
+    if not any(row["status"] == "ok" for row in rows):
+        return None
+    try:
+        out = write_comparison(rows, layout.evaluation_folder(workspace, run_id) / "comparison.png", f"run {run_id}")
+    except ValidationError:  # only rows the plot does not draw (e.g. an external job's TP errors)
+        return None
+    return str(out)
 
 
 def catalog_records_stage(run_id: str, workspace: str | Path, records: list[StageRecord], writer: str) -> list[str]:

@@ -9,13 +9,13 @@ from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
 __all__ = ["catalog_root", "scenes_dir", "scene_folder", "stage_folder", "dataset_folder", "downstream_folder",
-           "closedloop_folder", "scene_store"]
+           "evaluation_folder", "closedloop_folder", "scene_store"]
 
 #: Top-level folder of each stage's outputs.
 FOLDERS = {"ingest": "scenes", "plan": "plans", "preview": "previews", "fit": "models", "agents": "agent_models",
            "background": "repaired",
            "behavior": "variants", "appearance": "variants", "replay": "replays", "annotate": "annotated", "dataset": "datasets",
-           "downstream": "downstream", "closedloop": "closedloop"}
+           "downstream": "downstream", "evaluation": "evaluations", "closedloop": "closedloop"}
 
 
 def scenes_dir(workspace: str | Path) -> Path:
@@ -41,6 +41,11 @@ def dataset_folder(workspace: str | Path, dataset_id: str) -> Path:
 def downstream_folder(workspace: str | Path, model_id: str) -> Path:
     """``<workspace>/downstream/<model_id>``: one downstream model (a fine-tuned checkpoint, an external job)."""
     return Path(workspace) / FOLDERS["downstream"] / check_id("downstream model id", model_id)
+
+
+def evaluation_folder(workspace: str | Path, run_id: str) -> Path:
+    """``<workspace>/evaluations/<run_id>``: what one downstream run shows of its evaluations (the comparison plot)."""
+    return Path(workspace) / FOLDERS["evaluation"] / check_id("run id", run_id)
 
 
 def closedloop_folder(workspace: str | Path, eval_id: str) -> Path:

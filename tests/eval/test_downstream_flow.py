@@ -91,6 +91,17 @@ def test_finetune_evaluate_catalogues_base_and_fine_tuned_on_both_splits_and_reu
     assert all(r["status"] == "ok" and r["value"] is not None and r["value"] >= 0 for r in rows)
     run = catalog.query(root, "SELECT status, flow_run_id FROM runs WHERE run_id = 'ft1'").to_pylist()[0]
     assert run["status"] == "completed" and run["flow_run_id"]
+    # the run's comparison plot: base against fine-tuned
+    assert first["plot"] == str(layout.evaluation_folder(workspace, "ft1") / "comparison.png")
+    assert _png_shape(first["plot"])[0] > 200
+
+
+def _png_shape(path) -> tuple:
+    import cv2
+
+    image = cv2.imread(str(path))
+    assert image is not None, f"{path} is not an image"
+    return image.shape
 
 
 def test_datasets_are_found_from_the_generate_run_that_made_them(workspace):
@@ -126,6 +137,7 @@ def test_an_external_job_is_read_back_and_a_crash_is_a_failed_model(prefect_harn
     by = {(r["task"], r["metric"], r["class_name"], r["horizon"]): r["value"] for r in rows}
     assert by[("detection", "NDS", "", "")] == 0.4976 and by[("detection", "AP", "car", "")] == 0.573
     assert by[("planning", "L2", "", "3.0s")] == 1.8131
+    assert _png_shape(out["plot"])[0] > 200  # what the job printed, drawn
     with pytest.raises(Exception, match="exit code 3"):
         finetune_evaluate(["ds-test"], model="external", workspace=str(workspace), run_id="ext2",
                           external_template=template, external_values={"python": sys.executable, "config": "crash"},
@@ -140,7 +152,7 @@ def test_the_evaluate_flow_and_bad_requests(prefect_harness, workspace):
     from flows.downstream import evaluate, finetune_evaluate
 
     out = evaluate(d.BASE_MODEL_ID, ["ds-test"], workspace=str(workspace), run_id="ev1")
-    assert out["model_id"] == d.BASE_MODEL_ID
+    assert out["model_id"] == d.BASE_MODEL_ID and _png_shape(out["plot"])[0] > 200
     with pytest.raises(ValidationError, match="no downstream model"):
         evaluate("proxy-planner-000000000000", ["ds-test"], workspace=str(workspace), run_id="ev2")
     with pytest.raises(ValidationError, match="not in workspace"):

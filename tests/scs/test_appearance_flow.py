@@ -151,12 +151,13 @@ def test_the_proxy_detector_is_fine_tuned_and_evaluated_on_appearance_variants_b
     assert model.to_pylist() == [{"kind": "proxy_detector", "status": "trained",
                                   "n_examples": model.to_pylist()[0]["n_examples"]}]
     assert model.to_pylist()[0]["n_examples"] > 0
-    rows = catalog.query(root, "SELECT model_id, split, metric, class_name, value, status FROM evaluations_by_run "
-                               "WHERE run_id = 'det1' AND task = 'detection'").to_pylist()
-    got = {(r["model_id"], r["split"], r["metric"]) for r in rows}
-    for m in (d.DETECTOR_BASE_ID, tuned):
+    rows = catalog.query(root, "SELECT model_id, split, metric, class_name, convention, value, status "
+                               "FROM evaluations_by_run WHERE run_id = 'det1' AND task = 'detection'").to_pylist()
+    got = {(r["model_id"], r["split"], r["metric"], r["convention"]) for r in rows}
+    for m in (d.DETECTOR_BASE_ID, tuned):  # scored all round (nuScenes) and in the cameras' view
         for split in ("variants", "original"):
-            assert {(m, split, "mAP"), (m, split, "NDS"), (m, split, "AP")} <= got
+            for convention in ("", "camera_view"):
+                assert {(m, split, k, convention) for k in ("mAP", "NDS", "AP")} <= got
     assert all(r["status"] == "ok" and 0.0 <= r["value"] <= 1.0 for r in rows)
     with pytest.raises(OmniscsError, match="tasks must be some of"):
         finetune_evaluate([result["dataset_id"]], workspace=str(ws), tasks=["segmentation"])
