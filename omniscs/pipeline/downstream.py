@@ -148,7 +148,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
 DETECTOR_BASE_ID = "proxy-detector-base"
 #: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields): the setting the detection
 #: protocol kept on its validation sets (reports/downstream_detection_bench.md).
-DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1, "class_balance": 0.5}
+DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1, "class_balance": 0.0}
 DETECTOR_VERSION = "v1.0-trainval"
 
 
