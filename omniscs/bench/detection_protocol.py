@@ -235,8 +235,7 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
     (``omniscs.eval.detection.bootstrap_map_difference``), over the classes the set holds (``camera_view``: only the
     boxes a camera sees, as ``score_detections``); None for a set of one scene."""
     from omniscs.eval.detection import DetectionConfig, bootstrap_map_difference, filter_boxes
-    from omniscs.eval.nuscenes_io import (NuScenesTables, camera_frustums, evaluated_classes, evaluated_ground_truth,
-                                          in_camera_view, load_results)
+    from omniscs.eval.nuscenes_io import NuScenesTables, evaluated_classes, evaluated_ground_truth, load_results
 
     tables = NuScenesTables.load(dataroot, VERSION)
     if len(tables["scene"]) < 2:
@@ -245,11 +244,8 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
     samples = tables.scene_samples()
     gt, racks = evaluated_ground_truth(tables, samples, camera_view)
     config = DetectionConfig(class_names=evaluated_classes(gt, racks))
-    frustums = camera_frustums(tables, samples) if camera_view else None
-    preds = []
-    for path in (base_results, tuned_results):
-        pred = load_results(path, tables, samples, config)[0]
-        preds.append(filter_boxes(pred.take(in_camera_view(pred, frustums)) if camera_view else pred, config, racks))
+    preds = [filter_boxes(load_results(p, tables, samples, config, camera_view)[0], config, racks)
+             for p in (base_results, tuned_results)]
     return bootstrap_map_difference(filter_boxes(gt, config, racks), *preds, groups, config, n, seed)
 
 

@@ -186,11 +186,12 @@ def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
 
 
 def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
-                 config: DetectionConfig = DetectionConfig()) -> tuple[Boxes, dict]:
+                 config: DetectionConfig = DetectionConfig(), camera_view: bool = False) -> tuple[Boxes, dict]:
     """Predictions of a results file (``{"meta": {...}, "results": {sample_token: [box, ...]}}``) for exactly the
     evaluated ``samples``, with their ego distance; and its meta. Unknown or missing sample tokens, more than
     ``max_boxes_per_sample`` boxes, unknown classes or attributes, non-finite numbers (a NaN velocity is allowed:
-    no velocity) and non-positive sizes are refused with the first offending entry named."""
+    no velocity) and non-positive sizes are refused with the first offending entry named. ``camera_view``: only the
+    boxes a camera sees (``in_camera_view``), as ``evaluated_ground_truth``."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError) as e:
@@ -223,7 +224,10 @@ def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
                 raise ValidationError(f"results[{token!r}][{i}] names sample {rec['sample_token']!r}")
             records.append(rec)
             ego_dist.append(float(np.hypot(rec["translation"][0] - ego[0], rec["translation"][1] - ego[1])))
-    return Boxes.from_records(records, ego_dist), data.get("meta", {})
+    boxes = Boxes.from_records(records, ego_dist)
+    if camera_view:
+        boxes = boxes.take(in_camera_view(boxes, camera_frustums(tables, samples)))
+    return boxes, data.get("meta", {})
 
 
 def _checked_box(box, where: str) -> dict:
@@ -283,9 +287,7 @@ def evaluate_detection_results(dataroot: str | Path, version: str, results: str 
     if not samples:
         raise ValidationError(f"{Path(dataroot) / version} has no samples to evaluate")
     gt, racks = evaluated_ground_truth(tables, samples, camera_view)
-    pred, meta = load_results(results, tables, samples, config)
-    if camera_view:
-        pred = pred.take(in_camera_view(pred, camera_frustums(tables, samples)))
+    pred, meta = load_results(results, tables, samples, config, camera_view)
     metrics = evaluate(filter_boxes(gt, config, racks), filter_boxes(pred, config, racks), config)
     return metrics, {"n_samples": len(samples), "meta": meta, "camera_view": bool(camera_view)}
 
