@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +26,7 @@ import pyarrow as pa
 from omniscs.errors import ValidationError
 from omniscs.gaussians import GaussianParams, rigidly_moved
 from omniscs.ids import check_id
+from omniscs.locks import output_lock
 from omniscs.storage import atomic_directory, atomic_write_bytes
 from omniscs.taxonomy import CATEGORIES
 
@@ -85,30 +88,55 @@ class Pool:
                 "quality": None if quality is None or not np.isfinite(quality) else float(quality),
                 "version": POOL_VERSION, "calibration": calibration, "build": build,
                 "added_at_us": int(time.time() * 1e6)}
+        views = None
         if not (folder / META).is_file():
-            from safetensors.torch import save_file
-
             from omniscs.agents.mesh import keyframes
 
             views = keyframes(params, np.maximum(size, 1e-3))
-            try:
+        with output_lock(folder):  # one writer per model at a time: adding, or removing (``remove``)
+            if not (folder / META).is_file():
+                from safetensors.torch import save_file
+
+                if views is None:  # removed since the check above
+                    from omniscs.agents.mesh import keyframes
+
+                    views = keyframes(params, np.maximum(size, 1e-3))
                 with atomic_directory(folder) as tmp:
                     save_file({k: v.contiguous() for k, v in params.as_dict().items()}, str(tmp / GAUSSIANS))
                     np.savez_compressed(tmp / KEYFRAMES, rgba=views)
                     (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True))
-            except Exception:
-                if not (folder / META).is_file():  # another writer may have put the same model there first
-                    raise
-        row = pd.DataFrame([{"model_id": model_id, "category": category, "length": float(size[0]),
-                             "width": float(size[1]), "height": float(size[2]), "n_gaussians": len(params),
-                             "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
-                             "quality": meta["quality"], "version": POOL_VERSION,
-                             "added_at_us": meta["added_at_us"]}], columns=list(INDEX_COLUMNS))
-        index = self.root / INDEX / f"{model_id}.parquet"
-        if not index.is_file():
-            index.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_bytes(index, row.to_parquet(index=False))
+            index = self.root / INDEX / f"{model_id}.parquet"
+            if not index.is_file():
+                row = pd.DataFrame([{"model_id": model_id, "category": category, "length": float(size[0]),
+                                     "width": float(size[1]), "height": float(size[2]), "n_gaussians": len(params),
+                                     "sh_degree": params.sh_degree, "provenance": provenance, "source": str(source),
+                                     "quality": meta["quality"], "version": POOL_VERSION,
+                                     "added_at_us": meta["added_at_us"]}], columns=list(INDEX_COLUMNS))
+                index.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_bytes(index, row.to_parquet(index=False))
         return model_id
+
+    def remove(self, model_id: str) -> dict:
+        """Take a model out of the pool; returns its metadata. Its index row goes first and then its folder, so a
+        reader of the table never meets a row without its model; a writer adding the same model waits (one lock per
+        model). Embedding caches follow the pool's content and are recomputed on their next use. A model the pool
+        does not hold is a clear error, and nothing changes."""
+        check_id("pool model id", model_id)
+        folder = self.root / MODELS / model_id
+        index = self.root / INDEX / f"{model_id}.parquet"
+        if not (folder / META).is_file() and not index.is_file():
+            raise ValidationError(f"pool {self.root} has no model {model_id}")
+        with output_lock(folder):
+            try:
+                meta = json.loads((folder / META).read_text())
+            except (OSError, ValueError):  # a row left without its model (removed by hand): the row still goes
+                meta = {"model_id": model_id}
+            index.unlink(missing_ok=True)
+            if folder.exists():
+                trash = folder.parent / f".{folder.name}.removed-{os.getpid()}"
+                os.replace(folder, trash)
+                shutil.rmtree(trash, ignore_errors=True)
+        return meta
 
     def table(self) -> pd.DataFrame:
         """One row per model (``INDEX_COLUMNS``), by id; empty when the pool is."""

@@ -1,4 +1,4 @@
-"""``omniscs pool import / export / list``: the model pool of 360-degree road-user models (``omniscs.agents.pool``)."""
+"""``omniscs pool import / export / remove / list``: the model pool of 360-degree road-user models (``omniscs.agents.pool``)."""
 from __future__ import annotations
 
 import json
@@ -43,6 +43,16 @@ def pool_export(model_id: str = typer.Argument(..., help="A pool model id (pm-..
     from omniscs.agents.pool import Pool
 
     console.print(f"wrote {Pool(pool).export_ply(model_id, out)}")
+
+
+@app.command("remove")
+def pool_remove(model_id: str = typer.Argument(..., help="A pool model id (pm-...)."), pool: Path = POOL) -> None:
+    """Take a model out of the pool (its index row, then its files). The catalog's ``pool`` table keeps the record of
+    its addition; ``omniscs pool list`` shows what the pool holds now."""
+    from omniscs.agents.pool import Pool
+
+    meta = Pool(pool).remove(model_id)
+    console.print(f"removed {model_id} ({meta.get('category', '?')}, from {meta.get('source', '?')}) from {pool}")
 
 
 @app.command("list")

@@ -12,7 +12,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from omniscs.agents.pool import Pool, calibrated, model_id_of
-from omniscs.errors import ValidationError
+from omniscs.errors import OmniscsError, ValidationError
 from omniscs.gaussians import params_from_values, rigidly_moved
 
 
@@ -108,6 +108,44 @@ def test_two_writers_at_once_lose_nothing_and_write_nothing_twice(tmp_path):
     assert not [p for p in (tmp_path / "pool" / "models").iterdir() if not p.name.startswith("pm-")]
 
 
+def test_a_removed_model_leaves_the_table_and_its_files_and_can_be_added_again(tmp_path):
+    pool = Pool(tmp_path / "pool")
+    keep, gone = pool.add(_model(0), "car", "mesh", "sedan-0001"), pool.add(_model(1), "truck", "mesh", "box-0002")
+    meta = pool.remove(gone)
+    assert meta["model_id"] == gone and meta["category"] == "truck" and meta["source"] == "box-0002"
+    assert list(pool.table().model_id) == [keep]
+    assert sorted(p.name for p in (tmp_path / "pool" / "models").iterdir()) == [keep]  # no folder, temp or lock left
+    assert sorted(p.name for p in (tmp_path / "pool" / "index").iterdir()) == [f"{keep}.parquet"]
+    with pytest.raises(ValidationError, match="has no model"):
+        pool.get(gone)
+    with pytest.raises(ValidationError, match="has no model"):  # twice: a clear error, nothing else changes
+        pool.remove(gone)
+    with pytest.raises(OmniscsError, match="not a safe id"):
+        pool.remove("../models")
+    assert list(pool.table().model_id) == [keep] and len(pool.get(keep).params) == 300
+    assert pool.add(_model(1), "truck", "mesh", "box-0002") == gone  # the same content, the same id, back again
+    assert sorted(pool.table().model_id) == sorted([keep, gone]) and len(pool.get(gone).params) == 300
+
+
+def test_removing_while_another_process_adds_the_same_model_leaves_a_whole_entry_or_none(tmp_path):
+    """Adding and removing the same model at once (one lock per model): whatever order they take, the pool ends
+    either holding the model whole (row, parameters, keyframes) or not at all, never a row without its model."""
+    root = str(tmp_path / "pool")
+    model_id = Pool(root).add(_model(4), "car", "mesh", "x")
+    with mp.get_context("spawn").Pool(2) as workers:
+        added = workers.apply_async(_add_in_process, (root, [4, 4, 4]))
+        removed = workers.apply_async(_remove_in_process, (root, model_id, 3))
+        added.get(timeout=120), removed.get(timeout=120)
+    pool = Pool(root)
+    listed = list(pool.table().model_id)
+    assert listed in ([], [model_id])
+    if listed:
+        assert len(pool.get(model_id).params) == 300 and pool.keyframes(model_id).shape[0] == 30
+    else:
+        assert not (tmp_path / "pool" / "models" / model_id).exists()
+    assert not [p for p in (tmp_path / "pool" / "models").iterdir() if not p.name.startswith("pm-")]
+
+
 def test_bad_models_and_ids_are_clear_errors(tmp_path):
     pool = Pool(tmp_path / "pool")
     with pytest.raises(ValidationError, match="unknown category"):
@@ -153,6 +191,11 @@ def test_the_pool_commands_import_list_and_export_with_the_id_alone_on_the_last_
     assert [json.loads(line)["model_id"] for line in listed.stdout.splitlines()] == [model_id]
     assert run("export", model_id, "--out", str(tmp_path / "out.ply"), "--pool", str(tmp_path / "pool")).returncode == 0
     assert torch.equal(read_gaussian_ply(tmp_path / "out.ply").means, read_gaussian_ply(tmp_path / "m.ply").means)
+    removed = run("remove", model_id, "--pool", str(tmp_path / "pool"))
+    assert removed.returncode == 0 and model_id in removed.stdout, removed.stderr
+    assert run("list", str(tmp_path / "pool"), "--json").stdout.strip() == ""
+    again = run("remove", model_id, "--pool", str(tmp_path / "pool"))
+    assert again.returncode == 2 and "has no model" in again.stderr
     bad = run("import", str(tmp_path / "m.ply"), "--category", "ufo", "--pool", str(tmp_path / "pool"))
     assert bad.returncode == 2 and "unknown category" in bad.stderr and bad.stderr.strip().count("\n") == 0
 
@@ -182,3 +225,14 @@ def test_a_user_mesh_is_made_into_a_calibrated_pool_model(tmp_path, suffix):
     empty.write_text("# nothing\n")
     with pytest.raises(ValidationError):
         pool.import_file(empty, "car")
+
+
+def _remove_in_process(root: str, model_id: str, times: int) -> int:
+    removed = 0
+    for _ in range(times):
+        try:
+            Pool(root).remove(model_id)
+            removed += 1
+        except ValidationError:  # already gone: the other process has not put it back yet
+            pass
+    return removed
