@@ -57,8 +57,8 @@ class DownstreamBenchConfig:
     base: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=40, seed=0))
     finetune: TrainConfig = field(default_factory=lambda: TrainConfig(epochs=15, lr=1e-3, seed=1))
     scs_share: float = 0.5
-    """Share of the fine-tuning examples that are behaviour-SCS (they are repeated to reach it; the rest are the
-    train logs, so the planner keeps what it knew)."""
+    """Share of the fine-tuning examples that are behaviour-SCS (``planner.mix_repeats``: the SCS examples are
+    repeated to reach it when they are fewer, the logs when they are; the logs keep what the planner knew)."""
     rehearse_base_logs: bool = True
     """Fine-tune on the behaviour-SCS examples with the logs base was trained on (its training record's seeds), not
     with train logs base never saw: the gain is then the behaviour-SCS data's, not more log data's."""
@@ -157,15 +157,13 @@ def _base_logs(logs: list, base_record: dict) -> list:
 
 
 def _finetune(base, train: dict, config: DownstreamBenchConfig, progress: Progress):
-    """Base fine-tuned on the train scenes' behaviour-SCS examples (repeated to make ``scs_share`` of the mix) and
-    their log examples."""
-    from omniscs.eval.planner import train_planner
+    """Base fine-tuned on the train scenes' behaviour-SCS examples and their log examples, the kind that is short
+    repeated so that about ``scs_share`` of the mix is behaviour-SCS (``planner.mixed_examples``)."""
+    from omniscs.eval.planner import mixed_examples, train_planner
 
-    repeat = 1
-    if train["scs"] and 0.0 < config.scs_share < 1.0:
-        repeat = max(1, int(round(config.scs_share / (1 - config.scs_share) * len(train["logs"]) / len(train["scs"]))))
-    tuned, record = train_planner(train["scs"] * repeat + train["logs"], config.finetune, init=base, progress=progress)
-    record["scs_repeat"] = repeat
+    examples, mix = mixed_examples(train["scs"], train["logs"], config.scs_share)
+    tuned, record = train_planner(examples, config.finetune, init=base, progress=progress)
+    record.update(mix)
     return tuned, record
 
 
@@ -309,10 +307,21 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
               "seconds": {"data": data_s, "base_training": base_record.get("seconds"),
                           "finetune": tune_record["seconds"]},
               "base_training": {k: base_record.get(k) for k in ("command", "data", "n_examples", "train_config")},
-              "finetune_training": {k: tune_record[k] for k in ("n_examples", "train_config", "epoch_loss_m",
-                                                                 "scs_repeat")}}
+              "finetune_training": {k: tune_record.get(k) for k in ("n_examples", "train_config", "epoch_loss_m",
+                                                                     "scs_repeat", "log_repeat", "scs_share")}}
     write_report(out_dir, "downstream_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
+
+
+def _mix_note(training: dict, asked: float) -> str:
+    """How the fine-tuning mix was made (older reports name only the SCS repeat)."""
+    def times(n: int) -> str:
+        return {1: "once", 2: "twice"}.get(n, f"{n} times")
+
+    if training.get("log_repeat") is None:
+        return f"(the behaviour-SCS examples each used {times(training['scs_repeat'])})"
+    return (f"(behaviour-SCS examples used {times(training['scs_repeat'])}, logs {times(training['log_repeat'])}: "
+            f"{100 * training['scs_share']:.0f} % of the mix behaviour-SCS, {100 * asked:.0f} % asked)")
 
 
 def markdown(r: dict) -> str:
@@ -331,10 +340,10 @@ def markdown(r: dict) -> str:
              f"({d['test']['unsolved']} of {d['test']['variants']} left out). Base: the shipped planner, trained on the "
              f"logs of train seeds {_seed_span(r['base_training'])} only (`{r['base_training'].get('command')}`); "
              "fine-tuned: from base on the train scenes' behaviour-SCS "
-             f"examples (each repeated {r['finetune_training']['scs_repeat']} times, {100 * c['scs_share']:.0f} % of "
-             "the mix) and "
+             "examples and "
              + ("the logs base was trained on (rehearsal: no log it has not seen)" if c.get("rehearse_base_logs")
-                else "the train scenes' logs") + ". " + _test_set_note(c) + " Metrics: UniAD's (L2 in m, collision rate `obj_box_col` in %, value at each horizon).", ""]
+                else "the train scenes' logs") + f" {_mix_note(r['finetune_training'], c['scs_share'])}. "
+             + _test_set_note(c) + " Metrics: UniAD's (L2 in m, collision rate `obj_box_col` in %, value at each horizon).", ""]
     red = s["collision_reduction"]
     lines += [f"**Collision rate on the behaviour-SCS test set (mean of 1/2/3 s): {100 * s['scs_collision_base']:.2f} % "
               f"base, {100 * s['scs_collision_finetuned']:.2f} % fine-tuned: "

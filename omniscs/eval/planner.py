@@ -15,6 +15,7 @@ near a scenario's end has its later ones masked out), plus an optional collision
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -242,6 +243,29 @@ def train_planner(examples: list[PlanningExample], config: TrainConfig = TrainCo
               "n_trained": int(len(data[0])), "epoch_loss_m": losses, "seconds": time.perf_counter() - started,
               "fine_tuned": init is not None}
     return model, record
+
+
+def mix_repeats(n_scs: int, n_logs: int, share: float) -> tuple[int, int]:
+    """(SCS repeat, log repeat): whole-number repeats of the two kinds of example that bring the SCS share of the
+    mix nearest ``share`` while repeating only the kind that is short (the other is used once). Without one kind,
+    or with ``share`` at 0 or 1, nothing is repeated."""
+    if not (math.isfinite(share) and 0.0 <= share <= 1.0):
+        raise ValidationError(f"the SCS share must be in [0, 1]; got {share}")
+    if n_scs <= 0 or n_logs <= 0 or share in (0.0, 1.0):
+        return 1, 1
+    wanted = share / (1.0 - share)  # SCS examples per log example
+    if n_scs / n_logs <= wanted:
+        return max(1, int(round(wanted * n_logs / n_scs))), 1
+    return 1, max(1, int(round(n_scs / (wanted * n_logs))))
+
+
+def mixed_examples(scs: list, logs: list, share: float) -> tuple[list, dict]:
+    """The fine-tuning mix of behaviour-SCS and log examples at about ``share`` SCS (``mix_repeats``) and what it
+    holds: {scs_repeat, log_repeat, scs_share} (the share reached)."""
+    rs, rl = mix_repeats(len(scs), len(logs), share)
+    n = rs * len(scs) + rl * len(logs)
+    return list(scs) * rs + list(logs) * rl, {"scs_repeat": rs, "log_repeat": rl,
+                                              "scs_share": rs * len(scs) / n if n else 0.0}
 
 
 @torch.no_grad()

@@ -22,8 +22,9 @@ from omniscs.progress import Progress, no_progress
 
 log = logging.getLogger(__name__)
 
-FINETUNE_VERSION = 2  # 2: behaviour-SCS keyframes after the now step (variant_keyframes), masked loss
-#: Share of the fine-tuning examples that are behaviour-SCS (repeated to reach it; the rest are the logs).
+FINETUNE_VERSION = 3  # 2: behaviour-SCS keyframes after the now step (variant_keyframes), masked loss; 3: the logs
+#                       repeated when the SCS examples outnumber them (mix_repeats)
+#: Share of the fine-tuning examples that are behaviour-SCS (``planner.mix_repeats``: the short kind is repeated).
 SCS_SHARE = 0.5
 BASE_MODEL_ID = "proxy-planner-base"
 
@@ -92,10 +93,11 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
     seen, so it keeps what it knew); otherwise, or for a base whose record names no logs, the datasets' source
     logs."""
     from omniscs.eval.downstream import content_id, dataset_card, log_examples, variant_examples
-    from omniscs.eval.planner import DEFAULT_PLANNER, TrainConfig, load_planner, save_planner, train_planner
+    from omniscs.eval.planner import (DEFAULT_PLANNER, TrainConfig, load_planner, mixed_examples, save_planner,
+                                      train_planner)
 
     started = time.perf_counter()
-    config = config or TrainConfig(epochs=15, lr=3e-4, seed=1)  # the setting the planning protocol kept (its bench)
+    config = config or TrainConfig(epochs=15, lr=1e-3, seed=1)  # the setting the planning protocol kept (its bench)
     datasets = dataset_paths(workspace, dataset_ids)
     base_path = Path(base) if base is not None else DEFAULT_PLANNER
     base_hash = _folder_hash(base_path)
@@ -126,13 +128,13 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
                                                                     error="the datasets hold no solved variant with a "
                                                                           "1 s future to learn from")]},
                                    info={"status": "failed", "model_id": model_id})
-            repeat = max(1, int(round(SCS_SHARE / (1 - SCS_SHARE) * len(logs) / len(scs)))) if logs else 1
+            examples, mix = mixed_examples(scs, logs, SCS_SHARE)
             base_model = load_planner(base_path)
 
             def make(tmp: Path) -> dict:
-                model, record = train_planner(scs * repeat + logs, config, init=base_model, progress=progress)
+                model, record = train_planner(examples, config, init=base_model, progress=progress)
                 record.update(datasets=list(dataset_ids), scs_examples=len(scs), log_examples=len(logs),
-                              log_source=log_source, scs_repeat=repeat, base=str(base_path), counts=counts)
+                              log_source=log_source, base=str(base_path), counts=counts, **mix)
                 save_planner(model, tmp / "planner", record)
                 return {"n_examples": record["n_examples"], "train_seconds": record["seconds"]}
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from omniscs.errors import ValidationError
-from omniscs.eval.planner import (CHANNELS, TrainConfig, features, load_planner, plan, save_planner, train_planner)
+from omniscs.eval.planner import (CHANNELS, TrainConfig, features, load_planner, mix_repeats, mixed_examples, plan,
+                                  save_planner, train_planner)
 from omniscs.eval.planning import EGO_SHIFT, evaluate_planning
 from omniscs.eval.scenarios import Scenario, command_of, planning_examples
 
@@ -213,3 +214,31 @@ def test_training_with_the_collision_loss_learns_and_mirrors_its_boxes():
     assert np.isfinite(record["epoch_loss_m"]).all() and record["epoch_loss_m"][-1] < record["epoch_loss_m"][0]
     with pytest.raises(ValidationError, match="collision_weight"):
         TrainConfig(collision_weight=-1.0)
+
+
+@pytest.mark.parametrize("n_scs, n_logs, share, repeats, reached", [
+    (100, 520, 0.5, (5, 1), 500 / 1020),   # few SCS examples: they are repeated
+    (855, 520, 0.5, (1, 2), 855 / 1895),   # more SCS examples than logs: the logs are repeated, not the SCS ones
+    (855, 520, 0.3, (1, 4), 855 / 2935),   # a lower share repeats the logs more
+    (300, 100, 0.75, (1, 1), 0.75),        # already at the share
+    (0, 50, 0.5, (1, 1), 0.0),             # one kind missing: nothing to mix
+    (50, 0, 0.5, (1, 1), 1.0),
+])
+def test_the_fine_tuning_mix_repeats_the_short_kind_to_come_near_the_share(n_scs, n_logs, share, repeats, reached):
+    assert mix_repeats(n_scs, n_logs, share) == repeats
+    examples, mix = mixed_examples(["s"] * n_scs, ["l"] * n_logs, share)
+    assert (mix["scs_repeat"], mix["log_repeat"]) == repeats
+    assert examples.count("s") == repeats[0] * n_scs and examples.count("l") == repeats[1] * n_logs
+    assert mix["scs_share"] == pytest.approx(reached)
+    if n_scs and n_logs:  # one more or one fewer repeat of the repeated kind comes no nearer the share
+        step = (1, 0) if repeats[1] == 1 else (0, 1)
+        for sign in (1, -1):
+            rs, rl = repeats[0] + sign * step[0], repeats[1] + sign * step[1]
+            if rs >= 1 and rl >= 1:
+                assert abs(rs * n_scs / (rs * n_scs + rl * n_logs) - share) >= abs(reached - share) - 1e-12
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_a_share_outside_zero_to_one_is_refused(share):
+    with pytest.raises(ValidationError, match="share"):
+        mix_repeats(10, 10, share)
