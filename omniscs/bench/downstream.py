@@ -343,7 +343,8 @@ def markdown(r: dict) -> str:
              "examples and "
              + ("the logs base was trained on (rehearsal: no log it has not seen)" if c.get("rehearse_base_logs")
                 else "the train scenes' logs") + f" {_mix_note(r['finetune_training'], c['scs_share'])}. "
-             + _test_set_note(c) + " Metrics: UniAD's (L2 in m, collision rate `obj_box_col` in %, value at each horizon).", ""]
+             + _test_set_note(c)
+             + " Metrics: UniAD's (L2 in m, collision rate `obj_box_col` in %, value at each horizon).", ""]
     red = s["collision_reduction"]
     lines += [f"**Collision rate on the behaviour-SCS test set (mean of 1/2/3 s): {100 * s['scs_collision_base']:.2f} % "
               f"base, {100 * s['scs_collision_finetuned']:.2f} % fine-tuned: "

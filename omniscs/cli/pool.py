@@ -1,4 +1,5 @@
-"""``omniscs pool import / export / remove / list``: the model pool of 360-degree road-user models (``omniscs.agents.pool``)."""
+"""``omniscs pool import / export / remove / list``: the model pool of 360-degree road-user models
+(``omniscs.agents.pool``)."""
 from __future__ import annotations
 
 import json
