@@ -88,19 +88,13 @@ class Pool:
                 "quality": None if quality is None or not np.isfinite(quality) else float(quality),
                 "version": POOL_VERSION, "calibration": calibration, "build": build,
                 "added_at_us": int(time.time() * 1e6)}
-        views = None
-        if not (folder / META).is_file():
-            from omniscs.agents.mesh import keyframes
-
-            views = keyframes(params, np.maximum(size, 1e-3))
         with output_lock(folder):  # one writer per model at a time: adding, or removing (``remove``)
             if not (folder / META).is_file():
                 from safetensors.torch import save_file
 
-                if views is None:  # removed since the check above
-                    from omniscs.agents.mesh import keyframes
+                from omniscs.agents.mesh import keyframes
 
-                    views = keyframes(params, np.maximum(size, 1e-3))
+                views = keyframes(params, np.maximum(size, 1e-3))
                 with atomic_directory(folder) as tmp:
                     save_file({k: v.contiguous() for k, v in params.as_dict().items()}, str(tmp / GAUSSIANS))
                     np.savez_compressed(tmp / KEYFRAMES, rgba=views)
