@@ -167,9 +167,12 @@ def swap_vehicles(world, options: dict[str, list[str]]):
 
 
 def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress = no_progress):
-    """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3]) per query: benchmark-pool vehicles put in
-    the place of world vehicles (``swap_vehicles``), each seen in the view that shows most of it whole (not cut by
-    the image border), cropped by its ground-truth mask (other pixels black, as in the keyframes)."""
+    """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3], more crops uint8 [k, CROP, CROP, 3]) per
+    query: benchmark-pool vehicles put in the place of world vehicles (``swap_vehicles``), each seen whole (not cut
+    by the image border) and cropped by its ground-truth mask (other pixels black, as in the keyframes). The first
+    crop is the view that shows most of it; the others are its next largest views, up to ``DualConfig.match_views``
+    in all, as the dual strategy's matching takes a track's largest views."""
+    from omniscs.agents.dual import DualConfig
     from omniscs.world import generate_world
 
     by_category: dict[str, list[str]] = {}
@@ -184,13 +187,15 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     for item in config.match_scenes:
         template, _, seed = item.partition(":")
         world, swapped = swap_vehicles(generate_world(template, int(seed)), by_category)
-        best: dict[int, tuple[int, np.ndarray]] = {}
+        seen: dict[int, list[tuple[int, np.ndarray]]] = {}
         for tid, n, crop in whole_views(world, swapped, 5, config.min_pixels * 2):
-            if n > best.get(tid, (0,))[0]:
-                best[tid] = (n, crop)
-        for tid, (_, crop) in sorted(best.items()):
+            seen.setdefault(tid, []).append((n, crop))
+        for tid, views in sorted(seen.items()):
+            views = sorted(views, key=lambda v: -v[0])[:DualConfig().match_views]  # stable: the first largest leads
             model_id, category = model_of[swapped[tid]]
-            queries.append((crop, category, model_id, world.agent(tid).size))
+            more = np.stack([c for _, c in views[1:]]) if len(views) > 1 else np.zeros((0, *views[0][1].shape),
+                                                                                         np.uint8)
+            queries.append((views[0][1], category, model_id, world.agent(tid).size, more))
         progress(len(queries), config.match_queries, f"matching queries from {item}")
         if len(queries) >= config.match_queries:
             break
@@ -220,7 +225,9 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
                  progress: Progress = no_progress) -> list[dict]:
     """Top-1/top-5 (within the query's category) per degradation level and embedder, on appearance alone and with
     the box-shape term the dual strategy adds (the query's size as a detector measures it: ``size_noise`` relative
-    error per axis)."""
+    error per axis); where queries carry more views (a fifth item, ``matching_queries``), also as the dual strategy
+    scores a track: the mean over its views, each degraded on its own, of the best keyframe similarity, with the
+    box-shape term."""
     from omniscs.agents.matching import pool_gallery
     from omniscs.agents.degradation import Degradation, degrade
 
@@ -230,6 +237,10 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     truth = np.array([q[2] for q in queries])
     noise = np.random.default_rng(11).normal(0.0, size_noise, (len(queries), 3))
     sizes = np.stack([q[3] for q in queries]) * np.exp(noise)
+    more = [q[4] if len(q) > 4 else np.zeros((0, *crops.shape[1:]), np.uint8) for q in queries]
+    owner_of_more = np.concatenate([np.full(len(m), i) for i, m in enumerate(more)]).astype(np.int64)
+    n_views = 1 + max(len(m) for m in more)
+    view_counts = {str(k): sum(1 + len(m) == k for m in more) for k in range(n_views, 0, -1)}
     for embedder in embedders:
         gallery, owner, table = pool_gallery(pool, embedder)
         models = np.array(sorted(table.model_id))
@@ -247,11 +258,24 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
             best = np.full((len(crops), len(models)), -np.inf)
             np.maximum.at(best.T, cols, sim.T)
             best[cats[:, None] != model_cat[None, :]] = -np.inf  # category known from detection
-            for cue, scores in (("appearance", best), ("appearance + box shape", best - size_weight * shape)):
+            cues = [("appearance", best), ("appearance + box shape", best - size_weight * shape)]
+            if len(owner_of_more):  # the track's other views, degraded alike (their own draws), averaged in
+                extra_rng = np.random.default_rng(8)
+                extra = np.stack([degrade(c, Degradation(**spec), extra_rng) for m in more for c in m])
+                extra_sim = embedder.embed(extra) @ gallery.T
+                extra_best = np.full((len(extra), len(models)), -np.inf)
+                np.maximum.at(extra_best.T, cols, extra_sim.T)
+                total = best.copy()
+                np.add.at(total, owner_of_more, extra_best)
+                counts = 1 + np.bincount(owner_of_more, minlength=len(crops))
+                cues.append((f"appearance + box shape, up to {n_views} views",
+                             total / counts[:, None] - size_weight * shape))
+            for cue, scores in cues:
                 ranked = models[np.argsort(-scores, axis=1)]
                 rows.append({"embedder": embedder.name, "cue": cue, "level": level, "degradation": spec,
                              "queries": len(crops), "top1": float(np.mean(ranked[:, 0] == truth)),
-                             "top5": float(np.mean([t in r[:5] for t, r in zip(truth, ranked)]))})
+                             "top5": float(np.mean([t in r[:5] for t, r in zip(truth, ranked)])),
+                             **({"queries_by_views": view_counts} if "views" in cue else {})})
     return rows
 
 
@@ -427,17 +451,22 @@ def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
     report = {"config": asdict(config), "machine": finish(machine), "pool_size": len(pool.table()),
               "msnet_training": json.loads(training.read_text()) if training.is_file() else None,
               "matching": matching, "target": _matching_target(matching)}
+    write_report(out_dir, "agents_matching", report, matching_markdown(report))
+    return report
+
+
+def matching_markdown(report: dict) -> str:
+    """reports/agents_matching.md from its JSON."""
     info = report["msnet_training"] or {}
     t = report["target"]
     lines = ["# Agents: matching alone (reports/agents_matching)", "", load_line(report["machine"]), "",
              f"The benchmark pool ({report['pool_size']} models) and queries of reports/agents_bench "
-             f"(worlds {', '.join(config.match_scenes)}). Shipped MSNet: {info.get('n_assets', '?')} training "
-             f"identities, {info.get('n_keyframe_crops', '?')} keyframe and {info.get('n_camera_crops', '?')} camera "
-             "crops (its training.json), none of a benchmark world or of the benchmark pool.", "",
+             f"(worlds {', '.join(report['config']['match_scenes'])}). Shipped MSNet: {info.get('n_assets', '?')} "
+             f"training identities, {info.get('n_keyframe_crops', '?')} keyframe and {info.get('n_camera_crops', '?')} "
+             "camera crops (its training.json), none of a benchmark world or of the benchmark pool.", "",
              f"Top-1 at x4 + 40 % occlusion + illumination: {t['top1']:.1%} ({t['best']}); goal 95 %: "
-             f"{'met' if t['met'] else 'NOT met'}.", "", *_matching_lines(matching), ""]
-    write_report(out_dir, "agents_matching", report, "\n".join(lines) + "\n")
-    return report
+             f"{'met' if t['met'] else 'NOT met'}.", "", *_matching_lines(report["matching"]), ""]
+    return "\n".join(lines) + "\n"
 
 
 def _default_name() -> str:
@@ -475,17 +504,27 @@ def _targets(matching, summary, timing) -> dict:
                               "met": statistics.median(r["seconds"] for r in timing) <= 30.0}}
 
 
+def _views_note(matching: list[dict]) -> list[str]:
+    """How many views the multi-view rows had per query (none when the report has no such rows)."""
+    counts = next((r["queries_by_views"] for r in matching if "queries_by_views" in r), None)
+    if not counts:
+        return []
+    spread = ", ".join(f"{n} with {k}" for k, n in counts.items() if n)
+    return [f"The rows with views score each query over its largest whole views as the dual strategy scores a track "
+            f"(the mean best keyframe similarity, each view degraded on its own): {spread}."]
+
+
 def _matching_lines(matching: list[dict]) -> list[str]:
     lines = ["## Matching (top-1 / top-5 within the query's category)", "",
              f"{len(set(r['level'] for r in matching))} degradation levels, {matching[0]['queries']} queries: "
              "pool-split vehicles rendered into world scenes by the world's renderer (its lighting, not the "
-             "keyframes'), each cropped by its ground-truth mask.", "",
+             "keyframes'), each cropped by its ground-truth mask.", *_views_note(matching), "",
              "| embedder | " + " | ".join(lv for lv, _ in MATCH_LEVELS) + " |", "|---|" + "---|" * len(MATCH_LEVELS)]
     for name, cue in dict.fromkeys((r["embedder"], r.get("cue", "appearance")) for r in matching):
         cells = [next(f"{r['top1']:.0%} / {r['top5']:.0%}" for r in matching
                       if r["embedder"] == name and r.get("cue", "appearance") == cue and r["level"] == lv)
                  for lv, _ in MATCH_LEVELS]
-        label = name if cue == "appearance" else f"{name} + box shape"
+        label = cue.replace("appearance", name, 1)
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 

@@ -109,3 +109,47 @@ def test_the_matching_only_benchmark_writes_its_report(tmp_path):
     levels = {r["level"] for r in report["matching"]}
     assert levels == {lv for lv, _ in MATCH_LEVELS} and report["pool_size"] == 12
     assert "## Matching" in (tmp_path / "out" / "agents_matching.md").read_text()
+
+
+def test_multi_view_matching_scores_a_query_as_the_dual_strategy_scores_a_track(tmp_path):
+    from omniscs.agents.matching import ColourHistogram, crop_square, match_scores
+    from omniscs.agents.mesh import model_from_mesh
+    from omniscs.agents.pool import Pool
+    from omniscs.bench.agents import _matching_lines
+    from omniscs.world.assets import build_asset
+
+    pool = Pool(tmp_path / "pool")
+    for aid in ("sedan-0050", "sedan-0051", "sedan-0052", "suv-0040"):
+        a = build_asset(aid)
+        params, _ = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1000, 0)
+        pool.add(params, a.category, "mesh", aid)
+    table = pool.table()
+
+    def crop(model_id, k):
+        key = pool.keyframes(model_id)[k]
+        return crop_square(np.ascontiguousarray(key[..., :3]), key[..., 3] / 255.0)
+
+    # each query: its model's keyframe first, then zero to two keyframes of the next model of its category (views
+    # that disagree, so the mean over views decides), views of unequal count
+    rows_ = list(table.itertuples())
+    queries = []
+    for i, m in enumerate(rows_):
+        same = [r for r in rows_ if r.category == m.category]
+        other = same[(same.index(m) + 1) % len(same)].model_id
+        more = np.stack([crop(other, k) for k in (3, 20)[:i % 3]]) if i % 3 else np.zeros((0, 64, 64, 3), np.uint8)
+        queries.append((crop(m.model_id, 7), m.category, m.model_id, np.array([m.length, m.width, m.height]), more))
+    embedder = ColourHistogram()
+    rows = run_matching(queries, pool, [embedder], size_noise=0.0)
+    multi = [r for r in rows if "views" in r["cue"]]
+    assert len(rows) == 3 * len(MATCH_LEVELS) and len(multi) == len(MATCH_LEVELS)
+    assert multi[0]["cue"] == "appearance + box shape, up to 3 views"
+    assert multi[0]["queries_by_views"] == {"3": 1, "2": 1, "1": 2}
+    # undegraded, the ranking is the pipeline's (match_scores over the same crops), gated by category
+    tracks, models, scores, cats = match_scores({i: np.concatenate([q[0][None], q[4]]) for i, q in enumerate(queries)},
+                                                {i: q[3] for i, q in enumerate(queries)}, pool, embedder)
+    top1 = [models[np.argmax(np.where(cats == q[1], scores[i], -np.inf))] == q[2] for i, q in enumerate(queries)]
+    clean = next(r for r in multi if r["level"] == "clean")
+    assert clean["top1"] == pytest.approx(np.mean(top1))
+    assert clean["top1"] < next(r for r in rows if r["level"] == "clean" and r["cue"] == "appearance")["top1"] == 1.0
+    text = "\n".join(_matching_lines(rows))
+    assert "| colour histogram + box shape, up to 3 views |" in text and "2 with 1" in text
