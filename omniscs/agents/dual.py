@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from omniscs.agents.matching import CROP, Embedder, assign, crop_square, match_scores, match_tracks
+from omniscs.agents.matching import CROP, Embedder, assign, crop_scale, crop_square, match_scores, match_tracks
 from omniscs.agents.pool import Pool
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, with_sh_degree
@@ -421,22 +421,36 @@ def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams,
 
 # ----------------------------------------------------------------------------- matching
 def query_crops(graph: SceneGraph, scene, track_id: int, views: list[TrackView], n: int) -> np.ndarray:
+    """uint8 [k, CROP, CROP, 3] crops of the track in its ``n`` largest logged views (``query_views``)."""
+    return query_views(graph, scene, track_id, views, n)[0]
+
+
+def query_views(graph: SceneGraph, scene, track_id: int, views: list[TrackView],
+                n: int) -> tuple[np.ndarray, np.ndarray]:
     """uint8 [k, CROP, CROP, 3] crops of the track in its ``n`` largest logged views: the logged pixels the fitted
-    node covers (others black, as in the pool's keyframes), cut to the covered area."""
-    crops = []
+    node covers (others black, as in the pool's keyframes), cut to the covered area; and how small each is seen
+    [k] (``crop_scale``)."""
+    crops, scales = [], []
     for v in largest_views(views, n):
         _, cover = _visible_coverage(graph, track_id, graph.view(v.camera, v.frame_idx))
         if (cover > 0.5).sum() < 16:
             continue
-        image = scene.image(v.camera, v.frame_idx) * (cover > 0.5)[..., None]
-        crops.append(crop_square(image.astype(np.uint8), cover))
-    return np.stack(crops) if crops else np.zeros((0, CROP, CROP, 3), np.uint8)
+        image = (scene.image(v.camera, v.frame_idx) * (cover > 0.5)[..., None]).astype(np.uint8)
+        crops.append(crop_square(image, cover))
+        scales.append(crop_scale(image, cover))
+    return _stacked(crops, scales)
 
 
-def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> np.ndarray:
-    """Crops like ``query_crops`` without a fitted graph: the track's ground-truth instance mask where the scene has
-    one, else its box rectangle (the logged pixels around it included)."""
-    crops = []
+def _stacked(crops: list[np.ndarray], scales: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    if not crops:
+        return np.zeros((0, CROP, CROP, 3), np.uint8), np.zeros(0)
+    return np.stack(crops), np.asarray(scales, np.float64)
+
+
+def scene_query_views(scene, track_id: int, views: list[TrackView], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Crops and scales like ``query_views`` without a fitted graph: the track's ground-truth instance mask where
+    the scene has one, else its box rectangle (the logged pixels around it included)."""
+    crops, scales = [], []
     for v in largest_views(views, n):
         image = scene.image(v.camera, v.frame_idx)
         instance = scene.instance_mask(v.camera, v.frame_idx) if scene.has_gt else None
@@ -444,11 +458,15 @@ def scene_query_crops(scene, track_id: int, views: list[TrackView], n: int) -> n
             mask = instance == int(track_id)
             if mask.sum() < 16:
                 continue
-            crops.append(crop_square((image * mask[..., None]).astype(np.uint8), mask.astype(np.float32)))
+            masked = (image * mask[..., None]).astype(np.uint8)
+            crops.append(crop_square(masked, mask.astype(np.float32)))
+            scales.append(crop_scale(masked, mask.astype(np.float32)))
         else:
             x0, y0, x1, y1 = v.rect
-            crops.append(crop_square(np.ascontiguousarray(image[y0:y1, x0:x1])))
-    return np.stack(crops) if crops else np.zeros((0, CROP, CROP, 3), np.uint8)
+            box = np.ascontiguousarray(image[y0:y1, x0:x1])
+            crops.append(crop_square(box))
+            scales.append(crop_scale(box))
+    return _stacked(crops, scales)
 
 
 def placed_candidate(pool: Pool, model_id: str, node_size: np.ndarray, sh_degree: int, device) -> GaussianParams:
@@ -481,16 +499,17 @@ def verification_error(graph: SceneGraph, scene, track_id: int, candidate: Gauss
 
 def verified_matches(graph: SceneGraph, scene, tracks: list[int], views: dict[int, list[TrackView]], pool: Pool,
                      queries: dict[int, np.ndarray], config: DualConfig, embedder: Embedder | None = None,
-                     samples: dict[int, list[tuple]] | None = None) -> dict[int, tuple[str, float, float, np.ndarray]]:
+                     samples: dict[int, list[tuple]] | None = None,
+                     scales: dict[int, np.ndarray] | None = None) -> dict[int, tuple[str, float, float, np.ndarray]]:
     """Matching checked by rendering: each track's ``verify_top_k`` best models by appearance and shape are put in
     its node, colour-corrected, and scored by ``verification_error`` on its largest views; the Hungarian
     assignment (one model per track, within its category) then minimises that error. Returns track -> (model id,
     matching distance, verification error, colour affine). ``samples``: each track's ``colour_samples`` of its
-    largest views, when the caller has them."""
+    largest views, when the caller has them. ``scales``: each crop's ``crop_scale`` (``match_scores``)."""
     sizes = {t: np.asarray(graph.agent(t).size) for t in tracks}
     cats = {t: graph.agent(t).category for t in tracks}
     have, models, scores, model_cats = match_scores({t: queries[t] for t in tracks}, sizes, pool, embedder,
-                                                    config.size_weight)
+                                                    config.size_weight, scales)
     if not have or not len(models):
         return {}
     verify = np.full(scores.shape, -np.inf)
@@ -550,19 +569,20 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
     to_match = [t for t, d in decisions.items() if d.strategy == "pool"]
     matches: dict[int, tuple] = {}
     if to_match:
-        queries = {}
+        queries, scales = {}, {}
         for t in to_match:  # the fitted node's own pixels; where it covers too little, the scene's masks or boxes
-            queries[t] = query_crops(cropped, scene, t, views[t], config.match_views)
+            queries[t], scales[t] = query_views(cropped, scene, t, views[t], config.match_views)
             if not len(queries[t]):
-                queries[t] = scene_query_crops(scene, t, views[t], config.match_views)
+                queries[t], scales[t] = scene_query_views(scene, t, views[t], config.match_views)
         samples = {t: colour_samples(cropped, scene, t, largest_views(views[t], config.colour_views))
                    for t in to_match}
         if config.verify_top_k > 0:
-            matches = verified_matches(cropped, scene, to_match, views, pool, queries, config, embedder, samples)
+            matches = verified_matches(cropped, scene, to_match, views, pool, queries, config, embedder, samples,
+                                       scales)
         else:
             matches = {t: (m, dist, None, None) for t, (m, dist) in match_tracks(
                 queries, {t: np.asarray(nodes[t].size) for t in to_match}, {t: nodes[t].category for t in to_match},
-                pool, embedder, config.size_weight).items()}
+                pool, embedder, config.size_weight, scales).items()}
     for tid in sorted(need):
         d = decisions[tid]
         node = nodes[tid]
@@ -660,5 +680,5 @@ def read_decisions(path: str | Path) -> list[dict]:
 
 __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",
            "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected",
-           "colour_samples", "fit_colour_correction", "query_crops",
+           "colour_samples", "fit_colour_correction", "query_crops", "query_views",
            "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr"]

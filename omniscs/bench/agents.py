@@ -167,11 +167,12 @@ def swap_vehicles(world, options: dict[str, list[str]]):
 
 
 def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress = no_progress):
-    """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3], more crops uint8 [k, CROP, CROP, 3]) per
-    query: benchmark-pool vehicles put in the place of world vehicles (``swap_vehicles``), each seen whole (not cut
-    by the image border) and cropped by its ground-truth mask (other pixels black, as in the keyframes). The first
-    crop is the view that shows most of it; the others are its next largest views, up to ``DualConfig.match_views``
-    in all, as the dual strategy's matching takes a track's largest views."""
+    """(crop uint8 [CROP, CROP, 3], category, true model id, box size [3], more crops uint8 [k, CROP, CROP, 3],
+    ``crop_scale`` of each crop [1 + k]) per query: benchmark-pool vehicles put in the place of world vehicles
+    (``swap_vehicles``), each seen whole (not cut by the image border) and cropped by its ground-truth mask (other
+    pixels black, as in the keyframes). The first crop is the view that shows most of it; the others are its next
+    largest views, up to ``DualConfig.match_views`` in all, as the dual strategy's matching takes a track's largest
+    views."""
     from omniscs.agents.dual import DualConfig
     from omniscs.world import generate_world
 
@@ -187,15 +188,16 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     for item in config.match_scenes:
         template, _, seed = item.partition(":")
         world, swapped = swap_vehicles(generate_world(template, int(seed)), by_category)
-        seen: dict[int, list[tuple[int, np.ndarray]]] = {}
-        for tid, n, crop in whole_views(world, swapped, 5, config.min_pixels * 2):
-            seen.setdefault(tid, []).append((n, crop))
+        seen: dict[int, list[tuple[int, np.ndarray, float]]] = {}
+        for tid, n, crop, scale in whole_views(world, swapped, 5, config.min_pixels * 2):
+            seen.setdefault(tid, []).append((n, crop, scale))
         for tid, views in sorted(seen.items()):
             views = sorted(views, key=lambda v: -v[0])[:DualConfig().match_views]  # stable: the first largest leads
             model_id, category = model_of[swapped[tid]]
-            more = np.stack([c for _, c in views[1:]]) if len(views) > 1 else np.zeros((0, *views[0][1].shape),
-                                                                                         np.uint8)
-            queries.append((views[0][1], category, model_id, world.agent(tid).size, more))
+            more = np.stack([c for _, c, _ in views[1:]]) if len(views) > 1 else np.zeros((0, *views[0][1].shape),
+                                                                                            np.uint8)
+            queries.append((views[0][1], category, model_id, world.agent(tid).size, more,
+                            np.array([s for _, _, s in views])))
         progress(len(queries), config.match_queries, f"matching queries from {item}")
         if len(queries) >= config.match_queries:
             break
@@ -203,10 +205,11 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
 
 
 def whole_views(world, track_ids, frame_step: int, min_pixels: int):
-    """(track id, pixels, crop uint8 [CROP, CROP, 3]) for every camera image of every ``frame_step``-th frame of
-    ``world`` in which one of ``track_ids`` shows whole (not cut by the image border) over at least ``min_pixels``,
-    cropped by its ground-truth mask (other pixels black, as in the pool's keyframes)."""
-    from omniscs.agents.matching import crop_square
+    """(track id, pixels, crop uint8 [CROP, CROP, 3], its ``crop_scale``) for every camera image of every
+    ``frame_step``-th frame of ``world`` in which one of ``track_ids`` shows whole (not cut by the image border)
+    over at least ``min_pixels``, cropped by its ground-truth mask (other pixels black, as in the pool's
+    keyframes)."""
+    from omniscs.agents.matching import crop_scale, crop_square
     from omniscs.world import WorldRenderer
 
     renderer = WorldRenderer(world)
@@ -218,18 +221,21 @@ def whole_views(world, track_ids, frame_step: int, min_pixels: int):
                 n = int(mask.sum())
                 if n < min_pixels or mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
                     continue
-                yield tid, n, crop_square((gt.rgb * mask[..., None]).astype(np.uint8), mask.astype(np.float32))
+                masked = (gt.rgb * mask[..., None]).astype(np.uint8)
+                yield tid, n, crop_square(masked, mask.astype(np.float32)), crop_scale(masked, mask.astype(np.float32))
 
 
 def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise: float = 0.05,
                  progress: Progress = no_progress) -> list[dict]:
     """Top-1/top-5 (within the query's category) per degradation level and embedder, on appearance alone and with
     the box-shape term the dual strategy adds (the query's size as a detector measures it: ``size_noise`` relative
-    error per axis); where queries carry more views (a fifth item, ``matching_queries``), also as the dual strategy
-    scores a track: the mean over its views, each degraded on its own, of the best keyframe similarity, with the
-    box-shape term."""
-    from omniscs.agents.matching import pool_gallery
+    error per axis). Each crop is compared with the keyframes at the GALLERY_SCALES entry nearest to how small it
+    is seen: its own ``crop_scale`` (a sixth item of the query, one per view; none: 1) times the level's
+    downsampling, as the dual strategy does; one row per embedder compares with full-resolution keyframes instead.
+    Where queries carry more views (a fifth item, ``matching_queries``), also as the dual strategy scores a track:
+    the mean over its views, each degraded on its own, of the best keyframe similarity, with the box-shape term."""
     from omniscs.agents.degradation import Degradation, degrade
+    from omniscs.agents.matching import GALLERY_SCALES, best_per_model, gallery_scale, pool_gallery
 
     rows = []
     crops = np.stack([q[0] for q in queries])
@@ -238,11 +244,15 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     noise = np.random.default_rng(11).normal(0.0, size_noise, (len(queries), 3))
     sizes = np.stack([q[3] for q in queries]) * np.exp(noise)
     more = [q[4] if len(q) > 4 else np.zeros((0, *crops.shape[1:]), np.uint8) for q in queries]
+    seen = [np.asarray(q[5], np.float64) if len(q) > 5 else np.ones(1 + len(m)) for q, m in zip(queries, more)]
+    first_scale = np.array([s[0] for s in seen])
+    more_scale = np.concatenate([s[1:] for s in seen])
     owner_of_more = np.concatenate([np.full(len(m), i) for i, m in enumerate(more)]).astype(np.int64)
     n_views = 1 + max(len(m) for m in more)
     view_counts = {str(k): sum(1 + len(m) == k for m in more) for k in range(n_views, 0, -1)}
     for embedder in embedders:
-        gallery, owner, table = pool_gallery(pool, embedder)
+        galleries = {g: pool_gallery(pool, embedder, g) for g in GALLERY_SCALES}
+        _, owner, table = galleries[1.0]
         models = np.array(sorted(table.model_id))
         indexed = table.set_index("model_id").loc[models]
         model_cat = indexed["category"].to_numpy()
@@ -250,23 +260,29 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
         shape = np.abs(np.log(model_size[None] / sizes[:, None])).mean(-1)  # [Q, M]
         index = {m: j for j, m in enumerate(models)}
         cols = np.array([index[m] for m in owner])
+
+        def scored(embeddings, scales):  # [n, M]: each embedding against the keyframes as small as it is seen
+            at = np.array([gallery_scale(x) for x in scales])
+            best = np.zeros((len(embeddings), len(models)))
+            for g in np.unique(at):
+                best[at == g] = best_per_model(embeddings[at == g], galleries[g][0], cols, len(models))
+            return best
+
         for level, spec in MATCH_LEVELS:
             progress(len(rows), None, f"matching: {embedder.name}, {level}")
+            down = spec.get("downsample", 1.0)
             rng = np.random.default_rng(7)
-            degraded = np.stack([degrade(c, Degradation(**spec), rng) for c in crops])
-            sim = embedder.embed(degraded) @ gallery.T
-            best = np.full((len(crops), len(models)), -np.inf)
-            np.maximum.at(best.T, cols, sim.T)
-            best[cats[:, None] != model_cat[None, :]] = -np.inf  # category known from detection
-            cues = [("appearance", best), ("appearance + box shape", best - size_weight * shape)]
+            embedded = embedder.embed(np.stack([degrade(c, Degradation(**spec), rng) for c in crops]))
+            other = cats[:, None] != model_cat[None, :]  # category known from detection
+            best = np.where(other, -np.inf, scored(embedded, first_scale * down))
+            full = np.where(other, -np.inf, scored(embedded, np.ones(len(crops))))
+            cues = [("appearance", best), ("appearance + box shape", best - size_weight * shape),
+                    ("appearance + box shape, keyframes at full resolution", full - size_weight * shape)]
             if len(owner_of_more):  # the track's other views, degraded alike (their own draws), averaged in
                 extra_rng = np.random.default_rng(8)
                 extra = np.stack([degrade(c, Degradation(**spec), extra_rng) for m in more for c in m])
-                extra_sim = embedder.embed(extra) @ gallery.T
-                extra_best = np.full((len(extra), len(models)), -np.inf)
-                np.maximum.at(extra_best.T, cols, extra_sim.T)
                 total = best.copy()
-                np.add.at(total, owner_of_more, extra_best)
+                np.add.at(total, owner_of_more, scored(embedder.embed(extra), more_scale * down))
                 counts = 1 + np.bincount(owner_of_more, minlength=len(crops))
                 cues.append((f"appearance + box shape, up to {n_views} views",
                              total / counts[:, None] - size_weight * shape))
@@ -647,7 +663,7 @@ def _spread_views(world, asset_of: dict[int, str], frame_step: int, min_pixels: 
     """Up to ``per_track`` crops (``whole_views``, spread over the log) of each track of ``asset_of`` seen whole at
     least ``min_views`` times, and its asset id per crop."""
     seen: dict[int, list[np.ndarray]] = {}
-    for tid, _, crop in whole_views(world, asset_of, frame_step, min_pixels):
+    for tid, _, crop, _ in whole_views(world, asset_of, frame_step, min_pixels):
         seen.setdefault(tid, []).append(crop)
     crops, labels = [], []
     for tid, views in seen.items():

@@ -110,7 +110,7 @@ def pool_match(
 ) -> None:
     """Each track's pool model (Hungarian over appearance and box shape, within its category): JSON
     {track: {model_id, distance, category}}; tracks without a view or a model of their category map to null."""
-    from omniscs.agents.dual import DualConfig, scene_query_crops, track_views
+    from omniscs.agents.dual import DualConfig, scene_query_views, track_views
     from omniscs.agents.matching import match_tracks
     from omniscs.agents.pool import Pool
     from omniscs.cli.common import comma_list
@@ -130,11 +130,12 @@ def pool_match(
         raise ValidationError(f"scene {scene.scene_id} has no track(s) {unknown}")
     config = DualConfig()
     frames = range(scene.n_frames)
-    queries, sizes, cats = {}, {}, {}
+    queries, scales, sizes, cats = {}, {}, {}, {}
     for t in ids:
-        queries[t] = scene_query_crops(scene, t, track_views(scene, t, frames, config.min_view_pixels), views)
+        queries[t], scales[t] = scene_query_views(scene, t, track_views(scene, t, frames, config.min_view_pixels),
+                                                  views)
         sizes[t] = track_poses(boxes, t, scene.n_frames)[2]
         cats[t] = str(boxes[boxes.track_id == t].category.iloc[0])
-    matches = match_tracks(queries, sizes, cats, Pool(pool), size_weight=config.size_weight)
+    matches = match_tracks(queries, sizes, cats, Pool(pool), size_weight=config.size_weight, scales=scales)
     print(json.dumps({str(t): ({"model_id": matches[t][0], "distance": round(matches[t][1], 4), "category": cats[t]}
                                if t in matches else None) for t in ids}, indent=1))

@@ -16,8 +16,9 @@ from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
 
-#: Bumped when the agents stage changes what it writes (2: relit pool models, the size rule).
-AGENTS_VERSION = 2
+#: Bumped when the agents stage changes what it writes (2: relit pool models, the size rule; 3: matching compares a
+#: crop seen small with keyframes as small, ``matching.GALLERY_SCALES``).
+AGENTS_VERSION = 3
 
 DECISIONS = "decisions.json"
 

@@ -59,7 +59,7 @@ def test_matching_ranks_keyframe_queries_first_within_their_category(tmp_path):
         queries.append((crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0), m.category, m.model_id,
                         np.array([m.length, m.width, m.height])))
     rows = run_matching(queries, pool, [ColourHistogram()])
-    assert len(rows) == 2 * len(MATCH_LEVELS)
+    assert len(rows) == 3 * len(MATCH_LEVELS)  # appearance, + box shape, + box shape with full-resolution keyframes
     clean = [r for r in rows if r["level"] == "clean"]
     assert all(r["top1"] == 1.0 and r["top5"] == 1.0 for r in clean)
     assert all(0.0 <= r["top1"] <= r["top5"] <= 1.0 for r in rows)
@@ -141,7 +141,7 @@ def test_multi_view_matching_scores_a_query_as_the_dual_strategy_scores_a_track(
     embedder = ColourHistogram()
     rows = run_matching(queries, pool, [embedder], size_noise=0.0)
     multi = [r for r in rows if "views" in r["cue"]]
-    assert len(rows) == 3 * len(MATCH_LEVELS) and len(multi) == len(MATCH_LEVELS)
+    assert len(rows) == 4 * len(MATCH_LEVELS) and len(multi) == len(MATCH_LEVELS)
     assert multi[0]["cue"] == "appearance + box shape, up to 3 views"
     assert multi[0]["queries_by_views"] == {"3": 1, "2": 1, "1": 2}
     # undegraded, the ranking is the pipeline's (match_scores over the same crops), gated by category

@@ -275,9 +275,9 @@ def test_rendering_the_candidates_into_the_scene_finds_the_vehicle_a_track_was_m
     graph = fit_scene(scene, config, make_plan(scene, None, config.plan), evaluate=False).graph
     frames = range(scene.n_frames)
     views = {1: track_views(scene, 1, frames, 100)}
-    from omniscs.agents.dual import scene_query_crops
+    from omniscs.agents.dual import scene_query_views
 
-    queries = {1: scene_query_crops(scene, 1, views[1], 4)}
+    queries = {1: scene_query_views(scene, 1, views[1], 4)[0]}
     got = verified_matches(graph, scene, [1], views, own, queries, DualConfig(verify_top_k=3, min_view_pixels=100))
     model_id, distance, error, affine = got[1]
     assert model_id == own_id and np.isfinite(distance) and 0 <= error < 1 and np.isfinite(affine).all()

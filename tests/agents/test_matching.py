@@ -85,3 +85,65 @@ def test_the_colour_histogram_finds_clean_views_of_pool_models():
     e = ColourHistogram()
     scores, models = model_scores(e.embed(np.stack(queries)), e.embed(np.stack(gallery)), np.array(gallery_model))
     assert top_k_accuracy(scores, models, np.array(truth))[1] >= 0.8
+
+
+def test_crop_scale_says_how_small_the_crop_sees_the_object():
+    from omniscs.agents.matching import crop_scale
+
+    img = np.zeros((200, 200, 3), np.uint8)
+    alpha = np.zeros((200, 200))
+    alpha[50:62, 20:48] = 1.0  # 28 x 12 pixels: the square is 27 + 4 = 31 pixels
+    assert crop_scale(img, alpha) == pytest.approx(64 / 31)
+    alpha[:] = 0.0
+    alpha[10:190, 10:150] = 1.0  # larger than the crop: seen sharp
+    assert crop_scale(img, alpha) == 1.0
+    assert crop_scale(img[:16, :32]) == pytest.approx(2.0)  # no mask: the whole image
+    assert crop_scale(img, np.zeros((200, 200))) == 1.0  # an empty mask: the whole image (200 px)
+
+
+def test_gallery_scale_takes_the_nearest_octave_and_stays_finite():
+    from omniscs.agents.matching import GALLERY_SCALES, gallery_scale
+
+    assert [gallery_scale(s) for s in (1.0, 1.3, 1.5, 2.9, 3.0, 5.0, 6.0, 100.0)] == \
+        [1.0, 1.0, 2.0, 4.0, 4.0, 4.0, 8.0, 8.0]
+    assert all(gallery_scale(s) == 1.0 for s in (0.0, 0.5, -3.0, float("nan"), float("-inf")))
+    assert gallery_scale(float("inf")) == 1.0 and max(GALLERY_SCALES) == 8.0
+
+
+def test_a_query_seen_small_is_compared_with_keyframes_as_small(tmp_path):
+    """The gallery at x4 holds each keyframe downsampled 4 times: a keyframe degraded so is its own best match
+    there (similarity 1), and match_scores with that scale gives it the same score it gets against that gallery."""
+    from omniscs.agents.matching import best_per_model, match_scores, pool_gallery
+    from omniscs.agents.mesh import model_from_mesh
+    from omniscs.agents.pool import Pool
+    from omniscs.world.assets import build_asset
+
+    pool = Pool(tmp_path / "pool")
+    for aid in ("sedan-0050", "sedan-0051"):
+        a = build_asset(aid)
+        params, _ = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1000, 0)
+        pool.add(params, a.category, "mesh", aid)
+    table = pool.table().sort_values("model_id")
+    e = ColourHistogram()
+    full, owner, _ = pool_gallery(pool, e)
+    small, owner4, _ = pool_gallery(pool, e, 4.0)
+    assert small.shape == full.shape and list(owner4) == list(owner) and not np.allclose(small, full)
+    names = sorted(p.name for p in (pool.root / "embeddings").iterdir())  # cached apart
+    assert len(names) == 2 and names[0] == names[1].replace(".npz", "-x4.npz")
+    assert np.array_equal(pool_gallery(pool, e, 4.0)[0], small)  # read back from the cache
+    with pytest.raises(ValidationError):
+        pool_gallery(pool, e, 3.0)
+    mid = table.model_id.iloc[0]
+    k = pool.keyframes(mid)[5]
+    query = degrade(crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0), Degradation(downsample=4),
+                    np.random.default_rng(0))[None]
+    cols = np.searchsorted(np.array(sorted(table.model_id)), owner.astype(str))
+    at_small = best_per_model(e.embed(query), small, cols, 2)[0]
+    assert at_small[0] == pytest.approx(1.0, abs=1e-5)
+    size = table[["length", "width", "height"]].to_numpy()[0]
+    _, models, scores, _ = match_scores({1: query}, {1: size}, pool, e, size_weight=0.0, scales={1: np.array([4.2])})
+    assert models[0] == mid and scores[0] == pytest.approx(at_small, abs=1e-6)
+    _, _, unscaled, _ = match_scores({1: query}, {1: size}, pool, e, size_weight=0.0)
+    assert unscaled[0] == pytest.approx(best_per_model(e.embed(query), full, cols, 2)[0], abs=1e-6)
+    with pytest.raises(ValidationError):
+        match_scores({1: query}, {1: size}, pool, e, scales={1: np.array([1.0, 2.0])})
