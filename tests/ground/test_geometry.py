@@ -2,7 +2,7 @@
 test_quaternions.py)."""
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from omniscs.geometry import (box_corners, box_corners_from_pose, clip_segment_to_near, compose,
