@@ -7,7 +7,7 @@ A pool model is represented by its 30 keyframes; a query's similarity to a model
 over that model's keyframes."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import cv2
 import numpy as np
@@ -197,6 +197,19 @@ def best_per_model(embeddings: np.ndarray, gallery: np.ndarray, columns: np.ndar
     return best
 
 
+def best_at_scales(embeddings: np.ndarray, scales: np.ndarray, gallery_at: Callable[[float], np.ndarray],
+                   columns: np.ndarray, n_models: int) -> np.ndarray:
+    """[Q, M] ``best_per_model`` with each embedding [Q, D] against the keyframes at the ``gallery_scale`` of its
+    scale [Q] (``gallery_at``: a GALLERY_SCALES entry -> the keyframe embeddings [G, D] at it)."""
+    at = np.array([gallery_scale(s) for s in scales])
+    if len(at) != len(embeddings):
+        raise ValidationError(f"{len(at)} scales for {len(embeddings)} crops")
+    best = np.zeros((len(embeddings), n_models))
+    for g in np.unique(at):
+        best[at == g] = best_per_model(embeddings[at == g], gallery_at(float(g)), columns, n_models)
+    return best
+
+
 def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], pool: Pool,
                  embedder: Embedder | None = None, size_weight: float = 1.0,
                  scales: dict[int, np.ndarray] | None = None):
@@ -207,6 +220,12 @@ def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], p
     embedder = embedder or default_embedder()
     galleries = {1.0: pool_gallery(pool, embedder)}
     _, owner, table = galleries[1.0]
+
+    def gallery_at(g: float) -> np.ndarray:
+        if g not in galleries:
+            galleries[g] = pool_gallery(pool, embedder, g)
+        return galleries[g][0]
+
     tracks = [t for t in queries if len(queries[t])]
     if not tracks or table.empty:
         return [], np.zeros(0, dtype=object), np.zeros((len(tracks), 0)), np.zeros(0, dtype=object)
@@ -218,15 +237,10 @@ def match_scores(queries: dict[int, np.ndarray], sizes: dict[int, np.ndarray], p
     scores = np.zeros((len(tracks), len(models)))
     for i, t in enumerate(tracks):
         emb = embedder.embed(queries[t])  # [k, D]
-        at = np.array([gallery_scale(s) for s in scales[t]]) if scales is not None and t in scales \
-            else np.ones(len(emb))
+        at = np.asarray(scales[t], np.float64) if scales is not None and t in scales else np.ones(len(emb))
         if len(at) != len(emb):
             raise ValidationError(f"track {t}: {len(at)} scales for {len(emb)} crops")
-        best = np.zeros((len(emb), len(models)))
-        for g in np.unique(at):
-            if g not in galleries:
-                galleries[g] = pool_gallery(pool, embedder, float(g))
-            best[at == g] = best_per_model(emb[at == g], galleries[g][0], cols, len(models))
+        best = best_at_scales(emb, at, gallery_at, cols, len(models))
         shape = np.abs(np.log(np.maximum(model_size, 1e-3) / np.maximum(sizes[t], 1e-3)[None])).mean(1)
         scores[i] = best.mean(0) - size_weight * shape
     return tracks, models, scores, table.loc[models, "category"].to_numpy()

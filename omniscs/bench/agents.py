@@ -235,7 +235,7 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     Where queries carry more views (a fifth item, ``matching_queries``), also as the dual strategy scores a track:
     the mean over its views, each degraded on its own, of the best keyframe similarity, with the box-shape term."""
     from omniscs.agents.degradation import Degradation, degrade
-    from omniscs.agents.matching import GALLERY_SCALES, best_per_model, gallery_scale, pool_gallery
+    from omniscs.agents.matching import GALLERY_SCALES, best_at_scales, pool_gallery
 
     rows = []
     crops = np.stack([q[0] for q in queries])
@@ -262,11 +262,7 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
         cols = np.array([index[m] for m in owner])
 
         def scored(embeddings, scales):  # [n, M]: each embedding against the keyframes as small as it is seen
-            at = np.array([gallery_scale(x) for x in scales])
-            best = np.zeros((len(embeddings), len(models)))
-            for g in np.unique(at):
-                best[at == g] = best_per_model(embeddings[at == g], galleries[g][0], cols, len(models))
-            return best
+            return best_at_scales(embeddings, scales, lambda g: galleries[g][0], cols, len(models))
 
         for level, spec in MATCH_LEVELS:
             progress(len(rows), None, f"matching: {embedder.name}, {level}")
