@@ -29,12 +29,21 @@ CROP = 64  # embedders see square crops of this many pixels
 GALLERY_SCALES = (1.0, 2.0, 4.0, 8.0)
 
 
+def _square(alpha: np.ndarray | None) -> tuple[float, float, float] | None:
+    """Centre (row, column) and half side of the square around the object (``alpha`` > 0.5, 2 pixels of margin);
+    None without an object."""
+    if alpha is None or not (alpha > 0.5).any():
+        return None
+    ys, xs = np.nonzero(alpha > 0.5)
+    return (0.5 * (ys.min() + ys.max()), 0.5 * (xs.min() + xs.max()),
+            0.5 * max(ys.max() - ys.min(), xs.max() - xs.min()) + 2)
+
+
 def crop_square(rgb: np.ndarray, alpha: np.ndarray | None = None, size: int = CROP) -> np.ndarray:
     """The object's square crop (its alpha's bounding box, or the whole image), resized to ``size``."""
-    if alpha is not None and (alpha > 0.5).any():
-        ys, xs = np.nonzero(alpha > 0.5)
-        cy, cx = 0.5 * (ys.min() + ys.max()), 0.5 * (xs.min() + xs.max())
-        half = 0.5 * max(ys.max() - ys.min(), xs.max() - xs.min()) + 2
+    square = _square(alpha)
+    if square is not None:
+        cy, cx, half = square
         y0, y1 = int(max(0, cy - half)), int(min(rgb.shape[0], cy + half + 1))
         x0, x1 = int(max(0, cx - half)), int(min(rgb.shape[1], cx + half + 1))
         rgb = rgb[y0:y1, x0:x1]
@@ -44,11 +53,10 @@ def crop_square(rgb: np.ndarray, alpha: np.ndarray | None = None, size: int = CR
 def crop_scale(rgb: np.ndarray, alpha: np.ndarray | None = None, size: int = CROP) -> float:
     """How many times smaller than a sharp ``size``-pixel crop ``crop_square`` sees the object: ``size`` over the
     side of the square it cuts (1 when that side is ``size`` pixels or more)."""
-    h, w = rgb.shape[:2]
-    side = float(max(h, w))
-    if alpha is not None and (alpha > 0.5).any():
-        ys, xs = np.nonzero(alpha > 0.5)
-        side = min(float(max(ys.max() - ys.min(), xs.max() - xs.min()) + 4), side)
+    side = float(max(rgb.shape[:2]))
+    square = _square(alpha)
+    if square is not None:
+        side = min(2.0 * square[2], side)
     return max(1.0, size / max(side, 1.0))
 
 
