@@ -1,5 +1,6 @@
 """Small procedural logs for scene-graph tests: the ``straight`` layout with an ego at 6 m/s and hand-placed
-agents, rendered (images, ground truth, LiDAR) at thumbnail size in about a second."""
+agents, rendered (images, ground truth, LiDAR) at thumbnail size in about a second. The world's packages are imported
+only to make a log, so that tiny_fit_config also serves GPU machines that lack them (infra/gpu_check)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,8 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.geometry import pose_from_xyz_yaw
-from omniscs.scene.synthetic import write_world_scene
-from omniscs.world import AgentTrack, camera_rig, generate_world
 
 CAR = (4.5, 1.9, 1.6)
 
@@ -22,6 +21,8 @@ DEFAULT_AGENTS = (
 def nsg_world(agents=DEFAULT_AGENTS, n_frames: int = 8, n_cameras: int = 1, width: int = 96, height: int = 54,
               ego_speed: float = 6.0):
     """agents: dicts with x, y (world, frame 0), speed (m/s, along +x), optional asset, first/last frame, size."""
+    from omniscs.world import AgentTrack, camera_rig, generate_world
+
     base = generate_world("straight", 0, n_frames=n_frames, n_cameras=n_cameras, width=width, height=height)
     t = np.arange(n_frames) * 0.1
     ego = np.stack([pose_from_xyz_yaw(ego_speed * ti, 0.0, 0.0, 0.0) for ti in t])
@@ -37,6 +38,8 @@ def nsg_world(agents=DEFAULT_AGENTS, n_frames: int = 8, n_cameras: int = 1, widt
 
 
 def write_nsg_scene(out: Path, world=None, scene_id: str = "nsg-test") -> Path:
+    from omniscs.scene.synthetic import write_world_scene
+
     world = world if world is not None else nsg_world()
     return write_world_scene(world, out, scene_id, {"kind": "test", "name": scene_id})
 

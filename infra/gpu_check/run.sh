@@ -6,7 +6,10 @@
 #   3. a CUDA fit: the checks of tests/nsg/test_nsg_device.py's CUDA test on a tiny scene, then one fast-preset fit
 #      of a small two-camera scene on CUDA and on the CPU (seconds, held-out PSNR);
 #   4. behaviour variants on CUDA: tests/scs/test_behavior_adversarial.py's CUDA test, then three variants of one
-#      procedural scene on each device (seconds).
+#      procedural scene on each device (seconds);
+#   5. relit agent nodes on CUDA: tests/nsg/test_relight.py's CUDA case on the tiny scene (relit colours through
+#      gsplat, the light fitted back through it).
+# Steps can be picked: GPU_CHECK_STEPS="1 5" (default: all).
 # Scenes are written first with the test fixtures (GPU_CHECK_SCENES, default .gpu_check; pre-made copies are used
 # as they are, for a machine without the world's packages).
 set -u
@@ -29,7 +32,10 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
 t0=$(date +%s)
 $PY -c "from gsplat.cuda._backend import _C; print('gsplat kernels ready:', _C is not None)" || exit 1
 echo "gsplat build/load seconds: $(( $(date +%s) - t0 ))"
-$PY -m pytest -q --noconftest -o addopts="" -p no:cacheprovider tests/render/test_render_gsplat.py
-$PY infra/gpu_check/render_timing.py
-GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/fit_cuda.py 300
-GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/variants_cuda.py
+STEPS=" ${GPU_CHECK_STEPS:-1 2 3 4 5} "
+step() { [[ "$STEPS" == *" $1 "* ]]; }
+step 1 && $PY -m pytest -q --noconftest -o addopts="" -p no:cacheprovider tests/render/test_render_gsplat.py
+step 2 && $PY infra/gpu_check/render_timing.py
+step 3 && GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/fit_cuda.py 300
+step 4 && GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/variants_cuda.py
+step 5 && GPU_CHECK_SCENES=$SCENES $PY infra/gpu_check/relight_cuda.py

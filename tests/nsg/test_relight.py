@@ -10,7 +10,6 @@ from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams
 from omniscs.nsg.relight import Relight, flat_lighting, srgb_decode, srgb_encode
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
-from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 
 
 def _yaw(deg: float) -> np.ndarray:
@@ -49,26 +48,35 @@ def test_bad_relight_data_is_refused():
     assert bool(torch.isfinite(c).all()) and float(c.min()) >= 0 and float(c.max()) <= 1
 
 
-@pytest.fixture(scope="module")
-def graph(tmp_path_factory):
+def relit_graph(scene):
+    """The fitted-graph skeleton of ``scene`` with node 1 opaque, degree-0 and relit (what the agents stage leaves);
+    also built from a carried scene on GPU machines that lack the world's packages (infra/gpu_check)."""
     from omniscs.nsg.init import initial_graph
     from omniscs.nsg.observations import Observations
     from omniscs.plan import make_plan
-    from omniscs.scene import load_scene
+    from tests.nsg_fixtures import tiny_fit_config
 
-    scene = load_scene(write_nsg_scene(tmp_path_factory.mktemp("relight") / "scene", nsg_world(n_frames=4)))
     config = tiny_fit_config()
     g = initial_graph(scene, make_plan(scene, None, config.plan), config, Observations(scene))
-    # opaque node Gaussians, degree-0 colours: what the agents stage leaves
     node = g.agent(1)
     p = node.gaussians
     p = GaussianParams(p.means, p.quats, p.log_scales + 0.5, p.opacity_logits + 6.0, p.sh_dc, torch.zeros_like(p.sh_rest))
     gen = torch.Generator().manual_seed(0)
-    light = torch.tensor([[0.4, 0.4, 0.45], [0.5, 0.45, 0.4], [0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [0.02, 0.03, 0.05]])
     relight = Relight(torch.rand(len(p), 3, generator=gen),
-                      torch.nn.functional.normalize(torch.randn(len(p), 3, generator=gen), dim=1), light)
+                      torch.nn.functional.normalize(torch.randn(len(p), 3, generator=gen), dim=1), LIGHT)
     return g.replace(agents=tuple(a.with_changes(gaussians=p, relight=relight) if a.track_id == 1 else a
                                   for a in g.agents))
+
+
+LIGHT = torch.tensor([[0.4, 0.4, 0.45], [0.5, 0.45, 0.4], [0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [0.02, 0.03, 0.05]])
+
+
+@pytest.fixture(scope="module")
+def graph(tmp_path_factory):
+    from omniscs.scene import load_scene
+    from tests.nsg_fixtures import nsg_world, write_nsg_scene
+
+    return relit_graph(load_scene(write_nsg_scene(tmp_path_factory.mktemp("relight") / "scene", nsg_world(n_frames=4))))
 
 
 def _baked(graph, frame: int, extra=np.eye(3)):
@@ -115,3 +123,56 @@ def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph,
     (folder / GRAPH_JSON).write_text(json.dumps(meta))
     with pytest.raises(OmniscsError, match="relight"):
         load_checkpoint(folder)
+
+
+def relit_node_checks(graph, device: str) -> dict:
+    """A relit graph moved to ``device`` (CUDA: rendered by gsplat) renders node 1 in the colours its relight data
+    give at each frame's pose and after a turn (against the same colours baked by hand, on that device, and against
+    the CPU render), and its light fits back through that device's rasterizer (agents.relight.fit_lighting, as the
+    dual strategy calls it). Asserts; returns the figures (infra/gpu_check/relight_cuda.py prints them)."""
+    from omniscs.agents.dual import _alone
+    from omniscs.agents.relight import fit_lighting
+    from omniscs.nsg.edit import apply_graph_edits
+    from omniscs.nsg.graph import render_view
+    from omniscs.nsg.relight import flat_lighting
+
+    moved = graph.to(device)
+    r = moved.agent(1).relight
+    assert all(t.device.type == torch.device(device).type for t in (r.albedo, r.normals, r.lighting))
+    cam = graph.cameras[0].name
+    turn = [{"op": "rotate", "track_id": 1, "yaw_deg": 90.0}]
+    figures = {"backend": None, "baked_max_diff": 0.0, "cpu_mean_diff": 0.0}
+    for frame, edits, extra in ((0, [], np.eye(3)), (3, [], np.eye(3)), (2, turn, _yaw(90.0))):
+        g = apply_graph_edits(moved, edits) if edits else moved
+        assert g.agent(1).relight is not None
+        view = g.view(cam, frame)
+        out = g.render(view)
+        baked = _baked(moved, frame, extra)
+        baked = apply_graph_edits(baked, edits) if edits else baked
+        figures["backend"] = out.meta["backend"]
+        figures["baked_max_diff"] = max(figures["baked_max_diff"],
+                                        float((out.rgb - baked.render(view).rgb).abs().max()))
+        on_cpu = (apply_graph_edits(graph, edits) if edits else graph).render(graph.view(cam, frame)).rgb
+        figures["cpu_mean_diff"] = max(figures["cpu_mean_diff"], float((out.rgb.cpu() - on_cpu).abs().mean()))
+        assert bool(torch.isfinite(out.rgb).all())
+    assert figures["baked_max_diff"] < 1e-4 and figures["cpu_mean_diff"] < 2e-3, figures
+    # the light, fitted back from renders made with it, starting from an even light
+    node = moved.agent(1)
+    alone = _alone(moved, 1, node.gaussians).replace(agents=(node,))
+    samples = []
+    for f in range(graph.n_frames):
+        out = render_view(alone, moved.view(cam, f))
+        if (out.alpha > 0.9).sum() > 50:
+            samples.append((moved.view(cam, f), out.rgb.detach().cpu(), out.alpha.detach().cpu()))
+    assert samples
+    even = node.relight.with_lighting(flat_lighting().to(device))
+    fitted, info = fit_lighting(moved, 1, node.gaussians, even, samples, steps=150, lr=0.05)
+    assert fitted.lighting.device.type == torch.device(device).type
+    assert info["views"] == len(samples) and info["loss_last"] < 0.3 * info["loss_first"], info
+    return {**figures, "light_fit": info}
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA GPU"))])
+def test_a_relit_node_renders_and_fits_its_light_on_the_graphs_device(graph, device):
+    relit_node_checks(graph, device)
