@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from omniscs.background.drnet import DRNetConfig, FittedDRNet, aligned_inverse, least_squares_depth, train_drnet
-from omniscs.background.planes import (Donor, PlaneConfig, build_textures, fit_planes, plane_hits, region_points,
-                                       texture_colours)
+from omniscs.background.planes import (Donor, FreeSpace, PlaneConfig, build_textures, fit_planes, plane_hits,
+                                       region_points, texture_colours)
 from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, dilate, hole_bbox, hole_mask,
                                       lift_pixels, points_in_box, ray_norms)
 from omniscs.errors import OmniscsError
@@ -65,6 +65,9 @@ NEAR_HOLE_GROW = 0.5
 
 #: A hole pixel that the cleaned background covers at least this much shows what other views observed there.
 OBSERVED_ALPHA = 0.95
+
+#: A view shows nothing at all (the sky) where the cleaned background covers less than this of the pixel.
+EMPTY_ALPHA = 0.05
 REFIT_MODES = ("roi", "full", "none")
 
 
@@ -339,28 +342,34 @@ def plane_fill(hole_views: list[HoleView], cleaned: SceneGraph, obs: Observation
     planes = []
     for o in objects:
         planes += fit_planes(region_points(points, o), config.plane)
-    hits = []
-    for hv in hole_views:
-        entry = np.full(hv.mask.shape, np.inf)
-        for o in objects:
-            if o.present[hv.frame]:
-                entry = np.minimum(entry, box_entry_distance(hv.view, o.pose(hv.frame), o.size))
-        hv.plane_dist, which = plane_hits(hv.view, hv.mask, planes, entry)
-        hits.append((hv.view, hv.plane_dist, which))
     by_key = {(hv.camera, hv.frame): hv for hv in hole_views}
     donors = []
     for i, (cam, f) in enumerate(train_views):
         progress(i, len(train_views), f"plane texture views {cam} frame {f}")
         view = obs.view(cam, f).downscaled(config.factor)
         rendered = cleaned.render(view)
-        solid = np.where(rendered.alpha.cpu().numpy() > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
+        alpha = rendered.alpha.cpu().numpy()
+        solid = np.where(alpha > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
+        near = np.where(alpha > 0.5, rendered.depth.cpu().numpy(), np.inf)
+        nothing = alpha < EMPTY_ALPHA
         hv = by_key.get((cam, f))
         if hv is not None:
             solid[hv.mask] = np.inf  # the logged pixel shows the object
+            near[hv.mask] = 0.0
+            nothing[hv.mask] = False
             image = hv.image
         else:
             image = _uint8(obs.image(cam, f, config.factor))
-        donors.append(Donor(view, image, solid))
+        donors.append(Donor(view, image, solid, nothing, near))
+    free = FreeSpace(planes, donors, config.plane) if config.plane.free_space else None
+    hits = []
+    for hv in hole_views:
+        entry = np.full(hv.mask.shape, np.inf)
+        for o in objects:
+            if o.present[hv.frame]:
+                entry = np.minimum(entry, box_entry_distance(hv.view, o.pose(hv.frame), o.size))
+        hv.plane_dist, which = plane_hits(hv.view, hv.mask, planes, entry, empty=None if free is None else free.empty)
+        hits.append((hv.view, hv.plane_dist, which))
     textures = build_textures(planes, hits, donors, inpainter, config.plane)
     for hv, (_, dist, which) in zip(hole_views, hits):
         hv.plane_rgb, hv.planar = texture_colours(hv.view, dist, which, textures)

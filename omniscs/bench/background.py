@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 PLANES_ARM = "planes + DRNet + RoI refit"
 PLANES_SEEDED_ARM = "planes + DRNet + RoI refit, inpainted pixels seeded"
+PLANES_AGREE_ARM = "planes + DRNet + RoI refit, texels where the depth agrees, no free-space check"
 ARMS = ("naive", "hidden Gaussians removed", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit",
         PLANES_ARM)
 """The issue's rows and the starting point of every 3D repair (the object's node and the background Gaussians only
@@ -39,10 +40,13 @@ inpainted on the plane where their rays meet one (omniscs.background.planes), Ga
 the RoI refit fits the rest of the hole to the 2D inpainter's fill at DRNet's depth."""
 EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_ARM,
               "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
-              "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole")
+              "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole",
+              PLANES_AGREE_ARM)
 """The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
-2026-11-27); the last three use the embedded inpainting network instead of the configured inpainter, the last one
-inpainting every hole pixel (the cleaned background's render of the hole is not kept)."""
+2026-11-27); three that use use the embedded inpainting network instead of the configured inpainter, the last one
+inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm as it was
+until the eighth session of 2026-11-27 (a view gave a texel its colour only where its render's solid depth agreed with
+the texel's, and rays took planes where the views see through them)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 
@@ -68,6 +72,21 @@ class BackgroundBenchConfig:
     full_comparison: bool = True
     """Also run the ablations (EXTRA_ARMS): least squares + RoI refit, the full background refit, the planes arm
     seeding inpainted pixels, carrying inpainted pixels between views, the embedded inpainter."""
+    ablations: tuple[str, ...] | None = None
+    """With ``full_comparison``, only these of EXTRA_ARMS (None: all of them)."""
+
+    def __post_init__(self) -> None:
+        from omniscs.errors import OmniscsError
+
+        unknown = sorted(set(self.ablations or ()) - set(EXTRA_ARMS))
+        if unknown:
+            raise OmniscsError(f"unknown ablation(s) {unknown}; choose from {list(EXTRA_ARMS)}")
+
+    def extra_arms(self) -> tuple[str, ...]:
+        """The ablations this run makes, in EXTRA_ARMS' order."""
+        if not self.full_comparison:
+            return ()
+        return tuple(a for a in EXTRA_ARMS if self.ablations is None or a in self.ablations)
 
 
 def quick_config() -> BackgroundBenchConfig:
@@ -292,11 +311,13 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         seeded, n_seeds = seeded_graph(cleaned, views, cfg)
         fills[method] = (views, seeded, n_seeds, hole_seconds + time.perf_counter() - t0)
         maps[method] = map_errors(views, scene, track, rc.factor)
-    refits = [("DRNet + RoI refit", "drnet", dataclasses.replace(rc, refit="roi"))]
-    if config.full_comparison:
-        refits += [("least squares + RoI refit", "lsq", dataclasses.replace(rc, refit="roi", depth_method="lsq")),
-                   ("DRNet + full refit", "drnet", dataclasses.replace(rc, refit="full"))]
+    extras = config.extra_arms()
+    refits = [("DRNet + RoI refit", "drnet", dataclasses.replace(rc, refit="roi")),
+              ("least squares + RoI refit", "lsq", dataclasses.replace(rc, refit="roi", depth_method="lsq")),
+              ("DRNet + full refit", "drnet", dataclasses.replace(rc, refit="full"))]
     for name, method, cfg in refits:
+        if name != "DRNet + RoI refit" and name not in extras:
+            continue
         views, seeded, n_seeds, seconds = fills[method]
         t0 = time.perf_counter()
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
@@ -311,17 +332,24 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         g, info = refit_background(seeded, n_seeds, objects, views, obs, train_views, fit_config, cfg, progress)
         return {"graph": g, "seconds": hole_seconds + time.perf_counter() - t0, "views": views, "facts": facts}
 
-    arms[PLANES_ARM] = refit_arm(dataclasses.replace(config.repair, planes=True), inpainter)
+    planes_cfg = dataclasses.replace(config.repair, planes=True)
+    arms[PLANES_ARM] = refit_arm(planes_cfg, inpainter)
     maps["planes"] = map_errors(arms[PLANES_ARM]["views"], scene, track, rc.factor)
 
-    network = load_inpainter("embedded") if config.full_comparison else None
-    if config.full_comparison:
-        arms[PLANES_SEEDED_ARM] = refit_arm(dataclasses.replace(config.repair, planes=True, seed_inpainted=True),
-                                            inpainter)
-        arms["DRNet + RoI refit, carrying between views"] = refit_arm(dataclasses.replace(rc, carry=True), inpainter)
-        arms["DRNet + RoI refit, embedded inpainter"] = refit_arm(rc, network)
-        arms["DRNet + RoI refit, embedded inpainter, whole hole"] = refit_arm(
-            dataclasses.replace(rc, keep_observed=False), network)
+    network = load_inpainter("embedded") if any("embedded" in a for a in extras) else None
+    ablations = {
+        PLANES_SEEDED_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, seed_inpainted=True), inpainter),
+        "DRNet + RoI refit, carrying between views": lambda: refit_arm(dataclasses.replace(rc, carry=True), inpainter),
+        "DRNet + RoI refit, embedded inpainter": lambda: refit_arm(rc, network),
+        "DRNet + RoI refit, embedded inpainter, whole hole": lambda: refit_arm(
+            dataclasses.replace(rc, keep_observed=False), network),
+        PLANES_AGREE_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
+            planes_cfg.plane, texel_visibility="agree", free_space=False)), inpainter)}
+    for name, make in ablations.items():
+        if name in extras:
+            arms[name] = make()
+    if PLANES_AGREE_ARM in arms:
+        maps["planes, depth agreement"] = map_errors(arms[PLANES_AGREE_ARM]["views"], scene, track, rc.factor)
     arms["naive"] = {"graph": naive, "seconds": 0.0}
     arms["hidden Gaussians removed"] = {"graph": cleaned, "seconds": hole_seconds}
     arms["least squares"] = {"graph": fills["lsq"][1], "seconds": fills["lsq"][3]}
@@ -329,7 +357,7 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
 
     rows, strip = [], None
     strip_view = max((ev for ev in evs if ev.kind != "logged"), key=lambda ev: ev.hole.sum(), default=None)
-    for name in ARMS + (EXTRA_ARMS if config.full_comparison else ()):
+    for name in ARMS + extras:
         per_view = []
         t_inpaint = 0.0
         for ev in evs:

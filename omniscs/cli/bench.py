@@ -339,6 +339,9 @@ def bench_background(
     no_ablations: bool = typer.Option(False, "--no-ablations", help="Only the main rows (naive, hidden Gaussians "
                                                                     "removed, the issue's rows, the default repair): "
                                                                     "about half the time."),
+    ablation: Optional[list[str]] = typer.Option(None, "--ablation", help="Only this ablation row (repeatable; "
+                                                 "default: all of them), e.g. 'planes + DRNet + RoI refit, texels "
+                                                 "where the depth agrees, no free-space check'."),
 ) -> None:
     """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet, DRNet +
     RoI refit and the default repair (planes + DRNet + RoI refit) against the world re-rendered without it (hole
@@ -393,6 +396,8 @@ def bench_background(
         config = quick_config() if quick else BackgroundBenchConfig()
         if no_ablations:
             config = dataclasses.replace(config, full_comparison=False)
+        if ablation:
+            config = dataclasses.replace(config, ablations=tuple(ablation))
         run_background_benchmark(out, workspace, config, progress=bars.sink("background bench"))
     console.print((out / "background_bench.md").read_text())
     console.print(f"wrote {out / 'background_bench.json'} and {out / 'background_bench.png'}")

@@ -36,3 +36,19 @@ def test_views_without_the_second_reference_are_left_out_and_score_none():
     assert score_view(gt, None, view)["hole_psnr_lit"] is None
     lit = _view("logged", gt, gt.copy(), hole)
     assert score_view(gt, None, lit)["hole_psnr_lit"] == MAX_PSNR_DB
+
+
+def test_the_ablations_can_be_picked_and_an_unknown_one_is_refused():
+    import dataclasses
+
+    import pytest
+
+    from omniscs.bench.background import EXTRA_ARMS, PLANES_AGREE_ARM, BackgroundBenchConfig
+    from omniscs.errors import OmniscsError
+
+    assert BackgroundBenchConfig().extra_arms() == EXTRA_ARMS
+    picked = BackgroundBenchConfig(ablations=(PLANES_AGREE_ARM, EXTRA_ARMS[0]))
+    assert picked.extra_arms() == (EXTRA_ARMS[0], PLANES_AGREE_ARM)  # in the report's order
+    assert dataclasses.replace(picked, full_comparison=False).extra_arms() == ()
+    with pytest.raises(OmniscsError, match="unknown ablation"):
+        BackgroundBenchConfig(ablations=("planes, but better",))

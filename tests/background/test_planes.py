@@ -5,8 +5,8 @@ import numpy as np
 
 from omniscs.background.holes import RemovedObject
 from omniscs.background.inpaint import load_inpainter
-from omniscs.background.planes import (Donor, PlaneConfig, build_textures, fit_planes, plane_hits, region_points,
-                                       texture_colours)
+from omniscs.background.planes import (Donor, FreeSpace, PlaneConfig, build_textures, fit_planes, plane_hits,
+                                       region_points, texture_colours)
 from omniscs.nsg.observations import View
 
 RNG = np.random.default_rng(7)
@@ -126,3 +126,109 @@ def test_a_texture_keeps_what_a_view_saw_and_fills_what_none_saw():
     d2, w2 = plane_hits(other, mask, planes, np.zeros((h, w)))
     c2, ok2 = texture_colours(other, d2, w2, textures)
     assert ok2.any() and np.all(np.isfinite(c2.astype(float)))
+
+
+def _ground_and_facade_z(view: View) -> np.ndarray:
+    """z-depth of the first surface of the road (z = 0) and the facade (y = -8, z in [0, 10]) at each pixel."""
+    from omniscs.background.holes import pixel_rays
+
+    rays = pixel_rays(view)
+    norms = np.linalg.norm(rays, axis=-1)
+    dirs = rays / norms[..., None]
+    o = view.world_from_camera[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(dirs[..., 2] < 0, -o[2] / dirs[..., 2], np.inf)
+        t_wall = np.where(dirs[..., 1] < 0, (-8.0 - o[1]) / dirs[..., 1], np.inf)
+    p_wall = o + dirs * t_wall[..., None]
+    t_wall = np.where((p_wall[..., 2] >= 0) & (p_wall[..., 2] <= 10), t_wall, np.inf)
+    return np.minimum(t_ground, t_wall) / norms
+
+
+def test_hits_where_the_views_see_through_a_plane_go_on_to_the_surface_behind():
+    from omniscs.background.holes import ray_norms
+
+    # a plane across the street at x = 15 that is not there (points of a pole, a passing car, a sign, lined up),
+    # whose convex support still spans the street in front of the facade
+    rng = np.random.default_rng(5)
+    across = np.stack([np.full(800, 15.0), rng.uniform(-8, 10, 800), rng.uniform(0, 3, 800)], 1)
+    planes = fit_planes(np.concatenate([_street(noise=0.0, n_noise=0), across]), PlaneConfig(max_planes=3))
+    assert any(abs(p.normal[0]) > 0.99 for p in planes)
+    # views along the street see the road and the facade, nothing at x = 15
+    donors = []
+    for x in np.arange(6.0, 25.0, 2.0):
+        v = _view([x, 5.0, 1.5], [x + 4.0, -8.0, 1.0])
+        donors.append(Donor(v, np.zeros((v.height, v.width, 3), np.uint8), _ground_and_facade_z(v)))
+    view = _view([8.0, 4.0, 1.5], [16.0, -8.0, 1.0])
+    mask = np.ones((view.height, view.width), bool)
+    truth = _ground_and_facade_z(view) * ray_norms(view)
+    entry = np.zeros(mask.shape)
+    plain, _ = plane_hits(view, mask, planes, entry)
+    free = FreeSpace(planes, donors, PlaneConfig())
+    checked, _ = plane_hits(view, mask, planes, entry, empty=free.empty)
+    ok = np.isfinite(truth)
+    assert np.mean(plain[ok] < 0.95 * truth[ok]) > 0.1  # the phantom plane takes many rays
+    found = ok & np.isfinite(checked)
+    assert found.sum() > 0.9 * ok.sum()
+    assert np.mean(np.abs(checked[found] - truth[found]) < 0.02 * truth[found]) > 0.97
+    # with no view that sees through it, the plane stays
+    blind = FreeSpace(planes, [], PlaneConfig())
+    assert np.allclose(plane_hits(view, mask, planes, entry, empty=blind.empty)[0], plain, equal_nan=True)
+
+
+def _ground_texture(donors, **config):
+    """The texture of the ground plane (z = 0) under a camera looking down, every pixel a hole, from ``donors``."""
+    ground = np.stack([RNG.uniform(0, 30, 4000), RNG.uniform(-10, 10, 4000), np.zeros(4000)], 1)
+    planes = fit_planes(ground)
+    view = _view([15.0, 0.0, 3.0], [15.0, 1.0, 0.0], width=32, height=32, f=16.0)
+    hole = np.ones((view.height, view.width), bool)
+    hits = [(view, *plane_hits(view, hole, planes, np.zeros(hole.shape)))]
+    cfg = PlaneConfig(texel_m=0.1, context_m=0.5, **config)
+    return build_textures(planes, hits, donors, load_inpainter(None), cfg)[0], view
+
+
+def _ground_donor(position, colour, occluded_at=None, solid=True):
+    """A donor looking down at the ground in one ``colour``; its render is semi-transparent unless ``solid``;
+    something stands at ``occluded_at`` metres in front of it where given."""
+    v = _view(position, [position[0], position[1] + 1.0, 0.0], width=32, height=32, f=16.0)
+    z = _ground_and_facade_z(v)
+    image = np.zeros((v.height, v.width, 3), np.uint8)
+    image[:] = colour
+    near = z.copy() if occluded_at is None else np.full(z.shape, float(occluded_at))
+    return Donor(v, image, z if solid else np.full(z.shape, np.inf), np.zeros(z.shape, bool), near)
+
+
+def test_unoccluded_views_lend_colour_where_their_render_is_not_solid_and_occluded_ones_do_not():
+    # the only view's render is semi-transparent over the ground: no solid depth to agree with
+    soft = _ground_donor([15.0, 0.0, 3.0], (200, 30, 30), solid=False)
+    agree, _ = _ground_texture([soft], texel_visibility="agree")
+    assert agree is None  # nothing observed anywhere: no texture
+    unoccluded, _ = _ground_texture([soft], texel_visibility="unoccluded")
+    assert unoccluded.observed[unoccluded.needed].mean() > 0.9
+    assert np.allclose(unoccluded.rgb[unoccluded.observed], (200, 30, 30))
+    # something a metre in front of the view hides the ground from it
+    blocked = _ground_donor([15.0, 0.0, 3.0], (200, 30, 30), occluded_at=1.0, solid=False)
+    assert _ground_texture([blocked], texel_visibility="unoccluded")[0] is None
+
+
+def test_a_texel_takes_the_nearest_views_colour_or_the_median_of_all():
+    donors = [_ground_donor([15.0, 0.0, 2.0], (0, 0, 250)),   # nearest, but alone in its colour
+              _ground_donor([15.0, 0.0, 3.0], (250, 0, 0)),
+              _ground_donor([15.0, 0.0, 3.5], (250, 0, 0))]
+    nearest, _ = _ground_texture(donors, texel_colour="nearest")
+    median, _ = _ground_texture(donors, texel_colour="median")
+    # where the nearest view sees the ground (the middle), its colour wins; the median there is two views' red
+    middle = nearest.observed & median.observed & (nearest.rgb[..., 2] == 250)
+    assert middle[nearest.needed].mean() > 0.3
+    assert np.all(median.rgb[middle] == (250, 0, 0))
+    assert np.all(nearest.rgb[nearest.observed & ~middle] == (250, 0, 0))
+
+
+def test_unknown_texel_rules_are_refused():
+    import pytest
+
+    from omniscs.errors import OmniscsError
+
+    with pytest.raises(OmniscsError, match="texel_colour"):
+        PlaneConfig(texel_colour="mean")
+    with pytest.raises(OmniscsError, match="texel_visibility"):
+        PlaneConfig(texel_visibility="maybe")
