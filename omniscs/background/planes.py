@@ -10,8 +10,9 @@ views see through the plane (FreeSpace): an exact depth where the world is flat,
 Each plane gets a texture (texels ``texel_m`` on a side, in the plane's own 2D coordinates) over the part of it
 the hole pixels see, plus a ring of context. Every training view gives colour to the texels it sees (inside the
 image, outside its own hole, with nothing its render shows in front of the texel); each texel takes the per-channel
-median of the colours it got, which keeps what most views agree on. What no view saw is inpainted on the texture, where the kerb lines and the
-rows of windows run straight, and every view then reads the same texture: one consistent fill for all views.
+median of the colours it got, which keeps what most views agree on. What no view saw is inpainted on the texture,
+where the kerb lines and the rows of windows run straight, and every view then reads the same texture: one
+consistent fill for all views.
 """
 from __future__ import annotations
 

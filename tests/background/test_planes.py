@@ -63,23 +63,31 @@ def test_region_points_keep_the_surroundings_and_drop_the_object_and_far_points(
     assert np.array_equal(region_points(pts, obj), pts[1:2])
 
 
-def test_hits_are_exact_on_the_ground_and_refused_before_the_front_or_off_the_support():
-    planes = fit_planes(_street(noise=0.0, n_noise=0))
-    view = _view([15.0, 5.0, 1.5], [15.0, -8.0, 0.0])
-    mask = np.ones((view.height, view.width), bool)
-    dist, which = plane_hits(view, mask, planes, np.zeros(mask.shape))
-    # the exact first surface of road and facade along each ray
+def _ground_and_facade_z(view: View) -> np.ndarray:
+    """z-depth of the first surface of the road (z = 0) and the facade (y = -8, z in [0, 10]) at each pixel."""
     from omniscs.background.holes import pixel_rays
 
     rays = pixel_rays(view)
-    dirs = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    norms = np.linalg.norm(rays, axis=-1)
+    dirs = rays / norms[..., None]
     o = view.world_from_camera[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t_ground = np.where(dirs[..., 2] < 0, -o[2] / dirs[..., 2], np.inf)
         t_wall = np.where(dirs[..., 1] < 0, (-8.0 - o[1]) / dirs[..., 1], np.inf)
     p_wall = o + dirs * t_wall[..., None]
     t_wall = np.where((p_wall[..., 2] >= 0) & (p_wall[..., 2] <= 10), t_wall, np.inf)
-    truth = np.minimum(t_ground, t_wall)
+    return np.minimum(t_ground, t_wall) / norms
+
+
+def test_hits_are_exact_on_the_ground_and_refused_before_the_front_or_off_the_support():
+    planes = fit_planes(_street(noise=0.0, n_noise=0))
+    view = _view([15.0, 5.0, 1.5], [15.0, -8.0, 0.0])
+    mask = np.ones((view.height, view.width), bool)
+    dist, which = plane_hits(view, mask, planes, np.zeros(mask.shape))
+    # the exact first surface of road and facade along each ray
+    from omniscs.background.holes import ray_norms
+
+    truth = _ground_and_facade_z(view) * ray_norms(view)
     found = np.isfinite(dist)
     assert found.mean() > 0.9
     assert np.allclose(dist[found], truth[found], rtol=0.01)
@@ -126,22 +134,6 @@ def test_a_texture_keeps_what_a_view_saw_and_fills_what_none_saw():
     d2, w2 = plane_hits(other, mask, planes, np.zeros((h, w)))
     c2, ok2 = texture_colours(other, d2, w2, textures)
     assert ok2.any() and np.all(np.isfinite(c2.astype(float)))
-
-
-def _ground_and_facade_z(view: View) -> np.ndarray:
-    """z-depth of the first surface of the road (z = 0) and the facade (y = -8, z in [0, 10]) at each pixel."""
-    from omniscs.background.holes import pixel_rays
-
-    rays = pixel_rays(view)
-    norms = np.linalg.norm(rays, axis=-1)
-    dirs = rays / norms[..., None]
-    o = view.world_from_camera[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_ground = np.where(dirs[..., 2] < 0, -o[2] / dirs[..., 2], np.inf)
-        t_wall = np.where(dirs[..., 1] < 0, (-8.0 - o[1]) / dirs[..., 1], np.inf)
-    p_wall = o + dirs * t_wall[..., None]
-    t_wall = np.where((p_wall[..., 2] >= 0) & (p_wall[..., 2] <= 10), t_wall, np.inf)
-    return np.minimum(t_ground, t_wall) / norms
 
 
 def test_hits_where_the_views_see_through_a_plane_go_on_to_the_surface_behind():

@@ -60,7 +60,8 @@ def relit_graph(scene):
     g = initial_graph(scene, make_plan(scene, None, config.plan), config, Observations(scene))
     node = g.agent(1)
     p = node.gaussians
-    p = GaussianParams(p.means, p.quats, p.log_scales + 0.5, p.opacity_logits + 6.0, p.sh_dc, torch.zeros_like(p.sh_rest))
+    p = GaussianParams(p.means, p.quats, p.log_scales + 0.5, p.opacity_logits + 6.0, p.sh_dc,
+                       torch.zeros_like(p.sh_rest))
     gen = torch.Generator().manual_seed(0)
     relight = Relight(torch.rand(len(p), 3, generator=gen),
                       torch.nn.functional.normalize(torch.randn(len(p), 3, generator=gen), dim=1), LIGHT)
