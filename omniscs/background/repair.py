@@ -136,6 +136,12 @@ class RepairConfig:
     free_space: 19.59 dB at novel views, +4.82 over naive (reports/background_bench_texels)."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
     """Finding and texturing the planes."""
+    planes_first: bool = False
+    """True: planes fill the hole pixels they meet even where the cleaned background covers them; False (the
+    default): the cleaned background's render, what other views observed there, wins. Tried in the eighth session
+    of 2026-11-27: chosen on the development logs 90 and 91 (17.99 -> 17.94 and 20.09 -> 21.00 dB at novel views),
+    it scored 19.35 against 19.59 dB on the held-out logs 101-105 (reports/background_bench_planes_first, 1.6 dB
+    worse on log 102), so it is not the default."""
 
     def __post_init__(self) -> None:
         if self.depth_method not in DEPTH_METHODS:
@@ -409,6 +415,8 @@ def fill_views(hole_views: list[HoleView], cleaned: SceneGraph, config: RepairCo
         # where the cleaned background is solid, and how far (z): seeds must not end up in front of it
         hv.solid_z = np.where(rendered.alpha.cpu().numpy() > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
         seen = todo & (rendered.alpha.cpu().numpy() > OBSERVED_ALPHA) & config.keep_observed
+        if config.planes_first and hv.planar is not None:
+            seen &= ~hv.planar
         image[seen] = _uint8(rendered.rgb)[seen]
         depth[seen] = (rendered.depth.cpu().numpy() * ray_norms(hv.view))[seen]
         todo &= ~seen

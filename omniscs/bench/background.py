@@ -31,7 +31,9 @@ log = logging.getLogger(__name__)
 
 PLANES_ARM = "planes + DRNet + RoI refit"
 PLANES_SEEDED_ARM = "planes + DRNet + RoI refit, inpainted pixels seeded"
-PLANES_AGREE_ARM = "planes + DRNet + RoI refit, texels where the depth agrees, no free-space check"
+PLANES_AGREE_ARM = ("planes + DRNet + RoI refit, previous textures (depth agreement, nearest view, "
+                    "no free-space check)")
+PLANES_FIRST_ARM = "planes + DRNet + RoI refit, planes first where the cleaned background covers"
 ARMS = ("naive", "hidden Gaussians removed", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit",
         PLANES_ARM)
 """The issue's rows and the starting point of every 3D repair (the object's node and the background Gaussians only
@@ -41,12 +43,14 @@ the RoI refit fits the rest of the hole to the 2D inpainter's fill at DRNet's de
 EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_ARM,
               "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
               "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole",
-              PLANES_AGREE_ARM)
+              PLANES_AGREE_ARM, PLANES_FIRST_ARM)
 """The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
 2026-11-27); three that use use the embedded inpainting network instead of the configured inpainter, the last one
 inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm as it was
 until the eighth session of 2026-11-27 (a view gave a texel its colour only where its render's solid depth agreed with
-the texel's, and rays took planes where the views see through them)."""
+the texel's, and rays took planes where the views see through them); and with the planes filling only the hole
+pixels the cleaned background does not cover; and planes filling every hole pixel they reach (planes_first;
+reports/background_bench_planes_first holds a run in which that was the default arm: it was worse)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 
@@ -344,7 +348,9 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         "DRNet + RoI refit, embedded inpainter, whole hole": lambda: refit_arm(
             dataclasses.replace(rc, keep_observed=False), network),
         PLANES_AGREE_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
-            planes_cfg.plane, texel_visibility="agree", free_space=False)), inpainter)}
+            planes_cfg.plane, texel_visibility="agree", free_space=False, texel_colour="nearest"),
+            planes_first=False), inpainter),
+        PLANES_FIRST_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, planes_first=True), inpainter)}
     for name, make in ablations.items():
         if name in extras:
             arms[name] = make()

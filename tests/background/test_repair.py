@@ -97,6 +97,15 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     s = seeds_only.facts
     assert len(seeds_only.graph.background) == len(graph.background) - s["dropped_gaussians"] + s["seeds"]
     assert seeds_only.drnet is None and "refit" not in s
+    # planes_first: the planes fill every hole pixel they reach; by default what the cleaned background covers wins
+    first = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60),
+                              RepairConfig(factor=1, refit="none", depth_method="lsq", planes_first=True))
+    for hv in first.views:
+        on = hv.mask & hv.planar
+        assert np.array_equal(hv.filled_depth[on], hv.plane_dist[on])
+    p1 = first.facts
+    assert p1["plane_filled_pixels"] >= s["plane_filled_pixels"] and p1["observed_pixels"] <= s["observed_pixels"]
+    assert p1["plane_filled_pixels"] + p1["observed_pixels"] == s["plane_filled_pixels"] + s["observed_pixels"]
     # the default seeds the planes' pixels only; the paper's way also seeds every inpainted pixel
     paper = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, tiny_fit_config(60),
                               RepairConfig(factor=1, refit="none", depth_method="lsq", seed_inpainted=True)).facts
