@@ -218,7 +218,7 @@ class Donor:
     view: View
     image: np.ndarray     # [h, w, 3] uint8
     solid_z: np.ndarray   # [h, w] float
-    empty: np.ndarray | None = None  # [h, w] bool
+    shows_nothing: np.ndarray | None = None  # [h, w] bool
     near_z: np.ndarray | None = None  # [h, w] z-depth of the first thing it shows (0 in its own hole, inf: nothing);
     #                                    None: texels are seen by the 'agree' rule
 
@@ -245,7 +245,8 @@ class FreeSpace:
             px = np.floor(uv[idx]).astype(np.int64)
             solid = dn.solid_z[px[:, 1], px[:, 0]]
             zz = z[idx]
-            nothing = dn.empty[px[:, 1], px[:, 0]] if dn.empty is not None else np.zeros(len(idx), bool)
+            nothing = (dn.shows_nothing[px[:, 1], px[:, 0]] if dn.shows_nothing is not None
+                       else np.zeros(len(idx), bool))
             free[idx] += (np.isfinite(solid) & (solid > zz * (1.0 + c.free_tolerance))) | nothing
             seen[idx] += np.isfinite(solid) & (np.abs(solid - zz) <= c.visible_tolerance * zz)
         return (free >= c.free_votes) & (free > seen)

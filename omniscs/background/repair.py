@@ -356,9 +356,9 @@ def plane_fill(hole_views: list[HoleView], cleaned: SceneGraph, obs: Observation
         progress(i, len(train_views), f"plane texture views {cam} frame {f}")
         view = obs.view(cam, f).downscaled(config.factor)
         rendered = cleaned.render(view)
-        alpha = rendered.alpha.cpu().numpy()
-        solid = np.where(alpha > OBSERVED_ALPHA, rendered.depth.cpu().numpy(), np.inf)
-        near = np.where(alpha > 0.5, rendered.depth.cpu().numpy(), np.inf)
+        alpha, depth = rendered.alpha.cpu().numpy(), rendered.depth.cpu().numpy()
+        solid = np.where(alpha > OBSERVED_ALPHA, depth, np.inf)
+        near = np.where(alpha > 0.5, depth, np.inf)
         nothing = alpha < EMPTY_ALPHA
         hv = by_key.get((cam, f))
         if hv is not None:

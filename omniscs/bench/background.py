@@ -45,12 +45,12 @@ EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_A
               "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole",
               PLANES_AGREE_ARM, PLANES_FIRST_ARM)
 """The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
-2026-11-27); three that use use the embedded inpainting network instead of the configured inpainter, the last one
-inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm as it was
-until the eighth session of 2026-11-27 (a view gave a texel its colour only where its render's solid depth agreed with
-the texel's, and rays took planes where the views see through them); and with the planes filling only the hole
-pixels the cleaned background does not cover; and planes filling every hole pixel they reach (planes_first;
-reports/background_bench_planes_first holds a run in which that was the default arm: it was worse)."""
+2026-11-27); three that use the embedded inpainting network instead of the configured inpainter, the last one
+inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm with the plane
+textures it had until the eighth session of 2026-11-27 (a view gave a texel its colour only where its render's solid
+depth agreed with the texel's, the nearest view won, and rays took planes where the views see through them); and
+planes filling every hole pixel they reach (planes_first; reports/background_bench_planes_first holds a run in
+which that was the default arm: it was worse)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 

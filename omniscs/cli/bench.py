@@ -340,8 +340,8 @@ def bench_background(
                                                                     "removed, the issue's rows, the default repair): "
                                                                     "about half the time."),
     ablation: Optional[list[str]] = typer.Option(None, "--ablation", help="Only this ablation row (repeatable; "
-                                                 "default: all of them), e.g. 'planes + DRNet + RoI refit, texels "
-                                                 "where the depth agrees, no free-space check'."),
+                                                 "default: all of them), e.g. 'planes + DRNet + RoI refit, planes "
+                                                 "first where the cleaned background covers'."),
 ) -> None:
     """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet, DRNet +
     RoI refit and the default repair (planes + DRNet + RoI refit) against the world re-rendered without it (hole
