@@ -349,7 +349,7 @@ def plane_fill(hole_views: list[HoleView], cleaned: SceneGraph, obs: Observation
     points = plane_points(obs, cleaned, frames)
     planes = []
     for o in objects:
-        planes += fit_planes(region_points(points, o), config.plane)
+        planes += fit_planes(region_points(points, o), config.plane, street=o.roi()[0][:3, 0])
     by_key = {(hv.camera, hv.frame): hv for hv in hole_views}
     donors = []
     for i, (cam, f) in enumerate(train_views):

@@ -34,6 +34,7 @@ PLANES_SEEDED_ARM = "planes + DRNet + RoI refit, inpainted pixels seeded"
 PLANES_AGREE_ARM = ("planes + DRNet + RoI refit, previous textures (depth agreement, nearest view, "
                     "no free-space check)")
 PLANES_FIRST_ARM = "planes + DRNet + RoI refit, planes first where the cleaned background covers"
+PLANES_INPAINT_ARM = "planes + DRNet + RoI refit, unobserved texels inpainted (no street fill)"
 ARMS = ("naive", "hidden Gaussians removed", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit",
         PLANES_ARM)
 """The issue's rows and the starting point of every 3D repair (the object's node and the background Gaussians only
@@ -43,14 +44,15 @@ the RoI refit fits the rest of the hole to the 2D inpainter's fill at DRNet's de
 EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_ARM,
               "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
               "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole",
-              PLANES_AGREE_ARM, PLANES_FIRST_ARM)
+              PLANES_AGREE_ARM, PLANES_FIRST_ARM, PLANES_INPAINT_ARM)
 """The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
 2026-11-27); three that use the embedded inpainting network instead of the configured inpainter, the last one
 inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm with the plane
 textures it had until the eighth session of 2026-11-27 (a view gave a texel its colour only where its render's solid
 depth agreed with the texel's, the nearest view won, and rays took planes where the views see through them); and
 planes filling every hole pixel they reach (planes_first; reports/background_bench_planes_first holds a run in
-which that was the default arm: it was worse)."""
+which that was the default arm: it was worse); and the planes arm whose unobserved texels the inpainter fills
+without the street fill (PlaneConfig.unobserved='inpaint', the default until the ninth session of 2026-11-27)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 
@@ -348,9 +350,11 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         "DRNet + RoI refit, embedded inpainter, whole hole": lambda: refit_arm(
             dataclasses.replace(rc, keep_observed=False), network),
         PLANES_AGREE_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
-            planes_cfg.plane, texel_visibility="agree", free_space=False, texel_colour="nearest"),
-            planes_first=False), inpainter),
-        PLANES_FIRST_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, planes_first=True), inpainter)}
+            planes_cfg.plane, texel_visibility="agree", free_space=False, texel_colour="nearest",
+            unobserved="inpaint"), planes_first=False), inpainter),
+        PLANES_FIRST_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, planes_first=True), inpainter),
+        PLANES_INPAINT_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
+            planes_cfg.plane, unobserved="inpaint")), inpainter)}
     for name, make in ablations.items():
         if name in extras:
             arms[name] = make()

@@ -167,10 +167,11 @@ def test_hits_where_the_views_see_through_a_plane_go_on_to_the_surface_behind():
     assert np.allclose(plane_hits(view, mask, planes, entry, empty=blind.empty)[0], plain, equal_nan=True)
 
 
-def _ground_texture(donors, **config):
-    """The texture of the ground plane (z = 0) under a camera looking down, every pixel a hole, from ``donors``."""
+def _ground_texture(donors, street=None, **config):
+    """The texture of the ground plane (z = 0) under a camera looking down, every pixel a hole, from ``donors``;
+    ``street``: the plane's street direction."""
     ground = np.stack([RNG.uniform(0, 30, 4000), RNG.uniform(-10, 10, 4000), np.zeros(4000)], 1)
-    planes = fit_planes(ground)
+    planes = fit_planes(ground, street=street)
     view = _view([15.0, 0.0, 3.0], [15.0, 1.0, 0.0], width=32, height=32, f=16.0)
     hole = np.ones((view.height, view.width), bool)
     hits = [(view, *plane_hits(view, hole, planes, np.zeros(hole.shape)))]
@@ -224,3 +225,92 @@ def test_unknown_texel_rules_are_refused():
         PlaneConfig(texel_colour="mean")
     with pytest.raises(OmniscsError, match="texel_visibility"):
         PlaneConfig(texel_visibility="maybe")
+
+
+def _striped_ground(street):
+    """A ground texture (z = 0, texel 0.04 m, 200 x 300) striped along world x (kerb lines, lane markings): each row
+    of constant y has one colour; ``street`` is the direction the plane keeps for its unobserved texels."""
+    ground = fit_planes(np.stack([RNG.uniform(0, 30, 4000), RNG.uniform(-10, 10, 4000), np.zeros(4000)], 1))[0]
+    ground.street = None if street is None else np.asarray(street, float)
+    h, w, texel = 200, 300, 0.04
+    uv0 = np.zeros(2)
+    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    uv = np.stack([(jj.ravel() + 0.5) * texel, (ii.ravel() + 0.5) * texel], 1)
+    y = ground.point(uv)[:, 1].reshape(h, w)  # world y of each texel
+    rgb = np.zeros((h, w, 3), np.uint8)
+    rgb[..., 0] = (40 + 25 * np.floor(y / 0.5) % 200).astype(np.uint8)  # bands 0.5 m wide across the street
+    rgb[..., 1] = np.where(np.floor(y / 0.3) % 2 == 0, 220, 30).astype(np.uint8)
+    rgb[..., 2] = 90
+    return ground, rgb, uv0, texel
+
+
+def test_texels_no_view_saw_continue_the_lines_that_run_along_the_street():
+    from omniscs.background.planes import street_fill
+
+    ground, truth, uv0, texel = _striped_ground([1.0, 0.0, 0.0])
+    observed = np.ones(truth.shape[:2], bool)
+    observed[60:140, 80:220] = False  # a block behind a parked truck, 3.2 m by 5.6 m
+    seen_only = truth.copy()
+    seen_only[~observed] = 0
+    filled, known = street_fill(seen_only, observed, ground, uv0, texel, PlaneConfig())
+    assert known.all()
+    assert np.all(filled[observed] == truth[observed])  # what a view saw stays
+    # along the street the lines carry on: the bands across it come back exactly, wherever the block is
+    assert np.mean(np.all(filled == truth, axis=-1)[~observed]) > 0.97
+    assert np.isfinite(filled.astype(float)).all()
+    # the inpainter alone cannot carry a band across 5.6 m: FSR smooths it away
+    painted = load_inpainter(None).inpaint(seen_only, ~observed)
+    err = lambda a: np.abs(a[~observed].astype(float) - truth[~observed]).mean()
+    assert err(filled) < 0.25 * err(painted)
+
+
+def test_the_street_fill_looks_only_so_far_and_leaves_planes_the_street_crosses():
+    from omniscs.background.planes import street_fill
+
+    ground, truth, uv0, texel = _striped_ground([1.0, 0.0, 0.0])
+    h, w = truth.shape[:2]
+    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    x = ground.point(np.stack([(jj.ravel() + 0.5) * texel, (ii.ravel() + 0.5) * texel], 1))[:, 0].reshape(h, w)
+    lo, hi = np.quantile(x, 0.3), np.quantile(x, 0.7)
+    observed = (x < lo) | (x > hi)  # a stretch along the street that no view saw
+    assert hi - lo > 3.0
+    near, known = street_fill(truth, observed, ground, uv0, texel, PlaneConfig(street_reach_m=1.0))
+    gap = np.minimum(np.abs(x - lo), np.abs(x - hi))  # metres along the street to the nearest seen texel
+    assert np.all(known[~observed & (gap < 0.95)]) and not np.any(known[~observed & (gap > 1.05)])
+    assert np.all(np.all(near == truth, axis=-1)[known])
+    # the plane's street direction along its normal: nothing runs along this plane
+    ground.street = np.asarray(ground.normal)
+    same, known = street_fill(truth, observed, ground, uv0, texel, PlaneConfig())
+    assert np.array_equal(known, observed) and np.array_equal(same, truth)
+    # no direction that is a number, or nothing seen at all: nothing to carry
+    ground.street = np.array([np.nan, 0.0, 0.0])
+    assert np.array_equal(street_fill(truth, observed, ground, uv0, texel, PlaneConfig())[1], observed)
+    ground.street = np.array([1.0, 0.0, 0.0])
+    nothing = np.zeros_like(observed)
+    assert not street_fill(truth, nothing, ground, uv0, texel, PlaneConfig())[1].any()
+
+
+def test_unobserved_rules_are_checked_and_inpaint_leaves_the_street_fill_out():
+    import pytest
+
+    from omniscs.errors import OmniscsError
+
+    with pytest.raises(OmniscsError, match="unobserved"):
+        PlaneConfig(unobserved="guess")
+    # a donor that sees one colour left of x = 15 and another right of it, looking along the street (+x): the street
+    # fill carries each side's colour on along its lines, where the inpainter blends them
+    donor = _ground_donor([15.0, 0.0, 3.0], (200, 30, 30))
+    donor.image[:, donor.image.shape[1] // 2:] = (30, 30, 200)
+    street, _ = _ground_texture([donor], street=[0.0, 1.0, 0.0], unobserved="street")
+    plain, _ = _ground_texture([donor], street=[0.0, 1.0, 0.0], unobserved="inpaint")
+    assert np.array_equal(street.observed, plain.observed) and (~street.observed).any()
+    assert np.array_equal(street.rgb[street.observed], plain.rgb[plain.observed])
+    h, w = street.observed.shape
+    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    uv = street.uv0 + (np.stack([jj.ravel(), ii.ravel()], 1) + 0.5) * street.texel
+    x = street.plane.point(uv)[:, 0].reshape(h, w)
+    seen_x = x[street.observed]
+    unseen = ~street.observed & (x > seen_x.min() + street.texel) & (x < seen_x.max() - street.texel)
+    assert unseen.sum() > 50  # unseen texels on lines that some seen texel runs along
+    pure = lambda t: np.mean(np.all((t.rgb[unseen] == (200, 30, 30)) | (t.rgb[unseen] == (30, 30, 200)), axis=-1))
+    assert pure(street) > 0.9 > pure(plain)
