@@ -1,6 +1,7 @@
 """Relit agent nodes on CUDA (run by infra/gpu_check/run.sh on a GPU machine): the checks of the CUDA case of
 tests/nsg/test_relight.py (relit colours through gsplat at each frame's pose and after a turn, against the colours
-baked by hand and against the CPU render; the light fitted back through gsplat) on the carried tiny scene, since
+baked by hand and against the CPU render; the light fitted back through gsplat; the dual strategy's colour
+correction and refinement on CUDA) on the carried tiny scene, since
 that machine lacks the world's packages that the test's own fixture needs."""
 from __future__ import annotations
 

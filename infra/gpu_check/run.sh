@@ -8,7 +8,7 @@
 #   4. behaviour variants on CUDA: tests/scs/test_behavior_adversarial.py's CUDA test, then three variants of one
 #      procedural scene on each device (seconds);
 #   5. relit agent nodes on CUDA: tests/nsg/test_relight.py's CUDA case on the tiny scene (relit colours through
-#      gsplat, the light fitted back through it).
+#      gsplat, the light fitted back through it, and the dual strategy's colour correction and refinement there).
 # Steps can be picked: GPU_CHECK_STEPS="1 5" (default: all).
 # Scenes are written first with the test fixtures (GPU_CHECK_SCENES, default .gpu_check; pre-made copies are used
 # as they are, for a machine without the world's packages).

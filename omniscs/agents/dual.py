@@ -291,8 +291,9 @@ def _visible_coverage(graph: SceneGraph, track_id: int, view) -> tuple[np.ndarra
     """The graph's render of ``view`` and how much of each pixel the track's node covers once whatever lies in
     front of it is taken off: rgb [H, W, 3], coverage [H, W]."""
     node = graph.agent(track_id)
-    out = render_view(graph, view, labels={agent_key(track_id): torch.ones(len(node.gaussians), 1)})
-    return out.rgb.numpy(), out.labels[..., 0].numpy()
+    ones = torch.ones(len(node.gaussians), 1, device=graph.device)
+    out = render_view(graph, view, labels={agent_key(track_id): ones})
+    return out.rgb.detach().cpu().numpy(), out.labels[..., 0].detach().cpu().numpy()
 
 
 def colour_samples(graph: SceneGraph, scene, track_id: int, views: list[TrackView]) -> list[tuple]:
@@ -308,7 +309,7 @@ def colour_samples(graph: SceneGraph, scene, track_id: int, views: list[TrackVie
         target = scene.image(v.camera, v.frame_idx).astype(np.float32) / 255.0
         affine = graph.exposure.get(v.camera)
         if affine is not None:  # the logged colour before this camera's exposure correction
-            E = affine.double().numpy()
+            E = affine.detach().double().cpu().numpy()
             target = np.linalg.solve(E[:, :3], (target.reshape(-1, 3) - E[:, 3]).T).T.reshape(target.shape)
         out.append((view, torch.from_numpy(target.astype(np.float32)), torch.from_numpy(np.clip(seen, 0, 1))))
     return out
@@ -340,8 +341,9 @@ def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianP
     with torch.no_grad():
         for view, target, weight in samples:
             out = render_view(alone, view)
-            m = (weight > 0.5) & (out.alpha > 0.9)
-            xs.append(out.rgb[m].double().numpy())
+            rgb, alpha = out.rgb.cpu(), out.alpha.cpu()  # the graph may render on CUDA; the samples are on the CPU
+            m = (weight > 0.5) & (alpha > 0.9)
+            xs.append(rgb[m].double().numpy())
             ys.append(target[m].double().numpy())
             ws.append(weight[m].double().numpy())
     X, Y, w = np.concatenate(xs), np.concatenate(ys), np.concatenate(ws)
@@ -388,7 +390,7 @@ def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, 
         params = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits, dc,
                                 candidate.sh_rest)
         out = render_view(_alone(graph, track_id, params), view)
-        loss = (out.rgb - target).abs().sum(-1)[mask].mean()
+        loss = (out.rgb - target.to(out.rgb.device)).abs().sum(-1)[mask.to(out.rgb.device)].mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -490,7 +492,7 @@ def verification_error(graph: SceneGraph, scene, track_id: int, candidate: Gauss
     total, count = 0.0, 0
     for v in views:
         x0, y0, x1, y1 = v.rect
-        out = swapped.render(graph.view(v.camera, v.frame_idx)).rgb[y0:y1, x0:x1].clamp(0, 1).numpy()
+        out = swapped.render(graph.view(v.camera, v.frame_idx)).rgb[y0:y1, x0:x1].clamp(0, 1).detach().cpu().numpy()
         target = scene.image(v.camera, v.frame_idx)[y0:y1, x0:x1].astype(np.float64) / 255.0
         total += float(np.abs(out - target).sum())
         count += out.size

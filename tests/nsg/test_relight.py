@@ -130,7 +130,8 @@ def relit_node_checks(graph, device: str) -> dict:
     """A relit graph moved to ``device`` (CUDA: rendered by gsplat) renders node 1 in the colours its relight data
     give at each frame's pose and after a turn (against the same colours baked by hand, on that device, and against
     the CPU render), and its light fits back through that device's rasterizer (agents.relight.fit_lighting, as the
-    dual strategy calls it). Asserts; returns the figures (infra/gpu_check/relight_cuda.py prints them)."""
+    dual strategy calls it), and the dual strategy's colour correction and refinement run there (they read the
+    renders back to the CPU). Asserts; returns the figures (infra/gpu_check/relight_cuda.py prints them)."""
     from omniscs.agents.dual import _alone
     from omniscs.agents.relight import fit_lighting
     from omniscs.nsg.edit import apply_graph_edits
@@ -170,7 +171,28 @@ def relit_node_checks(graph, device: str) -> dict:
     fitted, info = fit_lighting(moved, 1, node.gaussians, even, samples, steps=150, lr=0.05)
     assert fitted.lighting.device.type == torch.device(device).type
     assert info["views"] == len(samples) and info["loss_last"] < 0.3 * info["loss_first"], info
-    return {**figures, "light_fit": info}
+    figures["light_fit"] = info
+    # the dual strategy's colour helpers on the same device: the colour map of a node against renders of itself
+    # is the identity, and colours put off by a shift are refined back
+    from omniscs.agents.dual import fit_colour_correction, refine_colours
+
+    plain = alone.replace(agents=(node.with_changes(gaussians=node.gaussians),))  # stored colours, no relight
+    targets = [(v, render_view(plain, v).rgb.detach().cpu(), w) for v, _, w in samples]
+    affine = fit_colour_correction(moved, 1, node.gaussians, targets)
+    assert np.allclose(affine, np.hstack([np.eye(3), np.zeros((3, 1))]), atol=1e-3), affine
+    p = node.gaussians
+    off = GaussianParams(p.means, p.quats, p.log_scales, p.opacity_logits, p.sh_dc + 0.3, p.sh_rest)
+
+    def error(params):
+        g = alone.replace(agents=(node.with_changes(gaussians=params),))
+        with torch.no_grad():
+            return float(np.mean([(render_view(g, v).rgb.cpu() - t)[w > 0.9].abs().mean() for v, t, w in targets]))
+
+    refined = refine_colours(moved, 1, off, targets, steps=60)
+    assert refined.sh_dc.device.type == torch.device(device).type
+    figures["colour_refine"] = {"error_off": error(off), "error_refined": error(refined)}
+    assert figures["colour_refine"]["error_refined"] < 0.5 * figures["colour_refine"]["error_off"], figures
+    return figures
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
