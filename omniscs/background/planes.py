@@ -175,14 +175,13 @@ def fit_planes(points: np.ndarray, config: PlaneConfig = PlaneConfig(),
         inliers = np.asarray(inliers, dtype=np.int64)
         if len(inliers) < need:
             break
+        pts = np.asarray(rest.points)[inliers]
+        rest = rest.select_by_index(inliers.tolist(), invert=True)
         n = np.asarray(model[:3], dtype=np.float64)
         norm = float(np.linalg.norm(n))
         if not np.isfinite(norm) or norm < 1e-9:
-            rest = rest.select_by_index(inliers.tolist(), invert=True)
             continue
         n, d = n / norm, float(model[3]) / norm
-        pts = np.asarray(rest.points)[inliers]
-        rest = rest.select_by_index(inliers.tolist(), invert=True)
         u, v = _basis(n)
         uv = np.stack([pts @ u, pts @ v], axis=1)
         try:
@@ -401,15 +400,14 @@ def street_fill(rgb: np.ndarray, observed: np.ndarray, plane: Plane, uv0: np.nda
     todo = np.flatnonzero(~seen)
     first = np.searchsorted(o_line, line[todo], side="left")
     last = np.searchsorted(o_line, line[todo], side="right")
-    span = float(s.max() - s.min()) + 1.0 if len(s) else 1.0
+    span = float(s.max() - s.min()) + 1.0
     o_key = (o_line - line.min()) * span + (o_s - s.min())  # increasing: lines one after another, s within each
     pos = np.searchsorted(o_key, (line[todo] - line.min()) * span + (s[todo] - s.min()))
     offsets = np.arange(-k, k)
     cand = pos[:, None] + offsets[None, :]                                  # [T, 2k]
     valid = (cand >= first[:, None]) & (cand < last[:, None])
-    cand = np.clip(cand, 0, max(len(order) - 1, 0))
-    if len(order):
-        valid &= np.abs(o_s[cand] - s[todo][:, None]) <= config.street_reach_m
+    cand = np.clip(cand, 0, len(order) - 1)  # some texel is seen (checked above): order is not empty
+    valid &= np.abs(o_s[cand] - s[todo][:, None]) <= config.street_reach_m
     has = np.flatnonzero(valid.any(axis=1))
     for part in np.array_split(has, max(1, len(has) // 100_000)):  # bounded memory on large textures
         cols = flat[order[cand[part]]].astype(np.float32)                   # [T', 2k, 3]

@@ -227,6 +227,14 @@ def test_unknown_texel_rules_are_refused():
         PlaneConfig(texel_visibility="maybe")
 
 
+def _texel_points(plane, uv0, texel, shape):
+    """World points [H, W, 3] of the texel centres of a texture of ``shape`` (H, W) on ``plane``."""
+    h, w = shape
+    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    uv = np.asarray(uv0, float) + (np.stack([jj.ravel(), ii.ravel()], 1) + 0.5) * texel
+    return plane.point(uv).reshape(h, w, 3)
+
+
 def _striped_ground(street):
     """A ground texture (z = 0, texel 0.04 m, 200 x 300) striped along world x (kerb lines, lane markings): each row
     of constant y has one colour; ``street`` is the direction the plane keeps for its unobserved texels."""
@@ -234,9 +242,7 @@ def _striped_ground(street):
     ground.street = None if street is None else np.asarray(street, float)
     h, w, texel = 200, 300, 0.04
     uv0 = np.zeros(2)
-    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    uv = np.stack([(jj.ravel() + 0.5) * texel, (ii.ravel() + 0.5) * texel], 1)
-    y = ground.point(uv)[:, 1].reshape(h, w)  # world y of each texel
+    y = _texel_points(ground, uv0, texel, (h, w))[..., 1]  # world y of each texel
     rgb = np.zeros((h, w, 3), np.uint8)
     rgb[..., 0] = (40 + 25 * np.floor(y / 0.5) % 200).astype(np.uint8)  # bands 0.5 m wide across the street
     rgb[..., 1] = np.where(np.floor(y / 0.3) % 2 == 0, 220, 30).astype(np.uint8)
@@ -268,9 +274,7 @@ def test_the_street_fill_looks_only_so_far_and_leaves_planes_the_street_crosses(
     from omniscs.background.planes import street_fill
 
     ground, truth, uv0, texel = _striped_ground([1.0, 0.0, 0.0])
-    h, w = truth.shape[:2]
-    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    x = ground.point(np.stack([(jj.ravel() + 0.5) * texel, (ii.ravel() + 0.5) * texel], 1))[:, 0].reshape(h, w)
+    x = _texel_points(ground, uv0, texel, truth.shape[:2])[..., 0]
     lo, hi = np.quantile(x, 0.3), np.quantile(x, 0.7)
     observed = (x < lo) | (x > hi)  # a stretch along the street that no view saw
     assert hi - lo > 3.0
@@ -305,10 +309,7 @@ def test_unobserved_rules_are_checked_and_inpaint_leaves_the_street_fill_out():
     plain, _ = _ground_texture([donor], street=[0.0, 1.0, 0.0], unobserved="inpaint")
     assert np.array_equal(street.observed, plain.observed) and (~street.observed).any()
     assert np.array_equal(street.rgb[street.observed], plain.rgb[plain.observed])
-    h, w = street.observed.shape
-    ii, jj = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
-    uv = street.uv0 + (np.stack([jj.ravel(), ii.ravel()], 1) + 0.5) * street.texel
-    x = street.plane.point(uv)[:, 0].reshape(h, w)
+    x = _texel_points(street.plane, street.uv0, street.texel, street.observed.shape)[..., 0]
     seen_x = x[street.observed]
     unseen = ~street.observed & (x > seen_x.min() + street.texel) & (x < seen_x.max() - street.texel)
     assert unseen.sum() > 50  # unseen texels on lines that some seen texel runs along
