@@ -149,6 +149,7 @@ class EvalView:
     hole: np.ndarray       # [H, W] bool: the object's pixels in the world with it
     lit_rgb: np.ndarray | None = None  # [H, W, 3] uint8, the world without the object but with its shadow and
     #                                    ambient occlusion (what the other views observed behind it)
+    gt_semantic: np.ndarray | None = None  # [H, W] uint8 semantic ids of the world without the object (0 = sky)
 
 
 def _shifted(world, offset_m: float):
@@ -181,7 +182,7 @@ def evaluation_views(scene, frames, track: int, config: BackgroundBenchConfig) -
         for f, cam, hole in picked:
             gt = without.render_camera(f, cam)
             out.append(EvalView(kind, cam, f, world.ego_poses[f], gt.rgb, gt.depth, hole,
-                                kept_light.render_camera(f, cam).rgb))
+                                kept_light.render_camera(f, cam).rgb, gt.semantic))
     return out
 
 
@@ -223,6 +224,38 @@ def object_light_cost(evs: list[EvalView]) -> dict:
         gt = np.concatenate([ev.gt_rgb[ev.hole] for ev in sel]).astype(np.float64)
         out[kind] = {"pooled_hole_psnr": psnr(torch.from_numpy(lit[None] / 255.0), torch.from_numpy(gt[None] / 255.0)),
                      "changed_share": float(np.mean(np.abs(lit - gt).max(1) > 8)), "views": len(sel)}
+    return out
+
+
+CLASS_ARMS = ("naive", "hidden Gaussians removed", PLANES_ARM)
+"""The arms whose hole error the report splits by what truly lies in the hole."""
+
+
+def class_errors(rgb: np.ndarray, ev: EvalView) -> dict[str, list[float]]:
+    """Per semantic class of the world without the object (omniscs.taxonomy), over the hole: [pixels, summed
+    squared error] (per pixel the mean over channels of the error in 0..1), to pool over views and scenes."""
+    from omniscs.taxonomy import SEMANTIC_CLASSES
+
+    if ev.gt_semantic is None or not ev.hole.any():
+        return {}
+    err = ((rgb.astype(np.float64) - ev.gt_rgb.astype(np.float64)) / 255.0) ** 2
+    err = err.mean(-1)[ev.hole]
+    sem = ev.gt_semantic[ev.hole]
+    out = {}
+    for c in np.unique(sem):
+        sel = sem == c
+        out[SEMANTIC_CLASSES.get(int(c), str(int(c)))] = [int(sel.sum()), float(err[sel].sum())]
+    return out
+
+
+def pooled_class_errors(per_view: list[dict[str, list[float]]]) -> dict[str, list[float]]:
+    """class_errors of several views (and scenes) added up."""
+    out: dict[str, list[float]] = {}
+    for d in per_view:
+        for name, (n, sse) in d.items():
+            acc = out.setdefault(name, [0, 0.0])
+            acc[0] += int(n)
+            acc[1] += float(sse)
     return out
 
 
@@ -366,6 +399,7 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
     arms["DRNet"] = {"graph": fills["drnet"][1], "seconds": fills["drnet"][3]}
 
     rows, strip = [], None
+    by_class: dict[str, dict[str, list]] = {}
     strip_view = max((ev for ev in evs if ev.kind != "logged"), key=lambda ev: ev.hole.sum(), default=None)
     for name in ARMS + extras:
         per_view = []
@@ -378,6 +412,9 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
             else:
                 rgb, depth = render_eval(arms[name]["graph"], ev)
             per_view.append({"kind": ev.kind, **score_view(rgb, depth, ev)})
+            if name in CLASS_ARMS:
+                by_class.setdefault(name, {}).setdefault("novel" if ev.kind.startswith("novel") else "logged",
+                                                        []).append(class_errors(rgb, ev))
             if ev is strip_view and name in STRIP_ARMS:
                 strip = (strip or {"gt": ev.gt_rgb, "hole": ev.hole, "label": f"{ev.camera} frame {ev.frame} {ev.kind}"})
                 strip[name] = rgb
@@ -397,7 +434,9 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
              "unfilled_pixels": sum(int(h.unfilled.sum()) for h in views),
              "hole_pixels": sum(int(h.mask.sum()) for h in views),
              "depth_maps": maps, "object_light": object_light_cost(evs), "planes": arms[PLANES_ARM]["facts"],
-             "eval_views": {k: sum(ev.kind.startswith(k) for ev in evs) for k in ("logged", "novel")}}
+             "eval_views": {k: sum(ev.kind.startswith(k) for ev in evs) for k in ("logged", "novel")},
+             "classes": {arm: {kind: pooled_class_errors(v) for kind, v in kinds.items()}
+                         for arm, kinds in by_class.items()}}
     for name in ("DRNet + RoI refit", "DRNet + full refit"):
         if name in arms:
             facts[name] = {"refit_seconds": arms[name]["refit_seconds"], "trainable": arms[name]["trainable"]}
@@ -475,6 +514,32 @@ def targets(summ: list[dict], facts: list[dict]) -> dict:
     return out
 
 
+def class_table(scenes: list[dict], kind: str = "novel") -> list[str]:
+    """Markdown rows: per class of what truly lies in the hole, pooled over the scenes' ``kind`` views, its share
+    of the hole pixels, each CLASS_ARMS arm's PSNR there and the share of the last arm's squared error it holds
+    (classes by that share, largest first)."""
+    from omniscs.nsg.metrics import MAX_PSNR_DB
+
+    pooled = {arm: pooled_class_errors([s.get("classes", {}).get(arm, {}).get(kind, {}) for s in scenes])
+              for arm in CLASS_ARMS}
+    last = pooled[CLASS_ARMS[-1]]
+    pixels = sum(n for n, _ in last.values())
+    total = sum(e for _, e in last.values())
+    if not pixels:
+        return []
+
+    def db(n, sse):
+        return MAX_PSNR_DB if sse <= 0 else min(MAX_PSNR_DB, 10 * np.log10(n / sse))
+
+    out = ["| what lies there | hole pixels | " + " | ".join(f"{a}: PSNR (dB)" for a in CLASS_ARMS)
+           + f" | share of the {CLASS_ARMS[-1]} arm's squared error |", "|---" * (len(CLASS_ARMS) + 3) + "|"]
+    for name, (n, sse) in sorted(last.items(), key=lambda kv: -kv[1][1]):
+        cells = [f"{db(*pooled[a][name]):.2f}" if name in pooled[a] else "—" for a in CLASS_ARMS]
+        share = f"{100 * sse / total:.0f} %" if total > 0 else "—"
+        out.append(f"| {name} | {100 * n / pixels:.1f} % | " + " | ".join(cells) + f" | {share} |")
+    return out
+
+
 def background_markdown(report: dict) -> str:
     def f(v, d=2):
         return "—" if v is None else f"{v:.{d}f}"
@@ -507,6 +572,10 @@ def background_markdown(report: dict) -> str:
         cells = [f"{f(lt[k]['pooled_hole_psnr'])} | {100 * lt[k]['changed_share']:.0f} %" if k in lt else "— | —"
                  for k in ("logged", "novel")]
         lines.append(f"| {s['scene_id']} | {cells[0]} | {cells[1]} |")
+    rows = class_table(report["scenes"], "novel")
+    if rows:
+        lines += ["", "Where the error lies: the hole pixels of the novel views, pooled over the scenes, by what the world "
+                  "without the object shows there (its semantic class):", ""] + rows
     lines += ["", "Depth maps in the training views' holes (before any refit) against the world without the object:", "",
               "| scene | least squares AbsRel | δ<1.25 | DRNet AbsRel | δ<1.25 | pixels | planes + DRNet AbsRel | δ<1.25 "
               "| pixels | hole pixels on a plane |", "|---|---|---|---|---|---|---|---|---|---|"]
