@@ -574,8 +574,8 @@ def background_markdown(report: dict) -> str:
         lines.append(f"| {s['scene_id']} | {cells[0]} | {cells[1]} |")
     rows = class_table(report["scenes"], "novel")
     if rows:
-        lines += ["", "Where the error lies: the hole pixels of the novel views, pooled over the scenes, by what the world "
-                  "without the object shows there (its semantic class):", ""] + rows
+        lines += ["", "Where the error lies: the hole pixels of the novel views, pooled over the scenes, by what the "
+                  "world without the object shows there (its semantic class):", ""] + rows
     lines += ["", "Depth maps in the training views' holes (before any refit) against the world without the object:", "",
               "| scene | least squares AbsRel | δ<1.25 | DRNet AbsRel | δ<1.25 | pixels | planes + DRNet AbsRel | δ<1.25 "
               "| pixels | hole pixels on a plane |", "|---|---|---|---|---|---|---|---|---|---|"]
