@@ -171,7 +171,7 @@ def fit_planes(points: np.ndarray, config: PlaneConfig = PlaneConfig(),
     planes: list[Plane] = []
     rest = cloud
     while len(planes) < config.max_planes and len(rest.points) >= need:
-        model, inliers = rest.segment_plane(config.distance_m, 3, config.iterations)
+        model, inliers = _segment_plane(rest, config)
         inliers = np.asarray(inliers, dtype=np.int64)
         if len(inliers) < need:
             break
@@ -190,6 +190,19 @@ def fit_planes(points: np.ndarray, config: PlaneConfig = PlaneConfig(),
             continue
         planes.append(Plane(n, d, u, v, hull, len(inliers), street))
     return planes
+
+
+def _segment_plane(cloud, config: PlaneConfig):
+    """open3d's RANSAC on one thread: its threads race to report the best plane, so with several the same seed
+    can give a different plane now and then (1 run in 30 on the background tests' log)."""
+    import open3d as o3d
+
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        return cloud.segment_plane(config.distance_m, 3, config.iterations)
+    finally:
+        o3d.utility.set_max_threads(threads)
 
 
 def plane_hits(view: View, mask: np.ndarray, planes: list[Plane], entry: np.ndarray,
