@@ -2,6 +2,7 @@
 queries against a pool."""
 import numpy as np
 import pytest
+import torch
 
 from omniscs.bench.agents import ARMS, MATCH_LEVELS, TABLE4_EDITS, _targets, agents_markdown, run_matching, table4_summary
 
@@ -153,3 +154,100 @@ def test_multi_view_matching_scores_a_query_as_the_dual_strategy_scores_a_track(
     assert clean["top1"] < next(r for r in rows if r["level"] == "clean" and r["cue"] == "appearance")["top1"] == 1.0
     text = "\n".join(_matching_lines(rows))
     assert "| colour histogram + box shape, up to 3 views |" in text and "2 with 1" in text
+
+
+# ----------------------------------------------------------------------------- what limits the pool arm
+def test_the_limits_table_averages_the_agents_that_have_every_arm():
+    from omniscs.bench.agents import LIMIT_EDITS, LIMITS, _limits_lines, limits_summary
+
+    rows, limits = [], []
+    for tid, base in ((1, 12.0), (2, 14.0), (3, 10.0)):
+        for arm, add in (("naive", 0.0), ("pool", 1.0), ("pool in-pool", 1.5)):
+            rows.append({"scene_id": "s", "track_id": tid, "edit": "rotate 90°", "arm": arm, "masked_psnr": base + add})
+        for k, arm in enumerate(LIMITS):
+            if tid == 3 and k == 3:
+                continue  # an agent missing one ceiling is left out of every column, not averaged unevenly
+            limits.append({"scene_id": "s", "track_id": tid, "edit": "rotate 90°", "arm": arm,
+                           "masked_psnr": base + 2.0 + k})
+    summary = limits_summary(limits, rows)
+    assert [r["edit"] for r in summary] == list(LIMIT_EDITS)
+    r90 = summary[0]
+    assert r90["agents"] == 2 and r90["naive"] == 13.0 and r90["pool in-pool"] == 14.5
+    assert r90[LIMITS[0]] == 15.0 and r90[LIMITS[3]] == 18.0
+    assert summary[1]["agents"] == 0 and summary[1]["naive"] is None
+    decisions = [{"scene_id": "s", "track_id": 1, "arm": "own model", "model_id": "pm-a"},
+                 {"scene_id": "s", "track_id": 2, "arm": "own model", "model_id": "pm-b"},
+                 {"scene_id": "s", "track_id": 1, "arm": "pool in-pool", "strategy": "pool", "model_id": "pm-a"},
+                 {"scene_id": "s", "track_id": 2, "arm": "pool in-pool", "strategy": "pool", "model_id": "pm-c"}]
+    text = "\n".join(_limits_lines({"limits": summary, "decisions": decisions}))
+    assert "| rotate 90° | 2 | 13.00 | 14.00 | 14.50 | 15.00 | 16.00 | 17.00 | 18.00 |" in text
+    assert "| rotate 180° | 0 | n/a |" in text
+    assert "picked the own model for 1 of 2 agents" in text
+    assert _limits_lines({"decisions": []}) == []  # a report made before the table
+
+
+@pytest.fixture(scope="module")
+def tiny_graph(tmp_path_factory):
+    from omniscs.nsg.init import initial_graph
+    from omniscs.nsg.observations import Observations
+    from omniscs.plan import make_plan
+    from omniscs.scene import load_scene
+    from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+
+    scene = load_scene(write_nsg_scene(tmp_path_factory.mktemp("limits") / "scene", nsg_world(n_frames=4)))
+    config = tiny_fit_config()
+    return initial_graph(scene, make_plan(scene, None, config.plan), config, Observations(scene))
+
+
+def test_box_clearing_drops_the_background_inside_the_logged_box_and_nothing_else(tiny_graph):
+    from omniscs.background.holes import points_in_box
+    from omniscs.bench.agents import box_cleared
+    from omniscs.gaussians import activate, concat_params, params_from_values
+
+    node = tiny_graph.agents[0]
+    f = int(np.flatnonzero(node.present)[0])
+    pose = np.asarray(node.world_from_agent[f])
+    inside = torch.as_tensor(pose[:3, 3] + np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 0.1]]), dtype=torch.float32)
+    planted = params_from_values(inside, torch.full((2, 3), 0.1), torch.full((2,), 0.9), torch.full((2, 3), 0.5),
+                                 tiny_graph.sh_degree)
+    g = tiny_graph.replace(background=concat_params([tiny_graph.background, planted]))
+    out = box_cleared(g, node.track_id, 0.3)
+    before = activate(g.background.detached()).means.numpy().astype(np.float64)
+    after = activate(out.background.detached()).means.numpy().astype(np.float64)
+    grown = np.asarray(node.size) + 0.6
+    in_box = np.zeros(len(before), bool)
+    for k in np.flatnonzero(node.present):
+        in_box |= points_in_box(before, np.asarray(node.world_from_agent[k]), grown)
+    assert in_box[-2:].all() and len(after) == len(before) - int(in_box.sum())
+    assert not any(points_in_box(after, np.asarray(node.world_from_agent[k]), grown).any()
+                   for k in np.flatnonzero(node.present))
+    assert len(out.agents) == len(g.agents)  # agent nodes untouched
+
+
+def test_the_oracle_colour_fit_moves_the_vehicle_towards_the_truth(tiny_graph):
+    from types import SimpleNamespace
+
+    from omniscs.bench.agents import truth_fitted
+    from omniscs.nsg.metrics import psnr
+    from omniscs.render.sh import rgb_to_sh_dc
+
+    node = tiny_graph.agents[0]
+    f = int(np.flatnonzero(node.present)[0])
+    cam = tiny_graph.cameras[0].name
+    red = node.gaussians
+    red = type(red)(red.means, red.quats, red.log_scales, red.opacity_logits,
+                    rgb_to_sh_dc(torch.tensor([[0.9, 0.1, 0.1]]).expand(len(red), 3)), torch.zeros_like(red.sh_rest))
+    truth_graph = tiny_graph.replace(agents=tuple(a.with_changes(gaussians=red) if a.track_id == node.track_id else a
+                                                  for a in tiny_graph.agents))
+    alone = truth_graph.replace(agents=(truth_graph.agent(node.track_id),))
+    mask = alone.render(alone.view(cam, f)).alpha.reshape(-1).numpy() > 0.5
+    view = truth_graph.view(cam, f)
+    rgb = (truth_graph.render(view).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    gt = SimpleNamespace(rgb=rgb, instance=np.where(mask.reshape(rgb.shape[:2]), node.track_id, -1))
+    assert mask.sum() > 20
+    target, m = torch.from_numpy(rgb.astype(np.float32) / 255), torch.from_numpy(gt.instance == node.track_id)
+    before = psnr(tiny_graph.render(view).rgb, target, m)
+    fitted = truth_fitted(tiny_graph, node.track_id, [(f, cam, gt)], steps=60)
+    after = psnr(fitted.render(view).rgb, target, m)
+    assert np.isfinite(after) and after > before + 5.0, (before, after)
+    assert fitted.background is tiny_graph.background  # only the vehicle's colours change
