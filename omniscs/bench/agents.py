@@ -8,7 +8,9 @@ Three parts, one report (reports/agents_bench.*):
   for each embedder.
 - The paper's Table 4: edited-agent masked PSNR/SSIM after translate 2.0/3.5 m, rotate 90/180/270 degrees and
   overturn (roll 180 degrees), for the naive graph, online only, pool only and the dual strategy on held-out
-  worlds, plus the pool arm with the edited vehicles' own models added to the pool (in-pool: an upper bound).
+  worlds, plus the pool arm with the edited vehicles' own models added to the pool (in-pool: matching may still
+  pick another model), and at the turns what limits the pool arm (``LIMITS``: each vehicle's own model alone, the
+  background in its box cleared, its colours fitted to the truth as an oracle).
 """
 from __future__ import annotations
 
@@ -44,7 +46,7 @@ TABLE4_EDITS: tuple[tuple[str, dict], ...] = (
 )
 ARMS = ("naive", "online", "pool", "dual", "pool in-pool")
 
-#: What limits the pool arm at the turns: the edited vehicle's own model (exact shape and material colours, so
+#: What limits the pool arm at the turns: the edited vehicle's own model (its asset's exact shape and colours, so
 #: matching cannot fail), then without the background Gaussians inside the vehicle's logged box (the background's
 #: copy of a parked vehicle: after a turn it shows in front of the model), then with the model's colours fitted to
 #: the evaluated views themselves (an oracle: the best any appearance transfer could do with that shape).
