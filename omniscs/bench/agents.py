@@ -339,12 +339,12 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
         in_pool = Pool(workspace / "bench-agents" / f"in-pool-{scene.scene_id}")
         shutil.rmtree(in_pool.root, ignore_errors=True)
         shutil.copytree(pool.root, in_pool.root, ignore=shutil.ignore_patterns("embeddings"))
-        for t in targets:
-            pool_asset_stage(scene.world.agent(t).asset_id, in_pool.root)
+        own_models = {t: pool_asset_stage(scene.world.agent(t).asset_id, in_pool.root).info["model_id"]
+                      for t in targets}
         started = time.perf_counter()
         arms = _arm_graphs(graph, scene, plan, targets, pool, in_pool, progress)
         progress(0, None, f"{scene.scene_id}: own models")
-        own, own_ids = own_model_graph(graph, scene, plan.train_frames, targets,
+        own, own_ids = own_model_graph(graph, scene, plan.train_frames, in_pool, own_models,
                                        workspace / "bench-agents" / f"own-{scene.scene_id}")
         # growth: the scene's clear, well-covered vehicles scored on held-out views join a copy of the pool
         growth = Pool(workspace / "bench-agents" / "growth-pool")
@@ -398,21 +398,23 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
 
 
 # ----------------------------------------------------------------------------- what limits the pool arm
-def own_model_graph(graph, scene, train_frames, targets: list[int], root: Path):
-    """The pool arm with each edited vehicle given its own asset's model (a pool of that one model per track, so
-    matching cannot pick another): the graph and {track: model id}."""
+def own_model_graph(graph, scene, train_frames, source, models: dict[int, str], root: Path):
+    """The pool arm with each edited vehicle given its own model (``models``: track -> model id of the pool
+    ``source``), from a pool of that one model per track, so matching cannot pick another: the graph and {track:
+    model id}."""
     import shutil
 
     from omniscs.agents.dual import complete_agents
     from omniscs.agents.pool import Pool
-    from omniscs.pipeline.pool import pool_asset_stage
 
     out, ids = None, {}
-    for t in targets:
-        pool = root / f"track-{t}"
-        shutil.rmtree(pool, ignore_errors=True)
-        pool_asset_stage(scene.world.agent(t).asset_id, pool)
-        g, ds = complete_agents(graph, scene, [t], train_frames, Pool(pool), force="pool")
+    for t, model_id in models.items():
+        pool = Pool(root / f"track-{t}")
+        shutil.rmtree(pool.root, ignore_errors=True)
+        model = source.get(model_id)
+        pool.add(model.params, model.meta["category"], model.meta["provenance"], model.meta["source"],
+                 model.meta["quality"], build=model.meta.get("build"))
+        g, ds = complete_agents(graph, scene, [t], train_frames, pool, force="pool")
         ids[t] = next(d.model_id for d in ds if d.track_id == t)
         node = g.agent(t)
         out = g if out is None else out.replace(agents=tuple(node if a.track_id == t else a for a in out.agents))
@@ -729,10 +731,9 @@ def _limits_lines(report: dict) -> list[str]:
     if not limits:
         return []
     own = {(d["scene_id"], d["track_id"]): d["model_id"] for d in report["decisions"] if d["arm"] == "own model"}
-    inpool = [(d["scene_id"], d["track_id"]) for d in report["decisions"] if d["arm"] == "pool in-pool"
-              and d.get("strategy") == "pool" and (d["scene_id"], d["track_id"]) in own]
-    hits = sum(own[k] == d["model_id"] for k in inpool for d in report["decisions"]
-               if d["arm"] == "pool in-pool" and (d["scene_id"], d["track_id"]) == k)
+    inpool = {(d["scene_id"], d["track_id"]): d["model_id"] for d in report["decisions"]
+              if d["arm"] == "pool in-pool" and d.get("strategy") == "pool" and (d["scene_id"], d["track_id"]) in own}
+    hits = sum(own[k] == m for k, m in inpool.items())
     arms = ("naive", "pool", "pool in-pool") + LIMITS
     lines = ["## What limits the pool arm at the turns (masked PSNR, dB)", "",
              "| edit | agents | " + " | ".join(arms) + " |", "|---|---|" + "---|" * len(arms)]
@@ -773,176 +774,3 @@ def _strip_png(strips, buf) -> None:
     fig.tight_layout()
     fig.savefig(buf, format="png", dpi=70)  # photographic crops: at 110 dpi the strip passes 2 MB
     plt.close(fig)
-
-
-# ----------------------------------------------------------------------------- MSNet training (its shipped weights)
-
-
-#: Logs for ``MSNetDataConfig.extra_worlds`` (seeds far from every benchmark's).
-UNBENCHED_WORLDS = tuple(f"{t}:{s}" for s in range(1100, 1132) for t in ("straight", "t_junction", "intersection"))
-
-
-@dataclass(frozen=True)
-class MSNetDataConfig:
-    """The training data of the shipped MSNet, none from a benchmark world or of a benchmark pool's vehicle: the
-    library's *world* split, and (with ``extra_worlds``) the pool split's vehicles beyond the benchmark pool
-    (``unbenched_pool_assets``), each seen two ways: its pool model's keyframes, and camera images of procedural
-    worlds cropped by their ground-truth masks (positives across the two). The world split is seen in the worlds
-    that hold it; the unbenched vehicles are swapped into other worlds (``swapped_world_crops``)."""
-
-    worlds: tuple[str, ...] = tuple(f"{t}:{s}" for s in range(1000, 1012)
-                                    for t in ("straight", "t_junction", "intersection"))
-    frame_step: int = 4
-    min_pixels: int = 300
-    per_track: int = 6
-    steps: int = 2000
-    seed: int = 0
-    id_weight: float = 1.0
-    extra_worlds: tuple[str, ...] = ()
-    """Worlds whose vehicles are swapped for unbenched pool-split vehicles (empty, the shipped weights' data: the
-    world split alone). ``UNBENCHED_WORLDS`` (96 logs, 361 more identities) was tried and not shipped: on the
-    validation queries it raised top-5 with box shape at x4 + 40 % occlusion + illumination from 69 % to 80 %, on the
-    benchmark's queries it did not (57 % both; appearance alone 41 % -> 33 %)."""
-
-
-def _spread_views(world, asset_of: dict[int, str], frame_step: int, min_pixels: int, per_track: int,
-                  min_views: int = 1) -> tuple[list[np.ndarray], list[str]]:
-    """Up to ``per_track`` crops (``whole_views``, spread over the log) of each track of ``asset_of`` seen whole at
-    least ``min_views`` times, and its asset id per crop."""
-    seen: dict[int, list[np.ndarray]] = {}
-    for tid, _, crop, _ in whole_views(world, asset_of, frame_step, min_pixels):
-        seen.setdefault(tid, []).append(crop)
-    crops, labels = [], []
-    for tid, views in seen.items():
-        if len(views) < min_views:
-            continue
-        pick = np.linspace(0, len(views) - 1, min(per_track, len(views))).round().astype(int)
-        crops += [views[i] for i in pick]
-        labels += [asset_of[tid]] * len(pick)
-    return crops, labels
-
-
-def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progress: Progress = no_progress):
-    """crops uint8 [N, CROP, CROP, 3] and asset ids [N] of the vehicles of procedural worlds, up to ``per_track``
-    views each (spread over the log), whole in the image, cropped by their ground-truth masks."""
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import generate_world
-
-    crops, labels = [], []
-    for k, item in enumerate(items):
-        progress(k, len(items), f"MSNet data: {item}")
-        template, _, seed = item.partition(":")
-        world = generate_world(template, int(seed))
-        vehicles = {a.track_id: a.asset_id for a in world.agents if a.category in VEHICLE_CATEGORIES}
-        c, lab = _spread_views(world, vehicles, frame_step, min_pixels, per_track)
-        crops += c
-        labels += lab
-    return np.stack(crops), np.array(labels)
-
-
-def unbenched_pool_assets(quota) -> list[str]:
-    """The pool split's vehicles beyond the benchmark pool's ``quota``: in no benchmark world and no benchmark pool,
-    so MSNet may learn from them."""
-    from omniscs.world.assets import list_asset_ids
-
-    return [a for kind, n in quota for a in list_asset_ids(kind, "pool")[n:]]
-
-
-def swapped_world_crops(items, assets: list[str], frame_step: int, min_pixels: int, per_track: int, seed: int,
-                        progress: Progress = no_progress):
-    """Like ``world_crops``, with the worlds' vehicles swapped (``swap_vehicles``) for ``assets`` (shuffled with
-    ``seed``, each category's list dealt again when it runs short, as a world holds dozens of vehicles and shows
-    a few of them whole): crops uint8 [N, CROP, CROP, 3] and asset ids [N]."""
-    from omniscs.world import asset_category, generate_world
-
-    rng = np.random.default_rng(seed)
-    by_category: dict[str, list[str]] = {}
-    for a in assets:
-        by_category.setdefault(asset_category(a), []).append(a)
-    options: dict[str, list[str]] = {c: [] for c in by_category}
-    crops, labels = [], []
-    for k, item in enumerate(items):
-        progress(k, len(items), f"MSNet data (unbenched pool assets): {item}")
-        for c, ids in by_category.items():
-            while len(options[c]) < 64:  # popped from the end: what is left of the last deal goes first
-                options[c] = [str(a) for a in rng.permutation(ids)] + options[c]
-        template, _, s = item.partition(":")
-        world, swapped = swap_vehicles(generate_world(template, int(s)), options)
-        c, lab = _spread_views(world, swapped, frame_step, min_pixels, per_track, min_views=2)  # 1: no positive
-        crops += c
-        labels += lab
-    return np.stack(crops), np.array(labels)
-
-
-def _cached_crops(ws: Path, key: dict, make) -> tuple[np.ndarray, np.ndarray]:
-    """Crops and labels made once per ``key`` (rendering them is most of the data's cost), under the workspace."""
-    import hashlib
-    import io
-    import json
-
-    from omniscs.storage import atomic_write_bytes
-
-    digest = hashlib.sha256(json.dumps(key).encode()).hexdigest()[:12]
-    cache = ws / "bench-agents" / f"msnet-data-{digest}.npz"
-    if cache.is_file():
-        with np.load(cache, allow_pickle=False) as z:
-            return z["crops"], z["labels"].astype(str)
-    crops, labels = make()
-    buf = io.BytesIO()
-    np.savez_compressed(buf, crops=crops, labels=labels.astype(str))
-    atomic_write_bytes(cache, buf.getvalue())
-    return crops, labels
-
-
-def _keyframe_crops(pool, assets: list[str], progress: Progress) -> tuple[np.ndarray, np.ndarray]:
-    """The keyframes of ``assets``' mesh models in ``pool`` (built where missing) as crops, labelled by asset."""
-    from omniscs.agents.matching import crop_square
-
-    build_pool(pool.root, assets, progress)
-    table = pool.table().set_index("source")
-    crops, labels = [], []
-    for aid in assets:
-        for k in pool.keyframes(str(table.loc[aid, "model_id"])):
-            crops.append(crop_square(np.ascontiguousarray(k[..., :3]), k[..., 3] / 255.0))
-            labels.append(aid)
-    return np.stack(crops), np.array(labels)
-
-
-def train_shipped_msnet(workspace: Path | None = None, config: MSNetDataConfig = MSNetDataConfig(),
-                        out: Path = MSNET_CHECKPOINT, progress: Progress = no_progress) -> dict:
-    """Train MSNet on ``config``'s data (``MSNetDataConfig``; positives across keyframes and camera crops) and write
-    its weights to ``out`` (the shipped ones by default)."""
-    from omniscs.agents.degradation import Degradation
-    from omniscs.agents.msnet import MSNetTrainConfig, save_msnet, train_msnet
-    from omniscs.agents.pool import Pool
-
-    ws = workspace_root(workspace)
-    camera, camera_labels = _cached_crops(
-        ws, {k: getattr(config, k) for k in ("worlds", "frame_step", "min_pixels", "per_track")},
-        lambda: world_crops(config.worlds, config.frame_step, config.min_pixels, config.per_track, progress))
-    assets = sorted(set(camera_labels))
-    key_crops, key_labels = _keyframe_crops(Pool(ws / "bench-agents" / "world-split-pool"), assets, progress)
-    parts = [(key_crops, key_labels, 0), (camera, camera_labels, 1)]  # (crops, identities, domain)
-    if config.extra_worlds:
-        extra = unbenched_pool_assets(tuple(POOL_QUOTA.items()))
-        camera, camera_labels = _cached_crops(
-            ws, {"extra_worlds": config.extra_worlds, "assets": extra, "seed": 0,
-                 **{k: getattr(config, k) for k in ("frame_step", "min_pixels", "per_track")}},
-            lambda: swapped_world_crops(config.extra_worlds, extra, config.frame_step, config.min_pixels,
-                                        config.per_track, 0, progress))
-        key_crops, key_labels = _keyframe_crops(Pool(ws / "bench-agents" / "unbenched-pool"),
-                                                sorted(set(camera_labels)), progress)
-        parts += [(key_crops, key_labels, 0), (camera, camera_labels, 1)]
-    crops = np.concatenate([p[0] for p in parts])
-    labels = np.concatenate([p[1] for p in parts])
-    domains = np.concatenate([np.full(len(p[0]), p[2]) for p in parts])
-    degradations = [Degradation(**spec) for _, spec in MATCH_LEVELS] + [
-        Degradation(gain=1.3, gamma=0.8), Degradation(gain=0.6), Degradation(downsample=3.0, occlusion=0.25)]
-    train = MSNetTrainConfig(steps=config.steps, seed=config.seed, id_weight=config.id_weight)
-    net, info = train_msnet(crops, labels, degradations, train, progress=progress, domains=domains)
-    info.update({"command": "omniscs bench agents --train-msnet", "data": asdict(config),
-                 "n_assets": len(set(labels)), "n_keyframe_crops": int(np.sum(domains == 0)),
-                 "n_camera_crops": int(np.sum(domains == 1)),
-                 "machine": finish(machine_info())})
-    save_msnet(net, out, info)
-    return info

@@ -229,8 +229,8 @@ def bench_agents(
     """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
     (naive / online / pool / dual / pool with the vehicles' own models, after translate, rotate and overturn) on
     held-out worlds."""
-    from omniscs.bench.agents import (AgentsBenchConfig, quick_config, run_agents_benchmark, run_matching_benchmark,
-                                      train_shipped_msnet)
+    from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark, run_matching_benchmark
+    from omniscs.bench.msnet_data import train_shipped_msnet
 
     if train_msnet:
         with progress_bars() as bars:
