@@ -9,7 +9,7 @@ world is never read."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -79,13 +79,22 @@ class DualConfig:
     scene's light fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the light
     when the agent turns; off: the colour correction and refinement alone."""
     relight_steps: int = 200
-    """Steps of the light's fit."""
+    """Steps of the light's fit on the colour pairs (``agents.relight.fit_lighting``)."""
+    relight_render_steps: int = 60
+    """Steps of the light's fit on the renders that follow it."""
+    clear_box: bool = True
+    """A track given a pool model takes with it the background Gaussians inside its box at its logged poses
+    (``background_in_boxes``): where the fit put part of the vehicle into the background, that copy would show in
+    front of a turned model, or stay where a moved one stood."""
+    clear_floor_m: float = 0.15
+    """Those Gaussians start this high above the box's bottom: the road under the vehicle stays."""
 
     def __post_init__(self) -> None:
         if not (self.min_view_pixels >= 1 and self.good_pixels > 0 and self.sharp_reference > 0
                 and self.azimuth_bins >= 4 and 0 <= self.min_clarity <= 1 and 0 <= self.min_coverage <= 1
                 and self.box_margin_m >= 0 and self.match_views >= 1 and self.colour_views >= 1
                 and self.colour_steps >= 0 and self.min_online_pixels >= 0 and self.relight_steps >= 0
+                and self.relight_render_steps >= 0 and self.clear_floor_m >= 0
                 and self.size_weight >= 0 and self.verify_top_k >= 0):
             raise OmniscsError(f"bad dual-strategy settings {self}")
 
@@ -132,7 +141,7 @@ class Decision:
     distance: float | None = None  # its matching distance (1 - similarity + shape term)
     mirrored: bool = False         # the online model's unseen side came from mirror symmetry
     colour: list | None = None     # the pool model's colour correction [3, 4] (A | b)
-    lighting: list | None = None   # the relit pool model's light [5, 3] (omniscs.nsg.relight)
+    lighting: list | None = None   # the relit pool model's light [7, 3] (omniscs.nsg.relight)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -402,16 +411,17 @@ def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, 
 
 
 def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams, meta: dict,
-                    node_size: np.ndarray, samples: list[tuple], steps: int):
-    """``candidate`` (the pool model placed in the track's box, its own colours; ``meta`` the model's metadata) and
-    its Relight with the scene's light fitted to the track's views; the Gaussians' stored colours become the relit
-    ones at the track's first logged pose (what a reader that ignores the relight data shows)."""
+                    node_size: np.ndarray, samples: list[tuple], steps: int, material=None, render_steps: int = 60):
+    """``candidate`` (the pool model placed in the track's box, its own colours; ``meta`` the model's metadata,
+    ``material`` its material when it has one) and its Relight with the scene's light fitted to the track's views;
+    the Gaussians' stored colours become the relit ones at the track's first logged pose, each Gaussian seen
+    head-on (what a reader that ignores the relight data shows)."""
     from omniscs.agents.relight import fit_lighting, relight_base
     from omniscs.render.sh import rgb_to_sh_dc
 
     scale = np.asarray(node_size, dtype=np.float64) / np.maximum(np.asarray(meta["size"], dtype=np.float64), 1e-3)
-    base = relight_base(candidate, meta.get("provenance") == "mesh", scale)
-    relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps)
+    base = relight_base(candidate, meta.get("provenance") == "mesh", scale, material)
+    relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps, render_steps=render_steps)
     node = graph.agent(track_id)
     first = int(np.flatnonzero(node.present)[0]) if node.present.any() else 0
     with torch.no_grad():
@@ -594,12 +604,13 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
             raw = placed_model(model, node.size, graph.sh_degree, graph.device)
             if affine is None:
                 affine = fit_colour_correction(cropped, tid, raw, samples[tid])
+            relit_whole = config.relight and model.material is not None
             keep = config.pool_keeps_observed and d.clarity is not None and d.clarity.score >= config.min_clarity \
-                and d.clarity.pixels >= config.min_online_pixels
+                and d.clarity.pixels >= config.min_online_pixels and not relit_whole
             relight = None
             if config.relight and not keep:
                 g, relight = relit_candidate(cropped, tid, raw, model.meta, node.size, samples[tid],
-                                             config.relight_steps)
+                                             config.relight_steps, model.material, config.relight_render_steps)
             else:
                 g = refine_colours(cropped, tid, colour_corrected(raw, affine), samples[tid], config.colour_steps)
             if keep:  # the seen sides (and their mirror images) from the fit, the rest from the pool model
@@ -620,7 +631,35 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
         g = mirror_completed(node.gaussians, seen_side(views[tid])) if mirror else node.gaussians
         nodes[tid] = node.with_changes(gaussians=g)
         decisions[tid] = Decision(tid, "online", reason, d.clarity, mirrored=bool(mirror))
-    return graph.replace(agents=tuple(nodes.values())), [decisions[t] for t in sorted(decisions)]
+    out = graph.replace(agents=tuple(nodes.values()))
+    pooled = [t for t, d in decisions.items() if d.strategy == "pool"]
+    if config.clear_box and pooled:
+        inside = background_in_boxes(out, pooled, config.box_margin_m, config.clear_floor_m)
+        keep = torch.from_numpy(np.flatnonzero(~inside)).to(graph.background.device)
+        out = out.replace(background=out.background.select(keep))
+        for t in pooled:
+            d = decisions[t]
+            decisions[t] = replace(d, reason=f"{d.reason}; {int(inside.sum())} background Gaussians in the pool "
+                                             "models' boxes removed")
+    return out, [decisions[t] for t in sorted(decisions)]
+
+
+def background_in_boxes(graph: SceneGraph, track_ids, margin_m: float, floor_m: float) -> np.ndarray:
+    """[N] bool: the background Gaussians whose centre lies in the box of one of ``track_ids`` at any of its logged
+    poses, the box grown by ``margin_m`` on the sides and the top and starting ``floor_m`` above its bottom."""
+    from omniscs.gaussians import activate
+
+    means = activate(graph.background.detached()).means.cpu().numpy().astype(np.float64)
+    inside = np.zeros(len(means), bool)
+    for t in track_ids:
+        node = graph.agent(t)
+        half = 0.5 * np.asarray(node.size, dtype=np.float64)
+        lo = np.array([-half[0] - margin_m, -half[1] - margin_m, -half[2] + floor_m])
+        hi = half + margin_m
+        for f in np.flatnonzero(node.present):
+            local = transform_points(invert_transform(np.asarray(node.world_from_agent[f], dtype=np.float64)), means)
+            inside |= np.all((local >= lo) & (local <= hi), axis=1)
+    return inside
 
 
 def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: int = 300) -> float | None:
@@ -683,4 +722,5 @@ def read_decisions(path: str | Path) -> list[dict]:
 __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",
            "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected",
            "colour_samples", "fit_colour_correction", "query_crops", "query_views",
-           "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr"]
+           "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr",
+           "background_in_boxes"]

@@ -35,8 +35,9 @@ KEYFRAMES = 30
 KEYFRAME_ELEVATION_DEG = 15.0
 KEYFRAME_SIZE = 96
 #: Version of the mesh-to-Gaussians build, recorded with every model it makes (``model.json`` "build"): 1 sampled
-#: the whole surface, buried faces included; 2 keeps only the surface seen from outside (``outside_visible``).
-MESH_BUILD_VERSION = 2
+#: the whole surface, buried faces included; 2 keeps only the surface seen from outside (``outside_visible``); 3 also
+#: keeps each Gaussian's material (``agents.material``: albedo, specular reflectance, shininess) from its face.
+MESH_BUILD_VERSION = 3
 #: Surface points are drawn this many times over before those not seen from outside are dropped.
 OVERSAMPLE = 3
 #: Directions tried per surface point when testing whether it is seen from outside the mesh.
@@ -110,10 +111,11 @@ def outside_visible(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
     return seen
 
 
-def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: int = 0) -> GaussianParams:
+def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: int = 0, with_faces: bool = False):
     """Flat, oriented Gaussians on the outside of the mesh surface (degree-0 colours), ``n`` of them: points are
     drawn by area, those ``outside_visible`` does not see are dropped (up to OVERSAMPLE draws in all), so the
-    Gaussians stand for the surface a camera can see and none shows through it from inside."""
+    Gaussians stand for the surface a camera can see and none shows through it from inside. With ``with_faces``:
+    (the Gaussians, the index of the face each lies on)."""
     import trimesh
 
     from omniscs.quaternions import rotmat_to_quat
@@ -140,9 +142,11 @@ def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: in
     in_plane = 0.75 * np.sqrt(outside_area / len(points))
     scales = np.tile([in_plane, in_plane, THICKNESS_M], (len(points), 1))
     colours = shade(c[face], normal)
-    return params_from_values(torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(scales, dtype=torch.float32),
-                              torch.full((len(points),), 0.95), torch.as_tensor(colours, dtype=torch.float32), 0,
-                              quats=torch.as_tensor(rotmat_to_quat(rot), dtype=torch.float32))
+    params = params_from_values(torch.as_tensor(points, dtype=torch.float32),
+                                torch.as_tensor(scales, dtype=torch.float32), torch.full((len(points),), 0.95),
+                                torch.as_tensor(colours, dtype=torch.float32), 0,
+                                quats=torch.as_tensor(rotmat_to_quat(rot), dtype=torch.float32))
+    return (params, face) if with_faces else params
 
 
 @dataclass(frozen=True)
@@ -263,13 +267,21 @@ def refine(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: 
 
 
 def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps: int = 100,
-                    seed: int = 0) -> tuple[GaussianParams, dict]:
+                    seed: int = 0, face_specular=None, face_shininess=None) -> tuple[GaussianParams, dict]:
     """A pool model from a mesh already in its vehicle frame: Gaussians on the surface, refined against 12 ray-cast
-    views around it; scored (PSNR, dB) on 6 other views at another elevation. Returns it and {quality, seconds}."""
+    views around it; scored (PSNR, dB) on 6 other views at another elevation. Returns it and {quality, seconds,
+    material, ...}: "material" is each Gaussian's ``GaussianMaterial`` from its face (the face colour as albedo;
+    ``face_specular`` [F] and ``face_shininess`` [F] when the mesh has them, else matte)."""
+    from omniscs.agents.material import GaussianMaterial
+
     started = time.perf_counter()
     v, f, c = _check_mesh(vertices, faces, face_colours)
     size = v.max(0) - v.min(0)
-    params = gaussians_from_mesh(v, f, c, n, seed)
+    for name, a in (("face_specular", face_specular), ("face_shininess", face_shininess)):
+        if a is not None and (np.shape(a) != (len(f),) or not np.isfinite(np.asarray(a, np.float64)).all()):
+            raise ValidationError(f"{name} must hold one finite value per face ({len(f)}); got shape {np.shape(a)}")
+    params, face = gaussians_from_mesh(v, f, c, n, seed, with_faces=True)
+    material = GaussianMaterial.from_faces(face, c, face_specular, face_shininess)
     train = orbit_cameras(size, 12, elevation_deg=KEYFRAME_ELEVATION_DEG)
     held = orbit_cameras(size, 12, elevation_deg=30.0)[1::2]
     info = {}
@@ -278,6 +290,6 @@ def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps
         params, info = refine(params, rgb, alpha, train, steps=refine_steps, seed=seed)
     hrgb, halpha = raycast_views(v, f, c, held)
     return params, {"quality_psnr": view_psnr(params, hrgb, halpha, held), "seconds": time.perf_counter() - started,
-                    "n_gaussians": len(params), "refine": info,
+                    "n_gaussians": len(params), "refine": info, "material": material,
                     "build": {"method": "mesh", "version": MESH_BUILD_VERSION, "gaussians": int(n),
                               "refine_steps": int(refine_steps), "seed": int(seed)}}

@@ -1,11 +1,12 @@
 """The model pool: 360-degree Gaussian models of road users in their vehicle frame (+x heading, y left, z up, origin at
 the centre of the box, metres), gathered from meshes, imported splat files and well-observed scene tracks.
 
-On disk (``<pool>/``): ``models/<model_id>/`` holds ``gaussians.safetensors`` (the raw parameters) and
-``model.json`` (category, box size, provenance, source, quality, version, what calibration did); ``index/`` holds
+On disk (``<pool>/``): ``models/<model_id>/`` holds ``gaussians.safetensors`` (the raw parameters),
+``material.safetensors`` where the model has one (``agents.material``: per-Gaussian albedo, specular reflectance and
+shininess, from a mesh build) and ``model.json`` (category, box size, provenance, source, quality, version, what calibration did); ``index/`` holds
 one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table, and ``keyframes.npz`` (30 RGBA
 views around the model at 12 degrees of azimuth, rendered when it joins). The id is a content hash of the
-parameters and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
+parameters, material and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
 folder is written whole (a temporary sibling renamed into place) before its index row, and each row is its own
 file, so two writers adding at once never lose or half-write an entry, and a reader never sees a row without its
 model. Keyframe embeddings are cached per embedder under ``embeddings/`` (``agents.matching.pool_gallery``)."""
@@ -32,7 +33,7 @@ from omniscs.taxonomy import CATEGORIES
 
 POOL_VERSION = 1
 MODELS, INDEX = "models", "index"
-GAUSSIANS, META, KEYFRAMES = "gaussians.safetensors", "model.json", "keyframes.npz"
+GAUSSIANS, MATERIAL, META, KEYFRAMES = "gaussians.safetensors", "material.safetensors", "model.json", "keyframes.npz"
 PROVENANCES = ("mesh", "imported", "scene_track")
 INDEX_COLUMNS = ("model_id", "category", "length", "width", "height", "n_gaussians", "sh_degree", "provenance",
                  "source", "quality", "version", "added_at_us")
@@ -41,10 +42,11 @@ INDEX_SCHEMA = pa.schema([(c, pa.large_string()) if c in ("model_id", "category"
                           else (c, pa.int64()) for c in INDEX_COLUMNS])
 
 
-def model_id_of(params: GaussianParams, category: str) -> str:
-    """``pm-<12 hex>`` of the parameters' bytes and the category."""
+def model_id_of(params: GaussianParams, category: str, material=None) -> str:
+    """``pm-<12 hex>`` of the parameters' (and the material's, when there is one) bytes and the category."""
     h = hashlib.sha256(category.encode())
-    for name, t in params.as_dict().items():
+    tensors = {**params.as_dict(), **({} if material is None else material.as_dict())}
+    for name, t in tensors.items():
         h.update(name.encode())
         h.update(t.detach().cpu().contiguous().numpy().astype(np.float32).tobytes())
     return f"pm-{h.hexdigest()[:12]}"
@@ -55,6 +57,7 @@ class PoolModel:
     model_id: str
     params: GaussianParams
     meta: dict
+    material: object = None  # agents.material.GaussianMaterial, or None (a model made from splats)
 
 
 class Pool:
@@ -66,10 +69,12 @@ class Pool:
             raise ValidationError(f"pool {self.root} is a file, not a folder")
 
     def add(self, params: GaussianParams, category: str, provenance: str, source: str,
-            quality: float | None = None, calibration: dict | None = None, build: dict | None = None) -> str:
+            quality: float | None = None, calibration: dict | None = None, build: dict | None = None,
+            material=None) -> str:
         """Put a model (already in its vehicle frame) into the pool; returns its id (the same model: the same id,
         nothing written twice). ``build``: how the model was made (e.g. ``model_from_mesh``'s "build": method,
-        version, settings), kept in its ``model.json``."""
+        version, settings), kept in its ``model.json``; ``material``: its ``GaussianMaterial`` (one per Gaussian),
+        when it has one."""
         if category not in CATEGORIES:
             raise ValidationError(f"unknown category {category!r}; one of {list(CATEGORIES)}")
         if provenance not in PROVENANCES:
@@ -78,8 +83,10 @@ class Pool:
             raise ValidationError("a pool model needs at least one Gaussian")
         if not params.is_finite():
             raise ValidationError("a pool model's parameters must be finite")
+        if material is not None and len(material) != len(params):
+            raise ValidationError(f"the material is for {len(material)} Gaussians; the model has {len(params)}")
         params = params.detached()
-        model_id = model_id_of(params, category)
+        model_id = model_id_of(params, category, material)
         folder = self.root / MODELS / model_id
         means = params.means.double().numpy()
         size = means.max(0) - means.min(0)
@@ -97,6 +104,8 @@ class Pool:
                 views = keyframes(params, np.maximum(size, 1e-3))
                 with atomic_directory(folder) as tmp:
                     save_file({k: v.contiguous() for k, v in params.as_dict().items()}, str(tmp / GAUSSIANS))
+                    if material is not None:
+                        save_file(material.as_dict(), str(tmp / MATERIAL))
                     np.savez_compressed(tmp / KEYFRAMES, rgba=views)
                     (tmp / META).write_text(json.dumps(meta, indent=1, sort_keys=True))
             index = self.root / INDEX / f"{model_id}.parquet"
@@ -150,9 +159,16 @@ class Pool:
         folder = self.root / MODELS / model_id
         if not (folder / META).is_file():
             raise ValidationError(f"pool {self.root} has no model {model_id}")
+        from omniscs.agents.material import GaussianMaterial
+
         try:
             tensors = load_file(str(folder / GAUSSIANS))
-            return PoolModel(model_id, GaussianParams.from_dict(tensors), json.loads((folder / META).read_text()))
+            params = GaussianParams.from_dict(tensors)
+            material = GaussianMaterial.from_dict(load_file(str(folder / MATERIAL))) \
+                if (folder / MATERIAL).is_file() else None
+            if material is not None and len(material) != len(params):
+                raise ValidationError(f"material for {len(material)} Gaussians, model of {len(params)}")
+            return PoolModel(model_id, params, json.loads((folder / META).read_text()), material)
         except Exception as e:  # safetensors raises its own error type for a damaged file
             raise ValidationError(f"pool model {model_id} in {self.root} is damaged ({type(e).__name__}: {e})") from e
 
@@ -209,7 +225,7 @@ class Pool:
         if calibrate:
             params, calibration = calibrated(params, category)
         return self.add(params, category, "imported", str(Path(path).name), quality=info["quality_psnr"],
-                        calibration=calibration, build=info["build"])
+                        calibration=calibration, build=info["build"], material=info["material"])
 
     def import_file(self, path: str | Path, category: str, calibrate: bool = True) -> str:
         """A 3D Gaussian splatting PLY (``import_ply``) or any mesh (``import_mesh``), told apart by content."""

@@ -14,7 +14,7 @@ from omniscs.gaussians import PARAM_NAMES, GaussianParams
 from omniscs.nsg.agent import AgentNode
 from omniscs.devices import resolve_device
 from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
-from omniscs.nsg.relight import LIGHTING_ROWS, Relight
+from omniscs.nsg.relight import LIGHTING_ROWS, RELIGHT_TENSORS, Relight
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan
 from omniscs.scene.store import CameraRecord
@@ -30,7 +30,7 @@ PLAN_JSON = "plan.json"
 METRICS_JSON = "metrics.json"
 KIND = "omniscs-nsg"
 #: Tensors of a relightable agent node (``omniscs.nsg.relight``), saved as ``agent.<id>.relight.<name>``.
-RELIGHT_NAMES = ("albedo", "normals", "lighting")
+RELIGHT_NAMES = RELIGHT_TENSORS
 
 
 def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
@@ -222,9 +222,13 @@ def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str
         relight = None
         if a.get("relight"):
             n = len(gaussians)
-            relight = Relight(_tensor(t, path, f"{key}.relight.albedo", (n, 3)),
-                              _tensor(t, path, f"{key}.relight.normals", (n, 3)),
-                              _tensor(t, path, f"{key}.relight.lighting", (LIGHTING_ROWS, 3)))
+            old = t.get(f"{key}.relight.lighting")
+            if old is not None and tuple(old.shape) == (5, 3) and f"{key}.relight.specular" not in t:
+                raise OmniscsError(f"{path}: agent {a['track_id']} was relit by an earlier light model (5 lighting "
+                                   "rows, no materials): fit the scene again (omniscs fit)")
+            relight = Relight(*(_tensor(t, path, f"{key}.relight.{name}", shape) for name, shape in (
+                ("albedo", (n, 3)), ("normals", (n, 3)), ("specular", (n,)), ("shininess", (n,)),
+                ("lighting", (LIGHTING_ROWS, 3)))))
         agents.append(AgentNode(int(a["track_id"]), a["category"], _tensor(t, path, f"{key}.size", (3,)).numpy().copy(),
                                 _tensor(t, path, f"{key}.world_from_agent", (n_frames, 4, 4)).numpy().copy(),
                                 present.numpy().astype(bool), gaussians, relight))

@@ -283,12 +283,11 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         local = activated.get(key) if activated is not None else None
         if local is None or len(local) != len(params):
             local = activate(params)
-        if relight is not None:  # lit by the scene's light at this frame's pose (omniscs.nsg.relight)
+        dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device, local.means.dtype)
+        if relight is not None:  # lit by the scene's light at this frame's pose, seen from this camera
             colours = relight.colours(world_from_node.rotmat() if isinstance(world_from_node, NodePose)
-                                      else world_from_node[:3, :3]).to(local.means.dtype)
+                                      else world_from_node[:3, :3], dirs).to(local.means.dtype)
         else:
-            dirs = local.means - _centre_in_node(camera_centre, world_from_node).to(local.means.device,
-                                                                                      local.means.dtype)
             colours = colors_from_sh(degree, local.sh, dirs[None])[0]
         placed = local if world_from_node is None else place_gaussians(local, world_from_node)
         if n_labels:

@@ -42,6 +42,7 @@ def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, r
     from omniscs.agents.mesh import model_from_mesh
     from omniscs.agents.pool import Pool, model_id_of
     from omniscs.world.assets import build_asset
+    from omniscs.world.render import F0, SHININESS
 
     started = time.perf_counter()
     p = Pool(pool)
@@ -53,9 +54,13 @@ def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, r
     else:
         asset = build_asset(asset_id)
         s = asset.surface
-        params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps)
-        existed = model_id_of(params, asset.category) in set(table.model_id) if len(table) else False
-        model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"], build=info["build"])
+        # the faces' optics as the world's renderer gives them to the asset's materials (paint, glass, chrome, ...)
+        params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, gaussians, refine_steps,
+                                       face_specular=F0[s.face_material], face_shininess=SHININESS[s.face_material])
+        material = info["material"]
+        existed = model_id_of(params, asset.category, material) in set(table.model_id) if len(table) else False
+        model_id = p.add(params, asset.category, "mesh", asset_id, quality=info["quality_psnr"], build=info["build"],
+                         material=material)
     meta = p.get(model_id).meta
     length, width, height = meta["size"]
     row = {"pool_path": str(Path(pool).resolve()), "model_id": model_id, "category": meta["category"],

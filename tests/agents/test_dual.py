@@ -131,11 +131,24 @@ def pool(tmp_path_factory):
     from omniscs.agents.mesh import model_from_mesh
     from omniscs.world.assets import build_asset
 
+    from omniscs.world.render import F0, SHININESS
+
     p = Pool(tmp_path_factory.mktemp("pool") / "pool")
     for aid in ("sedan-0045", "suv-0035", "box_truck-0020"):
-        a = build_asset(aid)
-        params, info = model_from_mesh(a.surface.vertices, a.surface.faces, a.surface.face_colour, 1500, 0)
-        p.add(params, a.category, "mesh", aid, info["quality_psnr"])
+        s = build_asset(aid).surface
+        params, info = model_from_mesh(s.vertices, s.faces, s.face_colour, 1500, 0,
+                                       face_specular=F0[s.face_material], face_shininess=SHININESS[s.face_material])
+        p.add(params, build_asset(aid).category, "mesh", aid, info["quality_psnr"], material=info["material"])
+    return p
+
+
+@pytest.fixture(scope="module")
+def splat_pool(pool, tmp_path_factory):
+    """The same models without their materials (as imported splats come)."""
+    p = Pool(tmp_path_factory.mktemp("splats") / "pool")
+    for mid in pool.table().model_id:
+        m = pool.get(mid)
+        p.add(m.params, m.meta["category"], "mesh", m.meta["source"], m.meta["quality"])
     return p
 
 
@@ -184,8 +197,9 @@ def test_the_dual_strategy_completes_only_the_tracks_that_need_it(scene, graph, 
     by = {d.track_id: d for d in decisions}
     assert by[2].strategy == "fitted" and by[1].strategy == "pool"
     assert by[1].model_id in set(pool.table().model_id) and np.isfinite(by[1].distance)
-    assert "fitted Gaussians kept" in by[1].reason  # clear but seen from behind only: pool completes the fit
-    assert len(completed.agent(1).gaussians) > len(graph.agent(1).gaussians)
+    # clear but seen from behind only: a pool model with a material replaces the node whole, relit
+    assert "relit" in by[1].reason and completed.agent(1).relight is not None
+    assert len(completed.agent(1).gaussians) == len(pool.get(by[1].model_id).params)
     assert completed.agent(1).gaussians.is_finite()
     out = completed.render(completed.view(scene.camera_names[0], 2))
     assert bool(torch.isfinite(out.rgb).all())
@@ -329,9 +343,8 @@ def test_normals_point_out_of_the_model_and_the_mesh_builds_light_comes_off():
 
 
 def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool):
-    """Images of a pool model lit by a known light (from the left and above, a bluish reflection): fitted from an
-    even light, the renders match them far better than the even light does, and the terms the views constrain come
-    back."""
+    """Images of a pool model (its own material) lit by a known sun and sky: fitted from the neutral light, the
+    renders match them far better than the neutral light does."""
     from omniscs.agents.dual import _alone, placed_candidate
     from omniscs.agents.relight import fit_lighting, relight_base
     from omniscs.nsg.graph import render_view
@@ -339,8 +352,10 @@ def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool)
     mid = pool.table().set_index("source").loc["sedan-0045", "model_id"]
     node = graph.agent(1)
     g = placed_candidate(pool, mid, node.size, graph.sh_degree, graph.device)
-    base = relight_base(g, mesh_light=True)
-    truth = torch.tensor([[0.5, 0.5, 0.5], [0.1, 0.1, 0.1], [0.5, 0.45, 0.4], [0.3, 0.3, 0.3], [0.02, 0.03, 0.06]])
+    base = relight_base(g, mesh_light=True, material=pool.get(mid).material)
+    assert float(base.specular.max()) > 0  # glass and paint mirror the sky
+    truth = torch.tensor([[2.0, 1.8, 1.5], [-0.6, 0.3, 0.7], [0.5, 0.6, 0.8], [0.2, 0.18, 0.15], [0.3, 0.45, 0.9],
+                          [0.7, 0.75, 0.8], [0.25, 0.25, 0.25]])
     lit = _alone(graph, 1, g).replace(agents=(node.with_changes(gaussians=g, relight=base.with_lighting(truth)),))
     samples = []
     for f in range(scene.n_frames):
@@ -349,20 +364,16 @@ def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool)
         if (out.alpha > 0.9).sum() > 200:
             samples.append((view, out.rgb.detach(), out.alpha.detach()))
     assert samples
-    fitted, info = fit_lighting(graph, 1, g, base, samples, steps=300, lr=0.05)
-    assert info["views"] == len(samples) and info["loss_last"] < 0.25 * info["loss_first"]
+    fitted, info = fit_lighting(graph, 1, g, base, samples, steps=100, render_steps=40)
+    assert info["views"] == len(samples) and info["pairs"] > 100 and info["loss_last"] < 0.3 * info["loss_first"]
 
     def error(relight):
         alone = lit.replace(agents=(node.with_changes(gaussians=g, relight=relight),))
         return float(np.mean([(render_view(alone, v).rgb - t).abs()[w > 0.9].mean() for v, t, w in samples]))
 
-    assert error(fitted) < 0.2 * error(base) and error(fitted) < 0.02
-    # what the views show is recovered: the level, the light from above, the reflection; the sideways term (0.5)
-    # is not, since no view shows a side of the car, and the ridge keeps it small
-    L = fitted.lighting
-    assert abs(float(L[0].mean()) - 0.5) < 0.08 and abs(float(L[3].mean()) - 0.3) < 0.08
-    assert torch.allclose(L[4], truth[4], atol=0.01)
-    # nothing to fit: the even light back, unchanged
+    assert error(fitted) < 0.3 * error(base) and error(fitted) < 0.03
+    assert bool(torch.isfinite(fitted.lighting).all()) and float(fitted.lighting[[0, 2, 3, 4, 5, 6]].min()) >= 0
+    # nothing to fit: the neutral light back, unchanged
     same, info = fit_lighting(graph, 1, g, base, [], steps=10)
     assert same is base and info["views"] == 0
 
@@ -378,13 +389,59 @@ def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_t
     assert d.strategy == "pool" and "seen too small" in d.reason and "relit" in d.reason
     node = completed.agent(1)
     assert node.relight is not None and len(node.relight) == len(node.gaussians) == len(pool.get(d.model_id).params)
-    assert np.isfinite(np.asarray(d.lighting)).all() and np.asarray(d.lighting).shape == (5, 3)
+    assert np.isfinite(np.asarray(d.lighting)).all() and np.asarray(d.lighting).shape == (7, 3)
+    assert torch.equal(node.relight.specular.cpu(), pool.get(d.model_id).material.specular)
     turned = apply_graph_edits(completed, [{"op": "rotate", "track_id": 1, "yaw_deg": 180.0}])
     view = turned.view(scene.camera_names[0], 2)
     out = turned.render(view)
     assert bool(torch.isfinite(out.rgb).all())
     back = load_checkpoint(save_checkpoint(completed, tmp_path / "ckpt"))
     assert torch.allclose(back.render(view).rgb, completed.render(view).rgb, atol=1e-6)
-    # a track seen large enough keeps its fitted Gaussians on the seen sides: no relight data then
-    kept, _ = complete_agents(graph, scene, [1], frames, pool, DualConfig(relight=True, min_online_pixels=0.0))
-    assert kept.agent(1).relight is None
+    # a track seen large enough: a model with a material is relit whole; one without keeps the track's fitted
+    # Gaussians on the seen sides, with no relight data
+    whole, _ = complete_agents(graph, scene, [1], frames, pool, DualConfig(relight=True, min_online_pixels=0.0))
+    assert whole.agent(1).relight is not None
+
+
+def test_a_pool_model_without_a_material_keeps_the_seen_sides_of_a_large_track(scene, graph, splat_pool):
+    frames = range(scene.n_frames)
+    kept, ds = complete_agents(graph, scene, [1], frames, splat_pool, DualConfig(relight=True, min_online_pixels=0.0))
+    d = {d.track_id: d for d in ds}[1]
+    assert kept.agent(1).relight is None and "kept on the seen sides" in d.reason
+    assert splat_pool.get(d.model_id).material is None
+    assert len(kept.agent(1).gaussians) > len(graph.agent(1).gaussians)  # the pool model completes the fit
+
+
+def test_a_pool_model_takes_the_background_in_its_box_with_it_but_not_the_road(scene, graph, pool):
+    """Background Gaussians planted in track 1's box at one of its logged poses go with the pool model; one just
+    above the box's bottom (the road) and one beyond the margin stay; off, nothing goes."""
+    from omniscs.agents.dual import background_in_boxes
+    from omniscs.gaussians import activate, concat_params, params_from_values
+
+    node = graph.agent(1)
+    f = int(np.flatnonzero(node.present)[-1])
+    pose = np.asarray(node.world_from_agent[f])
+    h = float(node.size[2])
+    local = np.array([[0.0, 0.0, 0.0], [0.3, 0.1, 0.5 * h + 0.2],  # in the box; above its top, within the margin
+                      [0.0, 0.0, -0.5 * h + 0.05],                  # on the road under the vehicle
+                      [0.0, 0.5 * float(node.size[1]) + 0.6, 0.0]])  # beside it, beyond the margin
+    planted = params_from_values(torch.as_tensor(local @ pose[:3, :3].T + pose[:3, 3], dtype=torch.float32),
+                                 torch.full((4, 3), 0.05), torch.full((4,), 0.9), torch.full((4, 3), 0.5),
+                                 graph.sh_degree)
+    g = graph.replace(background=concat_params([graph.background, planted]))
+    inside = background_in_boxes(g, [1], 0.3, 0.15)
+    assert inside[-4:].tolist() == [True, True, False, False]
+    assert not background_in_boxes(g, [], 0.3, 0.15).any()
+    frames = range(scene.n_frames)
+    done, ds = complete_agents(g, scene, [1], frames, pool, DualConfig(relight_steps=5, relight_render_steps=0),
+                               force="pool")
+    d = {d.track_id: d for d in ds}[1]
+    assert len(done.background) == len(g.background) - int(inside.sum())
+    assert f"{int(inside.sum())} background Gaussians" in d.reason
+    kept = activate(done.background.detached()).means.numpy()
+    assert np.isclose(kept, local[2] @ pose[:3, :3].T + pose[:3, 3], atol=1e-4).all(1).any()
+    off, _ = complete_agents(g, scene, [1], frames, pool, DualConfig(clear_box=False, relight_steps=5,
+                                                                     relight_render_steps=0), force="pool")
+    assert len(off.background) == len(g.background)
+    with pytest.raises(OmniscsError):
+        DualConfig(clear_floor_m=-0.1)

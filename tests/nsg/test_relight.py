@@ -8,7 +8,8 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams
-from omniscs.nsg.relight import Relight, flat_lighting, srgb_decode, srgb_encode
+from omniscs.nsg.relight import (LIGHTING_ROWS, RELIGHT_TENSORS, Relight, camera_response, inverse_camera_response,
+                                  matte, neutral_lighting)
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
 
@@ -17,35 +18,74 @@ def _yaw(deg: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _light(sun=0.0, direction=(1.0, 0.0, 0.0), sky=0.0, ground=0.0, zenith=0.0, horizon=0.0, below=0.0):
+    rows = [sun, direction, sky, ground, zenith, horizon, below]
+    return torch.stack([torch.as_tensor(r, dtype=torch.float32).expand(3) for r in rows])
+
+
 def test_a_side_lit_by_the_sun_goes_dark_when_the_node_turns_away():
-    # light from +x: ambient 0.2, direction term 0.8; nothing reflected; albedo 0.5 everywhere
-    light = torch.zeros(5, 3)
-    light[0], light[1] = 0.2, 0.8
+    # sun 0.8 from +x, sky and ground 0.1 each; matte albedo 0.5; each Gaussian seen head-on
     normals = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    r = Relight(torch.full((3, 3), 0.5), normals, light)
+    r = matte(torch.full((3, 3), 0.5), normals, _light(sun=0.8, sky=0.1, ground=0.1))
     facing = r.colours(np.eye(3))
-    assert torch.allclose(facing[0], srgb_encode(torch.tensor(0.5)).expand(3), atol=1e-6)  # 0.5 * (0.2 + 0.8)
-    assert torch.allclose(facing[1], srgb_encode(torch.tensor(0.1)).expand(3), atol=1e-6)  # side: ambient only
+    assert torch.allclose(facing[0], camera_response(torch.tensor(0.45)).expand(3), atol=1e-6)  # 0.5 (0.8 + 0.1)
+    assert torch.allclose(facing[1], camera_response(torch.tensor(0.05)).expand(3), atol=1e-6)  # side: sky + ground
     turned = r.colours(_yaw(180.0))
-    assert torch.allclose(turned[0], torch.zeros(3), atol=1e-6)  # faces away: 0.2 - 0.8 clamps to no light
+    assert torch.allclose(turned[0], facing[1], atol=1e-6)  # faces away from the sun: sky and ground alone
     assert torch.allclose(turned[2], facing[2])  # the roof does not care about a turn
-    # the additive term is added whatever the albedo; flat lighting gives back the albedo
-    light[4] = 0.05
-    assert torch.allclose(Relight(torch.zeros(3, 3), normals, light).colours(np.eye(3)),
-                          srgb_encode(torch.tensor(0.05)).expand(3, 3), atol=1e-6)
-    assert torch.allclose(srgb_decode(Relight(torch.full((3, 3), 0.3), normals, flat_lighting()).colours(_yaw(33))),
-                          torch.full((3, 3), 0.3), atol=1e-5)
+    # the light from above and from below: a roof sees the sky only, a floor the ground only
+    up_down = matte(torch.full((2, 3), 1.0), torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]),
+                    _light(sky=0.3, ground=0.1)).colours(np.eye(3))
+    assert torch.allclose(inverse_camera_response(up_down), torch.tensor([[0.3] * 3, [0.1] * 3]), atol=1e-4)
+
+
+def test_glass_mirrors_the_sky_at_grazing_angles_and_shows_its_colour_head_on():
+    # one vertical pane facing +x, dark red albedo, reflectance 0.09; a blue sky; light from the sky only
+    pane = Relight(torch.tensor([[0.3, 0.02, 0.02]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([0.09]),
+                   torch.tensor([400.0]), _light(sky=0.6, ground=0.3, zenith=(0.1, 0.2, 0.9), horizon=(0.1, 0.2, 0.9),
+                                                 below=0.05))
+    head_on = pane.colours(np.eye(3), torch.tensor([[-1.0, 0.0, 0.0]]))[0]
+    grazing = pane.colours(np.eye(3), torch.tensor([[-0.05, 1.0, 0.1]]))[0]  # seen along the pane, from below
+    assert head_on[0] > head_on[2] and grazing[2] > grazing[0] + 0.3
+    # the sun's highlight shows where it is mirrored towards the camera, and only there
+    light = _light(sun=1.0, direction=(1.0, 0.0, 0.0), sky=0.2)
+    shiny = Relight(torch.tensor([[0.1, 0.1, 0.1]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([0.09]),
+                    torch.tensor([200.0]), light)
+    mirrored = shiny.colours(np.eye(3), torch.tensor([[-1.0, 0.0, 0.0]]))[0]
+    aside = shiny.colours(np.eye(3), torch.tensor([[-1.0, 0.6, 0.0]]))[0]
+    assert float(mirrored.mean()) > float(aside.mean()) + 0.2
+    # matte: no mirror term at all, however grazing
+    flat = matte(torch.tensor([[0.3, 0.02, 0.02]]), torch.tensor([[1.0, 0.0, 0.0]]), pane.lighting)
+    assert torch.allclose(flat.colours(np.eye(3), torch.tensor([[-0.05, 1.0, 0.1]])), flat.colours(np.eye(3)),
+                          atol=1e-6)
+
+
+def test_the_camera_response_inverts_and_stays_finite_at_the_extremes():
+    x = torch.tensor([0.0, 1e-4, 0.1, 1.0, 5.0])
+    assert torch.allclose(inverse_camera_response(camera_response(x)), x, atol=1e-3)
+    ends = camera_response(torch.tensor([-1e30, 0.0, 1e30, float("inf")]))
+    assert bool(torch.isfinite(ends).all()) and float(ends.min()) == 0.0 and abs(float(ends.max()) - 1.0) < 1e-6
+    assert bool(torch.isfinite(inverse_camera_response(torch.tensor([0.0, 1.0]))).all())
 
 
 def test_bad_relight_data_is_refused():
     with pytest.raises(OmniscsError, match="albedo"):
-        Relight(torch.zeros(3, 3), torch.zeros(2, 3), flat_lighting())
+        matte(torch.zeros(3, 3), torch.zeros(2, 3))
+    with pytest.raises(OmniscsError, match="lighting"):
+        Relight(torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(2), torch.ones(2), torch.zeros(5, 3))
     with pytest.raises(OmniscsError, match="NaN"):
-        Relight(torch.full((2, 3), float("nan")), torch.zeros(2, 3), flat_lighting())
-    # extreme light: colours stay in 0..1, finite
-    r = Relight(torch.rand(4, 3), torch.nn.functional.normalize(torch.randn(4, 3), dim=1), flat_lighting(1e30))
-    c = r.colours(np.eye(3))
-    assert bool(torch.isfinite(c).all()) and float(c.min()) >= 0 and float(c.max()) <= 1
+        matte(torch.full((2, 3), float("nan")), torch.zeros(2, 3))
+    # extreme light, zero normals, a sun direction of zero length, grazing and zero-length views: finite, 0..1
+    gen = torch.Generator().manual_seed(0)
+    normals = torch.nn.functional.normalize(torch.randn(5, 3, generator=gen), dim=1)
+    normals[0] = 0.0
+    for light in (neutral_lighting() * 1e30, torch.zeros(LIGHTING_ROWS, 3), neutral_lighting()):
+        r = Relight(torch.rand(5, 3, generator=gen), normals, torch.tensor([0.0, 0.05, 0.5, 1.0, 0.09]),
+                    torch.tensor([1.0, 10.0, 400.0, 2000.0, 90.0]), light)
+        views = torch.randn(5, 3, generator=gen)
+        views[1] = 0.0
+        for c in (r.colours(np.eye(3)), r.colours(_yaw(77.0), views)):
+            assert bool(torch.isfinite(c).all()) and float(c.min()) >= 0 and float(c.max()) <= 1
 
 
 def relit_graph(scene):
@@ -64,12 +104,14 @@ def relit_graph(scene):
                        torch.zeros_like(p.sh_rest))
     gen = torch.Generator().manual_seed(0)
     relight = Relight(torch.rand(len(p), 3, generator=gen),
-                      torch.nn.functional.normalize(torch.randn(len(p), 3, generator=gen), dim=1), LIGHT)
+                      torch.nn.functional.normalize(torch.randn(len(p), 3, generator=gen), dim=1),
+                      torch.rand(len(p), generator=gen) * 0.1, 1.0 + 200.0 * torch.rand(len(p), generator=gen), LIGHT)
     return g.replace(agents=tuple(a.with_changes(gaussians=p, relight=relight) if a.track_id == 1 else a
                                   for a in g.agents))
 
 
-LIGHT = torch.tensor([[0.4, 0.4, 0.45], [0.5, 0.45, 0.4], [0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [0.02, 0.03, 0.05]])
+LIGHT = torch.tensor([[1.2, 1.1, 1.0], [0.5, 0.45, 0.6], [0.4, 0.45, 0.5], [0.15, 0.14, 0.12], [0.3, 0.4, 0.7],
+                      [0.6, 0.65, 0.7], [0.2, 0.2, 0.2]])
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +125,12 @@ def graph(tmp_path_factory):
 def _baked(graph, frame: int, extra=np.eye(3)):
     """The graph with node 1's relit colours at ``frame`` written into its Gaussians, relight data dropped."""
     node = graph.agent(1)
-    dc = (node.relight.colours(node.world_from_agent[frame][:3, :3] @ extra) - SH_COLOR_OFFSET) / SH_C0
+    R = node.world_from_agent[frame][:3, :3] @ extra
+    view = graph.view(graph.cameras[0].name, frame)
+    means = node.gaussians.means.detach()
+    centre = (view.world_from_camera[:3, 3] - node.world_from_agent[frame][:3, 3]) @ R  # the camera in the node
+    dirs = means - torch.from_numpy(centre).to(means.device, means.dtype)
+    dc = (node.relight.colours(R, dirs) - SH_COLOR_OFFSET) / SH_C0
     p = node.gaussians
     baked = node.with_changes(gaussians=GaussianParams(p.means, p.quats, p.log_scales, p.opacity_logits, dc, p.sh_rest))
     assert baked.relight is None  # new Gaussians without relight data drop it
@@ -109,16 +156,35 @@ def test_a_relit_node_renders_its_colours_at_each_frames_pose_and_after_a_turn(g
 
 def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph, tmp_path):
     import json
+    import shutil
 
     from omniscs.nsg.checkpoint import GRAPH_JSON, load_checkpoint, save_checkpoint
 
     folder = save_checkpoint(graph, tmp_path / "ckpt")
     back = load_checkpoint(folder)
     r, s = graph.agent(1).relight, back.agent(1).relight
-    assert all(torch.equal(getattr(r, k), getattr(s, k)) for k in ("albedo", "normals", "lighting"))
+    assert all(torch.equal(getattr(r, k), getattr(s, k)) for k in RELIGHT_TENSORS)
     assert back.agent(2).relight is None
     view = graph.view(graph.cameras[0].name, 1)
     assert torch.allclose(back.render(view).rgb, graph.render(view).rgb, atol=1e-6)
+    # a checkpoint relit by the earlier light model (five lighting rows, no materials): a clear error
+    from safetensors.torch import load_file, save_file
+
+    from omniscs.nsg.checkpoint import TENSORS, TENSORS_RECORD
+    from omniscs.storage import file_sha256
+
+    old = tmp_path / "old"
+    shutil.copytree(folder, old)
+    t = load_file(str(old / TENSORS))
+    key = [k for k in t if k.endswith(".relight.lighting")][0]
+    t[key] = t[key][:5].clone()
+    t = {k: v for k, v in t.items() if not k.endswith((".relight.specular", ".relight.shininess"))}
+    save_file(t, str(old / TENSORS))
+    record = json.loads((old / GRAPH_JSON).read_text())  # a whole file of that time, not a damaged one
+    record[TENSORS_RECORD] = {"bytes": (old / TENSORS).stat().st_size, "sha256": file_sha256(old / TENSORS)}
+    (old / GRAPH_JSON).write_text(json.dumps(record))
+    with pytest.raises(OmniscsError, match="earlier light model"):
+        load_checkpoint(old)
     meta = json.loads((folder / GRAPH_JSON).read_text())
     meta["agents"][[a["track_id"] for a in meta["agents"]].index(1)]["relight"] = "yes"
     (folder / GRAPH_JSON).write_text(json.dumps(meta))
@@ -136,11 +202,11 @@ def relit_node_checks(graph, device: str) -> dict:
     from omniscs.agents.relight import fit_lighting
     from omniscs.nsg.edit import apply_graph_edits
     from omniscs.nsg.graph import render_view
-    from omniscs.nsg.relight import flat_lighting
+    from omniscs.nsg.relight import neutral_lighting
 
     moved = graph.to(device)
     r = moved.agent(1).relight
-    assert all(t.device.type == torch.device(device).type for t in (r.albedo, r.normals, r.lighting))
+    assert all(getattr(r, k).device.type == torch.device(device).type for k in RELIGHT_TENSORS)
     cam = graph.cameras[0].name
     turn = [{"op": "rotate", "track_id": 1, "yaw_deg": 90.0}]
     figures = {"backend": None, "baked_max_diff": 0.0, "cpu_mean_diff": 0.0}
@@ -167,8 +233,8 @@ def relit_node_checks(graph, device: str) -> dict:
         if (out.alpha > 0.9).sum() > 50:
             samples.append((moved.view(cam, f), out.rgb.detach().cpu(), out.alpha.detach().cpu()))
     assert samples
-    even = node.relight.with_lighting(flat_lighting().to(device))
-    fitted, info = fit_lighting(moved, 1, node.gaussians, even, samples, steps=150, lr=0.05)
+    even = node.relight.with_lighting(neutral_lighting().to(device))
+    fitted, info = fit_lighting(moved, 1, node.gaussians, even, samples, steps=100, render_steps=150, render_lr=0.05)
     assert fitted.lighting.device.type == torch.device(device).type
     assert info["views"] == len(samples) and info["loss_last"] < 0.3 * info["loss_first"], info
     figures["light_fit"] = info
