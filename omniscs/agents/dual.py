@@ -57,8 +57,10 @@ class DualConfig:
     colour_steps: int = 40
     """Steps of the pool model's colour refinement against those views (0: the correction alone)."""
     pool_keeps_observed: bool = True
-    """A clear track given a pool model keeps its fitted Gaussians on the sides the cameras saw (and their mirror
-    images): the pool model, inset slightly (``pool_inset``), shows only where those leave the node transparent."""
+    """A clear track given a pool model without a material (``agents.material``; e.g. an imported splat) keeps its
+    fitted Gaussians on the sides the cameras saw (and their mirror images): the pool model, inset slightly
+    (``pool_inset``), shows only where those leave the node transparent. A model with a material is relit whole
+    (``relight``): the fitted Gaussians carry the light of the logged poses, which a turn makes wrong."""
     pool_inset: float = 0.95
     """Scale of the pool model inside the box when it completes a fitted node."""
     verify_top_k: int = 5
@@ -75,9 +77,9 @@ class DualConfig:
     dB at five of their six turns (0.5 dB gained at the sixth). Checked on straight:56, whose vehicles at 3,600 and
     4,200 pixels did better online at four of six turns. 0: no size rule."""
     relight: bool = True
-    """A pool model that replaces the whole node (``pool_keeps_observed`` off) gets its albedo and normals and the
-    scene's light fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the light
-    when the agent turns; off: the colour correction and refinement alone."""
+    """A pool model that replaces the whole node gets its material (or an albedo from its colours) and normals and
+    the scene's sun and sky fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the
+    light when the agent turns; off: the colour correction and refinement alone."""
     relight_steps: int = 200
     """Steps of the light's fit on the colour pairs (``agents.relight.fit_lighting``)."""
     relight_render_steps: int = 60

@@ -5,7 +5,9 @@ and the views that check and refine them.
   from overlapping parts, as the asset library's are, hold faces inside other parts: their points are dropped, see
   ``outside_visible``); each becomes a flat Gaussian lying in its triangle (two in-plane scales from the area each
   point stands for, a thin one along the normal), coloured with the triangle's colour under a fixed light
-  (``shade``: ambient + one direction, the look of the keyframes).
+  (``shade``: ambient + one direction, the look of the keyframes). ``model_from_mesh`` also gives each Gaussian its
+  face's material (``agents.material``: the colour as albedo, and the specular reflectance and shininess when the
+  mesh has them), which a scene relights (``agents.relight``).
 - ``raycast_views``: the mesh itself seen by pinhole cameras (open3d ray casting; colour, alpha), the reference a
   model is scored and refined against.
 - ``orbit_cameras`` / ``keyframes``: views around the model at a fixed elevation and distance (the pool's 30

@@ -3,13 +3,14 @@ the centre of the box, metres), gathered from meshes, imported splat files and w
 
 On disk (``<pool>/``): ``models/<model_id>/`` holds ``gaussians.safetensors`` (the raw parameters),
 ``material.safetensors`` where the model has one (``agents.material``: per-Gaussian albedo, specular reflectance and
-shininess, from a mesh build) and ``model.json`` (category, box size, provenance, source, quality, version, what calibration did); ``index/`` holds
-one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table, and ``keyframes.npz`` (30 RGBA
-views around the model at 12 degrees of azimuth, rendered when it joins). The id is a content hash of the
-parameters, material and category (``pm-<12 hex>``): adding the same model again is a no-op that returns its id. A model's
-folder is written whole (a temporary sibling renamed into place) before its index row, and each row is its own
-file, so two writers adding at once never lose or half-write an entry, and a reader never sees a row without its
-model. Keyframe embeddings are cached per embedder under ``embeddings/`` (``agents.matching.pool_gallery``)."""
+shininess, from a mesh build) and ``model.json`` (category, box size, provenance, source, quality, version, what
+calibration did); ``index/`` holds one Parquet row per model (``INDEX_COLUMNS``), read together as the pool's table,
+and ``keyframes.npz`` (30 RGBA views around the model at 12 degrees of azimuth, rendered when it joins). The id is a
+content hash of the parameters, material and category (``pm-<12 hex>``): adding the same model again is a no-op
+that returns its id. A model's folder is written whole (a temporary sibling renamed into place) before its index
+row, and each row is its own file, so two writers adding at once never lose or half-write an entry, and a reader
+never sees a row without its model. Keyframe embeddings are cached per embedder under ``embeddings/``
+(``agents.matching.pool_gallery``)."""
 from __future__ import annotations
 
 import hashlib

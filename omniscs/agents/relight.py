@@ -22,7 +22,7 @@ import torch
 from omniscs.agents.mesh import AMBIENT, LIGHT_DIRECTION
 from omniscs.gaussians import GaussianParams, activate
 from omniscs.nsg.graph import SceneGraph, render_view
-from omniscs.nsg.relight import LIGHTING_ROWS, Relight, neutral_lighting, shade, srgb_decode
+from omniscs.nsg.relight import Relight, neutral_lighting, shade, srgb_decode
 from omniscs.quaternions import normalize_quats, quat_to_rotmat
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 

@@ -101,6 +101,34 @@ def test_pool_build_over_asset_ids_and_kinds(tmp_path):
     assert pool.keyframes(table.model_id[0]).shape == (30, 96, 96, 4)
     build = pool.get(table.model_id[0]).meta["build"]  # which build made it, kept with the model
     assert build["version"] == MESH_BUILD_VERSION and build["gaussians"] == 2000 and build["refine_steps"] == 5
+    # the library's faces' optics come with the model: a sedan's glass and paint mirror, its tyres do not
+    car = pool.get(table.set_index("source").loc["sedan-0001", "model_id"]).material
+    assert len(car) == 2000 and {0.0, 0.05, 0.09} <= set(np.round(car.specular.double().numpy(), 4).tolist())
     bad = subprocess.run(cli + ["--assets", "spaceship-0001", "--out", str(tmp_path / "p2")], capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0
+
+
+def test_each_gaussian_keeps_its_faces_material():
+    """Two boxes side by side, a matte red one and a shiny blue one: every Gaussian on the red box is matte and red,
+    every one on the blue box shiny and blue; bad per-face arrays are clear errors."""
+    va, fa = _box([-1.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    vb, fb = _box([1.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    v, f = np.concatenate([va, vb]), np.concatenate([fa, fb + len(va)])
+    colours = np.array([[0.8, 0.1, 0.1]] * len(fa) + [[0.1, 0.1, 0.8]] * len(fb))
+    spec = np.array([0.0] * len(fa) + [0.09] * len(fb))
+    shin = np.array([1.0] * len(fa) + [400.0] * len(fb))
+    params, info = model_from_mesh(v, f, colours, 1500, 0, face_specular=spec, face_shininess=shin)
+    m, x = info["material"], params.means[:, 0].numpy()
+    assert len(m) == len(params) == 1500
+    red, blue = x < -0.01, x > 0.01
+    assert red.any() and blue.any() and (red | blue).all()
+    assert np.allclose(m.albedo.numpy()[red], [0.8, 0.1, 0.1]) and np.allclose(m.albedo.numpy()[blue], [0.1, 0.1, 0.8])
+    assert (m.specular.numpy()[red] == 0).all() and np.allclose(m.specular.numpy()[blue], 0.09)
+    assert np.allclose(m.shininess.numpy()[blue], 400.0)
+    plain = model_from_mesh(v, f, colours, 500, 0)[1]["material"]  # no optics given: matte
+    assert float(plain.specular.max()) == 0.0
+    with pytest.raises(ValidationError, match="face_specular"):
+        model_from_mesh(v, f, colours, 500, 0, face_specular=spec[:-1])
+    with pytest.raises(ValidationError, match="face_shininess"):
+        model_from_mesh(v, f, colours, 500, 0, face_shininess=np.full(len(f), np.nan))

@@ -236,3 +236,32 @@ def _remove_in_process(root: str, model_id: str, times: int) -> int:
         except ValidationError:  # already gone: the other process has not put it back yet
             pass
     return removed
+
+
+def test_a_models_material_is_stored_with_it_and_part_of_its_id(tmp_path):
+    from safetensors.torch import save_file
+
+    from omniscs.agents.material import GaussianMaterial
+    from omniscs.agents.pool import MATERIAL, MODELS
+
+    pool = Pool(tmp_path / "pool")
+    params = _model(n=50)
+    g = torch.Generator().manual_seed(3)
+    material = GaussianMaterial(torch.rand(50, 3, generator=g), torch.rand(50, generator=g) * 0.1,
+                                1.0 + 300.0 * torch.rand(50, generator=g))
+    with_m = pool.add(params, "car", "mesh", "sedan-0001", material=material)
+    without = pool.add(params, "car", "mesh", "sedan-0001")
+    assert with_m != without and with_m == model_id_of(params, "car", material) and without == model_id_of(params, "car")
+    got = pool.get(with_m).material
+    assert all(torch.equal(getattr(got, k), getattr(material, k)) for k in ("albedo", "specular", "shininess"))
+    assert pool.get(without).material is None
+    with pytest.raises(ValidationError, match="material is for 10"):
+        pool.add(params, "car", "mesh", "x", material=material.select(torch.arange(10)))
+    with pytest.raises(ValidationError, match="albedo"):
+        GaussianMaterial(torch.full((2, 3), 1.5), torch.zeros(2), torch.ones(2))
+    with pytest.raises(ValidationError, match="NaN"):
+        GaussianMaterial(torch.zeros(2, 3), torch.tensor([0.0, float("nan")]), torch.ones(2))
+    # a material file for another number of Gaussians: the model reads as damaged, not half
+    save_file(material.select(torch.arange(5)).as_dict(), str(pool.root / MODELS / with_m / MATERIAL))
+    with pytest.raises(ValidationError, match="damaged"):
+        pool.get(with_m)
