@@ -75,7 +75,16 @@ class DualConfig:
     t_junction:52 (balanced fits): the two vehicles seen at 1,500-1,600 pixels gained 1.1-4.7 dB at 90/180/270
     degrees from the whole relit pool model over the online one; the two seen at 5,000 pixels and more lost 0.6-5.3
     dB at five of their six turns (0.5 dB gained at the sixth). Checked on straight:56, whose vehicles at 3,600 and
-    4,200 pixels did better online at four of six turns. 0: no size rule."""
+    4,200 pixels did better online at four of six turns. 0: no size rule. (Those choices predate the relit models
+    with materials; cars now take the pool model whatever their size, ``pool_categories``.)"""
+    pool_categories: tuple[str, ...] = ("car",)
+    """Categories whose tracks that need a 360-degree model get the relit pool model whenever the pool holds one of
+    their category, however clear, large and covered they were seen. Chosen on the development logs straight:51,
+    t_junction:52, intersection:55 and straight:56 (balanced fits, the mesh-build-3 pool with materials): the relit
+    pool model beat the mirrored online model at 14 of the 15 turns (90/180/270 degrees) of the five cars, 8 of 9
+    for the three seen at 4,200-21,800 pixels that the size and coverage rules send online, and at 2 of the 9 turns
+    of the two trucks and the bus (boxes whose unseen sides mirror symmetry and the seen sides give well, and
+    categories the pool holds few models of)."""
     relight: bool = True
     """A pool model that replaces the whole node gets its material (or an albedo from its colours) and normals and
     the scene's sun and sky fitted to the track's views (``omniscs.agents.relight``), so that its colours follow the
@@ -245,6 +254,8 @@ def choose(c: Clarity | None, needs_360: bool, pool_has_category: bool,
     seen = (f"clarity {c.score:.2f} (min {config.min_clarity:.2f}), {c.pixels:.0f} pixels "
             f"(min {config.min_online_pixels:.0f}), seen from {c.coverage_mirrored:.0%} of azimuths "
             f"with mirror images (min {config.min_coverage:.0%}), {c.n_views} view(s)")
+    if c.category in config.pool_categories and pool_has_category:
+        return "pool", f"a {c.category}: the relit pool model whatever it was seen like ({seen})"
     if clear and large and covered:
         return "online", f"clear and well covered: {seen}"
     why = "unclear" if not clear else "seen too small" if not large else "too few sides seen"

@@ -94,9 +94,14 @@ def _clarity(score, coverage, category="car", pixels=4000.0):
 
 
 def test_the_choice_follows_clarity_coverage_and_what_the_pool_holds():
-    config = DualConfig()
+    config = DualConfig(pool_categories=())
     assert choose(_clarity(0.9, 0.9), False, True, config)[0] == "fitted"
     assert choose(_clarity(0.9, 0.9), True, True, config)[0] == "online"
+    # a car takes the relit pool model however well it was seen (default), a bus keeps the rule; none without a car
+    strategy, reason = choose(_clarity(0.9, 0.9, pixels=30000.0), True, True, DualConfig())
+    assert strategy == "pool" and reason.startswith("a car: the relit pool model")
+    assert choose(_clarity(0.9, 0.9, "bus", pixels=30000.0), True, True, DualConfig())[0] == "online"
+    assert choose(_clarity(0.9, 0.9, pixels=30000.0), True, False, DualConfig())[0] == "online"
     strategy, reason = choose(_clarity(0.9, 0.2), True, True, config)
     assert strategy == "pool" and "too few sides" in reason
     strategy, reason = choose(_clarity(0.2, 0.9), True, True, config)
@@ -308,7 +313,7 @@ def test_a_track_no_view_shows_falls_back_to_its_fitted_node_mirrored(scene, gra
 
 # ----------------------------------------------------------------------------- relit pool models
 def test_a_track_seen_small_gets_the_whole_pool_model_however_well_covered():
-    config = DualConfig(min_online_pixels=3000.0)
+    config = DualConfig(min_online_pixels=3000.0, pool_categories=())
     strategy, reason = choose(_clarity(0.9, 0.9, pixels=1500.0), True, True, config)
     assert strategy == "pool" and "seen too small" in reason and "1500 pixels (min 3000)" in reason
     assert choose(_clarity(0.9, 0.9, pixels=5000.0), True, True, config)[0] == "online"
@@ -383,7 +388,7 @@ def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_t
     from omniscs.nsg.edit import apply_graph_edits
 
     frames = range(scene.n_frames)
-    config = DualConfig(min_online_pixels=1e9, relight=True, relight_steps=20)
+    config = DualConfig(min_online_pixels=1e9, relight=True, relight_steps=20, pool_categories=())
     completed, decisions = complete_agents(graph, scene, [1], frames, pool, config)
     d = {d.track_id: d for d in decisions}[1]
     assert d.strategy == "pool" and "seen too small" in d.reason and "relit" in d.reason
