@@ -1,7 +1,8 @@
 """The dual strategy for agents (the paper's self-improving dual-strategy agent reconstruction): per track, a clarity
 score from its observations decides between the *online* model (the scene's own fitted node, its unseen side filled
 by mirror symmetry across the vehicle's x-z plane) and the matched *pool* model (a 360-degree model scaled to the
-box, its colours adapted to what the cameras saw). Only tracks whose edits turn them off their observed views need
+box, relit by the scene's light or its colours adapted to what the cameras saw); cars take the pool model whenever
+the pool holds one (``DualConfig.pool_categories``). Only tracks whose edits turn them off their observed views need
 either (the plan's ``needs_360``); every other node keeps what the fit made.
 
 Scene-agnostic: works from a scene store (boxes, cameras, logged images) and a fitted scene graph; the procedural
