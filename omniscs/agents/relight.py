@@ -168,7 +168,8 @@ def sun_starts(base: torch.Tensor) -> list[torch.Tensor]:
         for k in range(SUN_AZIMUTHS):
             az, e = 2 * np.pi * k / SUN_AZIMUTHS, np.radians(el)
             light = base.clone()
-            light[1] = torch.tensor([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], dtype=base.dtype)
+            light[1] = torch.tensor([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)], dtype=base.dtype,
+                                    device=base.device)
             out.append(light)
     return out
 
