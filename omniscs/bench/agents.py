@@ -675,10 +675,9 @@ def agents_markdown(report: dict) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", f"Agents per edit: {by[(TABLE4_EDITS[0][0], 'naive')]['agents']}. Arms: naive = the fitted node "
               "as it is; online = the fitted node cut to its box, its unseen side filled by mirror symmetry; pool = "
-              "the matched pool model (for a clear track seen large enough, colour-corrected to the track's views "
-              "under the fitted Gaussians kept on the seen sides; for a track seen small, the whole model relit by "
-              "the scene's light fitted to its views); dual = the clarity/size/coverage choice between the two; "
-              "pool in-pool = the "
+              "the matched pool model, relit whole by the scene's sun and sky fitted to its views (its material from "
+              "the mesh build), the background Gaussians in its box removed; dual = a car the pool model, another "
+              "vehicle the clarity/size/coverage choice between the two; pool in-pool = the "
               "pool arm with the edited vehicles' own models added to the pool (matching may still pick another "
               "model: not a bound; the own-model rows below are). "
               "Pool candidates are ranked by "
