@@ -648,14 +648,20 @@ def complete_agents(graph: SceneGraph, scene, needs_360, train_frames, pool: Poo
     out = graph.replace(agents=tuple(nodes.values()))
     pooled = [t for t, d in decisions.items() if d.strategy == "pool"]
     if config.clear_box and pooled:
-        inside = background_in_boxes(out, pooled, config.box_margin_m, config.clear_floor_m)
-        keep = torch.from_numpy(np.flatnonzero(~inside)).to(graph.background.device)
-        out = out.replace(background=out.background.select(keep))
+        out, removed = boxes_cleared(out, pooled, config)
         for t in pooled:
             d = decisions[t]
-            decisions[t] = replace(d, reason=f"{d.reason}; {int(inside.sum())} background Gaussians in the pool "
-                                             "models' boxes removed")
+            decisions[t] = replace(d, reason=f"{d.reason}; {removed} background Gaussians in the pool models' "
+                                             "boxes removed")
     return out, [decisions[t] for t in sorted(decisions)]
+
+
+def boxes_cleared(graph: SceneGraph, track_ids, config: DualConfig = DualConfig()) -> tuple[SceneGraph, int]:
+    """``graph`` without the background Gaussians in the tracks' boxes (``background_in_boxes`` with the config's
+    margin and floor), and how many went."""
+    inside = background_in_boxes(graph, track_ids, config.box_margin_m, config.clear_floor_m)
+    keep = torch.from_numpy(np.flatnonzero(~inside)).to(graph.background.device)
+    return graph.replace(background=graph.background.select(keep)), int(inside.sum())
 
 
 def background_in_boxes(graph: SceneGraph, track_ids, margin_m: float, floor_m: float) -> np.ndarray:
@@ -737,4 +743,4 @@ __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "cla
            "mirror_completed", "cropped_to_box", "with_sh_degree", "seen_side", "colour_corrected",
            "colour_samples", "fit_colour_correction", "query_crops", "query_views",
            "complete_agents", "azimuth_coverage", "verified_matches", "grow_pool", "heldout_psnr",
-           "background_in_boxes"]
+           "background_in_boxes", "boxes_cleared"]

@@ -22,7 +22,7 @@ import torch
 from omniscs.agents.mesh import AMBIENT, LIGHT_DIRECTION
 from omniscs.gaussians import GaussianParams, activate
 from omniscs.nsg.graph import SceneGraph, render_view
-from omniscs.nsg.relight import Relight, neutral_lighting, shade, srgb_decode
+from omniscs.nsg.relight import Relight, matte, neutral_lighting, shade, srgb_decode
 from omniscs.quaternions import normalize_quats, quat_to_rotmat
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
@@ -85,10 +85,7 @@ def relight_base(params: GaussianParams, mesh_light: bool, scale: np.ndarray | N
             raise ValueError(f"material for {len(material)} Gaussians, model of {len(params)}")
         return Relight(material.albedo.to(device, dtype), normals, material.specular.to(device, dtype),
                        material.shininess.to(device, dtype), neutral_lighting(dtype).to(device))
-    n = len(params)
-    return Relight(model_albedo(params, normals, mesh_light, scale), normals,
-                   torch.zeros(n, dtype=dtype, device=device), torch.ones(n, dtype=dtype, device=device),
-                   neutral_lighting(dtype).to(device))
+    return matte(model_albedo(params, normals, mesh_light, scale), normals)
 
 
 def light_samples(graph: SceneGraph, track_id: int, candidate: GaussianParams, masked: list[tuple]) -> dict | None:
@@ -140,6 +137,12 @@ def _sample_colours(relight: Relight, pairs: dict, lighting: torch.Tensor, subse
                  relight.shininess[idx.to(dev)].float(), lighting)
 
 
+def _no_negative_light(light: torch.Tensor) -> None:
+    """In place, between optimiser steps: no light row goes below zero (the sun's direction row keeps its sign)."""
+    with torch.no_grad():
+        light[[0, 2, 3, 4, 5, 6]] = light[[0, 2, 3, 4, 5, 6]].clamp_min(0.0)
+
+
 def _fit(relight: Relight, pairs: dict, start: torch.Tensor, steps: int, lr: float,
          subset: torch.Tensor | None) -> tuple[torch.Tensor, float]:
     target = pairs["colour"].to(start.device)
@@ -154,8 +157,7 @@ def _fit(relight: Relight, pairs: dict, start: torch.Tensor, steps: int, lr: flo
         opt.zero_grad()
         (loss + ridge).backward()
         opt.step()
-        with torch.no_grad():  # light is never negative; the sun's direction row keeps its sign
-            light[[0, 2, 3, 4, 5, 6]] = light[[0, 2, 3, 4, 5, 6]].clamp_min(0.0)
+        _no_negative_light(light)
     with torch.no_grad():
         final = float((_sample_colours(relight, pairs, light, subset) - target).abs().sum(1).mean())
     return light.detach(), final
@@ -227,8 +229,7 @@ def fit_lighting(graph: SceneGraph, track_id: int, candidate: GaussianParams, re
             opt.zero_grad()
             (loss + LIGHT_RIDGE * ((x - start) ** 2).sum()).backward()
             opt.step()
-            with torch.no_grad():
-                x[[0, 2, 3, 4, 5, 6]] = x[[0, 2, 3, 4, 5, 6]].clamp_min(0.0)
+            _no_negative_light(x)
         if bool(torch.isfinite(x).all()):
             candidates.append((render_loss(x.detach()), x.detach()))
     candidates = [c for c in candidates if np.isfinite(c[0])]

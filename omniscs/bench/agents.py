@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -403,21 +403,28 @@ def own_model_graph(graph, scene, train_frames, source, models: dict[int, str], 
     model id}."""
     import shutil
 
-    from omniscs.agents.dual import complete_agents
+    from omniscs.agents.dual import DualConfig, boxes_cleared, complete_agents
     from omniscs.agents.pool import Pool
 
-    out, ids = None, {}
+    config = DualConfig()
+    out, nodes, pooled, ids = None, {}, [], {}
     for t, model_id in models.items():
         pool = Pool(root / f"track-{t}")
         shutil.rmtree(pool.root, ignore_errors=True)
         model = source.get(model_id)
         pool.add(model.params, model.meta["category"], model.meta["provenance"], model.meta["source"],
                  model.meta["quality"], build=model.meta.get("build"), material=model.material)
-        g, ds = complete_agents(graph, scene, [t], train_frames, pool, force="pool")
-        ids[t] = next(d.model_id for d in ds if d.track_id == t)
-        node = g.agent(t)
-        out = g if out is None else out.replace(agents=tuple(node if a.track_id == t else a for a in out.agents))
-    return (graph if out is None else out), ids
+        # the boxes are cleared below, all at once: each track's own run would clear only its own
+        g, ds = complete_agents(graph, scene, [t], train_frames, pool, replace(config, clear_box=False), force="pool")
+        d = next(d for d in ds if d.track_id == t)
+        ids[t], nodes[t], out = d.model_id, g.agent(t), g if out is None else out
+        pooled += [t] if d.strategy == "pool" else []
+    if out is None:
+        return graph, ids
+    out = out.replace(agents=tuple(nodes.get(a.track_id, a) for a in out.agents))
+    if config.clear_box and pooled:  # as complete_agents does for the tracks it gives pool models
+        out = boxes_cleared(out, pooled, config)[0]
+    return out, ids
 
 
 def truth_fitted(edited, track_id: int, views, steps: int = ORACLE_STEPS):

@@ -29,8 +29,6 @@ TENSORS = "gaussians.safetensors"
 PLAN_JSON = "plan.json"
 METRICS_JSON = "metrics.json"
 KIND = "omniscs-nsg"
-#: Tensors of a relightable agent node (``omniscs.nsg.relight``), saved as ``agent.<id>.relight.<name>``.
-RELIGHT_NAMES = RELIGHT_TENSORS
 
 
 def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
@@ -45,7 +43,7 @@ def _graph_tensors(graph: SceneGraph) -> dict[str, torch.Tensor]:
         tensors[f"{key}.present"] = torch.from_numpy(a.present.astype(np.uint8))
         tensors[f"{key}.size"] = torch.from_numpy(np.array(a.size))
         if a.relight is not None:
-            for name in RELIGHT_NAMES:
+            for name in RELIGHT_TENSORS:  # saved as agent.<id>.relight.<name>
                 tensors[f"{key}.relight.{name}"] = getattr(a.relight, name)
     tensors["sky.texture"] = graph.sky.texture
     for cam, affine in graph.exposure.items():
