@@ -371,7 +371,10 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                 renderer = WorldRenderer(apply_edits(scene.world, [edit]))
                 views = evaluation_views(renderer, scene, tid, config.views_per_edit, config.min_pixels)
                 strip = [] if tid not in shown or not views else [views[len(views) // 2][2].rgb]
+                planned = dual_needs_360(scene, edit)
                 for arm, (g, _) in arms.items():
+                    if arm == "dual" and not planned:  # the product's plan keeps the fitted node for this edit
+                        g = arms["naive"][0]
                     edited = apply_graph_edits(g, [edit])
                     per_view = []
                     for i, (f, cam, gt) in enumerate(views):
@@ -383,6 +386,7 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                             strip.append((out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8))
                     rows.append({"scene_id": scene.scene_id, "track_id": tid, "edit": name, "arm": arm,
                                  "spec": edit_to_dict(edit), "n_views": len(per_view),
+                                 **({"needs_360": planned} if arm == "dual" else {}),
                                  "masked_psnr": _mean([v["psnr"] for v in per_view]),
                                  "masked_ssim": _mean([v["ssim"] for v in per_view])})
                 if name in LIMIT_EDITS and views:
@@ -394,6 +398,14 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                     strips.append((f"{name} ({scene.scene_id} track {tid}, {cam} frame {f})", gt.instance == tid,
                                    strip))
     return rows, strips, decisions, fits, pool_growth, limits
+
+
+def dual_needs_360(scene, edit) -> bool:
+    """Whether the plan of a request with ``edit`` alone gives its track a 360-degree model (the agents stage runs
+    for it); where it does not, the product renders the edit with the fitted node, and so does the dual arm."""
+    from omniscs.plan import make_plan
+
+    return int(edit.track_id) in make_plan(scene, [edit]).needs_360
 
 
 # ----------------------------------------------------------------------------- what limits the pool arm
@@ -683,8 +695,10 @@ def agents_markdown(report: dict) -> str:
     lines += ["", f"Agents per edit: {by[(TABLE4_EDITS[0][0], 'naive')]['agents']}. Arms: naive = the fitted node "
               "as it is; online = the fitted node cut to its box, its unseen side filled by mirror symmetry; pool = "
               "the matched pool model, relit whole by the scene's sun and sky fitted to its views (its material from "
-              "the mesh build), the background Gaussians in its box removed; dual = a car the pool model, another "
-              "vehicle the clarity/size/coverage choice between the two; pool in-pool = the "
+              "the mesh build), the background Gaussians in its box removed; dual = what the product renders for a "
+              "request with that edit alone: where the plan gives the track a 360-degree model (a turn of more than "
+              "45 degrees), a car the pool model, another vehicle the clarity/size/coverage choice between the two; "
+              "where it does not (the translations), the fitted node as it is; pool in-pool = the "
               "pool arm with the edited vehicles' own models added to the pool (matching may still pick another "
               "model: not a bound; the own-model rows below are). "
               "Pool candidates are ranked by "

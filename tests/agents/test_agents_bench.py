@@ -227,3 +227,19 @@ def test_the_oracle_colour_fit_moves_the_vehicle_towards_the_truth(tiny_graph):
     after = psnr(fitted.render(view).rgb, target, m)
     assert np.isfinite(after) and after > before + 5.0, (before, after)
     assert fitted.background is tiny_graph.background  # only the vehicle's colours change
+
+
+def test_the_dual_arm_models_360_degrees_only_where_the_plan_of_the_edit_alone_does(tmp_path):
+    """Table 4's dual arm is what the product renders for a request with one edit: the plan turns the agents stage
+    on for a turn of more than 45 degrees and the overturn, not for the translations (the fitted node renders
+    those)."""
+    from omniscs.bench.agents import dual_needs_360
+    from omniscs.edits import edit_from_dict
+    from omniscs.scene import load_scene
+    from tests.conftest import write_tiny_scene
+
+    scene = load_scene(write_tiny_scene(tmp_path / "s", n_frames=4, n_tracks=2))
+    planned = {name: dual_needs_360(scene, edit_from_dict({**spec, "track_id": 1})) for name, spec in TABLE4_EDITS}
+    assert planned == {"translate 2.0 m": False, "translate 3.5 m": False, "rotate 90°": True, "rotate 180°": True,
+                       "rotate 270°": True, "overturned": True}
+    assert dual_needs_360(scene, edit_from_dict({"op": "rotate", "track_id": 1, "yaw_deg": 30.0})) is False
