@@ -321,8 +321,6 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
     from omniscs.agents.pool import Pool
     from omniscs.bench.fit import evaluation_views
     from omniscs.nsg.checkpoint import load_checkpoint
-    from omniscs.nsg.edit import apply_graph_edits
-    from omniscs.nsg.metrics import psnr, ssim
     from omniscs.pipeline.pool import pool_asset_stage
     from omniscs.world import WorldRenderer, apply_edits
 
@@ -372,18 +370,15 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
                 views = evaluation_views(renderer, scene, tid, config.views_per_edit, config.min_pixels)
                 strip = [] if tid not in shown or not views else [views[len(views) // 2][2].rgb]
                 planned = dual_needs_360(scene, edit)
+                scored: dict[int, tuple[list[dict], np.ndarray | None]] = {}  # by graph: the dual arm may be naive's
                 for arm, (g, _) in arms.items():
                     if arm == "dual" and not planned:  # the product's plan keeps the fitted node for this edit
                         g = arms["naive"][0]
-                    edited = apply_graph_edits(g, [edit])
-                    per_view = []
-                    for i, (f, cam, gt) in enumerate(views):
-                        out = edited.render(edited.view(cam, f))
-                        target = torch.from_numpy(gt.rgb.astype(np.float32) / 255.0)
-                        mask = torch.from_numpy(gt.instance == tid)
-                        per_view.append({"psnr": psnr(out.rgb, target, mask), "ssim": ssim(out.rgb, target, mask)})
-                        if strip and i == len(views) // 2:
-                            strip.append((out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8))
+                    if id(g) not in scored:
+                        scored[id(g)] = _scored_views(g, edit, tid, views, bool(strip))
+                    per_view, shown_image = scored[id(g)]
+                    if shown_image is not None:
+                        strip.append(shown_image)
                     rows.append({"scene_id": scene.scene_id, "track_id": tid, "edit": name, "arm": arm,
                                  "spec": edit_to_dict(edit), "n_views": len(per_view),
                                  **({"needs_360": planned} if arm == "dual" else {}),
@@ -406,6 +401,24 @@ def dual_needs_360(scene, edit) -> bool:
     from omniscs.plan import make_plan
 
     return int(edit.track_id) in make_plan(scene, [edit]).needs_360
+
+
+def _scored_views(graph, edit, track_id: int, views, keep_middle: bool) -> tuple[list[dict], np.ndarray | None]:
+    """Masked PSNR / SSIM of ``graph`` with ``edit`` applied on each evaluation view (``evaluation_views``), and
+    the middle view's render (uint8) when ``keep_middle`` (the report's strip)."""
+    from omniscs.nsg.edit import apply_graph_edits
+    from omniscs.nsg.metrics import psnr, ssim
+
+    edited = apply_graph_edits(graph, [edit])
+    per_view, middle = [], None
+    for i, (f, cam, gt) in enumerate(views):
+        out = edited.render(edited.view(cam, f))
+        target = torch.from_numpy(gt.rgb.astype(np.float32) / 255.0)
+        mask = torch.from_numpy(gt.instance == track_id)
+        per_view.append({"psnr": psnr(out.rgb, target, mask), "ssim": ssim(out.rgb, target, mask)})
+        if keep_middle and i == len(views) // 2:
+            middle = (out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+    return per_view, middle
 
 
 # ----------------------------------------------------------------------------- what limits the pool arm
