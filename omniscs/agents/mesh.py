@@ -269,21 +269,28 @@ def refine(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: 
 
 
 def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps: int = 100,
-                    seed: int = 0, face_specular=None, face_shininess=None) -> tuple[GaussianParams, dict]:
+                    seed: int = 0, face_specular=None, face_shininess=None,
+                    face_albedo=None) -> tuple[GaussianParams, dict]:
     """A pool model from a mesh already in its vehicle frame: Gaussians on the surface, refined against 12 ray-cast
     views around it; scored (PSNR, dB) on 6 other views at another elevation. Returns it and {quality, seconds,
     material, ...}: "material" is each Gaussian's ``GaussianMaterial`` from its face (the face colour as albedo;
-    ``face_specular`` [F] and ``face_shininess`` [F] when the mesh has them, else matte)."""
+    ``face_specular`` [F] and ``face_shininess`` [F] when the mesh has them, else matte; ``face_albedo`` [F, 3]
+    linear when the diffuse reflectance differs from the colour the surface shows, as a metal's does)."""
     from omniscs.agents.material import GaussianMaterial
 
     started = time.perf_counter()
     v, f, c = _check_mesh(vertices, faces, face_colours)
     size = v.max(0) - v.min(0)
+    if face_albedo is not None and (np.shape(face_albedo) != (len(f), 3)
+                                    or not np.isfinite(np.asarray(face_albedo, np.float64)).all()):
+        raise ValidationError(f"face_albedo must hold one finite RGB per face ({len(f)}); got shape "
+                              f"{np.shape(face_albedo)}")
     for name, a in (("face_specular", face_specular), ("face_shininess", face_shininess)):
         if a is not None and (np.shape(a) != (len(f),) or not np.isfinite(np.asarray(a, np.float64)).all()):
             raise ValidationError(f"{name} must hold one finite value per face ({len(f)}); got shape {np.shape(a)}")
     params, face = gaussians_from_mesh(v, f, c, n, seed, with_faces=True)
-    material = GaussianMaterial.from_faces(face, c, face_specular, face_shininess)
+    material = GaussianMaterial.from_faces(face, c if face_albedo is None else face_albedo, face_specular,
+                                           face_shininess)
     train = orbit_cameras(size, 12, elevation_deg=KEYFRAME_ELEVATION_DEG)
     held = orbit_cameras(size, 12, elevation_deg=30.0)[1::2]
     info = {}

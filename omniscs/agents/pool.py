@@ -197,36 +197,24 @@ class Pool:
 
     def import_mesh(self, path: str | Path, category: str, calibrate: bool = True, gaussians: int = 20_000,
                     refine_steps: int = 100) -> str:
-        """A mesh trimesh reads (OBJ, GLB/glTF, PLY, STL, OFF; face or vertex colours, or textures sampled per
-        face) into the pool: centred, made into Gaussians (``agents.mesh.model_from_mesh``), turned into the
-        vehicle frame (``calibrate``), added; returns its id."""
-        import trimesh
-
+        """A mesh trimesh reads (OBJ/MTL, GLB/glTF, PLY, STL, OFF; face or vertex colours, textures sampled per
+        face, and the file's materials: ``agents.meshfile``) into the pool: centred, made into Gaussians
+        (``agents.mesh.model_from_mesh``) that keep each face's material for relighting, turned into the vehicle
+        frame (``calibrate``), added; returns its id."""
         from omniscs.agents.mesh import model_from_mesh
+        from omniscs.agents.meshfile import read_mesh_file
 
-        try:
-            mesh = trimesh.load(str(path), force="mesh")
-        except Exception as e:  # trimesh raises many types for unreadable files
-            raise ValidationError(f"{path}: not a mesh trimesh can read ({type(e).__name__}: {e})") from e
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise ValidationError(f"{path}: the file holds no triangles")
-        try:
-            rgba = np.asarray(mesh.visual.to_color().face_colors, dtype=np.float64)[:, :3] / 255.0
-        except Exception:  # no usable colour information: a neutral grey
-            rgba = np.full((len(mesh.faces), 3), 0.6)
-        if rgba.shape != (len(mesh.faces), 3):
-            rgba = np.full((len(mesh.faces), 3), 0.6)
-        linear = np.where(rgba <= 0.04045, rgba / 12.92, ((rgba + 0.055) / 1.055) ** 2.4)
-        vertices = np.asarray(mesh.vertices, dtype=np.float64)
-        if not np.isfinite(vertices).all():
-            raise ValidationError(f"{path}: the mesh has non-finite vertices")
-        vertices = vertices - 0.5 * (vertices.min(0) + vertices.max(0))
-        params, info = model_from_mesh(vertices, np.asarray(mesh.faces), linear, gaussians, refine_steps)
+        mesh = read_mesh_file(path)
+        vertices = mesh.vertices - 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+        params, info = model_from_mesh(vertices, mesh.faces, mesh.colour, gaussians, refine_steps,
+                                       face_specular=mesh.specular, face_shininess=mesh.shininess,
+                                       face_albedo=mesh.albedo)
         calibration = None
         if calibrate:
             params, calibration = calibrated(params, category)
         return self.add(params, category, "imported", str(Path(path).name), quality=info["quality_psnr"],
-                        calibration=calibration, build=info["build"], material=info["material"])
+                        calibration=calibration, build={**info["build"], "materials": sorted(set(mesh.materials))},
+                        material=info["material"])
 
     def import_file(self, path: str | Path, category: str, calibrate: bool = True) -> str:
         """A 3D Gaussian splatting PLY (``import_ply``) or any mesh (``import_mesh``), told apart by content."""
