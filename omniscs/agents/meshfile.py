@@ -27,14 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
+from omniscs.agents.material import MAX_SHININESS
 from omniscs.errors import ValidationError
 
 #: Specular reflectance at normal incidence of a dielectric (glTF's value for every non-metal).
 DIELECTRIC_F0 = 0.04
 #: Colour of a face whose file gives none (sRGB 0..1).
 NEUTRAL_GREY = 0.6
-#: Shininess range of a material (``agents.material``).
-MIN_SHININESS, MAX_SHININESS = 1.0, 2000.0
+#: Lowest shininess of a material (``agents.material``; MAX_SHININESS the highest).
+MIN_SHININESS = 1.0
 
 
 @dataclass(frozen=True)
