@@ -281,13 +281,11 @@ def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps
     started = time.perf_counter()
     v, f, c = _check_mesh(vertices, faces, face_colours)
     size = v.max(0) - v.min(0)
-    if face_albedo is not None and (np.shape(face_albedo) != (len(f), 3)
-                                    or not np.isfinite(np.asarray(face_albedo, np.float64)).all()):
-        raise ValidationError(f"face_albedo must hold one finite RGB per face ({len(f)}); got shape "
-                              f"{np.shape(face_albedo)}")
-    for name, a in (("face_specular", face_specular), ("face_shininess", face_shininess)):
-        if a is not None and (np.shape(a) != (len(f),) or not np.isfinite(np.asarray(a, np.float64)).all()):
-            raise ValidationError(f"{name} must hold one finite value per face ({len(f)}); got shape {np.shape(a)}")
+    for name, a, shape in (("face_specular", face_specular, (len(f),)), ("face_shininess", face_shininess, (len(f),)),
+                           ("face_albedo", face_albedo, (len(f), 3))):
+        if a is not None and (np.shape(a) != shape or not np.isfinite(np.asarray(a, np.float64)).all()):
+            raise ValidationError(f"{name} must hold one finite value per face and channel, shape {shape}; got "
+                                  f"shape {np.shape(a)}")
     params, face = gaussians_from_mesh(v, f, c, n, seed, with_faces=True)
     material = GaussianMaterial.from_faces(face, c if face_albedo is None else face_albedo, face_specular,
                                            face_shininess)

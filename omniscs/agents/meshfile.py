@@ -52,8 +52,12 @@ class MeshFile:
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    """File colours (sRGB 0..1) -> linear, by the curve the relight shades with (``nsg.relight.srgb_decode``)."""
+    import torch
+
+    from omniscs.nsg.relight import srgb_decode
+
+    return srgb_decode(torch.as_tensor(np.asarray(c, np.float64))).numpy()
 
 
 def roughness_to_shininess(roughness: np.ndarray) -> np.ndarray:
