@@ -294,6 +294,51 @@ def test_the_street_fill_looks_only_so_far_and_leaves_planes_the_street_crosses(
     assert not street_fill(truth, nothing, ground, uv0, texel, PlaneConfig())[1].any()
 
 
+def _facade(period_m=3.0, noise=8):
+    """A facade texture (texel 0.04 m, 16 m along the street by 8 m) whose window columns repeat every ``period_m`` along the street
+    (world x, the plane's first coordinate here), with a little texture noise."""
+    facade = fit_planes(np.stack([RNG.uniform(0, 30, 4000), np.zeros(4000), RNG.uniform(0, 10, 4000)], 1))[0]
+    facade.street = np.array([1.0, 0.0, 0.0])
+    h, w, texel = 400, 200, 0.04  # this plane's first coordinate runs up the wall, its second along the street
+    uv0 = np.zeros(2)
+    pts = _texel_points(facade, uv0, texel, (h, w))
+    x, z = pts[..., 0], pts[..., 2]
+    rgb = np.full((h, w, 3), 100.0)
+    window = (np.mod(x, period_m) < 0.4 * period_m) & (np.mod(z, 3.0) > 1.2) & (np.mod(z, 3.0) < 2.4)
+    rgb[window] = (200, 210, 220)
+    rgb += np.random.default_rng(3).integers(0, noise + 1, rgb.shape)
+    return facade, rgb.astype(np.uint8), uv0, texel, x
+
+
+def test_texels_no_view_saw_repeat_the_facade_whole_periods_along_the_street():
+    from omniscs.background.planes import _street_along, periodic_fill, street_fill, street_period
+
+    facade, truth, uv0, texel, x = _facade()
+    s = x - x.min()
+    observed = ~((s > 6.0) & (s < 10.4))  # 4.4 m of the wall behind a parked truck, more than one period
+    assert s.max() > 15.0
+    along = _street_along(facade)
+    assert abs(street_period(truth, observed, along, texel, PlaneConfig()) - 3.0) < 1.5 * texel
+    seen_only = truth.copy()
+    seen_only[~observed] = 0
+    filled, known = periodic_fill(seen_only, observed, facade, uv0, texel, PlaneConfig())
+    assert known.all() and np.all(filled[observed] == truth[observed])
+    err = lambda a: np.abs(a[~observed].astype(float) - truth[~observed]).mean()
+    # the windows come back where they were: only the noise is left; the median along the line smears them away
+    assert err(filled) < 6.0
+    assert err(filled) < 0.25 * err(street_fill(seen_only, observed, facade, uv0, texel, PlaneConfig())[0])
+    # a wall with no period (noise only): no shift stands out, nothing is copied
+    plain = np.random.default_rng(4).integers(90, 110, truth.shape).astype(np.uint8)
+    assert street_period(plain, observed, along, texel, PlaneConfig()) is None
+    same, known = periodic_fill(plain, observed, facade, uv0, texel, PlaneConfig())
+    assert np.array_equal(known, observed) and np.array_equal(same, plain)
+    # nothing seen, everything seen, a plane the street crosses: left as it is
+    for obs in (np.zeros_like(observed), np.ones_like(observed)):
+        assert np.array_equal(periodic_fill(seen_only, obs, facade, uv0, texel, PlaneConfig())[1], obs)
+    facade.street = np.asarray(facade.normal)
+    assert np.array_equal(periodic_fill(seen_only, observed, facade, uv0, texel, PlaneConfig())[1], observed)
+
+
 def test_unobserved_rules_are_checked_and_inpaint_leaves_the_street_fill_out():
     import pytest
 
@@ -301,6 +346,8 @@ def test_unobserved_rules_are_checked_and_inpaint_leaves_the_street_fill_out():
 
     with pytest.raises(OmniscsError, match="unobserved"):
         PlaneConfig(unobserved="guess")
+    with pytest.raises(OmniscsError, match="period"):
+        PlaneConfig(period_min_m=2.0, period_max_m=1.0)
     # a donor that sees one colour left of x = 15 and another right of it, looking along the street (+x): the street
     # fill carries each side's colour on along its lines, where the inpainter blends them
     donor = _ground_donor([15.0, 0.0, 3.0], (200, 30, 30))

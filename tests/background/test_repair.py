@@ -115,6 +115,39 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
 
 
+def test_the_refit_runs_at_the_fits_learning_rates_times_refit_lr_scale(fitted, monkeypatch):
+    import omniscs.background.repair as repair
+    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.observations import Observations
+    from omniscs.scene import load_scene
+
+    store, plan, record, _ = fitted
+    scene = load_scene(store)
+    graph = load_checkpoint(record.path, scene)
+    views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
+    rates = []
+
+    def refit(graph, config, *args, **kwargs):
+        rates.append(config.lr)
+        return graph, []
+
+    monkeypatch.setattr(repair, "refit", refit)
+    fit = tiny_fit_config(60)
+    for k in (1.0, 2.0):
+        repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views, fit,
+                          dataclasses.replace(SMALL, depth_method="lsq", refit_lr_scale=k))
+    same, doubled = rates
+    assert same == fit.lr
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        assert getattr(doubled, name) == pytest.approx(2.0 * getattr(fit.lr, name))
+    # the sky and the exposures are held in the refit; their rates and the means' decay stay the fit's
+    assert (doubled.sky, doubled.exposure, doubled.means_final_ratio) == (fit.lr.sky, fit.lr.exposure,
+                                                                          fit.lr.means_final_ratio)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(OmniscsError, match="refit_lr_scale"):
+            RepairConfig(refit_lr_scale=bad)
+
+
 def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_pixel(fitted):
     from omniscs.background.inpaintnet import SHIPPED
     from omniscs.nsg.checkpoint import load_checkpoint
