@@ -11,10 +11,10 @@ Each plane gets a texture (texels ``texel_m`` on a side, in the plane's own 2D c
 the hole pixels see, plus a ring of context. Every training view gives colour to the texels it sees (inside the
 image, outside its own hole, with nothing its render shows in front of the texel); each texel takes the per-channel
 median of the colours it got, which keeps what most views agree on. What no view saw is filled on the texture,
-where the kerb lines and the rows of windows run straight along the street (the removed object's heading: a parked
-vehicle stands along the kerb): first by copying the seen texels whole periods away along the street where the
-texture repeats (windows, paving slabs), then from the seen texels on the same line, then by the inpainter. Every
-view then reads the same texture: one consistent fill for all views.
+where the kerb lines and the rows of windows run straight: first along the street (the removed object's heading:
+a parked vehicle stands along the kerb), from the seen texels on the same line (or, as an option, by copying the
+seen texels whole periods away where the texture repeats), then by the inpainter. Every view then reads the same
+texture: one consistent fill for all views.
 """
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ class PlaneConfig:
     texel_colour: str = "median"
     """A texel seen by several views takes their per-channel 'median' colour (robust to what one view alone shows
     there) or the 'nearest' one's (the finest; the default until the eighth session of 2026-11-27)."""
-    unobserved: str = "periodic"
+    unobserved: str = "street"
     """How texels no view saw are filled before the inpainter: 'periodic' (where the seen texture repeats along the
     street, street_period, each takes the median of the seen texels whole periods away on its line; the rest as
     'street'), 'street' (each takes the per-channel median of the
@@ -89,9 +89,10 @@ class PlaneConfig:
     ninth session of 2026-11-27). Chosen on the development logs 90 and 91, hole PSNR at novel views 17.99 -> 18.05
     and 20.09 -> 20.57 dB (12 samples per side: 18.06 / 20.61; 100 with 6 m of texture context: 18.23 / 20.44).
     The medians also carry the shadows that lie along the street next to the object (its own included) into what
-    they fill. 'periodic' is the default since the fifteenth session of 2026-11-28: on the development logs 90, 91,
-    93 and 94, hole PSNR at novel views 17.29 -> 18.20, 20.79 -> 20.86, 17.97 -> 17.98 and 18.13 -> 18.05 dB (the
-    unseen sidewalk and facade of log 90, 13.5 and 17.2 dB, went to 16.1 and 19.0)."""
+    they fill. 'periodic' (tried in the fifteenth session of 2026-11-28, not the default): on the development logs
+    90, 91, 93 and 94 hole PSNR at novel views 17.29 -> 18.20, 20.79 -> 20.86, 17.97 -> 17.98 and 18.13 -> 18.05 dB
+    (log 90's unseen sidewalk and facade, 13.5 and 17.2 dB, went to 16.1 and 19.0), but on the held-out logs
+    101-105 19.62 against 19.82 dB (1.0 dB worse on log 103; reports/background_bench_periodic)."""
     period_min_m: float = 1.0
     """'periodic': the shortest shift along the street searched for the texture's period ..."""
     period_max_m: float = 8.0

@@ -123,10 +123,11 @@ class RepairConfig:
     """The refit's learning rates (means, rotations, sizes, opacities, colours) are the fit's times this (the sky
     and the exposures are held): the hole's Gaussians start far from what the filled views show, and the refit has
     few steps. 2 is the default since the fifteenth session of 2026-11-28, chosen on the development logs 90, 91, 93
-    and 94 with the periodic texture fill: hole PSNR at novel views 18.20 -> 18.51, 20.86 -> 20.89, 17.98 -> 18.27,
-    18.05 -> 18.31 dB, at no extra time. There, three times as many steps at the fit's rates gained about as much
-    (17.29 -> 17.61, 20.79 -> 20.97 dB without the periodic fill) but would cost the RoI refit its time target, and
-    faster colours alone nothing (17.27, 20.83)."""
+    and 94 (with PlaneConfig.unobserved='periodic'): hole PSNR at novel views 18.20 -> 18.51, 20.86 -> 20.89,
+    17.98 -> 18.27, 18.05 -> 18.31 dB, at no extra time; on the held-out logs 101-105, with the default street fill,
+    19.97 against 19.82 dB (reports/background_bench_periodic). On the development logs three times as many steps
+    at the fit's rates gained about as much (17.29 -> 17.61, 20.79 -> 20.97 dB) but would cost the RoI refit its
+    time target, and faster colours alone nothing (17.27, 20.83)."""
     crop_margin_px: int = 12
     """Pixels around a hole's bounding box in the RoI refit's crops (at the working resolution)."""
     depth_weight: float = 0.1
@@ -142,7 +143,9 @@ class RepairConfig:
     against 18.17, 1.6 dB worse on one log whose views saw 4 % of the texture), depth AbsRel 0.184 against 0.269
     (reports/background_bench). With the plane textures of PlaneConfig.texel_visibility / texel_colour /
     free_space: 19.59 dB at novel views, +4.82 over naive (reports/background_bench_texels); with the texels no view
-    saw filled along the street (PlaneConfig.unobserved): 19.82 dB, +5.05 (reports/background_bench_street)."""
+    saw filled along the street (PlaneConfig.unobserved): 19.82 dB, +5.05 (reports/background_bench_street); with
+    the refit at twice the fit's learning rates (refit_lr_scale): 19.97 dB, +5.19 (reports/background_bench_periodic,
+    its street-fill row)."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
     """Finding and texturing the planes."""
     planes_first: bool = False

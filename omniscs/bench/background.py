@@ -35,7 +35,7 @@ PLANES_AGREE_ARM = ("planes + DRNet + RoI refit, previous textures (depth agreem
                     "no free-space check)")
 PLANES_FIRST_ARM = "planes + DRNet + RoI refit, planes first where the cleaned background covers"
 PLANES_INPAINT_ARM = "planes + DRNet + RoI refit, unobserved texels inpainted (no street fill)"
-PLANES_STREET_ARM = "planes + DRNet + RoI refit, unobserved texels filled along the street (no periodic copy)"
+PLANES_PERIODIC_ARM = "planes + DRNet + RoI refit, unobserved texels copied whole periods along the street"
 PLANES_SLOW_REFIT_ARM = "planes + DRNet + RoI refit, refit at the fit's learning rates"
 ARMS = ("naive", "hidden Gaussians removed", "2D inpainting only", "least squares", "DRNet", "DRNet + RoI refit",
         PLANES_ARM)
@@ -46,7 +46,7 @@ the RoI refit fits the rest of the hole to the 2D inpainter's fill at DRNet's de
 EXTRA_ARMS = ("least squares + RoI refit", "DRNet + full refit", PLANES_SEEDED_ARM,
               "DRNet + RoI refit, carrying between views", "2D inpainting only, embedded inpainter",
               "DRNet + RoI refit, embedded inpainter", "DRNet + RoI refit, embedded inpainter, whole hole",
-              PLANES_AGREE_ARM, PLANES_FIRST_ARM, PLANES_INPAINT_ARM, PLANES_STREET_ARM, PLANES_SLOW_REFIT_ARM)
+              PLANES_AGREE_ARM, PLANES_FIRST_ARM, PLANES_INPAINT_ARM, PLANES_PERIODIC_ARM, PLANES_SLOW_REFIT_ARM)
 """The comparisons: the planes arm seeding the inpainted pixels too, at DRNet's depth (the default before
 2026-11-27); three that use the embedded inpainting network instead of the configured inpainter, the last one
 inpainting every hole pixel (the cleaned background's render of the hole is not kept); the planes arm with the plane
@@ -55,8 +55,9 @@ depth agreed with the texel's, the nearest view won, and rays took planes where 
 planes filling every hole pixel they reach (planes_first; reports/background_bench_planes_first holds a run in
 which that was the default arm: it was worse); and the planes arm whose unobserved texels the inpainter fills
 without the street fill (PlaneConfig.unobserved='inpaint', the default until the ninth session of 2026-11-27), or
-with the street fill but no periodic copy ('street', the default until the fifteenth session of 2026-11-28); and the
-planes arm refitting at the fit's own learning rates (RepairConfig.refit_lr_scale=1, the default until then)."""
+copying the seen texels whole periods away where the texture repeats ('periodic': reports/background_bench_periodic
+holds a run in which that was the default arm: it was worse); and the planes arm refitting at the fit's own learning
+rates (RepairConfig.refit_lr_scale=1, the default until the fifteenth session of 2026-11-28)."""
 STRIP_ARMS = ("naive", "DRNet + RoI refit", PLANES_ARM)
 """The arms shown in the PNG strips, after the ground truth."""
 
@@ -392,8 +393,8 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
         PLANES_FIRST_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, planes_first=True), inpainter),
         PLANES_INPAINT_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
             planes_cfg.plane, unobserved="inpaint")), inpainter),
-        PLANES_STREET_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
-            planes_cfg.plane, unobserved="street")), inpainter),
+        PLANES_PERIODIC_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, plane=dataclasses.replace(
+            planes_cfg.plane, unobserved="periodic")), inpainter),
         PLANES_SLOW_REFIT_ARM: lambda: refit_arm(dataclasses.replace(planes_cfg, refit_lr_scale=1.0), inpainter)}
     for name, make in ablations.items():
         if name in extras:
