@@ -399,7 +399,7 @@ def build_textures(planes: list[Plane], hits: list[tuple[View, np.ndarray, np.nd
             if config.unobserved == "periodic" and plane.street is not None:
                 rgb, known = periodic_fill(rgb, observed, plane, lo, texel, config)
                 rgb, known = street_fill(rgb, known, plane, lo, texel, config)
-            if config.unobserved == "street" and plane.street is not None:
+            elif config.unobserved == "street" and plane.street is not None:
                 rgb, known = street_fill(rgb, observed, plane, lo, texel, config)
             if (~known).any():
                 rgb = inpainter.inpaint(rgb, ~known)
