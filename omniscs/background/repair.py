@@ -144,7 +144,7 @@ class RepairConfig:
     (reports/background_bench). With the plane textures of PlaneConfig.texel_visibility / texel_colour /
     free_space: 19.59 dB at novel views, +4.82 over naive (reports/background_bench_texels); with the texels no view
     saw filled along the street (PlaneConfig.unobserved): 19.82 dB, +5.05 (reports/background_bench_street); with
-    the refit at twice the fit's learning rates (refit_lr_scale): 19.97 dB, +5.19 (reports/background_bench_periodic,
+    the refit at twice the fit's learning rates (refit_lr_scale): 19.97 dB, +5.20 (reports/background_bench_periodic,
     its street-fill row)."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
     """Finding and texturing the planes."""
