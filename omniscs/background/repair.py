@@ -70,6 +70,9 @@ OBSERVED_ALPHA = 0.95
 EMPTY_ALPHA = 0.05
 REFIT_MODES = ("roi", "full", "none")
 
+#: The learning rates RepairConfig.refit_lr_scale multiplies (the sky and the exposures are held in the refit).
+REFIT_SCALED_RATES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
 
 @dataclass(frozen=True)
 class RepairConfig:
@@ -556,10 +559,8 @@ def refit_background(graph: SceneGraph, n_seeds: int, objects: list[RemovedObjec
     loss = dataclasses.replace(fit_config.loss, depth_weight=config.depth_weight)
     # the views' losses differ by orders of magnitude (small and large holes, inpainted and well-fitted views): the
     # refit compares each view's loss with that view's own best
-    k = config.refit_lr_scale
-    lr = dataclasses.replace(fit_config.lr, means=fit_config.lr.means * k, quats=fit_config.lr.quats * k,
-                             log_scales=fit_config.lr.log_scales * k, opacity_logits=fit_config.lr.opacity_logits * k,
-                             sh_dc=fit_config.lr.sh_dc * k, sh_rest=fit_config.lr.sh_rest * k)
+    lr = dataclasses.replace(fit_config.lr, **{name: getattr(fit_config.lr, name) * config.refit_lr_scale
+                                               for name in REFIT_SCALED_RATES})
     cfg = dataclasses.replace(fit_config, iterations=iterations, strategy=strategy, loss=loss, sh_degree_interval=1,
                               max_loss_ratio=max(fit_config.max_loss_ratio, REFIT_MAX_LOSS_RATIO), lr=lr)
     budgets = {BACKGROUND: int(rows.sum() * 1.3)}
