@@ -23,13 +23,16 @@ from prefect.events.schemas.events import ResourceSpecification
 
 from flows.downstream import finetune_evaluate
 from flows.generate import generate_dataset
+from omniscs.pipeline.request import RunRequest
 
 WORK_POOL = "omniscs-process"
 GENERATE_NIGHTLY = "generate-nightly"
 NIGHTLY_CRON = "0 2 * * *"
-NIGHTLY_PARAMETERS = {"sources": ["syn:straight:0", "syn:t_junction:1:dusk", "syn:intersection:2:night"],
-                      "n_frames": 40, "n_cameras": 3, "fit_preset": "fast", "behavior_variants": 2,
-                      "behavior_preset": "fast", "annotate": True}
+#: The nightly run's request (a ``RunRequest``'s fields; the rest keep their defaults).
+NIGHTLY_REQUEST = RunRequest(sources=["syn:straight:0", "syn:t_junction:1:dusk", "syn:intersection:2:night"],
+                             n_frames=40, n_cameras=3, fit_preset="fast", behavior_variants=2, behavior_preset="fast",
+                             annotate=True)
+NIGHTLY_PARAMETERS = {"request": NIGHTLY_REQUEST.model_dump(mode="json", exclude_unset=True)}
 FINETUNE_ON_GENERATION = "finetune-evaluate-on-generation"
 MODULE = EntrypointType.MODULE_PATH
 HEARTBEAT_SECONDS = 60

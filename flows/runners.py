@@ -20,44 +20,13 @@ per-key views keep the rerun from duplicating anything."""
 from __future__ import annotations
 
 import os
-import socket
-from urllib.parse import urlparse
 
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from omniscs.errors import OmniscsError, ValidationError
+from omniscs.pipeline.validate import TASK_RUNNERS, check_runner  # noqa: F401  (checked with the run's inputs)
 
-TASK_RUNNERS = ("threads", "dask")
 #: Scenes processed at once by the thread runner; the machines this runs on have 2 cores.
 MAX_PARALLEL_SCENES = 2
-#: How long a Dask scheduler may take to answer before the run is refused (seconds).
-SCHEDULER_TIMEOUT_S = 5.0
-
-
-def check_runner(task_runner: str, workers: int | None, dask_address: str | None) -> None:
-    """One clear error for a bad choice, before any scene starts (the scheduler must answer now)."""
-    if task_runner not in TASK_RUNNERS:
-        raise ValidationError(f"task_runner must be one of {TASK_RUNNERS}; got {task_runner!r}")
-    if workers is not None and not 1 <= int(workers) <= 256:
-        raise ValidationError(f"workers must be between 1 and 256; got {workers}")
-    if dask_address is not None:
-        if task_runner != "dask":
-            raise ValidationError("dask_address needs task_runner='dask'")
-        if workers is not None:
-            raise ValidationError("workers is for a local Dask cluster; an existing scheduler has its own workers")
-        _reach_scheduler(dask_address)
-
-
-def _reach_scheduler(address: str) -> None:
-    url = urlparse(address if "://" in address else f"tcp://{address}")
-    if url.scheme not in ("tcp", "tls") or not url.hostname or not url.port:
-        raise ValidationError(f"Dask scheduler address {address!r} must look like tcp://HOST:PORT")
-    try:
-        with socket.create_connection((url.hostname, url.port), timeout=SCHEDULER_TIMEOUT_S):
-            pass
-    except OSError as e:
-        raise OmniscsError(f"the Dask scheduler at {address} is unreachable ({e}); start it (dask scheduler) "
-                           "or leave dask_address out for a local cluster") from None
 
 
 def worker_threads(workers: int, cores: int | None = None) -> int:
@@ -66,8 +35,7 @@ def worker_threads(workers: int, cores: int | None = None) -> int:
 
 
 def scene_task_runner(task_runner: str = "threads", workers: int | None = None, dask_address: str | None = None):
-    """The task runner that runs a flow's scenes (checked by ``check_runner`` first)."""
-    check_runner(task_runner, workers, dask_address)
+    """The task runner that runs a flow's scenes (its choice checked with the run's inputs: ``check_runner``)."""
     if task_runner == "threads":
         return ThreadPoolTaskRunner(max_workers=int(workers or MAX_PARALLEL_SCENES))
     from prefect_dask import DaskTaskRunner

@@ -1,75 +1,29 @@
-"""Prefect tasks: one line each over the pipeline's stage functions; they pass records (ids, paths, rows)."""
+"""Prefect tasks over the pipeline's stage table: one task per stage (named after it), each a call of its row's
+function; plus the per-run dataset and catalog tasks. They pass records (ids, paths, rows), never tensors."""
 from __future__ import annotations
 
 from prefect import task
 
 from omniscs.pipeline import stages
-from omniscs.pipeline.agents import agents_stage
-from omniscs.pipeline.appearance import appearance_stage
-from omniscs.pipeline.background import background_stage
-from omniscs.pipeline.records import SceneRequest, StageRecord
+from omniscs.pipeline.records import StageRecord
+from omniscs.pipeline.stages import STAGES, SceneState, Stage
 from tasks.progress import artifact_progress
 from tasks.retries import STAGE_TASK_OPTIONS
 
 
-@task(name="ingest", task_run_name="ingest-{label}", **STAGE_TASK_OPTIONS)
-def ingest(source: dict, workspace: str, label: str) -> StageRecord:
-    return stages.ingest_stage(source, workspace, progress=artifact_progress(f"ingest {label}"))
+def _run(stage: str, state: SceneState) -> StageRecord:
+    row = stages.stage(stage)
+    return row.run(state, artifact_progress(f"{row.doing} of {state.scene_id}"))
 
 
-@task(name="plan", task_run_name="plan-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def plan(scene: StageRecord, request: SceneRequest, workspace: str) -> StageRecord:
-    return stages.plan_stage(scene.path, request, workspace)
+#: One Prefect task per row of the stage table, named after its stage.
+STAGE_TASKS = {row.name: task(_run, name=row.name, task_run_name=f"{row.name}-{{state.scene_id}}",
+                              **STAGE_TASK_OPTIONS) for row in STAGES}
 
 
-@task(name="preview", task_run_name="preview-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def preview(scene: StageRecord, workspace: str) -> StageRecord:
-    return stages.preview_stage(scene.path, workspace)
-
-
-@task(name="fit", task_run_name="fit-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def fit(scene: StageRecord, plan: StageRecord, request: SceneRequest, workspace: str) -> StageRecord:
-    return stages.fit_stage(scene.path, stages.load_plan(plan), request.fit_preset, workspace,
-                            progress=artifact_progress(f"fit scene graph of {scene.scene_id} ({request.fit_preset})"),
-                            **stages.device_overrides(request))
-
-
-@task(name="agents", task_run_name="agents-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def agents(scene: StageRecord, plan: StageRecord, model: StageRecord, request: SceneRequest,
-           workspace: str) -> StageRecord:
-    return agents_stage(scene.path, stages.load_plan(plan), model, workspace, request.pool,
-                        progress=artifact_progress(f"360-degree agents of {scene.scene_id}"))
-
-
-@task(name="background", task_run_name="background-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def background(scene: StageRecord, plan: StageRecord, model: StageRecord, workspace: str) -> StageRecord:
-    return background_stage(scene.path, stages.load_plan(plan), model, workspace,
-                            progress=artifact_progress(f"background repair of {scene.scene_id}"))
-
-
-@task(name="behavior", task_run_name="behavior-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def behavior(scene: StageRecord, plan: StageRecord, model: StageRecord | None, request: SceneRequest,
-             workspace: str) -> StageRecord:
-    return stages.behavior_stage(scene.path, stages.load_plan(plan), request.behavior_variants, workspace,
-                                 request.behavior_preset, request.behavior_checkpoint, model,
-                                 progress=artifact_progress(f"behaviour variants of {scene.scene_id}"),
-                                 adversarial_overrides=stages.device_overrides(request))
-
-
-@task(name="appearance", task_run_name="appearance-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def appearance(scene: StageRecord, plan: StageRecord, model: StageRecord | None, request: SceneRequest,
-               workspace: str) -> StageRecord:
-    return appearance_stage(scene.path, stages.load_plan(plan), model, request.appearance_variants, request.pool,
-                            workspace, request.appearance_objects,
-                            progress=artifact_progress(f"appearance variants of {scene.scene_id}"))
-
-
-@task(name="annotate", task_run_name="annotate-{scene.scene_id}", **STAGE_TASK_OPTIONS)
-def annotate(scene: StageRecord, plan: StageRecord, model: StageRecord | None, behavior: StageRecord | None,
-             workspace: str, appearance: StageRecord | None = None) -> StageRecord:
-    return stages.annotate_stage(scene.path, stages.load_plan(plan), model, behavior, workspace,
-                                 progress=artifact_progress(f"render + annotate variants of {scene.scene_id}"),
-                                 appearance=appearance)
+def run_stage(row: Stage, state: SceneState) -> StageRecord:
+    """The walker's runner inside a flow: the stage as its Prefect task."""
+    return STAGE_TASKS[row.name](row.name, state)
 
 
 @task(name="dataset", **STAGE_TASK_OPTIONS)

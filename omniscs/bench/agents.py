@@ -127,7 +127,7 @@ def build_pool(pool: Path, ids: list[str], progress: Progress = no_progress) -> 
 
 def table4_request(targets: list[int], preset: str):
     """The request whose plan makes the edited agents nodes that need 360-degree models."""
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
 
     edits = [{**spec, "track_id": int(t)} for t in targets for _, spec in TABLE4_EDITS]
     return SceneRequest(fit_preset=preset, edits=tuple(edits), previews=False)

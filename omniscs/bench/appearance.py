@@ -76,7 +76,7 @@ def _source(item: str):
 
 def prepare_scene(item: str, config: AppearanceBenchConfig, workspace: Path, progress: Progress = no_progress):
     """Ingest, plan (every vehicle a node, as appearance variants ask) and fit; reused when fitted before."""
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
     from omniscs.scene import load_scene
 

@@ -128,7 +128,7 @@ def large_static_object(scene) -> int:
 
 def prepare_scene(item: str, preset: str, workspace: Path, progress: Progress = no_progress):
     """Ingest, plan the object's removal (so it becomes a node) and fit (reused when fitted before)."""
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
     from omniscs.scene import load_scene
 

@@ -301,7 +301,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
     plausibility, time per variant, and the appearance drift (masked PSNR of the scene graph's render of each
     variant against the procedural world re-rendered with the same trajectories, adversary pixels only)."""
     from omniscs.nsg.checkpoint import load_checkpoint as load_graph
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
     from omniscs.scene import SyntheticSource, load_scene
     from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, render_variant, scene_graph_appearance

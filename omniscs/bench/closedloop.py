@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.bench.harness import finish, load_line, machine_info, status_bytes, write_report
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource

@@ -20,7 +20,7 @@ import numpy as np
 
 from omniscs.annotate import AnnotateConfig
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import (annotate_stage, behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage,
                                      replay_stage)
 from omniscs.progress import Progress, no_progress

@@ -163,7 +163,7 @@ def check_dataset_free(workspace: Path, dataset_id: str, scene_ids: set[str]) ->
 def build_split(split: str, scenes, pool: Path, objects: list[str], config: DetectionProtocolConfig, workspace: Path,
                 progress: Progress = no_progress) -> dict:
     """The split's logs (scene store paths) and its appearance-SCS dataset (the factory's stages; reused)."""
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import dataset_stage, run_scene
     from omniscs.scene import SyntheticSource
 

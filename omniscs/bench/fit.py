@@ -22,7 +22,7 @@ from omniscs.nsg.edit import apply_graph_edits
 from omniscs.nsg.metrics import psnr, ssim
 from omniscs.nsg.observations import MIN_POINT_DEPTH
 from omniscs.nsg.train import FitDiverged
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from omniscs.progress import Progress
 from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.scene import SyntheticSource, load_scene

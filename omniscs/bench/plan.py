@@ -22,7 +22,7 @@ from omniscs.nsg.checkpoint import load_checkpoint
 from omniscs.nsg.config import fit_preset
 from omniscs.nsg.edit import apply_graph_edits
 from omniscs.nsg.metrics import psnr
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource, load_scene

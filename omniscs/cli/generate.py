@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import contextlib
+import inspect
 import os
 import signal
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -27,33 +29,27 @@ DEMO_APPEARANCE_VARIANTS = 2
 DEMO_POOL_ASSETS = ("pool:box_truck", "pool:bus", "pool:sedan")
 
 
-def run_generate(sources: list[str], workspace: Optional[Path] = None, **parameters) -> dict:
-    """Check every input (a bad one fails here, before Prefect starts and before anything is written), then run
-    the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly."""
+def run_generate(request) -> dict:
+    """Check the run once (a bad input fails here, before Prefect starts and before anything is written), then run
+    the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly.
+    ``request``: a ``RunRequest`` or its fields as a dict."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     from omniscs.pipeline.records import new_run_id
-    from omniscs.pipeline.validate import RIG_DEFAULTS, check_request, check_run_id, check_sources, run_config
+    from omniscs.pipeline.request import RunRequest
+    from omniscs.pipeline.validate import check_run
     from omniscs.storage import usable_workspace, workspace_path
 
-    rig = {k: parameters[k] for k in ("n_frames", "n_cameras", "width", "height") if k in parameters}
-    request = check_request({k: parameters[k] for k in ("fit_preset", "behavior_variants", "behavior_preset",
-                                                          "behavior_checkpoint", "edits", "previews", "device",
-                                                          "annotate", "pool", "appearance_variants",
-                                                          "appearance_objects")
-                             if k in parameters})
-    scenes, _ = check_sources(list(sources), **rig)
-    from flows.runners import check_runner
-
-    check_runner(parameters.get("task_runner", "threads"), parameters.get("workers"), parameters.get("dask_address"))
-    run_id = check_run_id(parameters.pop("run_id", None)) or new_run_id()
-    usable_workspace(workspace)  # not a file, nor under one
+    request = RunRequest.parse(request)
+    if request.run_id is None:  # named now, so that a stop can record the run as cancelled
+        request = request.model_copy(update={"run_id": new_run_id()})
+    checked = check_run(request)
+    usable_workspace(request.workspace)  # not a file, nor under one
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api
 
-    config = run_config(sources, **{**RIG_DEFAULTS, **rig}, **request.to_dict())
-    with stops_cleanly(run_id, workspace_path(workspace), config, len(scenes)), prefect_api():
-        return generate_dataset(sources=list(sources), workspace=str(workspace) if workspace else None,
-                                run_id=run_id, **parameters)
+    with stops_cleanly(request.run_id, workspace_path(request.workspace), request.to_dict(), len(checked.scenes)), \
+            prefect_api():
+        return generate_dataset(request)
 
 
 @contextlib.contextmanager
@@ -100,55 +96,76 @@ def stops_cleanly(run_id: str, workspace: Path, config: dict, n_scenes: int) -> 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def generate(
-    sources: list[str] = typer.Argument(..., help="syn:TEMPLATE:SEED[:LIGHTING], FORMAT:DATAROOT[:SCENE] "
-                                                  "(nuscenes, kitti, waymo-v2) or scene-store paths."),
-    workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
-    run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
-    frames: int = typer.Option(40, help="Synthetic sources: frames at 10 Hz."),
-    cameras: int = typer.Option(3, help="Synthetic sources: cameras, 1 to 6."),
-    width: int = typer.Option(480, help="Synthetic sources: image width."),
-    height: int = typer.Option(270, help="Synthetic sources: image height."),
-    previews: bool = typer.Option(True, help="Write contact sheets and BEV plots."),
-    fit_preset: Optional[str] = typer.Option(None, help="Fit each scene's Gaussian scene graph: fast, balanced or "
-                                                        "accurate (default: no fit)."),
-    behavior_variants: int = typer.Option(0, help="Behaviour-level SCS variants per scene (0: none)."),
-    behavior_preset: str = typer.Option("balanced", help="Behaviour optimisation preset: fast, balanced or accurate."),
-    behavior_checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint (default: the shipped "
-                                                                  "one)."),
-    edit: Optional[str] = typer.Option(None, help="Edits the variants will apply (JSON or @file, see README); "
-                                                  "their tracks become nodes in every scene's plan."),
-    device: str = typer.Option("cpu", help="Compute device of the scene graph and behaviour optimisation."),
-    annotate: bool = typer.Option(False, help="Render and annotate every variant and gather them as a dataset "
-                                              "(needs --fit-preset and behaviour or appearance variants)."),
-    dataset_id: Optional[str] = typer.Option(None, help="With --annotate: the dataset's id (default ds-<hash>)."),
-    pool: Optional[Path] = typer.Option(None, help="Model pool for the agents stage: tracks the edits turn off their "
-                                                   "observed views get a 360-degree model from it or online."),
-    task_runner: str = typer.Option("threads", help="Where scenes run: threads (this process) or dask (a local "
-                                                    "cluster of --workers processes, or --dask-address)."),
-    workers: Optional[int] = typer.Option(None, help="Scenes at once: threads, or local Dask worker processes "
-                                                     "(default 2; each gets the cores divided among them)."),
-    dask_address: Optional[str] = typer.Option(None, help="tcp://HOST:PORT of an existing Dask scheduler (many "
-                                                          "machines sharing the workspace path)."),
-    appearance_variants: int = typer.Option(0, help="Appearance-level SCS variants per scene (0: none): objects of "
-                                                    "--pool replacing a vehicle or inserted upright, on the side or "
-                                                    "overturned at valid poses (needs --fit-preset and --pool)."),
-    appearance_object: Optional[list[str]] = typer.Option(None, "--appearance-object", help="Pool model ids the "
-                                                          "appearance variants use (repeat; default: the whole pool), "
-                                                          "e.g. what `omniscs scs mine` found missed."),
-) -> None:
+#: ``omniscs generate`` spellings of ``RunRequest`` fields whose option name is not the field's.
+CLI_NAMES = {"n_frames": "--frames", "n_cameras": "--cameras", "edits": "--edit",
+             "appearance_objects": "--appearance-object"}
+#: How a field's help says what it takes, where its type alone does not.
+CLI_VALUES = {"edits": "JSON or @file", "fit_preset": "fast|balanced|accurate",
+              "behavior_preset": "fast|balanced|accurate", "task_runner": "threads|dask"}
+
+
+def option_name(field: str) -> str:
+    """The ``omniscs generate`` option of a ``RunRequest`` field."""
+    return CLI_NAMES.get(field, "--" + field.replace("_", "-"))
+
+
+def _request_parameters() -> list[inspect.Parameter]:
+    """``omniscs generate``'s arguments, one per ``RunRequest`` field, help text from the field's docstring."""
+    import typing
+
+    from omniscs.pipeline.request import RunRequest
+
+    params = []
+    for name, field in RunRequest.model_fields.items():
+        doc = " ".join((field.description or "").split())
+        if name == "sources":
+            params.insert(0, inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                               default=typer.Argument(..., help=doc), annotation=list[str]))
+            continue
+        kind = field.annotation
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        base = args[0] if typing.get_origin(kind) in (typing.Union, types.UnionType) and len(args) == 1 else kind
+        default = field.get_default(call_default_factory=True)
+        if name == "edits":
+            annotation, default = Optional[str], None
+        elif typing.get_origin(base) is list:
+            annotation, default = Optional[list[str]], None
+        elif base is bool:
+            annotation = bool
+        elif base is int:
+            annotation = Optional[int] if default is None else int
+        else:  # text, a path, or one of a few words (Literal)
+            annotation = Optional[str] if default is None else str
+        if name in CLI_VALUES:
+            doc = f"{doc} [{CLI_VALUES[name]}]"
+        if name == "appearance_objects":
+            doc += " Repeat the option for several."
+        flag = option_name(name)
+        decls = [f"{flag}/--no-{flag[2:]}"] if base is bool else [flag]
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=annotation,
+                                        default=typer.Option(default, *decls, help=doc)))
+    return params
+
+
+def generate(**fields) -> None:
     """Run the generate_dataset flow: per scene ingest, plan, preview, fit, agents, background, behaviour and
-    appearance variants, render + annotate, catalog; with --annotate, the run's dataset."""
+    appearance variants, render + annotate, catalog; with --annotate, the run's dataset. Every option is a field
+    of the run's request (omniscs.pipeline.request.RunRequest)."""
     from omniscs.edits import edit_to_dict
 
-    result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
-                          height=height, previews=previews, fit_preset=fit_preset,
-                          behavior_variants=behavior_variants, behavior_preset=behavior_preset,
-                          behavior_checkpoint=str(behavior_checkpoint) if behavior_checkpoint else None,
-                          edits=[edit_to_dict(e) for e in read_edits(edit)], device=device, annotate=annotate,
-                          dataset_id=dataset_id, pool=str(pool) if pool is not None else None,
-                          task_runner=task_runner, workers=workers, dask_address=dask_address,
-                          appearance_variants=appearance_variants, appearance_objects=list(appearance_object or ()))
+    fields["edits"] = [edit_to_dict(e) for e in read_edits(fields.get("edits"))]
+    fields["appearance_objects"] = list(fields.get("appearance_objects") or ())
+    from omniscs.errors import OmniscsError
+    from omniscs.pipeline.request import RunRequest
+
+    try:
+        request = RunRequest.parse(fields)
+    except OmniscsError as exc:  # name the option, not only the field
+        field = str(exc).split(":", 1)[0]
+        if field in fields and field != "sources":
+            raise OmniscsError(f"{option_name(field)} ({exc})") from None
+        raise
+    result = run_generate(request)
     rows = [{"scene_id": s["scene_id"], **{stage: _state(r) for stage, r in s["stages"].items()}}
             for s in result["scenes"]]
     print_table(rows, title=f"run {result['run_id']}")
@@ -156,6 +173,9 @@ def generate(
     if result.get("dataset_path"):
         console.print(f"dataset {result['dataset_id']}: {result['dataset_path']}  (omniscs dataset info "
                       f"{result['dataset_id']})")
+
+
+generate.__signature__ = inspect.Signature(_request_parameters())
 
 
 def demo_pool(ws: Path) -> Path:
@@ -183,8 +203,8 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     from omniscs.storage import workspace_root
 
     started = time.perf_counter()
-    result = run_generate(list(DEMO_SOURCES), workspace, n_frames=DEMO_FRAMES, n_cameras=3, width=480, height=270,
-                          previews=True)
+    where = {"workspace": str(workspace)} if workspace is not None else {}
+    result = run_generate({"sources": list(DEMO_SOURCES), "n_frames": DEMO_FRAMES, "previews": True, **where})
     ws = workspace_root(result["workspace"])
     root = catalog.catalog_root(ws)
     rows = catalog.query(root, f"""
@@ -208,9 +228,9 @@ def demo(workspace: Optional[Path] = typer.Option(None, help="Workspace root (de
     console.print(f"then a small dataset: {DEMO_DATASET_SOURCE}, fast scene graph, {DEMO_DATASET_VARIANTS} behaviour "
                   f"and {DEMO_APPEARANCE_VARIANTS} appearance variants (objects of the pool {pool}) rendered and "
                   "annotated (a few minutes)")
-    built = run_generate([DEMO_DATASET_SOURCE], workspace, n_frames=DEMO_FRAMES, n_cameras=3, width=480, height=270,
-                         previews=False, fit_preset="fast", behavior_variants=DEMO_DATASET_VARIANTS,
-                         behavior_preset="fast", annotate=True, pool=str(pool),
-                         appearance_variants=DEMO_APPEARANCE_VARIANTS)
+    built = run_generate({"sources": [DEMO_DATASET_SOURCE], "n_frames": DEMO_FRAMES, "previews": False,
+                          "fit_preset": "fast", "behavior_variants": DEMO_DATASET_VARIANTS, "behavior_preset": "fast",
+                          "annotate": True, "pool": str(pool), "appearance_variants": DEMO_APPEARANCE_VARIANTS,
+                          **where})
     show_dataset(Path(built["dataset_path"]))
     console.print(f"demo finished in {time.perf_counter() - started:.1f} s")

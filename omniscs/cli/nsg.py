@@ -2,6 +2,7 @@
 plan and fit stages."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Optional
 
@@ -9,6 +10,10 @@ import typer
 
 from omniscs.cli.common import check_out, console, depth_picture, print_table, progress_bars, read_edits
 from omniscs.errors import OmniscsError
+
+
+#: The stages ``omniscs fit`` can stop after (``--until``): each makes a scene graph.
+FIT_STAGES = ("fit", "agents", "background")
 
 
 def fit(
@@ -26,20 +31,23 @@ def fit(
     workspace: Optional[Path] = typer.Option(None, help="Workspace root for the plan (default $OMNISCS_HOME or "
                                                         "./omniscs-data)."),
     pool: Optional[Path] = typer.Option(None, help="Model pool for the dual strategy: tracks the edits turn off their "
-                                                   "observed views get a 360-degree model (online or pool); --out "
-                                                   "then holds the completed graph (the fit itself stays in the "
-                                                   "workspace)."),
+                                                   "observed views get a 360-degree model from it (without a pool: "
+                                                   "their online model)."),
     background_repair: str = typer.Option("on", help="on: the background behind every large static object the "
                                                      "edits move or remove is repaired (inpainting, relative depth, "
-                                                     "DRNet, RoI refit); --out then holds the repaired graph, with "
-                                                     "the repair's masks, filled views and depth maps in "
-                                                     "--out/repair/. off: skip it (for comparison)."),
+                                                     "DRNet, RoI refit), with the repair's masks, filled views and "
+                                                     "depth maps in --out/repair/. off: skip it (for comparison)."),
+    until: str = typer.Option("background", help="The last stage to run: fit, agents (360-degree models) or "
+                                                 "background (repair); each runs only where the plan needs it. "
+                                                 "--out holds the graph of the last one that ran (the earlier ones "
+                                                 "stay in the workspace)."),
 ) -> None:
-    """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint."""
+    """Fit a Gaussian scene graph (background, agent nodes, sky) to a scene store and save a checkpoint: the
+    pipeline's stages up to --until, as the plan for the edits needs them."""
     from omniscs.edits import edit_to_dict
     from omniscs.nsg.config import fit_preset
-    from omniscs.pipeline.records import SceneRequest
-    from omniscs.pipeline.stages import fit_stage, load_plan, plan_stage
+    from omniscs.pipeline.request import SceneRequest
+    from omniscs.pipeline.stages import run_directly, start_scene, walk_scene
     from omniscs.pipeline.validate import check_request
     from omniscs.scene import load_scene
     from omniscs.storage import usable_workspace
@@ -51,64 +59,63 @@ def fit(
     overrides = {"torch_threads": threads}
     if iterations is not None:
         overrides["iterations"] = iterations
-    if device != "cpu":
-        overrides["device"] = device
     fit_preset(preset, **overrides)
-    request = check_request(SceneRequest(fit_preset=preset, behavior_variants=behavior_variants, device=device,
-                                         edits=tuple(edit_to_dict(e) for e in read_edits(edit))))
     if pool is not None and not pool.is_dir():
         raise OmniscsError(f"--pool {pool} is not a pool folder (omniscs pool build / import make one)")
+    request = check_request(SceneRequest.parse({
+        "fit_preset": preset, "behavior_variants": behavior_variants, "device": device, "previews": False,
+        "edits": [edit_to_dict(e) for e in read_edits(edit)], "pool": str(pool) if pool is not None else None}))
     if background_repair not in ("on", "off"):
         raise OmniscsError(f"--background-repair must be on or off; got {background_repair!r}")
+    if until not in FIT_STAGES:
+        raise OmniscsError(f"--until must be one of {', '.join(FIT_STAGES)}; got {until!r}")
     check_out(out, overwrite=True)  # an existing --out must be a folder omniscs wrote (reused or replaced)
     ws = usable_workspace(workspace)
-    planned = plan_stage(scene_path, request, ws)
-    plan = load_plan(planned)
+    skip = ("background",) if background_repair == "off" else ()
+    state = walk_scene(start_scene(str(scene_path), request, ws), run_directly(), until="plan")
+    planned = state.record("plan")
+    plan = state.plan
     console.print(f"plan: {planned.info['summary']}")
-    complete = pool is not None and plan.stages.get("agent_models")
-    repair = background_repair == "on" and plan.stages.get("background_repair")
-    later = complete or repair  # a later stage writes --out; the fit (and agents) stay in the workspace
-    if later and out.exists() and not overwrite:  # refused before the fit, not after it
+    wanted = FIT_STAGES[:FIT_STAGES.index(until) + 1]
+    making = [name for name, key in zip(FIT_STAGES, ("fit_nsg", "agent_models", "background_repair"))
+              if name in wanted and name not in skip and plan.stages.get(key)]
+    last = making[-1]
+    if last != "fit" and out.exists() and not overwrite:  # refused before the fit, not after it
         raise OmniscsError(f"{out} already exists; pass --overwrite to replace it")
+    options = {"fit": {**overrides, "replace": overwrite}}
+    options.setdefault(last, {})["out_dir"] = out
     with progress_bars() as bars:
-        record = fit_stage(scene_path, plan, preset, workspace=ws if later else None,
-                           out_dir=None if later else out, replace=overwrite,
-                           progress=bars.sink(f"fit {planned.scene_id} ({preset})"), **overrides)
-        if record.info["status"] != "fitted":
-            raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")
-        model = record
-        if complete:
-            from omniscs.pipeline.agents import agents_stage
-
-            model = agents_stage(scene_path, plan, record, ws, pool, out_dir=None if repair else out,
-                                 progress=bars.sink(f"agents of {planned.scene_id}"))
-            for row in model.rows["agent_models"]:
-                if row["needs_360"]:
-                    chosen = f" -> {row['pool_model_id']}" if row["pool_model_id"] else ""
-                    console.print(f"track {row['track_id']}: {row['strategy']}{chosen} ({row['reason']})")
-        if repair:
-            from omniscs.pipeline.background import background_stage
-
-            repaired = background_stage(scene_path, plan, model, ws, out_dir=out,
-                                        progress=bars.sink(f"background repair of {planned.scene_id}"))
-            for row in repaired.rows["background_repairs"]:
-                console.print(f"track {row['track_id']}: background repaired in {row['hole_views']} views "
-                              f"({row['observed_pixels']:,} px observed elsewhere, {row['plane_pixels']:,} from planes, "
-                              f"{row['carried_pixels']:,} carried, "
-                              f"{row['inpainted_pixels']:,} inpainted), {row['seeds']:,} Gaussians seeded, "
-                              f"{row['seconds']:.0f} s")
-    if not complete and pool is not None:
+        state = walk_scene(dataclasses.replace(state, options=options),
+                           run_directly(lambda name: bars.sink(f"{name} {planned.scene_id}")), until=until, skip=skip)
+    record = state.record("fit")
+    if record.info["status"] != "fitted":
+        raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")
+    agents, repaired = state.ran("agents"), state.ran("background")
+    if agents is not None:
+        for row in agents.rows["agent_models"]:
+            if row["needs_360"]:
+                chosen = f" -> {row['pool_model_id']}" if row["pool_model_id"] else ""
+                console.print(f"track {row['track_id']}: {row['strategy']}{chosen} ({row['reason']})")
+    elif pool is not None:
         console.print("no edit turns an agent off its observed views: the pool was not needed")
-    if plan.background_repair and background_repair == "off":
-        console.print(f"background repair off: the ground behind track(s) {list(plan.background_repair)} stays as "
-                      "fitted")
+    if repaired is not None:
+        for row in repaired.rows["background_repairs"]:
+            console.print(f"track {row['track_id']}: background repaired in {row['hole_views']} views "
+                          f"({row['observed_pixels']:,} px observed elsewhere, {row['plane_pixels']:,} from planes, "
+                          f"{row['carried_pixels']:,} carried, "
+                          f"{row['inpainted_pixels']:,} inpainted), {row['seeds']:,} Gaussians seeded, "
+                          f"{row['seconds']:.0f} s")
+    if plan.background_repair and "background" not in making:
+        console.print(f"background repair not run (--background-repair {background_repair}, --until {until}): the "
+                      f"ground behind track(s) {list(plan.background_repair)} stays as fitted")
     m = record.info["metrics"]
     print_table([{"Gaussians": m["n_gaussians"], "agent nodes": m["n_agent_nodes"], "fit s": m["fit_seconds"],
                   "train PSNR": m["train_psnr"], "held-out PSNR": m["heldout_psnr"], "held-out SSIM": m["heldout_ssim"],
                   "held-out views": m["heldout_views"]}], title=f"{record.scene_id} ({preset})")
-    verb = "reused" if record.reused and not later else "wrote"
+    verb = "reused" if record.reused and last == "fit" else "wrote"
     console.print(f"{verb} {out} (plan.json, graph.json, gaussians.safetensors, metrics.json"
-                  + (", decisions.json" if complete and not repair else "") + (", repair/" if repair else "") + ")")
+                  + (", decisions.json" if last == "agents" else "") + (", repair/" if last == "background" else "")
+                  + ")")
 
 
 def render(

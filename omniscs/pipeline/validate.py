@@ -1,24 +1,24 @@
-"""Everything a run is given, checked before any work starts: the sources, the synthetic sensor rig, the request
-(presets, variants, checkpoint, edits, device) and the run id. A bad input is one OmniscsError line; the CLI
-refuses it before Prefect starts, and the flow records it in its ``runs`` row before any task runs."""
+"""Everything a run is given, checked once before any work starts: the sources (they exist and parse), the
+request's outside-world parts (the pool, the traffic-model checkpoint, the device, the edits) and the task runner.
+A bad input is one OmniscsError line; the CLI refuses it before Prefect starts, and the flow records it in its
+``runs`` row before any task runs. The CLI and the flow share one check per run (``check_run``)."""
 from __future__ import annotations
 
+import json
+import socket
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import urlparse
 
-from omniscs.checks import is_int
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.ids import check_id
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import MAX_WORKERS, RunRequest, SceneRequest
 
-#: Bounds of the synthetic sensor rig (frames at 10 Hz, cameras in nuScenes placement, image size in pixels).
-FRAMES = (1, 10_000)
-CAMERAS = (1, 6)
-IMAGE_SIDE = (8, 4096)
-#: The synthetic rig when a caller names none (the defaults of ``generate_dataset`` and ``omniscs generate``).
-RIG_DEFAULTS = {"n_frames": 40, "n_cameras": 3, "width": 480, "height": 270}
-#: Most behaviour variants one scene may ask for.
-MAX_BEHAVIOR_VARIANTS = 1000
+#: Task runners a run can use (flows/runners.py builds them).
+TASK_RUNNERS = ("threads", "dask")
+#: How long a Dask scheduler may take to answer before the run is refused (seconds).
+SCHEDULER_TIMEOUT_S = 5.0
+
 
 
 @dataclass(frozen=True)
@@ -29,21 +29,6 @@ class CheckedSource:
     text: str
     source: dict
     scene_id: str
-
-
-def _int_in(name: str, value, bounds: tuple[int, int]) -> int:
-    lo, hi = bounds
-    if not is_int(value) or not lo <= value <= hi:
-        raise OmniscsError(f"{name} must be an integer from {lo} to {hi}; got {value!r}")
-    return value
-
-
-def check_rig(n_frames: int, n_cameras: int, width: int, height: int) -> None:
-    """The synthetic sensor rig's numbers."""
-    _int_in("--frames (n_frames)", n_frames, FRAMES)
-    _int_in("--cameras (n_cameras)", n_cameras, CAMERAS)
-    _int_in("--width", width, IMAGE_SIDE)
-    _int_in("--height", height, IMAGE_SIDE)
 
 
 def check_source(text: str, n_frames: int = 40, n_cameras: int = 3, width: int = 480,
@@ -81,7 +66,6 @@ def check_sources(sources, n_frames: int = 40, n_cameras: int = 3, width: int = 
     if isinstance(sources, str) or not sources:
         raise OmniscsError("give at least one source (a list of syn:TEMPLATE:SEED[:LIGHTING], "
                            "FORMAT:DATAROOT[:SCENE] or scene-store paths)")
-    check_rig(n_frames, n_cameras, width, height)
     kept: dict[str, CheckedSource] = {}
     repeats = []
     for text in sources:
@@ -94,21 +78,11 @@ def check_sources(sources, n_frames: int = 40, n_cameras: int = 3, width: int = 
 
 
 def check_request(request: SceneRequest | dict) -> SceneRequest:
-    """The request's presets and counts (``SceneRequest`` checks them), its edits, its traffic-model checkpoint
-    (it must load) and its device (it must exist here)."""
+    """The request's outside-world parts: its edits parse, its pool is a folder holding the appearance objects,
+    its traffic-model checkpoint loads and its device exists here (its fields were checked when it was made)."""
     from omniscs.devices import resolve_device
 
-    if isinstance(request, dict):
-        try:
-            request = SceneRequest.from_dict(request)
-        except TypeError as exc:
-            raise OmniscsError(f"bad request: {exc}") from None
-    if request.behavior_variants > MAX_BEHAVIOR_VARIANTS:
-        raise OmniscsError(f"behavior_variants must be at most {MAX_BEHAVIOR_VARIANTS}; got "
-                           f"{request.behavior_variants}")
-    if request.appearance_variants > MAX_BEHAVIOR_VARIANTS:
-        raise OmniscsError(f"appearance_variants must be at most {MAX_BEHAVIOR_VARIANTS}; got "
-                           f"{request.appearance_variants}")
+    request = SceneRequest.parse(request) if isinstance(request, dict) else request
     request.parsed_edits()
     if request.pool is not None and not Path(request.pool).is_dir():
         raise ValidationError(f"pool {request.pool} is not a folder (make one with omniscs pool build or import)")
@@ -124,14 +98,63 @@ def check_request(request: SceneRequest | dict) -> SceneRequest:
     return request
 
 
+@dataclass(frozen=True)
+class CheckedRun:
+    """A run's request after its one check: the scenes to run (each source parsed, a repeat dropped) and the
+    sources dropped as repeats."""
+
+    request: RunRequest
+    scenes: tuple[CheckedSource, ...]
+    repeats: tuple[str, ...]
+
+
+#: Runs checked in this process, by their request's JSON: the CLI checks a run before Prefect starts and the flow,
+#: in the same process, finds it checked (a deployment's run is checked once, by its flow).
+_CHECKED: dict[str, CheckedRun] = {}
+
+
+def check_run(request: RunRequest | dict) -> CheckedRun:
+    """Every input of a run, checked once per run: the request's fields, its outside-world parts, the sources with
+    the synthetic rig, and the task runner (a Dask scheduler must answer now)."""
+    request = RunRequest.parse(request)
+    key = json.dumps(request.to_dict(), sort_keys=True)
+    if key in _CHECKED:
+        return _CHECKED[key]
+    check_request(request.scene_request())
+    scenes, repeats = check_sources(request.sources, request.n_frames, request.n_cameras, request.width,
+                                    request.height)
+    check_runner(request.task_runner, request.workers, request.dask_address)
+    checked = CheckedRun(request, tuple(scenes), tuple(repeats))
+    _CHECKED[key] = checked
+    return checked
+
+
 def check_run_id(run_id: str | None) -> str | None:
     """A run id given by the user must be a safe id (it names a catalog partition)."""
     return None if run_id is None else check_id("run id", run_id)
 
 
-def run_config(sources, n_frames: int, n_cameras: int, width: int, height: int, **request_fields) -> dict:
-    """The run's configuration as given (before checking), as its ``runs`` row records it: the sources, the
-    synthetic rig and the request's fields (``SceneRequest``'s names)."""
-    return {"sources": [sources] if isinstance(sources, str) else list(sources), "n_frames": n_frames,
-            "n_cameras": n_cameras, "width": width, "height": height,
-            **{k: list(v) if k == "edits" else v for k, v in request_fields.items()}}
+def check_runner(task_runner: str, workers: int | None, dask_address: str | None) -> None:
+    """One clear error for a bad choice, before any scene starts (the scheduler must answer now)."""
+    if task_runner not in TASK_RUNNERS:
+        raise ValidationError(f"task_runner must be one of {TASK_RUNNERS}; got {task_runner!r}")
+    if workers is not None and not 1 <= int(workers) <= MAX_WORKERS:
+        raise ValidationError(f"workers must be between 1 and {MAX_WORKERS}; got {workers}")
+    if dask_address is not None:
+        if task_runner != "dask":
+            raise ValidationError("dask_address needs task_runner='dask'")
+        if workers is not None:
+            raise ValidationError("workers is for a local Dask cluster; an existing scheduler has its own workers")
+        _reach_scheduler(dask_address)
+
+
+def _reach_scheduler(address: str) -> None:
+    url = urlparse(address if "://" in address else f"tcp://{address}")
+    if url.scheme not in ("tcp", "tls") or not url.hostname or not url.port:
+        raise ValidationError(f"Dask scheduler address {address!r} must look like tcp://HOST:PORT")
+    try:
+        with socket.create_connection((url.hostname, url.port), timeout=SCHEDULER_TIMEOUT_S):
+            pass
+    except OSError as e:
+        raise OmniscsError(f"the Dask scheduler at {address} is unreachable ({e}); start it (dask scheduler) "
+                           "or leave dask_address out for a local cluster") from None

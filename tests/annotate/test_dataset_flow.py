@@ -8,6 +8,7 @@ import pytest
 from typer.testing import CliRunner
 
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.cli import app
 from omniscs.errors import OmniscsError
@@ -28,8 +29,8 @@ def built(prefect_harness, tmp_path_factory):
     try:
         kwargs = dict(workspace=str(root / "ws"), previews=False, fit_preset="fast", behavior_variants=1,
                       behavior_preset="fast", annotate=True)
-        first = generate_dataset([str(store)], run_id="ds1", **kwargs)
-        second = generate_dataset([str(store)], run_id="ds2", **kwargs)
+        first = generate_dataset(RunRequest(sources=[str(store)], run_id="ds1", **kwargs))
+        second = generate_dataset(RunRequest(sources=[str(store)], run_id="ds2", **kwargs))
     finally:
         mp.undo()
     return root / "ws", first, second
@@ -73,7 +74,7 @@ def test_a_dataset_is_refused_without_a_fit_or_variants(prefect_harness, tmp_pat
     from flows.generate import generate_dataset
 
     with pytest.raises(OmniscsError, match="fit preset"):
-        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=1, annotate=True)
+        generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), behavior_variants=1, annotate=True))
     result = CliRunner().invoke(app, ["dataset", "info", "no-such-set", "--workspace", str(tmp_path)])
     assert isinstance(result.exception, OmniscsError) and "is not a dataset" in str(result.exception)
 

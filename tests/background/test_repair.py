@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.background.drnet import DRNetConfig
 from omniscs.background.repair import (HoleView, RepairConfig, fill_views, prepare_views, removed_objects,
@@ -17,7 +18,7 @@ from omniscs.errors import OmniscsError
 from omniscs.nsg.config import PRESETS
 from omniscs.pipeline import stages
 from omniscs.pipeline.background import background_stage
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from tests.nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
 
 TRUCK = 1
@@ -252,8 +253,8 @@ def test_generate_runs_the_background_stage_after_the_fit_and_catalogues_it(pref
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(20))
     store = write_nsg_scene(tmp_path / "in", _truck_world(), "bg-flow")
     ws = tmp_path / "ws"
-    result = generate_dataset([str(store)], workspace=str(ws), run_id="repair", previews=False, fit_preset="fast",
-                              edits=[REMOVE])
+    result = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), run_id="repair", previews=False, fit_preset="fast",
+                              edits=[REMOVE]))
     (scene,) = result["scenes"]
     assert list(scene["stages"]) == ["ingest", "plan", "fit", "background"]
     rows = catalog.query(catalog.catalog_root(ws), "SELECT track_id, depth_method, refit, seeds > 0 AS seeded "

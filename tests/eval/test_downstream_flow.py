@@ -24,7 +24,7 @@ FAKE = str(Path(__file__).with_name("fake_uniad.py"))
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    from omniscs.pipeline.records import SceneRequest
+    from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import behavior_stage, ingest_stage, load_plan, plan_stage
     from omniscs.scene import SyntheticSource, load_scene
     from omniscs.scs.behavior import traffic_from_scene

@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.bench.fit import BenchScenes, edits_markdown, fit_markdown
 from omniscs.cli import app
@@ -55,8 +56,8 @@ def test_flow_fits_each_scene_once_and_catalogues_the_model(prefect_harness, sto
 
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(10))
     ws = tmp_path / "ws"
-    first = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r1")
-    second = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r2")
+    first = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r1"))
+    second = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), previews=False, fit_preset="fast", run_id="r2"))
     fit1, fit2 = (r["scenes"][0]["stages"]["fit"] for r in (first, second))
     assert fit1["info"]["status"] == "fitted" and not fit1["reused"]
     assert fit2["reused"] and fit2["path"] == fit1["path"]

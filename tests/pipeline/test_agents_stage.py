@@ -6,12 +6,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.agents.pool import Pool
 from omniscs.nsg.config import PRESETS
 from omniscs.pipeline import stages
 from omniscs.pipeline.agents import agents_stage
-from omniscs.pipeline.records import SceneRequest
+from omniscs.pipeline.request import SceneRequest
 from tests.nsg_fixtures import tiny_fit_config, write_nsg_scene
 
 TURN = {"op": "rotate", "track_id": 1, "yaw_deg": 180.0}
@@ -80,8 +81,8 @@ def test_generate_runs_the_agents_stage_between_fit_and_the_catalog(prefect_harn
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(10))
     store = write_nsg_scene(tmp_path / "in")
     ws = tmp_path / "ws"
-    result = generate_dataset([str(store)], workspace=str(ws), run_id="turn", previews=False, fit_preset="fast",
-                              edits=[TURN], pool=str(small_pool))
+    result = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), run_id="turn", previews=False, fit_preset="fast",
+                              edits=[TURN], pool=str(small_pool)))
     (scene,) = result["scenes"]
     assert list(scene["stages"]) == ["ingest", "plan", "fit", "agents"]
     rows = catalog.query(catalog.catalog_root(ws), "SELECT track_id, strategy, needs_360 FROM agent_models "
@@ -89,5 +90,5 @@ def test_generate_runs_the_agents_stage_between_fit_and_the_catalog(prefect_harn
     assert rows == [{"track_id": 1, "strategy": "pool", "needs_360": True},
                     {"track_id": 2, "strategy": "fitted", "needs_360": False}]
     with pytest.raises(Exception, match="not a folder"):
-        generate_dataset([str(store)], workspace=str(ws), fit_preset="fast", edits=[TURN],
-                         pool=str(tmp_path / "missing"))
+        generate_dataset(dict(sources=[str(store)], workspace=str(ws), fit_preset="fast", edits=[TURN],
+                         pool=str(tmp_path / "missing")))

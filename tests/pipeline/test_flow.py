@@ -3,6 +3,7 @@ from pathlib import Path
 
 import pytest
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.errors import OmniscsError
 from tests.conftest import write_tiny_scene
@@ -18,7 +19,7 @@ def test_generate_dataset_catalogues_every_scene_and_the_run(prefect_harness, tm
     from flows.generate import generate_dataset
 
     ws = tmp_path / "ws"
-    result = generate_dataset([str(p) for p in two_stores], workspace=str(ws), run_id="run-1")
+    result = generate_dataset(RunRequest(sources=[str(p) for p in two_stores], workspace=str(ws), run_id="run-1"))
     assert [s["scene_id"] for s in result["scenes"]] == ["a", "b"]
     root = catalog.catalog_root(ws)
     scenes = catalog.query(root, "SELECT scene_id, n_tracks, source_kind, run_id FROM scenes ORDER BY 1").to_pylist()
@@ -38,10 +39,10 @@ def test_rerun_appends_a_new_partition_and_never_edits_the_first(prefect_harness
     from flows.generate import generate_dataset
 
     ws = tmp_path / "ws"
-    generate_dataset([str(two_stores[0])], workspace=str(ws), run_id="first", previews=False)
+    generate_dataset(RunRequest(sources=[str(two_stores[0])], workspace=str(ws), run_id="first", previews=False))
     first = sorted((catalog.catalog_root(ws) / "scenes").rglob("*.parquet"))
     mtimes = [p.stat().st_mtime_ns for p in first]
-    generate_dataset([str(two_stores[0])], workspace=str(ws), run_id="second", previews=False)
+    generate_dataset(RunRequest(sources=[str(two_stores[0])], workspace=str(ws), run_id="second", previews=False))
     assert [p.stat().st_mtime_ns for p in first] == mtimes
     rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id FROM scenes_by_run ORDER BY 1").to_pylist()
     assert rows == [{"run_id": "first"}, {"run_id": "second"}]
@@ -52,7 +53,7 @@ def test_bad_source_fails_before_any_scene_starts_and_the_run_row_says_why(prefe
 
     ws = tmp_path / "ws"
     with pytest.raises(OmniscsError, match="neither syn:TEMPLATE:SEED nor an existing scene-store"):
-        generate_dataset(["syn:straight:0", str(tmp_path / "missing")], workspace=str(ws), run_id="bad")
+        generate_dataset(dict(sources=["syn:straight:0", str(tmp_path / "missing")], workspace=str(ws), run_id="bad"))
     assert not (ws / "scenes").exists()  # the good source did not start either
     written = sorted(p.relative_to(ws).parts[:2] for p in ws.rglob("*.parquet"))
     assert written == [("catalog", "runs")]
@@ -66,8 +67,8 @@ def test_synthetic_source_is_rendered_once_and_reused_by_the_next_run(prefect_ha
 
     ws = tmp_path / "ws"
     kwargs = dict(workspace=str(ws), n_frames=2, n_cameras=1, width=64, height=36)
-    first = generate_dataset(["syn:straight_parked_truck:0:night"], run_id="r1", **kwargs)
-    second = generate_dataset(["syn:straight_parked_truck:0:night"], run_id="r2", previews=False, **kwargs)
+    first = generate_dataset(RunRequest(sources=["syn:straight_parked_truck:0:night"], run_id="r1", **kwargs))
+    second = generate_dataset(RunRequest(sources=["syn:straight_parked_truck:0:night"], run_id="r2", previews=False, **kwargs))
     assert first["scenes"][0]["scene_id"] == second["scenes"][0]["scene_id"]
     assert [first["scenes"][0]["reused"], second["scenes"][0]["reused"]] == [False, True]
     root = catalog.catalog_root(ws)
@@ -84,7 +85,7 @@ def test_a_scene_named_twice_runs_and_is_catalogued_once(prefect_harness, tmp_pa
 
     ws = tmp_path / "ws"
     a = str(two_stores[0])
-    result = generate_dataset([a, a, str(Path(a) / ".." / "a")], workspace=str(ws), run_id="twice", previews=False)
+    result = generate_dataset(RunRequest(sources=[a, a, str(Path(a) / ".." / "a")], workspace=str(ws), run_id="twice", previews=False))
     assert [s["scene_id"] for s in result["scenes"]] == ["a"] and len(result["repeats"]) == 2
     raw = catalog.query(catalog.catalog_root(ws), "SELECT scene_id FROM scenes_raw").to_pylist()
     assert raw == [{"scene_id": "a"}]

@@ -16,6 +16,7 @@ import pytest
 from prefect import flow, task
 
 from flows.runners import check_runner, scene_task_runner, worker_threads
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pipeline import layout
@@ -77,8 +78,8 @@ def test_generate_dataset_on_a_local_dask_cluster_catalogues_every_scene_once(pr
     from flows.generate import generate_dataset
 
     ws = tmp_path / "ws"
-    out = generate_dataset(["syn:straight:11", "syn:t_junction:12", "syn:intersection:13"], workspace=str(ws),
-                           run_id="dask1", task_runner="dask", workers=2, **TINY)
+    out = generate_dataset(RunRequest(sources=["syn:straight:11", "syn:t_junction:12", "syn:intersection:13"], workspace=str(ws),
+                           run_id="dask1", task_runner="dask", workers=2, **TINY))
     assert len(out["scenes"]) == 3 and not out["failed"]
     rows = catalog.query(layout.catalog_root(ws), "SELECT scene_id FROM scenes_by_run WHERE run_id = 'dask1'")
     assert sorted(rows.column("scene_id").to_pylist()) == sorted(s["scene_id"] for s in out["scenes"])
@@ -100,8 +101,8 @@ def test_a_scheduler_that_does_not_answer_fails_the_run_in_one_line(prefect_harn
 
     ws = tmp_path / "ws"
     with pytest.raises(OmniscsError, match="unreachable"):
-        generate_dataset(["syn:straight:11"], workspace=str(ws), run_id="dask2", task_runner="dask",
-                         dask_address="tcp://127.0.0.1:1", **TINY)
+        generate_dataset(dict(sources=["syn:straight:11"], workspace=str(ws), run_id="dask2", task_runner="dask",
+                         dask_address="tcp://127.0.0.1:1", **TINY))
     run = catalog.query(layout.catalog_root(ws), "SELECT status, error FROM runs WHERE run_id = 'dask2'").to_pylist()
     assert run[0]["status"] == "failed" and "unreachable" in run[0]["error"]
     assert not (ws / "scenes").exists()  # no scene started
@@ -133,8 +134,8 @@ def test_a_worker_killed_mid_fit_has_its_scene_rerun_elsewhere_and_nothing_dupli
     killed: list[int] = []
     watcher = threading.Thread(target=_kill_the_fitting_worker, args=(ws, killed), daemon=True)
     watcher.start()
-    out = generate_dataset(["syn:straight:14", "syn:t_junction:15"], workspace=str(ws), run_id="dask3",
-                           fit_preset="fast", task_runner="dask", workers=2, **{**TINY, "n_frames": 6})
+    out = generate_dataset(RunRequest(sources=["syn:straight:14", "syn:t_junction:15"], workspace=str(ws), run_id="dask3",
+                           fit_preset="fast", task_runner="dask", workers=2, **{**TINY, "n_frames": 6}))
     watcher.join(timeout=5)
     assert killed, "no fit was seen running"
     assert len(out["scenes"]) == 2 and not out["failed"]
@@ -173,8 +174,8 @@ def test_generate_dataset_runs_on_an_existing_scheduler_given_by_address(prefect
 
     ws = tmp_path / "ws"
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        out = generate_dataset(["syn:straight:16"], workspace=str(ws), run_id="dask4", task_runner="dask",
-                               dask_address=cluster.scheduler_address, **TINY)
+        out = generate_dataset(RunRequest(sources=["syn:straight:16"], workspace=str(ws), run_id="dask4", task_runner="dask",
+                               dask_address=cluster.scheduler_address, **TINY))
     assert len(out["scenes"]) == 1 and not out["failed"]
     run = catalog.query(layout.catalog_root(ws), "SELECT status FROM runs WHERE run_id = 'dask4'").to_pylist()
     assert run == [{"status": "completed"}]

@@ -9,7 +9,8 @@ from omniscs import catalog
 from omniscs.errors import OmniscsError
 from omniscs.nsg.config import PRESETS
 from omniscs.pipeline import stages
-from omniscs.pipeline.records import SceneRequest, StageRecord
+from omniscs.pipeline.records import StageRecord
+from omniscs.pipeline.request import SceneRequest
 from tests.conftest import write_tiny_scene
 from tests.nsg_fixtures import tiny_fit_config, write_nsg_scene
 
@@ -35,7 +36,7 @@ def test_a_bad_edit_is_refused_by_the_request_or_the_plan_before_any_work(tmp_pa
         SceneRequest(edits=({"op": "fly", "track_id": 0},)).parsed_edits()
     with pytest.raises(OmniscsError, match="does not have"):
         stages.plan_stage(store, SceneRequest(edits=({"op": "remove", "track_id": 9},)), tmp_path / "ws")
-    with pytest.raises(OmniscsError, match="unknown fit preset"):
+    with pytest.raises(OmniscsError, match="fit_preset: Input should be 'fast', 'balanced' or 'accurate'"):
         SceneRequest(fit_preset="fastest")
     assert not (tmp_path / "ws" / "plans").exists()
 
@@ -92,8 +93,8 @@ def test_one_failing_scene_stops_no_other_and_the_run_is_recorded_failed(prefect
     ws = tmp_path / "ws"
     # track 2 exists only in scene b: scene a's plan refuses the edit, scene b goes on
     with pytest.raises(OmniscsError, match="1 of 2 scene"):
-        generate_dataset([str(small), str(big)], workspace=str(ws), run_id="half", previews=False,
-                         edits=[{"op": "remove", "track_id": 2}])
+        generate_dataset(dict(sources=[str(small), str(big)], workspace=str(ws), run_id="half", previews=False,
+                         edits=[{"op": "remove", "track_id": 2}]))
     root = catalog.catalog_root(ws)
     assert catalog.query(root, "SELECT scene_id FROM scenes").to_pylist() == [{"scene_id": "b"}]
     assert catalog.query(root, "SELECT scene_id, agent_nodes FROM plans").to_pylist() == [

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.cli import app
 from omniscs.errors import OmniscsError
@@ -83,7 +84,7 @@ def test_generate_dataset_accepts_dataset_sources(prefect_harness, kitti_root, t
     from flows.generate import generate_dataset
 
     ws = tmp_path / "ws"
-    result = generate_dataset([f"kitti:{kitti_root}:0000"], workspace=str(ws), run_id="real", previews=False)
+    result = generate_dataset(RunRequest(sources=[f"kitti:{kitti_root}:0000"], workspace=str(ws), run_id="real", previews=False))
     rows = catalog.query(catalog.catalog_root(ws), "SELECT source_kind, source_scene_id, dataroot, n_frames "
                                                    "FROM scenes").to_pylist()
     assert rows == [{"source_kind": "kitti", "source_scene_id": "0000", "dataroot": str(kitti_root.resolve()),

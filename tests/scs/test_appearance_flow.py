@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from appearance_fixtures import small_pool
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.cli import app
 from omniscs.errors import OmniscsError, ValidationError
@@ -35,8 +36,8 @@ def built(prefect_harness, tmp_path_factory, pool_path):
     mp = pytest.MonkeyPatch()
     mp.setitem(PRESETS, "fast", tiny_fit_config(40))
     try:
-        result = generate_dataset([str(store)], workspace=str(root / "ws"), run_id="app1", previews=False,
-                                  fit_preset="fast", appearance_variants=2, pool=str(pool_path), annotate=True)
+        result = generate_dataset(RunRequest(sources=[str(store)], workspace=str(root / "ws"), run_id="app1", previews=False,
+                                  fit_preset="fast", appearance_variants=2, pool=str(pool_path), annotate=True))
     finally:
         mp.undo()
     return root / "ws", store, result
@@ -68,10 +69,10 @@ def test_an_unknown_object_or_a_missing_pool_fails_the_run_before_any_scene(pref
     from flows.generate import generate_dataset
 
     with pytest.raises(OmniscsError, match="not models of pool"):
-        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1,
-                         pool=str(pool_path), appearance_objects=["pm-000000000000"])
+        generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1,
+                         pool=str(pool_path), appearance_objects=["pm-000000000000"]))
     with pytest.raises(OmniscsError, match="give a fit preset and a model pool"):
-        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1)
+        generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), fit_preset="fast", appearance_variants=1))
 
 
 def _checkpoint(result) -> str:

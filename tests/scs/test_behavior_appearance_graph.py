@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
+from omniscs.pipeline.request import RunRequest
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate
 from omniscs.geometry import pose_from_xyz_yaw
@@ -210,13 +211,13 @@ def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_w
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(10))
     store = write_nsg_scene(tmp_path / "scene", nsg_world(AGENTS, n_frames=40, width=64, height=36))
     ws = tmp_path / "ws"
-    out = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
-                           behavior_variants=1, behavior_preset="fast", run_id="r1")
+    out = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), previews=False, fit_preset="fast",
+                           behavior_variants=1, behavior_preset="fast", run_id="r1"))
     stages = out["scenes"][0]["stages"]
     assert stages["fit"]["info"]["status"] == "fitted"
     assert stages["behavior"]["info"]["appearance_term"] is True and not stages["behavior"]["reused"]
-    again = generate_dataset([str(store)], workspace=str(ws), previews=False, fit_preset="fast",
-                             behavior_variants=1, behavior_preset="fast", run_id="r2")["scenes"][0]["stages"]
+    again = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), previews=False, fit_preset="fast",
+                             behavior_variants=1, behavior_preset="fast", run_id="r2"))["scenes"][0]["stages"]
     assert again["fit"]["reused"] and again["behavior"]["reused"] and again["behavior"]["path"] == stages["behavior"]["path"]
     rows = catalog.query(catalog.catalog_root(ws), "SELECT run_id, loss_app FROM variants_by_run ORDER BY 1").to_pylist()
     assert [r["run_id"] for r in rows] == ["r1", "r2"] and rows[0]["loss_app"] == rows[1]["loss_app"] is not None

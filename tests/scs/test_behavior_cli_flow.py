@@ -8,6 +8,7 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
+from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.cli import app
 from omniscs.errors import OmniscsError
@@ -89,13 +90,13 @@ def test_generate_dataset_makes_and_catalogues_behavior_variants(prefect_harness
 
     store = write_tiny_scene(tmp_path / "in" / "road", n_frames=30, n_tracks=3, scene_id="road", with_lidar=False)
     ws = tmp_path / "ws"
-    result = generate_dataset([str(store)], workspace=str(ws), run_id="beh", previews=False, behavior_variants=2,
-                              behavior_preset="fast")
+    result = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), run_id="beh", previews=False, behavior_variants=2,
+                              behavior_preset="fast"))
     made = result["scenes"][0]["stages"]["behavior"]
     assert made["info"]["n_variants"] == 2 and Path(made["path"]).is_file()
     assert Path(made["path"]).parent.parent == ws / "variants" / "road"
-    again = generate_dataset([str(store)], workspace=str(ws), run_id="beh2", previews=False, behavior_variants=2,
-                             behavior_preset="fast")
+    again = generate_dataset(RunRequest(sources=[str(store)], workspace=str(ws), run_id="beh2", previews=False, behavior_variants=2,
+                             behavior_preset="fast"))
     assert again["scenes"][0]["stages"]["behavior"]["reused"]
     root = catalog.catalog_root(ws)
     rows = catalog.query(root, "SELECT scene_id, variant_id, kind, adversary, success, plausible, loss_app, "
@@ -109,7 +110,7 @@ def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_
     from flows.generate import generate_dataset
 
     with pytest.raises(OmniscsError, match="non-negative"):
-        generate_dataset(["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2)
+        generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2))
 
 
 def _summary_row(**extra) -> dict:

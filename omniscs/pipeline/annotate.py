@@ -1,0 +1,136 @@
+"""The annotate stage: every variant of one scene rendered through its scene graph (behaviour variants with the ego
+on its avoiding solution, appearance variants with their pool objects composed) with its automatic ground truth;
+and the replay it compares with (the unedited logged views, rendered once per graph)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from omniscs.agents.pool import Pool, model_resolver
+from omniscs.annotate import AnnotateConfig
+from omniscs.annotate.replay import Replay
+from omniscs.annotate.scene import annotate_variants, read_rows, replay_scene
+from omniscs.locks import output_lock
+from omniscs.nsg.checkpoint import load_checkpoint
+from omniscs.nsg.edit import node_model_resolver
+from omniscs.pipeline import layout
+from omniscs.pipeline.common import waiting
+from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description, world_reference
+from omniscs.pipeline.records import StageRecord
+from omniscs.pipeline.reuse import StageKey, produce, reusable
+from omniscs.plan import ScenePlan
+from omniscs.progress import Progress, no_progress
+from omniscs.scene import load_scene
+from omniscs.scs.appearance.compose import compose_variant
+from omniscs.scs.behavior import traffic_from_scene
+from omniscs.scs.behavior.solution import SolutionConfig, solution_bev_picture, solve_ego
+
+#: Bump when the code changes what the stages write (older outputs are then not reused).
+REPLAY_VERSION = 1
+ANNOTATE_VERSION = 1
+
+
+def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Path, progress: Progress = no_progress,
+                 reuse: bool = True) -> StageRecord:
+    """Every logged view of the scene rendered through its fitted graph, unedited, with its PSNR against the logged
+    image (``omniscs.annotate.replay``), in ``replays/<scene_id>/replay-<key>/``: made once per graph, read by
+    every annotate run on it for the fidelity proxies."""
+    started = time.perf_counter()
+    scene = load_scene(scene_path)
+    if model is None or model.info.get("status") != "fitted":
+        return StageRecord.skip("replay", scene.scene_id, "no fitted scene graph")
+    key = StageKey.of("replay", REPLAY_VERSION, {"scene": scene.content_hash, "graph": model.key}, {})
+    out = layout.stage_folder(workspace, "replay", scene.scene_id, f"replay-{key.short}")
+    with output_lock(out, waiting(progress, out)):
+        manifest = reusable(out, key) if reuse else None
+        if manifest is None:
+            graph = load_checkpoint(model.path, scene)
+            manifest = produce(out, key, lambda tmp: replay_scene(graph, scene, tmp, progress))
+            reused = False
+        else:
+            reused = True
+    return StageRecord("replay", scene.scene_id, str(out), reused=reused, seconds=time.perf_counter() - started,
+                       key=key.digest, info={k: manifest.get("outputs", {}).get(k)
+                                             for k in ("n_views", "mean_logged_psnr")})
+
+
+def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
+                   workspace: str | Path, config=None, progress: Progress = no_progress,
+                   reuse: bool = True, appearance: StageRecord | None = None) -> StageRecord:
+    """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
+    the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
+    ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
+    ``config.exact_fidelity`` is off). ``appearance`` (the appearance stage's record) adds its variants, composed
+    from their pool's models; with procedural scenes their exact reference inserts the library asset each pool
+    model was built from."""
+    started = time.perf_counter()
+    scene = load_scene(scene_path)
+    if not plan.stages.get("render_annotate"):
+        return StageRecord.skip("annotate", scene.scene_id, "the request builds no dataset")
+    behavior = behavior if behavior is not None and not behavior.skipped else None
+    appearance = appearance if appearance is not None and not appearance.skipped else None
+    if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None):
+        return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no variants to render")
+    config = config or AnnotateConfig()
+    solution_config = SolutionConfig()
+    inputs = {"scene": scene.content_hash, "graph": model.key, "variants": None if behavior is None else behavior.key}
+    if appearance is not None:
+        inputs["appearance"] = appearance.key
+    key = StageKey.of("annotate", ANNOTATE_VERSION, inputs,
+                      {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config)})
+    out = layout.stage_folder(workspace, "annotate", scene.scene_id, f"annotate-{key.short}")
+    with output_lock(out, waiting(progress, out)):
+        manifest = reusable(out, key) if reuse else None
+        if manifest is None:
+            variants = json.loads(Path(behavior.path).read_text()) if behavior is not None else []
+            if appearance is not None:
+                variants += json.loads(Path(appearance.path).read_text())
+            traffic = traffic_from_scene(scene)
+            replay = None
+            if config.fidelity_every:  # the proxies compare with the unedited logged views: rendered once per graph
+                replayed = replay_stage(scene_path, model, workspace, progress=progress)
+                replay = Replay.open(replayed.path)
+            graph = load_checkpoint(model.path, scene)
+
+            def make(tmp: Path) -> dict:
+                results = annotate_variants(
+                    graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
+                    reference=world_reference(scene) if config.exact_fidelity else None,
+                    describe=world_description(scene), config=config,
+                    progress=progress, replay=replay,
+                    picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
+                    compose=appearance_composer(graph), reference_for=appearance_references(scene, variants)
+                    if config.exact_fidelity else None)
+                return {"stores": [r.store.name for r in results], "rows": "rows.json"}
+
+            produce(out, key, make)
+    rows = read_rows(out)
+    summaries = rows["variants"]
+    return StageRecord("annotate", scene.scene_id, str(out), reused=manifest is not None,
+                       seconds=time.perf_counter() - started, key=key.digest,
+                       info={"n_variants": len(summaries), "n_images": len(rows["samples"]),
+                             "n_annotations": len(rows["annotations"]),
+                             "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries)})
+
+
+def appearance_composer(graph):
+    """``variant -> Composite`` of appearance variants over ``graph``: objects from the variant's pool (or the graph's
+    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``)."""
+    def compose(variant: dict):
+        pool = variant.get("pool")
+        resolve = model_resolver(pool, node_model_resolver(graph)) if pool else node_model_resolver(graph)
+        return compose_variant(graph, variant, resolve)
+    return compose
+
+
+def appearance_references(scene, variants: list[dict]):
+    """``variant -> Reference`` (exact images) of a procedural scene's appearance variants, else None."""
+    pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
+    if scene.world is None or not pools:
+        return None
+    by_pool = {p: appearance_reference(scene, pool_asset_of(Pool(p))) for p in pools}
+    return lambda variant: by_pool[variant["pool"]](variant) if variant.get("pool") in by_pool else None
+
+
