@@ -29,7 +29,7 @@ def _now_us() -> int:
     return int(time.time() * 1e6)
 
 
-@flow(name="scene-pipeline", flow_run_name="scene-{label}", log_prints=False)
+@flow(name="scene-pipeline", flow_run_name="scene-{label}", validate_parameters=False, log_prints=False)
 def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: str, run_id: str) -> dict:
     """Every stage of one scene that its plan needs, in the table's order; returns what they produced."""
     state = walk_scene(start_scene(source, request, workspace, label), t.run_stage)
@@ -89,7 +89,7 @@ def generate_dataset(request: RunRequest) -> dict:
         if request.annotate and done:
             annotated = [StageRecord.from_dict(r["stages"]["annotate"]) for r in done if "annotate" in r["stages"]]
             dataset = t.dataset(annotated, ws, request.dataset_id, {"sources": [c.text for c in scenes],
-                                                                    "config": config})
+                                                                    "config": request.product_fields()})
             t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"

@@ -14,6 +14,7 @@ os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
+import subprocess  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -21,6 +22,44 @@ import pytest  # noqa: E402
 
 from omniscs.geometry import ego_from_camera_mount, intrinsics_from_fov, pose_from_xyz_yaw  # noqa: E402
 from omniscs.scene import CameraRecord, SceneWriter  # noqa: E402
+
+
+ROOT = Path(__file__).resolve().parents[1]
+#: What may appear in the checkout while tests run: caches of Python and of the test tools.
+CHECKOUT_NOISE = ("__pycache__", ".hypothesis", ".pytest_cache")
+
+
+def _checkout_state() -> set[str]:
+    """Everything git sees in the checkout besides its committed files: changes, new files, ignored files (a new
+    folder counts as one entry)."""
+    out = subprocess.run(["git", "status", "--porcelain", "--untracked-files=normal", "--ignored=matching"],
+                         cwd=ROOT, capture_output=True, text=True)
+    if out.returncode != 0:  # not a git checkout (an unpacked source tree): nothing to compare
+        return set()
+    return {line for line in out.stdout.splitlines() if not any(n in line for n in CHECKOUT_NOISE)}
+
+
+def pytest_sessionstart(session):
+    if not hasattr(session.config, "workerinput"):  # the controller (or a run without xdist), once
+        session.config._checkout_before = _checkout_state()
+
+
+def pytest_sessionfinish(session, exitstatus):
+    before = getattr(session.config, "_checkout_before", None)
+    if before is None:
+        return
+    left = sorted(_checkout_state() - before)
+    if left:
+        session.config.get_terminal_writer().line(
+            "the test run changed the checkout (tests must write under tmp_path or $OMNISCS_HOME): " + ", ".join(left),
+            red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+@pytest.fixture(autouse=True)
+def _workspace_outside_the_checkout(tmp_path, monkeypatch):
+    """Every test's default workspace ($OMNISCS_HOME) is a temporary folder, never ./omniscs-data."""
+    monkeypatch.setenv("OMNISCS_HOME", str(tmp_path / "omniscs-home"))
 
 
 @pytest.fixture(scope="session")

@@ -106,8 +106,8 @@ def fit(
                           f"{row['inpainted_pixels']:,} inpainted), {row['seeds']:,} Gaussians seeded, "
                           f"{row['seconds']:.0f} s")
     if plan.background_repair and "background" not in making:
-        console.print(f"background repair not run (--background-repair {background_repair}, --until {until}): the "
-                      f"ground behind track(s) {list(plan.background_repair)} stays as fitted")
+        why = "background repair off" if background_repair == "off" else f"background repair not run (--until {until})"
+        console.print(f"{why}: the ground behind track(s) {list(plan.background_repair)} stays as fitted")
     m = record.info["metrics"]
     print_table([{"Gaussians": m["n_gaussians"], "agent nodes": m["n_agent_nodes"], "fit s": m["fit_seconds"],
                   "train PSNR": m["train_psnr"], "held-out PSNR": m["heldout_psnr"], "held-out SSIM": m["heldout_ssim"],

@@ -33,6 +33,9 @@ TaskRunner = Literal["threads", "dask"]
 #: Most scenes at once (thread or Dask worker count) one machine is asked for.
 MAX_WORKERS = 256
 
+#: ``RunRequest`` fields that say where a run is written and how it executes, not what it makes.
+EXECUTION_FIELDS = ("workspace", "run_id", "task_runner", "workers", "dask_address")
+
 _CONFIG = ConfigDict(frozen=True, extra="forbid", strict=True, use_attribute_docstrings=True)
 
 
@@ -173,6 +176,11 @@ class RunRequest(SceneRequest):
     them)."""
     dask_address: str | None = None
     """tcp://HOST:PORT of an existing Dask scheduler (its workers must see the same workspace path)."""
+
+    def product_fields(self) -> dict:
+        """The fields that decide what the run makes (not where it is written or how it is executed): what a
+        dataset made by the run records, so that the same inputs give the same dataset."""
+        return {k: v for k, v in self.to_dict().items() if k not in EXECUTION_FIELDS}
 
     _run_to_list = field_validator("sources", mode="before")(_as_list)
     _run_to_text = field_validator("workspace", mode="before")(_as_text)

@@ -201,8 +201,8 @@ def test_a_deployment_run_by_a_process_worker_on_a_real_server_completes_and_cat
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     pool, workspace, worker = process_worker
-    parameters = {"sources": ["syn:straight:7"], "n_frames": 4, "n_cameras": 1, "width": 64, "height": 36,
-                  "previews": False, "workspace": str(workspace)}
+    parameters = {"request": {"sources": ["syn:straight:7"], "n_frames": 4, "n_cameras": 1, "width": 64,
+                              "height": 36, "previews": False, "workspace": str(workspace)}}
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
         # code from the local checkout: the deployment's pull step sets the worker's flow-run process's working
         # directory to ROOT, and the entrypoint is loaded from there, as a worker on a machine with the checkout

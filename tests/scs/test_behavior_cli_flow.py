@@ -70,11 +70,11 @@ def test_scs_behavior_user_error_exits_2_with_one_line_and_no_traceback(tmp_path
 def test_the_device_never_changes_which_behavior_variants_are_reused():
     from dataclasses import asdict, replace
 
-    from omniscs.pipeline.stages import _result_config
+    from omniscs.pipeline.common import result_config
 
     fast = adversarial_preset("fast")
-    assert _result_config(asdict(replace(fast, device="cuda"))) == _result_config(asdict(fast))
-    assert _result_config(asdict(replace(fast, seed=1))) != _result_config(asdict(fast))
+    assert result_config(asdict(replace(fast, device="cuda"))) == result_config(asdict(fast))
+    assert result_config(asdict(replace(fast, seed=1))) != result_config(asdict(fast))
 
 
 def test_the_plan_runs_the_behavior_stage_only_when_variants_are_requested(tiny_scene):
@@ -109,7 +109,7 @@ def test_generate_dataset_makes_and_catalogues_behavior_variants(prefect_harness
 def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_path):
     from flows.generate import generate_dataset
 
-    with pytest.raises(OmniscsError, match="non-negative"):
+    with pytest.raises(OmniscsError, match="behavior_variants: Input should be greater than or equal to 0"):
         generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2))
 
 
