@@ -129,8 +129,8 @@ class RepairConfig:
     and 94 (with PlaneConfig.unobserved='periodic'): hole PSNR at novel views 18.20 -> 18.51, 20.86 -> 20.89,
     17.98 -> 18.27, 18.05 -> 18.31 dB, at no extra time; on the held-out logs 101-105, with the default street fill,
     19.97 against 19.82 dB (reports/background/report.md; docs/design-notes.md). On the development logs three times
-    as many steps at the fit's rates gained about as much (17.29 -> 17.61, 20.79 -> 20.97 dB) but would cost the RoI refit its
-    time target, and faster colours alone nothing (17.27, 20.83)."""
+    as many steps at the fit's rates gained about as much (17.29 -> 17.61, 20.79 -> 20.97 dB) but would cost the RoI
+    refit its time target, and faster colours alone nothing (17.27, 20.83)."""
     crop_margin_px: int = 12
     """Pixels around a hole's bounding box in the RoI refit's crops (at the working resolution)."""
     depth_weight: float = 0.1
