@@ -1,11 +1,16 @@
-"""The Results pages, generated from the benchmarks' own JSON at build time (an MkDocs hook).
+"""The docs site's generated parts, made at build time (an MkDocs hook): nothing here is copied by hand.
 
-Every table under results/ is rendered here from ``reports/<bench>/report.json`` (and the folder's other
-``<part>.json`` files) when the site is built, so a rerun of a benchmark updates its page and nothing is copied by
-hand. ``BENCHMARKS`` is the one list of benchmark folders: tests/docs/test_reports.py checks reports/ against it.
+- Results pages: every table under results/ is rendered from ``reports/<bench>/report.json`` (and the folder's
+  other ``<part>.json`` files), so a rerun of a benchmark updates its page. ``BENCHMARKS`` is the one list of
+  benchmark folders: tests/docs/test_reports.py checks reports/ against it.
+- Knob tables: a line ``<!-- knobs omniscs/background RepairConfig -->`` in a page becomes the table of that config
+  dataclass's fields, defaults and the first sentence of each field's docstring, read from the source (``ast``, no
+  import), so option names and defaults in the guide are the code's.
+- Catalog columns (from ``omniscs.catalog.SCHEMAS``) and the READMEs kept beside catalogs/ and infra/.
 """
 from __future__ import annotations
 
+import ast
 import json
 import math
 import re
@@ -361,6 +366,57 @@ def generate(reports: Path = REPORTS) -> dict[str, str | bytes]:
         files[page] = included_page(REPO / source)
     files["formats/catalog-columns.md"] = catalog_columns()
     return files
+
+
+KNOBS_MARKER = re.compile(r"^<!-- knobs (\S+) (\w+) -->$", re.M)
+
+
+def first_sentence(doc: str) -> str:
+    """A field docstring's first sentence, on one line (the rest of a docstring is for the code's readers)."""
+    text = " ".join(doc.split())
+    # when a default changed belongs to the design notes, not to the table of what the knob does
+    text = re.sub(r"[;:]\s*the default until[^)]*?\d{4}-\d\d-\d\d", "", text)
+    match = re.search(r"\.\s+(?=[A-Z0-9(`])", text)
+    return text[: match.start() + 1] if match else text
+
+
+def find_class(package: str, name: str) -> tuple[Path, ast.ClassDef]:
+    """The one class ``name`` defined under the folder ``package`` (e.g. ``omniscs/background``)."""
+    root = REPO / package
+    files = [root] if root.suffix == ".py" else sorted(root.rglob("*.py"))
+    found = [(f, node) for f in files for node in ast.parse(f.read_text()).body
+             if isinstance(node, ast.ClassDef) and node.name == name]
+    if len(found) != 1:
+        raise ValueError(f"knobs: {len(found)} classes named {name} under {package}; name a folder or file "
+                         "that holds exactly one")
+    return found[0]
+
+
+def knobs_table(package: str, name: str) -> str:
+    """The fields of a documented config dataclass: name, type, default and meaning."""
+    path, cls = find_class(package, name)
+    rows = []
+    body = cls.body
+    for i, node in enumerate(body):
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        if "ClassVar" in ast.unparse(node.annotation):
+            continue
+        default = ast.unparse(node.value) if node.value is not None else "(required)"
+        default = re.sub(r"^field\(default_factory=(\w+)\)$", r"\1()", default)
+        doc = ""
+        if i + 1 < len(body) and isinstance(body[i + 1], ast.Expr) and isinstance(body[i + 1].value, ast.Constant) \
+                and isinstance(body[i + 1].value.value, str):
+            doc = first_sentence(body[i + 1].value.value)
+        rows.append(f"| `{node.target.id}` | `{fmt(default)}` | {fmt(doc)} |")
+    source = path.relative_to(REPO).as_posix()
+    return "\n".join([f"`{name}` (`{source}`; every field is documented there):", "",
+                      "| field | default | meaning |", "|---|---|---|", *rows])
+
+
+def on_page_markdown(markdown, page, config, files):
+    """MkDocs hook: expand the knob-table markers of a page."""
+    return KNOBS_MARKER.sub(lambda m: knobs_table(m.group(1), m.group(2)), markdown)
 
 
 def on_files(files, config):
