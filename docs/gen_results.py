@@ -24,6 +24,8 @@ INCLUDED = {"formats/catalog.md": "catalogs/README.md", "deployment/infra.md": "
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".svg", ".webp")
 MAX_ROWS = 60
 """Longest table a page shows; longer lists say how many rows the JSON holds."""
+NOT_HEADLINES = {"machine", "python", "cpu_count", "benchmark", "label", "checkpoint", "note", "command"}
+"""Top-level scalars of a report that describe the run rather than measure it (or are a machine's path)."""
 
 
 @dataclass(frozen=True)
@@ -298,6 +300,10 @@ def render_page(bench: Benchmark, folder: Path) -> str:
     line = machine_line(report)
     if line:
         lines += [line + " Machines are shared: compare rows of one run, not runs.", ""]
+    headline = {k: v for k, v in report.items()
+                if not isinstance(v, (dict, list)) and k not in NOT_HEADLINES}
+    if headline:
+        lines += ["## Headline figures", ""] + render_value(headline) + [""]
     for section in bench.sections:
         value = lookup(parts.get(section.part, {}), section.path)
         if value is None or value == [] or value == {}:
