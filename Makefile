@@ -8,7 +8,7 @@ export PREFECT_SERVER_ANALYTICS_ENABLED := false
 # machine spinning threads steal the core the other worker needs.
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: setup demo test test-slow bench clean system-deps
+.PHONY: setup demo test test-slow bench docs clean system-deps
 
 setup: $(STAMP)
 
@@ -27,7 +27,7 @@ $(STAMP): pyproject.toml constraints.txt | system-deps
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install -q --upgrade pip wheel setuptools
 	$(VENV)/bin/python -m pip install -q -c constraints.txt torch==2.13.0
-	$(VENV)/bin/python -m pip install -q -c constraints.txt -e '.[test]'
+	$(VENV)/bin/python -m pip install -q -c constraints.txt -e '.[test,docs]'
 	$(VENV)/bin/python -m pip install -q -c constraints.txt --no-deps nuscenes-devkit==1.2.0
 	@touch $(STAMP)
 
@@ -40,9 +40,13 @@ test: setup
 test-slow: setup
 	$(VENV)/bin/python -m pytest -q -m slow
 
+# the documentation site into site/ (the Results pages are generated from reports/ by docs/gen_results.py)
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/python -m mkdocs build --strict --site-dir site
+
 bench: setup
 	$(VENV)/bin/omniscs bench world
 	$(VENV)/bin/omniscs bench render
 
 clean:
-	rm -rf $(VENV) omniscs-data .pytest_cache
+	rm -rf $(VENV) omniscs-data .pytest_cache site

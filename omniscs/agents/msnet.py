@@ -15,9 +15,9 @@ form.)
 Shipped weights (``SHIPPED``, made by ``omniscs bench agents --train-msnet``; ``training.json`` holds the seed,
 data and losses): trained across domains on the asset library's world split, each vehicle's pool keyframes and its
 camera crops from procedural logs as positives of one another, with an identity (softmax) loss beside L_om (the
-triplet loss alone sat at the margin). On reports/agents_bench it ranks pool-split vehicles seen by the world's
-camera first for 18 % of clean queries and 20 % at 4x + 40 % occlusion + an illumination shift (27.5 % with the box
-shape; colour histogram: 2 % and 6 %): far from the issue's 95 %."""
+triplet loss alone sat at the margin). On the agents benchmark (reports/agents/) it ranks pool-split vehicles seen
+by the world's camera first for 18 % of clean queries and 20 % at 4x + 40 % occlusion + an illumination shift
+(27.5 % with the box shape; colour histogram: 2 % and 6 %): far from the issue's 95 %."""
 from __future__ import annotations
 
 import json

@@ -92,7 +92,7 @@ class PlaneConfig:
     they fill. 'periodic' (tried in the fifteenth session of 2026-11-28, not the default): on the development logs
     90, 91, 93 and 94 hole PSNR at novel views 17.29 -> 18.20, 20.79 -> 20.86, 17.97 -> 17.98 and 18.13 -> 18.05 dB
     (log 90's unseen sidewalk and facade, 13.5 and 17.2 dB, went to 16.1 and 19.0), but on the held-out logs
-    101-105 19.62 against 19.82 dB (1.0 dB worse on log 103; reports/background_bench_periodic)."""
+    101-105 19.62 against 19.82 dB (1.0 dB worse on log 103; docs/design-notes.md, background repair)."""
     period_min_m: float = 1.0
     """'periodic': the shortest shift along the street searched for the texture's period ..."""
     period_max_m: float = 8.0

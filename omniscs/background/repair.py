@@ -114,7 +114,7 @@ class RepairConfig:
     depth, and leaves the inpainted pixels to the refit's existing Gaussians (they stay targets of its colour and
     depth losses). Without planes, False seeds nothing. Chosen on the development logs 90-95 (hole PSNR at novel
     views 16.36 against 16.06 dB); on the held-out logs 101-105 18.46 against 18.31
-    (reports/background_bench_planar_seeds)."""
+    (docs/design-notes.md, background repair)."""
     refit: str = "roi"
     """'roi' (optimise only background Gaussians in the enlarged box, on crops around the holes), 'full'
     (every background Gaussian on whole images: the comparison) or 'none' (seeds only)."""
@@ -128,9 +128,9 @@ class RepairConfig:
     few steps. 2 is the default since the fifteenth session of 2026-11-28, chosen on the development logs 90, 91, 93
     and 94 (with PlaneConfig.unobserved='periodic'): hole PSNR at novel views 18.20 -> 18.51, 20.86 -> 20.89,
     17.98 -> 18.27, 18.05 -> 18.31 dB, at no extra time; on the held-out logs 101-105, with the default street fill,
-    19.97 against 19.82 dB (reports/background_bench_periodic). On the development logs three times as many steps
-    at the fit's rates gained about as much (17.29 -> 17.61, 20.79 -> 20.97 dB) but would cost the RoI refit its
-    time target, and faster colours alone nothing (17.27, 20.83)."""
+    19.97 against 19.82 dB (reports/background/report.md; docs/design-notes.md). On the development logs three times
+    as many steps at the fit's rates gained about as much (17.29 -> 17.61, 20.79 -> 20.97 dB) but would cost the RoI
+    refit its time target, and faster colours alone nothing (17.27, 20.83)."""
     crop_margin_px: int = 12
     """Pixels around a hole's bounding box in the RoI refit's crops (at the working resolution)."""
     depth_weight: float = 0.1
@@ -144,18 +144,18 @@ class RepairConfig:
     seed_inpainted=True): the paper's method. Chosen on the development logs 90/91 (+0.8 / +0.4 dB hole PSNR at
     novel views, depth AbsRel 0.09 / 0.12 against 0.32 / 0.21); on the held-out logs 101-105 +0.14 dB (18.31
     against 18.17, 1.6 dB worse on one log whose views saw 4 % of the texture), depth AbsRel 0.184 against 0.269
-    (reports/background_bench). With the plane textures of PlaneConfig.texel_visibility / texel_colour /
-    free_space: 19.59 dB at novel views, +4.82 over naive (reports/background_bench_texels); with the texels no view
-    saw filled along the street (PlaneConfig.unobserved): 19.82 dB, +5.05 (reports/background_bench_street); with
-    the refit at twice the fit's learning rates (refit_lr_scale): 19.97 dB, +5.20 (reports/background_bench_periodic,
-    its street-fill row)."""
+    (reports/background/ablations.md). With the plane textures of PlaneConfig.texel_visibility / texel_colour /
+    free_space: 19.59 dB at novel views, +4.82 over naive (docs/design-notes.md); with the texels no view
+    saw filled along the street (PlaneConfig.unobserved): 19.82 dB, +5.05 (docs/design-notes.md); with
+    the refit at twice the fit's learning rates (refit_lr_scale): 19.97 dB, +5.20 (reports/background/report.md,
+    the default's run)."""
     plane: PlaneConfig = field(default_factory=PlaneConfig)
     """Finding and texturing the planes."""
     planes_first: bool = False
     """True: planes fill the hole pixels they meet even where the cleaned background covers them; False (the
     default): the cleaned background's render, what other views observed there, wins. Tried in the eighth session
     of 2026-11-27: chosen on the development logs 90 and 91 (17.99 -> 17.94 and 20.09 -> 21.00 dB at novel views),
-    it scored 19.35 against 19.59 dB on the held-out logs 101-105 (reports/background_bench_planes_first, 1.6 dB
+    it scored 19.35 against 19.59 dB on the held-out logs 101-105 (docs/design-notes.md, background repair; 1.6 dB
     worse on log 102), so it is not the default."""
 
     def __post_init__(self) -> None:

@@ -89,7 +89,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
                    progress: Progress = no_progress, reuse: bool = True, rehearse: bool = True) -> StageRecord:
     """The proxy planner fine-tuned from ``base`` (default: the shipped one) on the datasets' behaviour-SCS
     examples mixed with log examples (SCS_SHARE of them SCS). ``rehearse``: the logs are those base was trained on
-    (``base_planner_logs``), as the planning protocol fine-tunes (reports/downstream_bench.md: no log base has not
+    (``base_planner_logs``), as the planning protocol fine-tunes (reports/downstream/report.md: no log base has not
     seen, so it keeps what it knew); otherwise, or for a base whose record names no logs, the datasets' source
     logs."""
     from omniscs.eval.downstream import content_id, dataset_card, log_examples, variant_examples
@@ -149,7 +149,7 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
 
 DETECTOR_BASE_ID = "proxy-detector-base"
 #: Fine-tuning of the proxy detector in the flows (``DetectorTrainConfig`` fields): the setting the detection
-#: protocol kept on its validation sets (reports/downstream_detection_bench.md).
+#: protocol kept on its validation sets (reports/downstream/detection.md).
 DETECTOR_FINETUNE = {"steps": 1200, "lr": 1e-3, "seed": 1, "class_balance": 0.0}
 DETECTOR_VERSION = "v1.0-trainval"
 
@@ -185,7 +185,7 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
     training only (``downstream/<model_id>/detector/`` keeps the weights). ``rehearsal``: nuScenes dataroots the
     base was trained on, mixed into the fine-tuning so that it does not forget them (the shipped detector's are
     made by ``python -m omniscs.bench.detector_data``; without them, a fine-tuning on a few logs costs the
-    detector much of what it knew: reports/downstream_detection_bench.md)."""
+    detector much of what it knew: reports/downstream/detection.md)."""
     import shutil
     import tempfile
 
