@@ -51,9 +51,11 @@ def build(
     """Generate, render and annotate variants of every source, gathered as one dataset (and catalogued)."""
     from omniscs.cli.generate import run_generate
 
-    result = run_generate(list(sources), workspace, run_id=run_id, n_frames=frames, n_cameras=cameras, width=width,
-                          height=height, previews=False, fit_preset=fit_preset, behavior_variants=behavior_variants,
-                          behavior_preset=behavior_preset, device=device, annotate=True, dataset_id=out)
+    result = run_generate({"sources": list(sources), "workspace": str(workspace) if workspace else None,
+                           "run_id": run_id, "n_frames": frames, "n_cameras": cameras, "width": width,
+                           "height": height, "previews": False, "fit_preset": fit_preset,
+                           "behavior_variants": behavior_variants, "behavior_preset": behavior_preset,
+                           "device": device, "annotate": True, "dataset_id": out})
     show_dataset(Path(result["dataset_path"]))
 
 

@@ -150,3 +150,15 @@ def test_a_walk_stops_after_until_and_leaves_out_skipped_stages(monkeypatch):
     assert [c[0] for c in calls] == ["ingest", "plan"]  # nothing asked, nothing modelled
     with pytest.raises(OmniscsError, match="unknown stage"):
         _fake_walk(monkeypatch, plan, SceneRequest(), until="render")
+
+
+def test_dataset_build_asks_the_flow_for_an_annotated_run(monkeypatch):
+    seen = []
+    monkeypatch.setattr(cli_generate, "run_generate", lambda request: seen.append(RunRequest.parse(request)) or {
+        "dataset_path": "/nowhere"})
+    monkeypatch.setattr("omniscs.cli.dataset.show_dataset", lambda path: None)
+    result = runner.invoke(app, ["dataset", "build", "syn:straight:3", "--frames", "8", "--out", "ds-mine"])
+    assert result.exit_code == 0, result.output
+    (request,) = seen
+    assert (request.sources, request.annotate, request.fit_preset, request.behavior_variants, request.n_frames,
+            request.dataset_id, request.previews) == (["syn:straight:3"], True, "fast", 2, 8, "ds-mine", False)
