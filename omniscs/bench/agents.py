@@ -567,7 +567,7 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
               "limits": limits_summary(limits, rows), "limit_rows": limits,
               "decisions": decisions, "fits": fits,
               "targets": _targets(matching, summary, timing)}
-    write_report(out_dir, "agents_bench", report, agents_markdown(report),
+    write_report(out_dir, "agents", report, agents_markdown(report),
                  {"": lambda buf: _strip_png(strips, buf)} if strips else None)
     return report
 
@@ -586,7 +586,7 @@ def _embedders() -> list:
 
 def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
                            config: AgentsBenchConfig = AgentsBenchConfig(), progress: Progress = no_progress) -> dict:
-    """Matching alone (``agents_matching.json/.md``): the benchmark pool, its queries and every embedder, as in the
+    """Matching alone (``agents/matching.json/.md``): the benchmark pool, its queries and every embedder, as in the
     whole benchmark, in minutes where Table 4's fits take hours; for a new MSNet."""
     import json
 
@@ -601,15 +601,15 @@ def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
     report = {"config": asdict(config), "machine": finish(machine), "pool_size": len(pool.table()),
               "msnet_training": json.loads(training.read_text()) if training.is_file() else None,
               "matching": matching, "target": _matching_target(matching)}
-    write_report(out_dir, "agents_matching", report, matching_markdown(report))
+    write_report(out_dir, "agents", report, matching_markdown(report), part="matching")
     return report
 
 
 def matching_markdown(report: dict) -> str:
-    """reports/agents_matching.md from its JSON."""
+    """reports/agents/matching.md from its JSON."""
     info = report["msnet_training"] or {}
     t = report["target"]
-    lines = ["# Agents: matching alone (reports/agents_matching)", "", load_line(report["machine"]), "",
+    lines = ["# Agents: matching alone (reports/agents/matching)", "", load_line(report["machine"]), "",
              f"The benchmark pool ({report['pool_size']} models) and queries of reports/agents_bench "
              f"(worlds {', '.join(report['config']['match_scenes'])}). Shipped MSNet: {info.get('n_assets', '?')} "
              f"training identities, {info.get('n_keyframe_crops', '?')} keyframe and {info.get('n_camera_crops', '?')} "

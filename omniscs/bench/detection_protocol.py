@@ -364,7 +364,7 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
               "base_training": {k: base_record.get(k) for k in ("command", "data", "seconds", "train_config")},
               "finetune_training": {k: tune_record.get(k) for k in ("n_images", "n_boxes", "seconds", "train_config",
                                                                      "draws_showing_class")}}
-    write_report(out_dir, "downstream_detection_bench", report, markdown(report), {"": lambda f: _plot(report, f)})
+    write_report(out_dir, "downstream", report, markdown(report), {"": lambda f: _plot(report, f)}, part="detection")
     return report
 
 

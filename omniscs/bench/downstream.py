@@ -302,7 +302,7 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
               "base_training": {k: base_record.get(k) for k in ("command", "data", "n_examples", "train_config")},
               "finetune_training": {k: tune_record.get(k) for k in ("n_examples", "train_config", "epoch_loss_m",
                                                                      "scs_repeat", "log_repeat", "scs_share")}}
-    write_report(out_dir, "downstream_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    write_report(out_dir, "downstream", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 
@@ -399,7 +399,7 @@ def markdown(r: dict) -> str:
               f"before), base training {sec['base_training'] or 0:.0f} s (when it was trained), fine-tuning "
               f"{sec['finetune']:.0f} s.", "",
               "The detection half (base vs fine-tuned with appearance-SCS data, mAP on an appearance-SCS test set and "
-              "the original one) is `omniscs bench downstream --detection` (downstream_detection_bench.md)."]
+              "the original one) is `omniscs bench downstream --detection` (reports/downstream/detection.md)."]
     return "\n".join(lines) + "\n"
 
 

@@ -124,8 +124,8 @@ def test_the_dataset_benchmark_runs_end_to_end_at_thumbnail_size(tmp_path):
     from omniscs.bench.dataset import quick_config, run_dataset_benchmark
 
     result = run_dataset_benchmark(tmp_path / "r", tmp_path / "ws", quick_config())
-    for name in ("dataset_bench.json", "dataset_bench.md", "dataset_bench.png"):
-        assert (tmp_path / "r" / name).is_file()
+    for name in ("report.json", "report.md", "report.png"):
+        assert (tmp_path / "r" / "dataset" / name).is_file()
     s, scene = result["summary"], result["scenes"][0]
     assert s["variants_per_hour"] > 0 and s["images_per_s_nuscenes_size"] > 0
     assert scene["with fidelity"]["psnr_drift_pairs"] and not scene["without fidelity"]["psnr_drift_pairs"]

@@ -105,7 +105,7 @@ def test_both_benchmarks_run_end_to_end_at_thumbnail_size(tmp_path):
     assert [s["edit"] for s in edits["summary"]] == ["translate 2.0 m", "translate 3.5 m", "rotate 90°", "rotate 180°",
                                                      "rotate 270°"]
     assert all(s["agents"] == 1 and s["masked_psnr"] is not None for s in edits["summary"])
-    for name in ("fit_bench.json", "fit_bench.md", "fit_bench.png", "edits_bench.json", "edits_bench.md",
-                 "edits_bench.png"):
+    for name in ("fit/report.json", "fit/report.md", "fit/report.png", "edits/report.json", "edits/report.md",
+                 "edits/report.png"):
         assert (tmp_path / "r" / name).stat().st_size > 100
-    assert json.loads((tmp_path / "r" / "edits_bench.json").read_text())["unedited_heldout_psnr"] > 10
+    assert json.loads((tmp_path / "r" / "edits" / "report.json").read_text())["unedited_heldout_psnr"] > 10

@@ -148,6 +148,6 @@ def test_benchmark_runs_on_a_small_scene_set(tmp_path):
                                                           preset="fast", rule_planner=False, appearance_scenes=1,
                                                           app_weights=(1.0,)),
                                     workspace=tmp_path / "ws")
-    assert (tmp_path / "behavior_bench.md").is_file() and (tmp_path / "behavior_bench.png").is_file()
+    assert (tmp_path / "behavior" / "report.md").is_file() and (tmp_path / "behavior" / "report.png").is_file()
     with_app = result["appearance"]["rows"]["default + L_app (weight 1)"]
     assert with_app and all(r["losses"]["L_app"] is not None for r in with_app)

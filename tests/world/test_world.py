@@ -262,10 +262,12 @@ def test_benchmark_writes_json_markdown_and_plots(tmp_path):
                                  progress=lambda done, total: calls.append((done, total)))
     assert calls[-1] == (2, 2)
     assert result["asset_count"] >= 200 and result["runs"][0]["total_s"] > 0
-    assert json.loads((tmp_path / "world_render.json").read_text())["median_total_s"] == result["median_total_s"]
-    assert "| straight | 0 |" in (tmp_path / "world_render.md").read_text()
-    assert (tmp_path / "world_render.png").stat().st_size > 0
-    assert (tmp_path / "world_render_preview.png").stat().st_size > 0
+    folder = tmp_path / "world"
+    assert json.loads((folder / "report.json").read_text())["median_total_s"] == result["median_total_s"]
+    assert "| straight | 0 |" in (folder / "report.md").read_text()
+    assert (folder / "report.png").stat().st_size > 0
+    assert (folder / "preview.png").stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["world"]  # one folder per benchmark, nothing beside it
 
 
 def test_world_without_agents_renders_only_background(world):
