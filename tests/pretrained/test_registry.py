@@ -1,6 +1,7 @@
 """The registry of shipped weights: every default loads from a registered, hash-checked folder; a changed byte is
 refused with one clear error; a user's own weights are not checked; the wheel's package-data covers every file."""
 import fnmatch
+import json
 import os
 import shutil
 import subprocess
@@ -134,3 +135,43 @@ def test_cli_verify_exits_2_with_one_line_on_a_changed_file(tmp_path):
                         capture_output=True, text=True, cwd=tmp_path, timeout=120,
                         env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert ok.returncode == 0 and "verified 6" in ok.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "nope"], "no shipped model called 'nope'"),
+    (["train", "planner", "--install", "x"], "--export-data and --install are for reldepth and inpaint"),
+    (["train", "inpaint"], "inpaint trains on a GPU machine"),
+    (["verify", "nope"], "no shipped model called 'nope'"),
+])
+def test_pretrained_cli_mistakes_are_one_error_and_write_nothing(args, message):
+    from typer.testing import CliRunner
+
+    from omniscs.cli import app
+
+    before = {p: p.stat().st_mtime_ns for p in registry.WEIGHTS_ROOT.rglob("*")}
+    registry_before = registry.REGISTRY_FILE.read_bytes()
+    result = CliRunner().invoke(app, ["pretrained", *args])
+    assert result.exit_code != 0 and isinstance(result.exception, OmniscsError)
+    assert message in str(result.exception)
+    assert {p: p.stat().st_mtime_ns for p in registry.WEIGHTS_ROOT.rglob("*")} == before
+    assert registry.REGISTRY_FILE.read_bytes() == registry_before
+
+
+def test_register_records_new_hashes_of_a_retrained_model(tmp_path, monkeypatch):
+    """What ``omniscs pretrained train`` does after a trainer installed new weights: the registry then accepts the
+    new files (and only them)."""
+    root = tmp_path / "pretrained"
+    shutil.copytree(registry.WEIGHTS_ROOT / "planner", root / "weights" / "planner")
+    shutil.copy(registry.REGISTRY_FILE, root / "registry.json")
+    monkeypatch.setattr(registry, "WEIGHTS_ROOT", root / "weights")
+    monkeypatch.setattr(registry, "REGISTRY_FILE", root / "registry.json")
+    registry.entries.cache_clear()
+    try:
+        flip_one_byte(root / "weights" / "planner" / "planner.safetensors")  # "retrained"
+        assert registry.mismatches(registry.entry("planner"))
+        entry = registry.register("planner")
+        assert registry.mismatches(entry) == [] and registry.entry("planner") == entry
+        shipped = registry._parse(json.loads((ROOT / "omniscs/pretrained/registry.json").read_text()))
+        assert registry.entry("msnet").files == shipped["msnet"].files  # the other entries stay as they were
+    finally:
+        registry.entries.cache_clear()
