@@ -175,3 +175,19 @@ def test_register_records_new_hashes_of_a_retrained_model(tmp_path, monkeypatch)
         assert registry.entry("msnet").files == shipped["msnet"].files  # the other entries stay as they were
     finally:
         registry.entries.cache_clear()
+
+
+@pytest.mark.slow
+def test_the_planner_trainer_reproduces_the_shipped_planner_bit_for_bit():
+    """The registry's command is honest: the moved trainer makes exactly the shipped weights (2 min on 2 cores)."""
+    from safetensors.torch import load_file
+
+    from omniscs.pretrained.training.planner import train_shipped_planner
+
+    model, record = train_shipped_planner(out=None)
+    shipped = load_file(str(registry.entry("planner").folder / "planner.safetensors"))
+    state = model.state_dict()
+    assert set(state) == set(shipped)
+    assert all(state[k].equal(shipped[k]) for k in shipped)
+    original = json.loads((registry.entry("planner").folder / "training.json").read_text())
+    assert record["epoch_loss_m"] == original["epoch_loss_m"] and record["data"] == original["data"]
