@@ -62,6 +62,8 @@ def write_report(reports_root: str | Path, bench: str, report: dict, markdown: s
              "md": atomic_write_text(folder / f"{part}.md", markdown)}
     for stem, draw in (pictures or {}).items():
         paths[f"png:{stem}"] = atomic_write_with(folder / f"{stem or part}.png", draw)
+    if "" not in (pictures or {}):  # a run without the part's picture must not leave an earlier run's beside it
+        (folder / f"{part}.png").unlink(missing_ok=True)
     return paths
 
 

@@ -57,6 +57,8 @@ def test_reports_go_to_one_folder_per_benchmark_and_a_rerun_replaces_them(tmp_pa
     assert sorted(p.name for p in (tmp_path / "world").iterdir()) == \
         ["preview.png", "report.json", "report.md", "report.png"]
     assert json.loads((tmp_path / "downstream" / "report.json").read_text()) == {"x": 2}
+    write_report(tmp_path, "downstream", {"x": 3}, "# run 3\n")  # a run without its picture drops the old one
+    assert not (tmp_path / "downstream" / "report.png").exists()
     assert (tmp_path / "downstream" / "detection.md").read_text() == "# detection 2\n"
 
 
