@@ -1,10 +1,10 @@
 """Train the embedded relative-depth network on a CUDA machine from exported training arrays.
 
-The lent GPU machines lack the procedural world's packages (open3d), so `omniscs bench background --train-depth
---depth-device cuda` cannot run there whole. Its three parts run apart instead, with the same code:
-  1. here:  omniscs bench background --export-depth-data infra/depth_gpu/data/pack.zip
+The lent GPU machines lack the procedural world's packages (open3d), so `omniscs pretrained train reldepth
+--device cuda` cannot run there whole. Its three parts run apart instead, with the same code:
+  1. here:  omniscs pretrained train reldepth --export-data infra/depth_gpu/data/pack.zip
   2. there: python3 infra/depth_gpu/train.py infra/depth_gpu/data/pack.zip OUT --steps N [--workers 14]
-  3. here:  omniscs bench background --install-depth OUT   (held-out evaluation, training.json, shipped weights)
+  3. here:  omniscs pretrained train reldepth --install OUT   (held-out evaluation, training.json, shipped weights)
 Step 2 needs only torch, numpy, OpenCV and safetensors. The configuration is DepthTrainConfig's defaults with the
 overrides given here (all recorded in OUT/history.json).
 """

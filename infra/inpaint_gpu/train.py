@@ -1,9 +1,9 @@
 """Train the embedded inpainting network on a CUDA machine from an exported pack of repair pairs.
 
 The lent GPU machines lack the procedural world's packages, so the work runs in three parts with the same code:
-  1. here:  omniscs bench background --export-inpaint-data infra/inpaint_gpu/data/pack.zip
+  1. here:  omniscs pretrained train inpaint --export-data infra/inpaint_gpu/data/pack.zip
   2. there: python3 infra/inpaint_gpu/train.py infra/inpaint_gpu/data/pack.zip OUT --budget-s 300 [--workers 14]
-  3. here:  omniscs bench background --install-inpaint OUT   (held-out evaluation, training.json, shipped weights)
+  3. here:  omniscs pretrained train inpaint --install OUT   (held-out evaluation, training.json, shipped weights)
 Step 2 needs only torch, numpy, OpenCV and safetensors. The configuration is InpaintTrainConfig's defaults with the
 overrides given here (all recorded in OUT/training.json).
 """

@@ -12,7 +12,7 @@ the same model) is pulled in and the hardest negative (the nearest crop of anoth
 mean(max(0, alpha + max_pos d - min_neg d)). (The paper's printed equation swaps max and min; this is the intended
 form.)
 
-Shipped weights (``SHIPPED``, made by ``omniscs bench agents --train-msnet``; ``training.json`` holds the seed,
+Shipped weights (``SHIPPED``, made by ``omniscs pretrained train msnet``; ``training.json`` holds the seed,
 data and losses): trained across domains on the asset library's world split, each vehicle's pool keyframes and its
 camera crops from procedural logs as positives of one another, with an identity (softmax) loss beside L_om (the
 triplet loss alone sat at the margin). On the agents benchmark (reports/agents/) it ranks pool-split vehicles seen
@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from omniscs.errors import ValidationError
+from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
 
 
@@ -197,8 +198,8 @@ class MSNetEmbedder:
         return np.concatenate(out).astype(np.float32)
 
 
-#: The shipped weights (``omniscs bench agents --train-msnet`` makes them; ``training.json`` says how).
-SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "msnet"
+#: The shipped weights (registry entry ``msnet``; ``omniscs pretrained train msnet`` makes them).
+SHIPPED = shipped_folder("msnet")
 
 
 def shipped_embedder():
@@ -224,7 +225,7 @@ def load_msnet(folder) -> MSNet:
     """An MSNet saved by ``save_msnet`` (a user's own weights of this architecture load the same way)."""
     from safetensors.torch import load_file
 
-    folder = Path(folder)
+    folder = verified_folder(folder)
     try:
         arch = json.loads((folder / "training.json").read_text())["architecture"]
         net = MSNet(MSNetConfig(tuple(arch["widths"]), int(arch["dim"])))

@@ -15,12 +15,13 @@ import torch
 
 from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
+from omniscs.pretrained.registry import folder as shipped_folder
 
-#: The shipped weights of the embedded network (``omniscs bench background --train-depth`` makes them).
-SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "reldepth"
+#: The shipped weights of the embedded network (registry entry ``reldepth``).
+SHIPPED = shipped_folder("reldepth")
 
 #: The command that makes the shipped weights (quoted in errors and in training.json).
-TRAIN_COMMAND = "omniscs bench background --train-depth"
+TRAIN_COMMAND = "omniscs pretrained train reldepth"
 
 SPEC_FORMS = ("None or 'embedded' (the shipped network)",
               "'depth-anything:PATH' (a local folder saved from a Depth Anything checkpoint with transformers)")

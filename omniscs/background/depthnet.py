@@ -26,6 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.pretrained.registry import verified_folder
 from omniscs.progress import Progress, no_progress
 
 #: RGB normalisation of the network's input (after scaling to 0..1): mean and spread of road scenes, roughly.
@@ -134,7 +135,7 @@ def predict_inverse_depth(net: DepthNet, rgb: np.ndarray,  # [H, W, 3] uint8
         out = out.reshape(height, width)
     if not np.isfinite(out).all():
         raise OmniscsError("the relative-depth network produced non-finite values; its weights are damaged: "
-                           "retrain them with `omniscs bench background --train-depth`")
+                           "retrain them with `omniscs pretrained train reldepth`")
     return out.astype(np.float32)
 
 
@@ -442,7 +443,7 @@ def load_depth_net(folder: str | Path) -> DepthNet:
     """The DepthNet saved in ``folder`` by ``save_depth_net``, in eval mode."""
     from safetensors.torch import load_file
 
-    folder = Path(folder)
+    folder = verified_folder(folder)
     try:
         arch = json.loads((folder / INFO_FILE).read_text())["architecture"]
         net = DepthNet(DepthNetConfig(tuple(int(c) for c in arch["widths"]), int(arch["long_side"])))
@@ -450,5 +451,5 @@ def load_depth_net(folder: str | Path) -> DepthNet:
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
         raise ValidationError(f"{folder} holds no relative-depth weights this version reads "
                               f"({type(e).__name__}: {e}); retrain them with "
-                              "`omniscs bench background --train-depth`") from e
+                              "`omniscs pretrained train reldepth`") from e
     return net.eval()

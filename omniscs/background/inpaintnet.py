@@ -2,7 +2,7 @@
 the pixels around it, its training loop on repair pairs (arrays and tensors only) and its weights on disk.
 
 Training pairs are camera images of procedural worlds with a large agent, the agent's hole, and the same view of
-the world without the agent (omniscs.bench.inpaint_data). Half of each batch are those pairs; the other half are
+the world without the agent (omniscs.pretrained.training.inpaint). Half of each batch are those pairs; the other half are
 self-supervised: a clean image (a pair's target) with another pair's hole laid over it at a random place, the way
 LaMa trains on random masks, so the network sees many more holes than pairs. The loss is the mean absolute error
 inside the hole plus ``context_weight`` times the one outside it (where the inpainter's output is discarded anyway:
@@ -24,10 +24,11 @@ from torch import Tensor, nn
 
 from omniscs.background.inpaint_base import HoleFiller, unit_float_to_uint8
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
 
-#: The shipped weights (``omniscs bench background --install-inpaint`` writes them).
-SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "inpaint"
+#: The shipped weights (registry entry ``inpaint``; ``omniscs pretrained train inpaint --install`` writes them).
+SHIPPED = shipped_folder("inpaint")
 WEIGHTS_FILE = "inpaint.safetensors"
 INFO_FILE = "training.json"
 
@@ -334,7 +335,7 @@ def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
     """The InpaintNet saved in ``folder`` by ``save_inpaint_net`` (float32, eval mode)."""
     from safetensors.torch import load_file
 
-    folder = Path(folder)
+    folder = verified_folder(folder)
     try:
         arch = InpaintNetConfig.from_dict(json.loads((folder / INFO_FILE).read_text())["architecture"])
         net = InpaintNet(arch)
@@ -342,6 +343,6 @@ def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
                              for k, v in load_file(str(folder / WEIGHTS_FILE)).items()})
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
         raise ValidationError(f"{folder} holds no inpainting weights this version reads ({type(e).__name__}: {e}); "
-                              "train them with `omniscs bench background --export-inpaint-data`, "
-                              "infra/inpaint_gpu/train.py and `--install-inpaint`") from e
+                              "train them with `omniscs pretrained train inpaint --export-data PACK`, "
+                              "infra/inpaint_gpu/train.py and `omniscs pretrained train inpaint --install OUT`") from e
     return net.eval()

@@ -1,6 +1,6 @@
 """``omniscs bench agents``: the model pool and the dual strategy against the procedural world's exact ground truth.
 
-Three parts, one report (reports/agents_bench.*):
+Three parts, one report (reports/agents/):
 - Pool: seconds per model built from meshes (fresh builds, not reuses) and the benchmark pool's size, built from
   the library's *pool* split only, so no vehicle of a benchmark world is in it.
 - Matching: pool-split vehicles put into world scenes (the world's own renderer, lighting and camera), cropped by
@@ -72,7 +72,7 @@ class AgentsBenchConfig:
     (straight:71 and t_junction:72 were the first run's, before the coverage threshold and the render check
     changed; its numbers are in the issue's notes)."""
     preset: str = "balanced"
-    """Fit preset of the scene graphs (the naive graph's baseline in reports/edits_bench used balanced)."""
+    """Fit preset of the scene graphs (the naive graph's baseline in reports/edits used balanced)."""
     agents_per_scene: int = 2
     """Edited agents per scene (the most visible vehicles)."""
     views_per_edit: int = 4
@@ -567,7 +567,7 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
               "limits": limits_summary(limits, rows), "limit_rows": limits,
               "decisions": decisions, "fits": fits,
               "targets": _targets(matching, summary, timing)}
-    write_report(out_dir, "agents_bench", report, agents_markdown(report),
+    write_report(out_dir, "agents", report, agents_markdown(report),
                  {"": lambda buf: _strip_png(strips, buf)} if strips else None)
     return report
 
@@ -586,7 +586,7 @@ def _embedders() -> list:
 
 def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
                            config: AgentsBenchConfig = AgentsBenchConfig(), progress: Progress = no_progress) -> dict:
-    """Matching alone (``agents_matching.json/.md``): the benchmark pool, its queries and every embedder, as in the
+    """Matching alone (``agents/matching.json/.md``): the benchmark pool, its queries and every embedder, as in the
     whole benchmark, in minutes where Table 4's fits take hours; for a new MSNet."""
     import json
 
@@ -601,16 +601,16 @@ def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
     report = {"config": asdict(config), "machine": finish(machine), "pool_size": len(pool.table()),
               "msnet_training": json.loads(training.read_text()) if training.is_file() else None,
               "matching": matching, "target": _matching_target(matching)}
-    write_report(out_dir, "agents_matching", report, matching_markdown(report))
+    write_report(out_dir, "agents", report, matching_markdown(report), part="matching")
     return report
 
 
 def matching_markdown(report: dict) -> str:
-    """reports/agents_matching.md from its JSON."""
+    """reports/agents/matching.md from its JSON."""
     info = report["msnet_training"] or {}
     t = report["target"]
-    lines = ["# Agents: matching alone (reports/agents_matching)", "", load_line(report["machine"]), "",
-             f"The benchmark pool ({report['pool_size']} models) and queries of reports/agents_bench "
+    lines = ["# Agents: matching alone (reports/agents/matching)", "", load_line(report["machine"]), "",
+             f"The benchmark pool ({report['pool_size']} models) and queries of reports/agents "
              f"(worlds {', '.join(report['config']['match_scenes'])}). Shipped MSNet: {info.get('n_assets', '?')} "
              f"training identities, {info.get('n_keyframe_crops', '?')} keyframe and {info.get('n_camera_crops', '?')} "
              "camera crops (its training.json), none of a benchmark world or of the benchmark pool.", "",
@@ -684,7 +684,7 @@ def agents_markdown(report: dict) -> str:
         return "n/a" if v is None else f"{v:.{d}f}"
 
     m, p, t = report["machine"], report["pool"], report["targets"]
-    lines = ["# Agents: model pool, matching and the dual strategy (reports/agents_bench)", "",
+    lines = ["# Agents: model pool, matching and the dual strategy (reports/agents)", "",
              load_line(m), "",
              f"{report['config']['preset']} fits of held-out worlds {', '.join(report['config']['scenes'])} "
              "(40 frames x 3 cameras at 480x270). The pool holds only the asset library's pool split: no vehicle "

@@ -364,7 +364,7 @@ def run_appearance_benchmark(out_dir: Path, workspace: Path | None = None,
               "sources": sorted(table.source)}, "fits": fits, "colour": colours, "rows": rows, "summary": summary,
               "placements": placements, "rejections": rejection_shares(placements), "verified": verified,
               "targets": targets(summary, rows, verified)}
-    write_report(out_dir, "appearance_bench", report, appearance_markdown(report),
+    write_report(out_dir, "appearance", report, appearance_markdown(report),
                  {"": lambda buf: _strip_png(strips, buf)} if strips else None)
     return report
 

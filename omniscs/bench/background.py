@@ -487,7 +487,7 @@ def run_background_benchmark(out_dir: Path, workspace: Path | None = None,
               "rows": rows, "scenes": facts, "summary": summ, "targets": targets(summ, facts),
               "inpainter": getattr(inpainter, "name", str(inpainter)),
               "depth_model": getattr(depth_model, "name", str(depth_model))}
-    write_report(out_dir, "background_bench", report, background_markdown(report),
+    write_report(out_dir, "background", report, background_markdown(report),
                  {"": lambda buf: _strip_png(strips, buf)} if strips else None)
     return report
 
@@ -617,7 +617,7 @@ def background_markdown(report: dict) -> str:
               f"{PLANES_ARM} {f(t.get('planes_novel_gain_db'))} dB ({'met' if t['novel_gain_met'] else 'NOT met'})",
               f"- RoI refit ≤ 20 % of a full refit's time: {f(t['roi_over_full_time'], 3)} "
               f"({roi_verdict})", "",
-              "![strips](background_bench.png)", "",
+              "![strips](report.png)", "",
               f"Strips (one novel view per scene): ground truth without the object, naive removal, DRNet + RoI refit "
               f"and {PLANES_ARM}; the object's outline in red. Depth AbsRel of the planes arm (hole pixels where "
               "a plane is met take its depth, the rest DRNet's): "

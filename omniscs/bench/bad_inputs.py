@@ -528,7 +528,7 @@ def run_bench(out_dir: str | Path = "reports", subprocess_mode: bool = False,
     outcomes = run_table(subprocess_mode=subprocess_mode, progress=progress)
     report = {"mode": "subprocess" if subprocess_mode else "in-process", "machine": finish(machine),
               "summary": summary(outcomes), "cases": [o.__dict__ for o in outcomes]}
-    write_report(out_dir, "bad_inputs", report, markdown(report))
+    write_report(out_dir, "bad-inputs", report, markdown(report))
     return report
 
 

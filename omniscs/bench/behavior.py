@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.bench.harness import finish, load_line, machine_info
+from omniscs.bench.harness import finish, load_line, machine_info, report_folder
 from omniscs.progress import Progress
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig, adversarial_preset
 from omniscs.scs.behavior.appearance import masked_psnr, variant_ego_poses
@@ -173,7 +173,7 @@ def _summary(rows: list[dict], scenes: list[dict]) -> dict:
 def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), checkpoint: Path | None = None,
                            progress: Progress | None = None, workspace: Path | None = None) -> dict:
     """Run every configuration on every benchmark scene, then the L_app comparison on rendered scenes (their
-    scene stores and scene graphs go to ``workspace`` and are reused); write behavior_bench.{json,md,png}."""
+    scene stores and scene graphs go to ``workspace`` and are reused); write reports/behavior/report.{json,md,png} and example.png."""
     from omniscs.pipeline.procedural import procedural_traffic
 
     machine = machine_info()
@@ -241,12 +241,12 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
             "latent_fit_ade_m_mean": float(np.mean([s["latent_fit_ade_m"] for s in scenes])) if scenes else None,
             "appearance": appearance, "machine": finish(machine),
         }
-        out_dir = Path(out_dir)
-        atomic_write_json(out_dir / "behavior_bench.json", result)
-        atomic_write_text(out_dir / "behavior_bench.md", markdown(result))
-        _plot(result, out_dir / "behavior_bench.png")
+        folder = report_folder(out_dir, "behavior")
+        atomic_write_json(folder / "report.json", result)
+        atomic_write_text(folder / "report.md", markdown(result))
+        _plot(result, folder / "report.png")
         if example is not None:
-            bev_picture(example[0], example[1], out_dir / "behavior_bench_example.png")
+            bev_picture(example[0], example[1], folder / "example.png")
         return result
     finally:
         set_threads(previous)
@@ -377,7 +377,7 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
 
 
 def appearance_markdown(study: dict | None) -> list[str]:
-    """The L_app table of behavior_bench.md."""
+    """The L_app table of behaviour's report.md."""
     if not study:
         return ["## What L_app buys", "", "Not run (appearance_scenes = 0).", ""]
     fits = [f for f in study["fits"] if f["status"] == "fitted"]
@@ -410,10 +410,11 @@ def appearance_markdown(study: dict | None) -> list[str]:
 
 def rerun_appearance_study(out_dir: Path, config: BenchConfig = BenchConfig(), checkpoint: Path | None = None,
                            workspace: Path | None = None) -> dict:
-    """Run only the L_app comparison again and replace it in an existing ``out_dir/behavior_bench.json`` (and its
+    """Run only the L_app comparison again and replace it in an existing ``out_dir/behavior/report.json`` (and its
     Markdown and plot), leaving the procedural-log tables as they were measured."""
     out_dir = Path(out_dir)
-    path = out_dir / "behavior_bench.json"
+    folder = report_folder(out_dir, "behavior")
+    path = folder / "report.json"
     if not path.is_file():
         raise OmniscsError(f"{path} does not exist; run the whole benchmark first")
     result = json.loads(path.read_text())
@@ -429,8 +430,8 @@ def rerun_appearance_study(out_dir: Path, config: BenchConfig = BenchConfig(), c
     finally:
         set_threads(previous)
     atomic_write_json(path, result)
-    atomic_write_text(out_dir / "behavior_bench.md", markdown(result))
-    _plot(result, out_dir / "behavior_bench.png")
+    atomic_write_text(folder / "report.md", markdown(result))
+    _plot(result, folder / "report.png")
     return result
 
 
@@ -577,7 +578,7 @@ def _plot(result: dict, out_png: Path) -> Path:
     axes[1].set_xticks(x + 1, labels, fontsize=7)
     axes[1].set_ylabel("seconds per variant (1 thread)")
     axes[1].set_title("optimisation time per variant", fontsize=9)
-    fig.suptitle("behaviour-level SCS on procedural logs (L_app comparison: see behavior_bench.md)", fontsize=9)
+    fig.suptitle("behaviour-level SCS on procedural logs (L_app comparison: see report.md)", fontsize=9)
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

@@ -259,7 +259,7 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
             e[key] = str(e[key])
     result = {"config": asdict(config), "scenes": entries, "speed": speed, "scores": scores,
               "summary": summarise(scores), "load": load, "machine": finish(machine)}
-    write_report(out_dir, "closedloop_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    write_report(out_dir, "closedloop", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 

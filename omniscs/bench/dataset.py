@@ -134,7 +134,7 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
         scenes.append(row)
     result = {"config": asdict(config), "scenes": scenes, "machine": finish(machine)}
     result["summary"] = summarise(scenes, config)
-    write_report(out_dir, "dataset_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    write_report(out_dir, "dataset", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 

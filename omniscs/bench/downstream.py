@@ -8,8 +8,8 @@ Data, all procedural and made without rendering (the proxy planner sees boxes an
     ego on its solution (``solve_ego``: comfortable, collision-free, near the plan); the keyframes of each solved
     variant (``variant_keyframes``: its now step and every 0.5 s after it while 1 s or more of its future is known;
     later waypoints masked as UniAD masks a scene's end). Unsolved variants are left out and counted.
-Models: *base* is the shipped planner (trained on train logs only; ``--train-base`` trains it again on all of them
-and writes it into the package with its training record); *fine-tuned* starts from base and trains on the train
+Models: *base* is the shipped planner (trained on train logs only: the first scenes of the train split; ``omniscs
+pretrained train planner`` trains it again and writes it into the package with its training record); *fine-tuned* starts from base and trains on the train
 scenes' behaviour-SCS examples mixed with the logs base was trained on (``rehearse_base_logs``), with settings chosen
 on validation scenes; a *logs-only control* trains base as long on those logs alone. All are evaluated on the held-out scenes: the behaviour-SCS
 test set and the original test set (their logs), by UniAD's planning metrics (``omniscs.eval.planning``: L2 and
@@ -233,9 +233,9 @@ def _intervals(groups: list[str], per_a: dict, per_b: dict, n: int = 200) -> dic
 
 
 def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
-                             config: DownstreamBenchConfig = DownstreamBenchConfig(), train_base: bool = False,
+                             config: DownstreamBenchConfig = DownstreamBenchConfig(),
                              progress: Progress = no_progress) -> dict:
-    from omniscs.eval.planner import DEFAULT_PLANNER, features, load_planner, plan, save_planner, train_planner
+    from omniscs.eval.planner import DEFAULT_PLANNER, features, load_planner, plan, train_planner
     from omniscs.eval.planning import per_sample_planning
 
     machine = machine_info()
@@ -244,13 +244,6 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
     train = _gather("train", config, cache, progress)
     test = _gather("test", config, cache, progress)
     data_s = time.perf_counter() - started
-    if train_base:
-        progress(0, None, "training the base planner on the train logs")
-        base, record = train_planner(train["logs"], config.base, progress=progress)
-        record.update(command="omniscs bench downstream --train-base", data={
-            "templates": list(TEMPLATES), "train_seeds": [config.train_seed, config.train_seed + config.train_scenes - 1],
-            "n_frames": config.n_frames, "source": "procedural logs (procedural_traffic), no SCS"})
-        save_planner(base, DEFAULT_PLANNER, record, overwrite=True)
     base = load_planner()
     base_record = json.loads((DEFAULT_PLANNER / "training.json").read_text())
     if config.rehearse_base_logs:
@@ -309,7 +302,7 @@ def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None =
               "base_training": {k: base_record.get(k) for k in ("command", "data", "n_examples", "train_config")},
               "finetune_training": {k: tune_record.get(k) for k in ("n_examples", "train_config", "epoch_loss_m",
                                                                      "scs_repeat", "log_repeat", "scs_share")}}
-    write_report(out_dir, "downstream_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    write_report(out_dir, "downstream", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 
@@ -406,7 +399,7 @@ def markdown(r: dict) -> str:
               f"before), base training {sec['base_training'] or 0:.0f} s (when it was trained), fine-tuning "
               f"{sec['finetune']:.0f} s.", "",
               "The detection half (base vs fine-tuned with appearance-SCS data, mAP on an appearance-SCS test set and "
-              "the original one) is `omniscs bench downstream --detection` (downstream_detection_bench.md)."]
+              "the original one) is `omniscs bench downstream --detection` (reports/downstream/detection.md)."]
     return "\n".join(lines) + "\n"
 
 

@@ -129,15 +129,15 @@ def run_fit_benchmark(out_dir: Path, scenes: BenchScenes, presets: tuple[str, ..
                          "load_1min_before": load_before, "load_1min_after": os.getloadavg()[0]})
             log.info("%s %s: %.0f s, %.2f dB", scene.scene_id, preset, wall, m["heldout_psnr"])
             # the partial table is on disk after every fit: a long run cut short still reports what it measured
-            save_partial(out_dir, "fit_bench", rows)
+            save_partial(out_dir, "fit", rows)
     summary = _fit_summary(rows, presets)
     report = {"scenes": asdict(scenes), "label": scenes.label(), "presets": list(presets),
               "overrides": overrides or {}, "machine": finish(machine),
               "rows": rows, "summary": summary,
               "targets": {"fast_s": FAST_TARGET_S, "balanced_s": BALANCED_TARGET_S,
                           "balanced_psnr_db": BALANCED_TARGET_PSNR}}
-    write_report(out_dir, "fit_bench", report, fit_markdown(report), {"": lambda buf: _fit_plot(report, buf)})
-    drop_partial(out_dir, "fit_bench")
+    write_report(out_dir, "fit", report, fit_markdown(report), {"": lambda buf: _fit_plot(report, buf)})
+    drop_partial(out_dir, "fit")
     return report
 
 
@@ -320,7 +320,7 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
               "machine": finish(machine), "fits": fits, "summary": summary,
               "rows": rows, "protocol": [{"edit": n, **s} for n, s in EDIT_PROTOCOL],
               "unedited_heldout_psnr": float(np.mean([f["heldout_psnr"] for f in fits])) if fits else None}
-    write_report(out_dir, "edits_bench", report, edits_markdown(report),
+    write_report(out_dir, "edits", report, edits_markdown(report),
                  {"": lambda buf: _strip(strips, buf)} if strips else None)
     return report
 

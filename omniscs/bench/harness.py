@@ -1,5 +1,7 @@
-"""The one benchmark harness: what machine and load the numbers came from, and the report files (JSON +
-Markdown + PNG under ``reports/``), written atomically so a cut-short run never leaves half a report."""
+"""The one benchmark harness: what machine and load the numbers came from, and the report files, one folder per
+benchmark (``reports/<bench>/report.json``, ``report.md`` and its pictures; a second report of the same benchmark
+as ``<part>.json/.md`` beside them), each file written atomically so a cut-short run never leaves half a report
+and a rerun replaces the files instead of adding folders."""
 from __future__ import annotations
 
 import json
@@ -41,24 +43,38 @@ def load_line(machine: dict) -> str:
             "(shared machine: compare ratios within one run).")
 
 
-def write_report(out_dir: str | Path, name: str, report: dict, markdown: str,
-                 pictures: dict[str, Callable[[BinaryIO], object]] | None = None) -> dict[str, Path]:
-    """``<name>.json`` and ``<name>.md`` (+ ``<name><suffix>.png`` per picture writer) in ``out_dir``."""
-    out_dir = Path(out_dir)
-    paths = {"json": atomic_write_text(out_dir / f"{name}.json", json.dumps(report, indent=2, default=str) + "\n"),
-             "md": atomic_write_text(out_dir / f"{name}.md", markdown)}
-    for suffix, draw in (pictures or {}).items():
-        paths[f"png{suffix}"] = atomic_write_with(out_dir / f"{name}{suffix}.png", draw)
+#: The file stem of a benchmark's main report inside its folder.
+MAIN_PART = "report"
+
+
+def report_folder(reports_root: str | Path, bench: str) -> Path:
+    """The folder of benchmark ``bench`` (its ``omniscs bench`` name) under the reports root."""
+    return Path(reports_root) / bench
+
+
+def write_report(reports_root: str | Path, bench: str, report: dict, markdown: str,
+                 pictures: dict[str, Callable[[BinaryIO], object]] | None = None,
+                 part: str = MAIN_PART) -> dict[str, Path]:
+    """``<reports_root>/<bench>/<part>.json`` and ``.md``, and one PNG per picture writer: key ``""`` is the part's
+    own picture (``<part>.png``), any other key its file stem (``preview`` -> ``preview.png``)."""
+    folder = report_folder(reports_root, bench)
+    paths = {"json": atomic_write_text(folder / f"{part}.json", json.dumps(report, indent=2, default=str) + "\n"),
+             "md": atomic_write_text(folder / f"{part}.md", markdown)}
+    for stem, draw in (pictures or {}).items():
+        paths[f"png:{stem}"] = atomic_write_with(folder / f"{stem or part}.png", draw)
+    if "" not in (pictures or {}):  # a run without the part's picture must not leave an earlier run's beside it
+        (folder / f"{part}.png").unlink(missing_ok=True)
     return paths
 
 
-def save_partial(out_dir: str | Path, name: str, rows: list[dict]) -> Path:
-    """The rows measured so far (``<name>.partial.json``): a long run cut short still reports them."""
-    return atomic_write_text(Path(out_dir) / f"{name}.partial.json", json.dumps(rows, indent=2, default=str) + "\n")
+def save_partial(reports_root: str | Path, bench: str, rows: list[dict]) -> Path:
+    """The rows measured so far (``<bench>/report.partial.json``): a long run cut short still reports them."""
+    return atomic_write_text(report_folder(reports_root, bench) / f"{MAIN_PART}.partial.json",
+                             json.dumps(rows, indent=2, default=str) + "\n")
 
 
-def drop_partial(out_dir: str | Path, name: str) -> None:
-    (Path(out_dir) / f"{name}.partial.json").unlink(missing_ok=True)
+def drop_partial(reports_root: str | Path, bench: str) -> None:
+    (report_folder(reports_root, bench) / f"{MAIN_PART}.partial.json").unlink(missing_ok=True)
 
 
 def status_bytes(field: str) -> int:

@@ -64,7 +64,7 @@ class PlanBenchConfig:
 
 def run_plan_benchmark(out_dir: Path, config: PlanBenchConfig = PlanBenchConfig(), workspace: Path | None = None,
                        progress: Progress = no_progress) -> dict:
-    """Both modes on every scene; returns (and writes as reports/plan_bench.*) rows and medians."""
+    """Both modes on every scene; returns (and writes as reports/plan/report.*) rows and medians."""
     from omniscs.world import WorldRenderer, apply_edits
 
     machine = machine_info()
@@ -95,12 +95,12 @@ def run_plan_benchmark(out_dir: Path, config: PlanBenchConfig = PlanBenchConfig(
                 stage_ws = Path(tmp) / mode.replace(" ", "-")
                 rows.append(_run_mode(ingested.path, request, plan_config, stage_ws, mode, edit, views))
                 rows[-1].update(template=template, seed=seed, edited_track=target)
-                save_partial(out_dir, "plan_bench", rows)
+                save_partial(out_dir, "plan", rows)
     progress(len(rows), len(rows), "done")
     report = {"config": dataclasses.asdict(config), "machine": finish(machine), "rows": rows,
               "summary": _summary(rows)}
-    write_report(out_dir, "plan_bench", report, markdown(report), {"": lambda buf: _plot(report, buf)})
-    drop_partial(out_dir, "plan_bench")
+    write_report(out_dir, "plan", report, markdown(report), {"": lambda buf: _plot(report, buf)})
+    drop_partial(out_dir, "plan")
     return report
 
 

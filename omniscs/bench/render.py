@@ -21,7 +21,7 @@ import numba
 import torch
 
 from omniscs.render.api import rasterize
-from omniscs.bench.harness import finish, machine_info, write_report
+from omniscs.bench.harness import finish, machine_info, report_folder, write_report
 from omniscs.storage import atomic_write_with
 from omniscs.render.scenes import StreetScene, street_scene
 
@@ -119,7 +119,8 @@ def run_render_benchmark(
     reference_budget_s: float = 60.0,
     calibration_size: tuple[tuple[int, int], int] = (CALIBRATION_RESOLUTION, CALIBRATION_COUNT),
 ) -> dict[str, Any]:
-    """Time every (resolution, count, backend); write render_bench.{json,md,png} and a sample render to out_dir.
+    """Time every (resolution, count, backend); write render/report.{json,md,png} and a sample render
+    (render/sample.png) under the reports root ``out_dir``.
 
     Times are medians of ``repeats`` runs after one warm-up run (the reference runs once: it is the
     slow oracle). The reference is skipped, and recorded as skipped, where its predicted time
@@ -181,8 +182,8 @@ def run_render_benchmark(
         "targets": None,
     }
     results["targets"] = _targets(rows, results["speedups"])
-    write_report(out_dir, "render_bench", results, render_markdown(results), {"": lambda buf: _plot(results, buf)})
-    save_sample_render(Path(out_dir) / "render_sample.png", *resolutions[0], max(counts))
+    write_report(out_dir, "render", results, render_markdown(results), {"": lambda buf: _plot(results, buf)})
+    save_sample_render(report_folder(out_dir, "render") / "sample.png", *resolutions[0], max(counts))
     return results
 
 

@@ -1,6 +1,6 @@
 """Benchmark of the dataset readers: ingest time per frame for each format, on a synthetic log written in it.
 
-Writes ``sources_ingest.json`` and ``sources_ingest.md``. Each format is read ``repeats`` times; the first read
+Writes ``reports/sources/report.json`` and ``report.md``. Each format is read ``repeats`` times; the first read
 (cold: imports, nuScenes table load) is reported apart from the median of the warm ones.
 """
 from __future__ import annotations
@@ -57,7 +57,7 @@ def run_sources_benchmark(out_dir: Path, n_frames: int = 10, n_cameras: int = 6,
             })
     result = {"machine": finish(machine), "n_frames": n_frames, "n_cameras": n_cameras, "repeats": repeats,
               "results": rows}
-    write_report(out_dir, "sources_ingest", result, _markdown(result))
+    write_report(out_dir, "sources", result, _markdown(result))
     return result
 
 

@@ -1,7 +1,7 @@
 """Benchmark of the procedural world: generate a log and render every camera and LiDAR sweep of it.
 
-Writes ``world_render.json``, ``world_render.md``, a per-frame timing plot ``world_render.png`` and a
-preview of the first frame's cameras ``world_render_preview.png``; also times open3d against embreex
+Writes ``reports/world/report.json``, ``report.md``, a per-frame timing plot ``report.png`` and a
+preview of the first frame's cameras ``preview.png``; also times open3d against embreex
 on the same camera rays (a ratio from one run, since the machines are shared and noisy).
 """
 from __future__ import annotations
@@ -118,9 +118,9 @@ def run_world_benchmark(out_dir: Path, seeds=(0,), n_frames: int = 40, n_cameras
         "goal_s": GOAL_SECONDS,
     }
     result["meets_goal"] = result["median_total_s"] < GOAL_SECONDS
-    write_report(out_dir, "world_render", result, _markdown(result),
+    write_report(out_dir, "world", result, _markdown(result),
                  {"": lambda buf: _plot(result, buf),
-                  "_preview": lambda buf: Image.fromarray(preview).save(buf, format="PNG")})
+                  "preview": lambda buf: Image.fromarray(preview).save(buf, format="PNG")})
     return result
 
 

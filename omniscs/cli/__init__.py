@@ -6,7 +6,8 @@ import sys
 
 import typer
 
-from omniscs.cli import bench, catalog, closedloop, dataset, evaluation, generate, nsg, pool, scene, scs, world
+from omniscs.cli import (bench, catalog, closedloop, dataset, evaluation, generate, nsg, pool, pretrained, scene, scs,
+                         world)
 from omniscs.cli.common import print_error
 from omniscs.errors import OmniscsError
 
@@ -27,6 +28,7 @@ app.add_typer(pool.app, name="pool")
 app.add_typer(closedloop.app, name="closedloop")
 app.command("finetune")(evaluation.finetune)
 app.add_typer(bench.app, name="bench")
+app.add_typer(pretrained.app, name="pretrained")
 
 
 #: Click's usage error (typer ships its own copy of click; found through a public subclass of it).

@@ -1,475 +1,537 @@
-"""``omniscs bench``: the benchmarks (``omniscs.bench``); results go to reports/."""
+"""``omniscs bench``: the benchmarks (``omniscs.bench``), one table (name -> options -> run) and one handler.
+
+Each benchmark's command-line options are the fields of its options dataclass (help text from the field docs); its
+run function checks them, runs the benchmark and returns the Markdown report it wrote under
+``<out>/<name>/`` (``report.md``, or ``<part>.md`` for a second report of the same benchmark)."""
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import textwrap
+import typing
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import typer
 
-from omniscs.cli.common import comma_list, console, progress_bars
+from omniscs.cli.common import Bars, comma_list, console, progress_bars
 from omniscs.cli.common import seeds as parse_seeds
 from omniscs.errors import OmniscsError
 
-app = typer.Typer(help="Benchmarks; results go to reports/.", no_args_is_help=True)
+app = typer.Typer(help="Benchmarks; each writes reports/<name>/report.json and report.md (+ pictures).",
+                  no_args_is_help=True)
+
+WORKSPACE_HELP = "Where the benchmark's scenes and fits go (and are reused)."
 
 
-@app.command("world")
-def bench_world(
-    seeds: str = typer.Option("0", help="Comma-separated seeds."),
-    out: Path = typer.Option(Path("reports"), help="Folder for world_render.json/.md."),
-    frames: int = typer.Option(40), cameras: int = typer.Option(3),
-) -> None:
-    """Time rendering a 40-frame, 3-camera 480x270 scene with LiDAR."""
+def _flag(name: str):
+    """A field that appears on the command line under another flag than its name."""
+    return {"flag": name}
+
+
+# ----------------------------------------------------------------------------- options and runs, one per benchmark
+@dataclass(frozen=True)
+class WorldOptions:
+    seeds: str = "0"
+    """Comma-separated seeds."""
+    frames: int = 40
+    """Frames of each log (10 Hz)."""
+    cameras: int = 3
+    """Cameras per frame."""
+
+
+def run_world(o: WorldOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.world import run_world_benchmark
 
-    result = run_world_benchmark(out, seeds=parse_seeds(seeds), n_frames=frames,
-                                 n_cameras=cameras)
-    console.print((out / "world_render.md").read_text())
-    console.print(f"wrote {out / 'world_render.json'}")
-    del result
+    run_world_benchmark(out, seeds=parse_seeds(o.seeds), n_frames=o.frames, n_cameras=o.cameras)
+    return out / "world" / "report.md"
 
 
-@app.command("sources")
-def bench_sources(
-    out: Path = typer.Option(Path("reports"), help="Folder for sources_ingest.json/.md."),
-    frames: int = typer.Option(10), cameras: int = typer.Option(6), repeats: int = typer.Option(3),
-) -> None:
-    """Time reading a 480x270 synthetic log back from nuScenes, KITTI and Waymo v2 (ms per frame)."""
+@dataclass(frozen=True)
+class SourcesOptions:
+    frames: int = 10
+    """Frames of the synthetic log."""
+    cameras: int = 6
+    """Cameras per frame."""
+    repeats: int = 3
+    """Reads per format (the first is a cold read)."""
+
+
+def run_sources(o: SourcesOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.sources import run_sources_benchmark
 
-    run_sources_benchmark(out, n_frames=frames, n_cameras=cameras, repeats=repeats)
-    console.print((out / "sources_ingest.md").read_text())
-    console.print(f"wrote {out / 'sources_ingest.json'}")
+    run_sources_benchmark(out, n_frames=o.frames, n_cameras=o.cameras, repeats=o.repeats)
+    return out / "sources" / "report.md"
 
 
-@app.command("behavior")
-def bench_behavior(
-    out: Path = typer.Option(Path("reports"), help="Folder for behavior_bench.json/.md/.png."),
-    scenes_per_template: int = typer.Option(5, help="Procedural scenes per road template."),
-    variants: int = typer.Option(2, help="Variants per scene."),
-    preset: str = typer.Option("balanced", help="Adversarial preset: fast, balanced or accurate."),
-    checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint (default: the shipped one)."),
-    rule_planner: bool = typer.Option(True, help="Also run against the reacting rule-based planner."),
-    threads: int = typer.Option(1, help="torch CPU threads."),
-    appearance_scenes: int = typer.Option(4, help="Rendered scenes fitted with a scene graph for the with/without "
-                                                  "L_app comparison (0 skips it)."),
-    workspace: Optional[Path] = typer.Option(None, help="Where those scenes and scene graphs go (and are reused)."),
-    app_weights: str = typer.Option("1,30", help="Comma-separated L_app weights compared."),
-    only_appearance: bool = typer.Option(False, help="Rerun only the L_app comparison in an existing report in --out."),
-    seed_offset: int = typer.Option(2000, help="First scene seed: 2000 is the fixed set, any other a fresh one."),
-    only_default: bool = typer.Option(False, help="Run only the default configuration on the procedural logs."),
-    search_starts: int = typer.Option(192, help="Feasibility search: random starts per candidate adversary."),
-) -> None:
-    """Adversarial success, plausibility violations, accelerations and time per variant, with and without the
-    plausibility penalty, with and without L_app (and its appearance drift), plus the traffic model's ADE/FDE."""
-    from omniscs.scs.behavior.adversarial_config import adversarial_preset
+@dataclass(frozen=True)
+class BehaviorOptions:
+    scenes_per_template: int = 5
+    """Procedural scenes per road template."""
+    variants: int = 2
+    """Variants per scene."""
+    preset: str = "balanced"
+    """Adversarial preset: fast, balanced or accurate."""
+    checkpoint: Optional[Path] = None
+    """Traffic-model checkpoint (default: the shipped one)."""
+    rule_planner: bool = True
+    """Also run against the reacting rule-based planner."""
+    threads: int = 1
+    """torch CPU threads."""
+    appearance_scenes: int = 4
+    """Rendered scenes fitted with a scene graph for the with/without L_app comparison (0 skips it)."""
+    workspace: Optional[Path] = None
+    """Where those scenes and scene graphs go (and are reused)."""
+    app_weights: str = "1,30"
+    """Comma-separated L_app weights compared."""
+    only_appearance: bool = False
+    """Rerun only the L_app comparison in an existing report in --out."""
+    seed_offset: int = 2000
+    """First scene seed: 2000 is the fixed set, any other a fresh one."""
+    only_default: bool = False
+    """Run only the default configuration on the procedural logs."""
+    search_starts: int = 192
+    """Feasibility search: random starts per candidate adversary."""
+
+
+def run_behavior(o: BehaviorOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.behavior import BenchConfig, rerun_appearance_study, run_behavior_benchmark
+    from omniscs.scs.behavior.adversarial_config import adversarial_preset
     from omniscs.scs.behavior.feasibility import FeasibilityConfig
 
-    adversarial_preset(preset)
-    weights = comma_list(app_weights, float, "--app-weights", "1,30")
-    if search_starts < 1:
-        raise OmniscsError(f"--search-starts must be at least 1; got {search_starts}")
+    adversarial_preset(o.preset)
+    weights = comma_list(o.app_weights, float, "--app-weights", "1,30")
+    if o.search_starts < 1:
+        raise OmniscsError(f"--search-starts must be at least 1; got {o.search_starts}")
     if not weights or min(weights) <= 0:
-        raise OmniscsError(f"--app-weights takes positive numbers like 1,30; got {app_weights!r}")
-    config = BenchConfig(scenes_per_template=scenes_per_template, variants_per_scene=variants, preset=preset,
-                         rule_planner=rule_planner, torch_threads=threads,
-                         appearance_scenes=max(0, appearance_scenes), app_weights=weights,
-                         seed_offset=seed_offset, only_default=only_default,
-                         feasibility=FeasibilityConfig(starts=search_starts))
-    if only_appearance:
-        rerun_appearance_study(out, config, checkpoint, workspace)
-        console.print((out / "behavior_bench.md").read_text())
-        return
-    with progress_bars() as bars:
-        run_behavior_benchmark(out, config, checkpoint, progress=bars.sink("behaviour variants"),
-                               workspace=workspace)
-    console.print((out / "behavior_bench.md").read_text())
-    console.print(f"wrote {out / 'behavior_bench.json'}")
+        raise OmniscsError(f"--app-weights takes positive numbers like 1,30; got {o.app_weights!r}")
+    config = BenchConfig(scenes_per_template=o.scenes_per_template, variants_per_scene=o.variants, preset=o.preset,
+                         rule_planner=o.rule_planner, torch_threads=o.threads,
+                         appearance_scenes=max(0, o.appearance_scenes), app_weights=weights,
+                         seed_offset=o.seed_offset, only_default=o.only_default,
+                         feasibility=FeasibilityConfig(starts=o.search_starts))
+    if o.only_appearance:
+        rerun_appearance_study(out, config, o.checkpoint, o.workspace)
+    else:
+        run_behavior_benchmark(out, config, o.checkpoint, progress=bars.sink("behaviour variants"),
+                               workspace=o.workspace)
+    return out / "behavior" / "report.md"
 
 
-@app.command("fit")
-def bench_fit(
-    out: Path = typer.Option(Path("reports"), help="Folder for fit_bench.json/.md/.png."),
-    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
-    presets: str = typer.Option("fast,balanced,accurate", help="Comma-separated presets."),
-    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
-    width: int = typer.Option(480), height: int = typer.Option(270),
-    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
-) -> None:
-    """Fit the same scenes with each preset: wall time, Gaussians and held-out PSNR/SSIM; a time-vs-PSNR plot."""
+@dataclass(frozen=True)
+class FitOptions:
+    seeds: str = "0"
+    """Comma-separated seeds of the procedural scenes."""
+    presets: str = "fast,balanced,accurate"
+    """Comma-separated presets."""
+    template: str = "straight"
+    """Road layout template of the scenes."""
+    frames: int = 40
+    """Frames per scene (every 4th is held out)."""
+    cameras: int = 3
+    """Cameras per frame."""
+    width: int = 480
+    """Image width (pixels)."""
+    height: int = 270
+    """Image height (pixels)."""
+    workspace: Optional[Path] = None
+    """Where the benchmark scenes are rendered (and reused)."""
+
+
+def run_fit(o: FitOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.fit import BenchScenes, run_fit_benchmark
     from omniscs.nsg.config import PRESETS
 
-    chosen = comma_list(presets)
+    chosen = comma_list(o.presets)
     unknown = [p for p in chosen if p not in PRESETS]
     if unknown or not chosen:
         raise OmniscsError(f"unknown preset(s) {unknown}; use some of {list(PRESETS)}")
-    scenes = BenchScenes(parse_seeds(seeds), template, "day", frames, cameras, width, height)
-    with progress_bars() as bars:
-        run_fit_benchmark(out, scenes, chosen, workspace,
-                          progress=bars.sink("bench fit"))
-    console.print((out / "fit_bench.md").read_text())
-    console.print(f"wrote {out / 'fit_bench.json'} and {out / 'fit_bench.png'}")
+    scenes = BenchScenes(parse_seeds(o.seeds), o.template, "day", o.frames, o.cameras, o.width, o.height)
+    run_fit_benchmark(out, scenes, chosen, o.workspace, progress=bars.sink("bench fit"))
+    return out / "fit" / "report.md"
 
 
-@app.command("edits")
-def bench_edits(
-    out: Path = typer.Option(Path("reports"), help="Folder for edits_bench.json/.md/.png."),
-    seeds: str = typer.Option("0", help="Comma-separated seeds of the procedural scenes."),
-    preset: str = typer.Option("balanced", help="Fit preset of the scene graphs."),
-    agents: int = typer.Option(2, help="Edited agents per scene (the most visible ones)."),
-    views: int = typer.Option(4, help="Evaluated views per agent and edit."),
-    template: str = typer.Option("straight"), frames: int = typer.Option(40), cameras: int = typer.Option(3),
-    width: int = typer.Option(480), height: int = typer.Option(270),
-    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
-) -> None:
-    """Edit fidelity against ground truth: translate 2.0/3.5 m, rotate 90/180/270°; PSNR/SSIM full and masked."""
+@dataclass(frozen=True)
+class EditsOptions:
+    seeds: str = "0"
+    """Comma-separated seeds of the procedural scenes."""
+    preset: str = "balanced"
+    """Fit preset of the scene graphs."""
+    agents: int = 2
+    """Edited agents per scene (the most visible ones)."""
+    views: int = 4
+    """Evaluated views per agent and edit."""
+    template: str = "straight"
+    """Road layout template of the scenes."""
+    frames: int = 40
+    """Frames per scene."""
+    cameras: int = 3
+    """Cameras per frame."""
+    width: int = 480
+    """Image width (pixels)."""
+    height: int = 270
+    """Image height (pixels)."""
+    workspace: Optional[Path] = None
+    """Where the benchmark scenes are rendered (and reused)."""
+
+
+def run_edits(o: EditsOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.fit import BenchScenes, run_edit_benchmark
     from omniscs.nsg.config import fit_preset
 
-    fit_preset(preset)
-    if agents < 1 or views < 1:
+    fit_preset(o.preset)
+    if o.agents < 1 or o.views < 1:
         raise OmniscsError("--agents and --views must be at least 1")
-    scenes = BenchScenes(parse_seeds(seeds), template, "day", frames, cameras, width, height)
-    with progress_bars() as bars:
-        run_edit_benchmark(out, scenes, preset, agents, views, workspace=workspace,
-                           progress=bars.sink("bench fit"))
-    console.print((out / "edits_bench.md").read_text())
-    console.print(f"wrote {out / 'edits_bench.json'} and {out / 'edits_bench.png'}")
+    scenes = BenchScenes(parse_seeds(o.seeds), o.template, "day", o.frames, o.cameras, o.width, o.height)
+    run_edit_benchmark(out, scenes, o.preset, o.agents, o.views, workspace=o.workspace,
+                       progress=bars.sink("bench fit"))
+    return out / "edits" / "report.md"
 
 
-@app.command("render")
-def bench_render(
-    out: Path = typer.Option(Path("reports"), help="Folder for render_bench.json/.md/.png."),
-    resolutions: str = typer.Option("320x180,640x360,1280x720", help="Comma-separated WxH."),
-    counts: str = typer.Option("10000,100000,1000000", help="Comma-separated Gaussian counts."),
-    repeats: int = typer.Option(5, help="Timed repeats per cell (median reported)."),
-    reference_budget_s: float = typer.Option(60.0, help="Skip reference cells expected to take longer."),
-) -> None:
-    """Time the Gaussian rasterizer (forward, forward+backward) per backend; cpu/reference speed-up."""
+@dataclass(frozen=True)
+class RenderOptions:
+    resolutions: str = "320x180,640x360,1280x720"
+    """Comma-separated WxH."""
+    counts: str = "10000,100000,1000000"
+    """Comma-separated Gaussian counts."""
+    repeats: int = 5
+    """Timed repeats per cell (median reported)."""
+    reference_budget_s: float = 60.0
+    """Skip reference cells expected to take longer."""
+
+
+def run_render(o: RenderOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.render import run_render_benchmark
 
-    sizes = comma_list(resolutions, lambda r: tuple(int(v) for v in r.lower().split("x")), "--resolutions",
+    sizes = comma_list(o.resolutions, lambda r: tuple(int(v) for v in r.lower().split("x")), "--resolutions",
                        "640x360,1280x720")
-    ns = comma_list(counts, int, "--counts", "10000,100000")
+    ns = comma_list(o.counts, int, "--counts", "10000,100000")
     if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes) or not ns or min(ns) < 1:
         raise OmniscsError("--resolutions is like 640x360,1280x720 and --counts like 10000,100000")
-    run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=repeats, reference_budget_s=reference_budget_s)
-    console.print((out / "render_bench.md").read_text())
-    console.print(f"wrote {out / 'render_bench.json'}")
+    run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=o.repeats,
+                         reference_budget_s=o.reference_budget_s)
+    return out / "render" / "report.md"
 
 
-@app.command("plan")
-def bench_plan(
-    out: Path = typer.Option(Path("reports"), help="Folder for plan_bench.json/.md/.png."),
-    scenes: str = typer.Option("straight:31,t_junction:32,intersection:33",
-                               help="Comma-separated TEMPLATE:SEED procedural scenes."),
-    preset: str = typer.Option("fast", help="Scene-graph preset of both modes."),
-    variants: int = typer.Option(1, help="Behaviour variants requested per scene."),
-    frames: int = typer.Option(40), cameras: int = typer.Option(3),
-    width: int = typer.Option(480), height: int = typer.Option(270),
-    min_pixels: int = typer.Option(200, help="Views count when the edited agent covers this many pixels."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark scenes are rendered (and reused)."),
-) -> None:
-    """The pipeline with the scene's plan vs with every track an agent node: time, Gaussians, nodes, held-out and
-    edited-agent PSNR against ground truth."""
+@dataclass(frozen=True)
+class PlanOptions:
+    scenes: str = "straight:31,t_junction:32,intersection:33"
+    """Comma-separated TEMPLATE:SEED procedural scenes."""
+    preset: str = "fast"
+    """Scene-graph preset of both modes."""
+    variants: int = 1
+    """Behaviour variants requested per scene."""
+    frames: int = 40
+    """Frames per scene."""
+    cameras: int = 3
+    """Cameras per frame."""
+    width: int = 480
+    """Image width (pixels)."""
+    height: int = 270
+    """Image height (pixels)."""
+    min_pixels: int = 200
+    """Views count when the edited agent covers this many pixels."""
+    workspace: Optional[Path] = None
+    """Where the benchmark scenes are rendered (and reused)."""
+
+
+def run_plan(o: PlanOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.plan import PlanBenchConfig, run_plan_benchmark
     from omniscs.nsg.config import fit_preset
 
-    fit_preset(preset)
+    fit_preset(o.preset)
 
     def template_seed(item: str) -> tuple[str, int]:
         template, seed = item.split(":")
         return template, int(seed)
 
-    chosen = comma_list(scenes, template_seed, "--scenes", "straight:31,t_junction:32")
-    if not chosen or variants < 0:
+    chosen = comma_list(o.scenes, template_seed, "--scenes", "straight:31,t_junction:32")
+    if not chosen or o.variants < 0:
         raise OmniscsError("--scenes needs at least one TEMPLATE:SEED and --variants must be >= 0")
-    config = PlanBenchConfig(scenes=chosen, n_frames=frames, n_cameras=cameras, width=width, height=height,
-                             fit_preset=preset, behavior_variants=variants, min_pixels=min_pixels)
-    with progress_bars() as bars:
-        run_plan_benchmark(out, config, workspace, progress=bars.sink("bench plan"))
-    console.print((out / "plan_bench.md").read_text())
-    console.print(f"wrote {out / 'plan_bench.json'} and {out / 'plan_bench.png'}")
+    config = PlanBenchConfig(scenes=chosen, n_frames=o.frames, n_cameras=o.cameras, width=o.width, height=o.height,
+                             fit_preset=o.preset, behavior_variants=o.variants, min_pixels=o.min_pixels)
+    run_plan_benchmark(out, config, o.workspace, progress=bars.sink("bench plan"))
+    return out / "plan" / "report.md"
 
 
-@app.command("dataset")
-def bench_dataset(
-    out: Path = typer.Option(Path("reports"), help="Folder for dataset_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the scenes, fits and variants go (and are reused)."),
-    variants: int = typer.Option(2, help="Behaviour variants per scene."),
-) -> None:
-    """Annotated images per second (480x270 x 3 and 1600x900 x 6) and annotated variants per hour after fitting."""
-    from dataclasses import replace
+@dataclass(frozen=True)
+class DatasetOptions:
+    workspace: Optional[Path] = None
+    """Where the scenes, fits and variants go (and are reused)."""
+    variants: int = 2
+    """Behaviour variants per scene."""
 
+
+def run_dataset(o: DatasetOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.dataset import DatasetBenchConfig, run_dataset_benchmark
 
-    with progress_bars() as bars:
-        run_dataset_benchmark(out, workspace, replace(DatasetBenchConfig(), variants=variants),
-                              progress=bars.sink("dataset bench"))
-    console.print((out / "dataset_bench.md").read_text())
-    console.print(f"wrote {out / 'dataset_bench.json'}")
+    run_dataset_benchmark(out, o.workspace, dataclasses.replace(DatasetBenchConfig(), variants=o.variants),
+                          progress=bars.sink("dataset bench"))
+    return out / "dataset" / "report.md"
 
 
-@app.command("agents")
-def bench_agents(
-    out: Path = typer.Option(Path("reports"), help="Folder for agents_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the scenes, fits and the benchmark pool go (and are "
-                                                        "reused)."),
-    quick: bool = typer.Option(False, "--quick", help="One small scene, the fast preset, a small pool (a smoke run, "
-                                                      "not a measurement)."),
-    train_msnet: bool = typer.Option(False, "--train-msnet", help="Train MSNet again (MSNetDataConfig's data) "
-                                                                  "and write it into the package (its shipped "
-                                                                  "weights) before the benchmark."),
-    matching_only: bool = typer.Option(False, "--matching-only", help="Matching alone (agents_matching.json/.md): "
-                                                                      "minutes instead of hours, for a new MSNet."),
-) -> None:
-    """The model pool (seconds per model), matching top-1/top-5 against degradation, and the paper's Table 4
-    (naive / online / pool / dual / pool with the vehicles' own models, after translate, rotate and overturn) on
-    held-out worlds."""
+@dataclass(frozen=True)
+class AgentsOptions:
+    workspace: Optional[Path] = None
+    """Where the scenes, fits and the benchmark pool go (and are reused)."""
+    quick: bool = False
+    """One small scene, the fast preset, a small pool (a smoke run, not a measurement)."""
+    matching_only: bool = False
+    """Matching alone (agents/matching.json/.md): minutes instead of hours, for a new MSNet."""
+
+
+def run_agents(o: AgentsOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.agents import AgentsBenchConfig, quick_config, run_agents_benchmark, run_matching_benchmark
-    from omniscs.bench.msnet_data import train_shipped_msnet
 
-    if train_msnet:
-        with progress_bars() as bars:
-            info = train_shipped_msnet(workspace, progress=bars.sink("MSNet"))
-        console.print(f"MSNet: {info['n_assets']} assets, loss {info['loss_first']:.3f} -> "
-                      f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
-    config = quick_config() if quick else AgentsBenchConfig()
-    if matching_only:
-        with progress_bars() as bars:
-            run_matching_benchmark(out, workspace, config, progress=bars.sink("agents matching"))
-        console.print((out / "agents_matching.md").read_text())
-        return
-    with progress_bars() as bars:
-        run_agents_benchmark(out, workspace, config, progress=bars.sink("agents bench"))
-    console.print((out / "agents_bench.md").read_text())
-    console.print(f"wrote {out / 'agents_bench.json'} and {out / 'agents_bench.png'}")
+    config = quick_config() if o.quick else AgentsBenchConfig()
+    if o.matching_only:
+        run_matching_benchmark(out, o.workspace, config, progress=bars.sink("agents matching"))
+        return out / "agents" / "matching.md"
+    run_agents_benchmark(out, o.workspace, config, progress=bars.sink("agents bench"))
+    return out / "agents" / "report.md"
 
 
-@app.command("scaleout")
-def bench_scaleout(
-    out: Path = typer.Option(Path("reports"), help="Folder for scaleout_bench.json/.md/.png."),
-    workspace: Path = typer.Option(Path("omniscs-data/bench-scaleout"), help="Scratch workspace (emptied per run)."),
-    quick: bool = typer.Option(False, help="A tiny set-up that checks the code path (not for numbers)."),
-) -> None:
-    """generate_dataset on 8 scenes with 1 vs 2 Dask worker processes, the resume cost of a worker killed mid-fit,
-    and a projection to 10 and 100 machines."""
+@dataclass(frozen=True)
+class ScaleoutOptions:
+    workspace: Path = Path("omniscs-data/bench-scaleout")
+    """Scratch workspace (emptied per run)."""
+    quick: bool = False
+    """A tiny set-up that checks the code path (not for numbers)."""
+
+
+def run_scaleout(o: ScaleoutOptions, out: Path, bars: Bars) -> Path:
     import os
 
     from omniscs.cli.prefect_api import prefect_api
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    from flows.bench_scaleout import ScaleoutBenchConfig, quick_config, run_scaleout_benchmark
+    from flows.generate import generate_dataset
+    from omniscs.bench.scaleout import ScaleoutBenchConfig, quick_config, run_scaleout_benchmark
 
-    with progress_bars() as bars, prefect_api():
-        run_scaleout_benchmark(out, workspace, quick_config() if quick else ScaleoutBenchConfig(),
+    with prefect_api():
+        run_scaleout_benchmark(out, o.workspace, generate_dataset,
+                               quick_config() if o.quick else ScaleoutBenchConfig(),
                                progress=bars.sink("scale-out bench"))
-    console.print((out / "scaleout_bench.md").read_text())
-    console.print(f"wrote {out / 'scaleout_bench.json'} and {out / 'scaleout_bench.png'}")
+    return out / "scaleout" / "report.md"
 
 
-@app.command("closedloop")
-def bench_closedloop(
-    out: Path = typer.Option(Path("reports"), help="Folder for closedloop_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Workspace for the benchmark's scenes and fits (default "
-                                                        "$OMNISCS_HOME or ./omniscs-data)."),
-    quick: bool = typer.Option(False, help="A tiny set-up that checks the code path (not for numbers)."),
-) -> None:
-    """Closed-loop testing: steps per second (1 x 640x360 and 6 x 800x450; render / policy / controller), the
-    shipped policies' PDMS and HD-Score on logs vs behaviour-SCS variants, and 20 HUGSIM clients at once."""
+@dataclass(frozen=True)
+class ClosedloopOptions:
+    workspace: Optional[Path] = None
+    """Workspace for the benchmark's scenes and fits (default $OMNISCS_HOME or ./omniscs-data)."""
+    quick: bool = False
+    """A tiny set-up that checks the code path (not for numbers)."""
+
+
+def run_closedloop(o: ClosedloopOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.closedloop import ClosedLoopBenchConfig, quick_config, run_closedloop_benchmark
 
-    with progress_bars() as bars:
-        run_closedloop_benchmark(out, workspace, quick_config() if quick else ClosedLoopBenchConfig(),
-                                 progress=bars.sink("closed-loop bench"))
-    console.print((out / "closedloop_bench.md").read_text())
-    console.print(f"wrote {out / 'closedloop_bench.json'} and {out / 'closedloop_bench.png'}")
+    run_closedloop_benchmark(out, o.workspace, quick_config() if o.quick else ClosedLoopBenchConfig(),
+                             progress=bars.sink("closed-loop bench"))
+    return out / "closedloop" / "report.md"
 
 
-@app.command("appearance")
-def bench_appearance(
-    out: Path = typer.Option(Path("reports"), help="Folder for appearance_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the scenes, fits and the benchmark pool go (reused)."),
-    quick: bool = typer.Option(False, "--quick", help="The development log, one case (a smoke run, not a "
-                                                      "measurement)."),
-) -> None:
-    """Appearance-level SCS against the world's exact ground truth: pool objects inserted upright, on the side and
-    overturned at sampled poses and replacing a vehicle, in the fitted graph and in the world; object masked
-    PSNR/SSIM (plain, + colour transform, + contact shadow) against the pool model in isolation, automatic 2D box
-    IoU, placements re-checked against the world and the sampler's rejections per check."""
+@dataclass(frozen=True)
+class AppearanceOptions:
+    workspace: Optional[Path] = None
+    """Where the scenes, fits and the benchmark pool go (reused)."""
+    quick: bool = False
+    """The development log, one case (a smoke run, not a measurement)."""
+
+
+def run_appearance(o: AppearanceOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.appearance import AppearanceBenchConfig, quick_config, run_appearance_benchmark
 
-    with progress_bars() as bars:
-        run_appearance_benchmark(out, workspace, quick_config() if quick else AppearanceBenchConfig(),
-                                 progress=bars.sink("appearance bench"))
-    console.print((out / "appearance_bench.md").read_text())
-    console.print(f"wrote {out / 'appearance_bench.json'} and {out / 'appearance_bench.png'}")
+    run_appearance_benchmark(out, o.workspace, quick_config() if o.quick else AppearanceBenchConfig(),
+                             progress=bars.sink("appearance bench"))
+    return out / "appearance" / "report.md"
 
 
-@app.command("background")
-def bench_background(
-    out: Path = typer.Option(Path("reports"), help="Folder for background_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the scenes and fits go (and are reused)."),
-    quick: bool = typer.Option(False, "--quick", help="One dev scene, one novel offset, few steps (a smoke run, not "
-                                                      "a measurement)."),
-    train_depth: bool = typer.Option(False, "--train-depth", help="Train the embedded relative-depth network again "
-                                                                  "on procedural renders and write it into the "
-                                                                  "package (its shipped weights) before the "
-                                                                  "benchmark."),
-    depth_device: str = typer.Option("cpu", "--depth-device", help="Device of --train-depth ('cuda' on a GPU "
-                                                                   "machine: minutes; on 2 CPUs: hours)."),
-    export_depth_data: Optional[Path] = typer.Option(None, "--export-depth-data", help="Only write the relative-"
-                                                     "depth network's training data to this file (a depth pack) "
-                                                     "for infra/depth_gpu/train.py on a GPU machine, and stop."),
-    install_depth: Optional[Path] = typer.Option(None, "--install-depth", help="Only evaluate the weights that "
-                                                 "infra/depth_gpu/train.py wrote into this folder on the held-out "
-                                                 "worlds and install them as the shipped ones, and stop."),
-    export_inpaint_data: Optional[Path] = typer.Option(None, "--export-inpaint-data", help="Only write the "
-                                                       "inpainting network's repair pairs to this file (an inpainting "
-                                                       "pack) for infra/inpaint_gpu/train.py, and stop."),
-    inpaint_seeds: int = typer.Option(0, "--inpaint-seeds", help="With --export-inpaint-data: only this many of the "
-                                                                 "training worlds (0: all), to fit a transfer limit."),
-    install_inpaint: Optional[Path] = typer.Option(None, "--install-inpaint", help="Only evaluate the weights that "
-                                                   "infra/inpaint_gpu/train.py wrote into this folder on the held-out "
-                                                   "worlds against OpenCV's inpainters and install them as the "
-                                                   "shipped ones, and stop."),
-    no_ablations: bool = typer.Option(False, "--no-ablations", help="Only the main rows (naive, hidden Gaussians "
-                                                                    "removed, the issue's rows, the default repair): "
-                                                                    "about half the time."),
-    ablation: Optional[list[str]] = typer.Option(None, "--ablation", help="Only this ablation row (repeatable; "
-                                                 "default: all of them), e.g. 'planes + DRNet + RoI refit, planes "
-                                                 "first where the cleaned background covers'."),
-) -> None:
-    """Removing a large static object: naive removal, 2D inpainting only, least-squares depth, DRNet, DRNet +
-    RoI refit and the default repair (planes + DRNet + RoI refit) against the world re-rendered without it (hole
-    PSNR/SSIM, depth AbsRel/delta, full PSNR, seconds), at held-out logged and novel views; RoI refit vs a full
-    background refit."""
+@dataclass(frozen=True)
+class BackgroundOptions:
+    workspace: Optional[Path] = None
+    """Where the scenes and fits go (and are reused)."""
+    quick: bool = False
+    """One dev scene, one novel offset, few steps (a smoke run, not a measurement)."""
+    no_ablations: bool = field(default=False, metadata=_flag("--no-ablations"))
+    """Only the main rows (naive, hidden Gaussians removed, the issue's rows, the default repair): about half the
+    time."""
+    ablation: Optional[list[str]] = None
+    """Only this ablation row (repeatable; default: all of them), e.g. 'planes + DRNet + RoI refit, planes first
+    where the cleaned background covers'."""
+
+
+def run_background(o: BackgroundOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.background import BackgroundBenchConfig, quick_config, run_background_benchmark
 
-    if export_depth_data is not None:
-        from omniscs.bench.depth_data import export_depth_data as export
-
-        with progress_bars() as bars:
-            facts = export(export_depth_data, workspace, progress=bars.sink("depth data"))
-        console.print(f"wrote {facts['n_images']} training images ({facts['bytes'] / 2**20:.1f} MiB) to "
-                      f"{export_depth_data}")
-        return
-    if export_inpaint_data is not None:
-        from omniscs.bench.inpaint_data import InpaintDataConfig, export_inpaint_data as export_pairs
-
-        data = InpaintDataConfig()
-        if inpaint_seeds:
-            data = dataclasses.replace(data, train_seeds=data.train_seeds[:inpaint_seeds])
-        with progress_bars() as bars:
-            facts = export_pairs(export_inpaint_data, workspace, data, progress=bars.sink("inpainting data"))
-        console.print(f"wrote {facts['n_pairs']} repair pairs ({facts['bytes'] / 2**20:.1f} MiB) to "
-                      f"{export_inpaint_data}")
-        return
-    if install_inpaint is not None:
-        from omniscs.bench.inpaint_data import install_trained_inpaint
-
-        info = install_trained_inpaint(install_inpaint, workspace=workspace)
-        ev = info["evaluation"]
-        console.print(f"installed the inpainting weights from {install_inpaint}: held-out hole PSNR "
-                      f"{ev['embedded']['hole_psnr_mean']:.2f} dB (OpenCV FSR {ev['fsr_fast']['hole_psnr_mean']:.2f}, "
-                      f"Telea {ev['telea']['hole_psnr_mean']:.2f}) over {ev['n_pairs']} pairs")
-        return
-    if install_depth is not None:
-        from omniscs.bench.depth_data import install_trained_depth
-
-        info = install_trained_depth(install_depth)
-        console.print(f"installed the relative-depth weights from {install_depth}: held-out AbsRel "
-                      f"{info['evaluation']['embedded']['images']['absrel_mean']:.3f}, in repair holes "
-                      f"{info['evaluation']['embedded']['repair_hole']['absrel_mean']:.3f}")
-        return
-    if train_depth:
-        from omniscs.bench.depth_data import train_shipped_depth
-
-        with progress_bars() as bars:
-            info = train_shipped_depth(workspace, progress=bars.sink("relative depth"), device=depth_device)
-        console.print(f"relative depth: {info['n_images']} images, loss {info['loss_first']:.3f} -> "
-                      f"{info['loss_last']:.3f} in {info['seconds']:.0f} s")
-    with progress_bars() as bars:
-        config = quick_config() if quick else BackgroundBenchConfig()
-        if no_ablations:
-            config = dataclasses.replace(config, full_comparison=False)
-        if ablation:
-            config = dataclasses.replace(config, ablations=tuple(ablation))
-        run_background_benchmark(out, workspace, config, progress=bars.sink("background bench"))
-    console.print((out / "background_bench.md").read_text())
-    console.print(f"wrote {out / 'background_bench.json'} and {out / 'background_bench.png'}")
+    config = quick_config() if o.quick else BackgroundBenchConfig()
+    if o.no_ablations:
+        config = dataclasses.replace(config, full_comparison=False)
+    if o.ablation:
+        config = dataclasses.replace(config, ablations=tuple(o.ablation))
+    run_background_benchmark(out, o.workspace, config, progress=bars.sink("background bench"))
+    return out / "background" / "report.md"
 
 
-@app.command("downstream")
-def bench_downstream(
-    out: Path = typer.Option(Path("reports"), help="Folder for downstream_bench.json/.md/.png."),
-    workspace: Optional[Path] = typer.Option(None, help="Where the benchmark's variants and solutions go (and are "
-                                                        "reused)."),
-    train_base: bool = typer.Option(False, "--train-base", help="Train the base proxy planner again on the train "
-                                                                "logs and write it into the package (its shipped "
-                                                                "weights)."),
-    quick: bool = typer.Option(False, "--quick", help="A few scenes and epochs (a smoke run, not a measurement)."),
-    detection: bool = typer.Option(False, "--detection", help="The detection protocol instead (base vs fine-tuned "
-                                                              "with appearance-SCS data; mAP/NDS on an "
-                                                              "appearance-SCS and the original test set) with the "
-                                                              "embedded proxy camera detector: "
-                                                              "downstream_detection_bench.*."),
-) -> None:
-    """The planning protocol (base vs fine-tuned with behaviour-SCS data; L2 and collision rate on a behaviour-SCS
-    and the original test set) with the embedded proxy planner; with --detection, the detection protocol."""
-    if detection:
+@dataclass(frozen=True)
+class DownstreamOptions:
+    workspace: Optional[Path] = None
+    """Where the benchmark's variants and solutions go (and are reused)."""
+    quick: bool = False
+    """A few scenes and epochs (a smoke run, not a measurement)."""
+    detection: bool = False
+    """The detection protocol instead (base vs fine-tuned with appearance-SCS data; mAP/NDS on an appearance-SCS
+    and the original test set) with the embedded proxy camera detector: downstream/detection.json/.md."""
+
+
+def run_downstream(o: DownstreamOptions, out: Path, bars: Bars) -> Path:
+    if o.detection:
         from omniscs.bench.detection_protocol import DetectionProtocolConfig, quick_config as quick_detection, \
             run_detection_protocol
 
-        with progress_bars() as bars:
-            run_detection_protocol(out, workspace, quick_detection() if quick else DetectionProtocolConfig(),
-                                   progress=bars.sink("detection protocol"))
-        console.print((out / "downstream_detection_bench.md").read_text())
-        console.print(f"wrote {out / 'downstream_detection_bench.json'}")
-        return
+        run_detection_protocol(out, o.workspace, quick_detection() if o.quick else DetectionProtocolConfig(),
+                               progress=bars.sink("detection protocol"))
+        return out / "downstream" / "detection.md"
     from omniscs.bench.downstream import DownstreamBenchConfig, quick_config, run_downstream_benchmark
 
-    with progress_bars() as bars:
-        run_downstream_benchmark(out, workspace, quick_config() if quick else DownstreamBenchConfig(),
-                                 train_base=train_base, progress=bars.sink("downstream bench"))
-    console.print((out / "downstream_bench.md").read_text())
-    console.print(f"wrote {out / 'downstream_bench.json'}")
+    run_downstream_benchmark(out, o.workspace, quick_config() if o.quick else DownstreamBenchConfig(),
+                             progress=bars.sink("downstream bench"))
+    return out / "downstream" / "report.md"
 
 
-@app.command("reliability")
-def bench_reliability(
-    out: Path = typer.Option(Path("reports"), help="Folder for reliability.json/.md."),
-    kills: int = typer.Option(10, help="SIGKILL moments of the fault-injection check (each then rerun)."),
-    processes: int = typer.Option(4, help="Concurrent generate processes of the concurrency check."),
-    seed: int = typer.Option(2026, help="Seed of the kill moments."),
-) -> None:
-    """Kill `omniscs generate` at random moments and rerun it (catalog and files must equal a clean run's, no
-    temporaries, no orphaned server); run several at once on one workspace (each scene once per run)."""
+@dataclass(frozen=True)
+class ReliabilityOptions:
+    kills: int = 10
+    """SIGKILL moments of the fault-injection check (each then rerun)."""
+    processes: int = 4
+    """Concurrent generate processes of the concurrency check."""
+    seed: int = 2026
+    """Seed of the kill moments."""
+
+
+def run_reliability(o: ReliabilityOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.reliability import ReliabilityConfig, run_bench
 
-    if not 1 <= kills <= 100 or not 2 <= processes <= 16 or seed < 0:
+    if not 1 <= o.kills <= 100 or not 2 <= o.processes <= 16 or o.seed < 0:
         raise OmniscsError("--kills must be 1..100, --processes 2..16 and --seed >= 0")
-    with progress_bars() as bars:
-        run_bench(ReliabilityConfig(kills=kills, processes=processes, seed=seed), out,
-                  progress=bars.sink("bench reliability"))
-    console.print((out / "reliability.md").read_text())
-    console.print(f"wrote {out / 'reliability.json'}")
+    run_bench(ReliabilityConfig(kills=o.kills, processes=o.processes, seed=o.seed), out,
+              progress=bars.sink("bench reliability"))
+    return out / "reliability" / "report.md"
 
 
-@app.command("bad-inputs")
-def bench_bad_inputs(
-    out: Path = typer.Option(Path("reports"), help="Folder for bad_inputs.json/.md."),
-    subprocess_mode: bool = typer.Option(False, "--subprocess", help="Run each case as a new omniscs process "
-                                                                     "(slower; in-process by default)."),
-) -> None:
-    """Try every bad input of the table over every command; count one clear line / traceback / silently wrong /
-    left files / other, by category."""
+@dataclass(frozen=True)
+class BadInputsOptions:
+    subprocess_mode: bool = field(default=False, metadata=_flag("--subprocess"))
+    """Run each case as a new omniscs process (slower; in-process by default)."""
+
+
+def run_bad_inputs(o: BadInputsOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.bad_inputs import run_bench
 
-    with progress_bars() as bars:
-        run_bench(out, subprocess_mode=subprocess_mode, progress=bars.sink("bench bad-inputs"))
-    console.print((out / "bad_inputs.md").read_text())
-    console.print(f"wrote {out / 'bad_inputs.json'}")
+    run_bench(out, subprocess_mode=o.subprocess_mode, progress=bars.sink("bench bad-inputs"))
+    return out / "bad-inputs" / "report.md"
+
+
+# ----------------------------------------------------------------------------- the table
+@dataclass(frozen=True)
+class Benchmark:
+    """One ``omniscs bench NAME`` command."""
+
+    name: str
+    """The command name, also its report folder under the reports root."""
+    options: type
+    """A frozen dataclass: its fields are the command's options (help from the field docs)."""
+    run: Callable[..., Path]
+    """``run(options, reports_root, bars)``: checks the options, runs, returns the Markdown report written."""
+    help: str
+    """What it measures (the command's help)."""
+
+
+BENCHMARKS: tuple[Benchmark, ...] = (
+    Benchmark("world", WorldOptions, run_world, "Time rendering a 40-frame, 3-camera 480x270 scene with LiDAR."),
+    Benchmark("sources", SourcesOptions, run_sources, "Time reading a 480x270 synthetic log back from nuScenes, "
+              "KITTI and Waymo v2 (ms per frame)."),
+    Benchmark("behavior", BehaviorOptions, run_behavior, "Adversarial success, plausibility violations, "
+              "accelerations and time per variant, with and without the plausibility penalty, with and without L_app "
+              "(and its appearance drift), plus the traffic model's ADE/FDE."),
+    Benchmark("fit", FitOptions, run_fit, "Fit the same scenes with each preset: wall time, Gaussians and held-out "
+              "PSNR/SSIM; a time-vs-PSNR plot."),
+    Benchmark("edits", EditsOptions, run_edits, "Edit fidelity against ground truth: translate 2.0/3.5 m, rotate "
+              "90/180/270°; PSNR/SSIM full and masked."),
+    Benchmark("render", RenderOptions, run_render, "Time the Gaussian rasterizer (forward, forward+backward) per "
+              "backend; cpu/reference speed-up."),
+    Benchmark("plan", PlanOptions, run_plan, "The pipeline with the scene's plan vs with every track an agent node: "
+              "time, Gaussians, nodes, held-out and edited-agent PSNR against ground truth."),
+    Benchmark("dataset", DatasetOptions, run_dataset, "Annotated images per second (480x270 x 3 and 1600x900 x 6) "
+              "and annotated variants per hour after fitting."),
+    Benchmark("agents", AgentsOptions, run_agents, "The model pool (seconds per model), matching top-1/top-5 "
+              "against degradation, and the paper's Table 4 (naive / online / pool / dual / pool with the vehicles' "
+              "own models, after translate, rotate and overturn) on held-out worlds."),
+    Benchmark("scaleout", ScaleoutOptions, run_scaleout, "generate_dataset on 8 scenes with 1 vs 2 Dask worker "
+              "processes, the resume cost of a worker killed mid-fit, and a projection to 10 and 100 machines."),
+    Benchmark("closedloop", ClosedloopOptions, run_closedloop, "Closed-loop testing: steps per second (1 x 640x360 "
+              "and 6 x 800x450; render / policy / controller), the shipped policies' PDMS and HD-Score on logs vs "
+              "behaviour-SCS variants, and 20 HUGSIM clients at once."),
+    Benchmark("appearance", AppearanceOptions, run_appearance, "Appearance-level SCS against the world's exact "
+              "ground truth: pool objects inserted upright, on the side and overturned at sampled poses and "
+              "replacing a vehicle, in the fitted graph and in the world; object masked PSNR/SSIM (plain, + colour "
+              "transform, + contact shadow) against the pool model in isolation, automatic 2D box IoU, placements "
+              "re-checked against the world and the sampler's rejections per check."),
+    Benchmark("background", BackgroundOptions, run_background, "Removing a large static object: naive removal, 2D "
+              "inpainting only, least-squares depth, DRNet, DRNet + RoI refit and the default repair (planes + DRNet "
+              "+ RoI refit) against the world re-rendered without it (hole PSNR/SSIM, depth AbsRel/delta, full PSNR, "
+              "seconds), at held-out logged and novel views; RoI refit vs a full background refit."),
+    Benchmark("downstream", DownstreamOptions, run_downstream, "The planning protocol (base vs fine-tuned with "
+              "behaviour-SCS data; L2 and collision rate on a behaviour-SCS and the original test set) with the "
+              "embedded proxy planner; with --detection, the detection protocol."),
+    Benchmark("reliability", ReliabilityOptions, run_reliability, "Kill `omniscs generate` at random moments and "
+              "rerun it (catalog and files must equal a clean run's, no temporaries, no orphaned server); run "
+              "several at once on one workspace (each scene once per run)."),
+    Benchmark("bad-inputs", BadInputsOptions, run_bad_inputs, "Try every bad input of the table over every "
+              "command; count one clear line / traceback / silently wrong / left files / other, by category."),
+)
+
+
+# ----------------------------------------------------------------------------- one handler for all of them
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass (the string literal that follows its annotation)."""
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    docs = {}
+    for node, after in zip(body, body[1:]):
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) \
+                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) \
+                and isinstance(after.value.value, str):
+            docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def _handler(bench: Benchmark) -> Callable[..., None]:
+    """A typer command whose options are ``--out`` and the fields of ``bench.options``."""
+    hints = typing.get_type_hints(bench.options)
+    docs = field_docs(bench.options)
+    params = [inspect.Parameter("out", inspect.Parameter.KEYWORD_ONLY, annotation=Path, default=typer.Option(
+        Path("reports"), help=f"Reports root: writes <out>/{bench.name}/report.json and report.md (+ pictures); a "
+                              "rerun replaces them."))]
+    for f in fields(bench.options):
+        decls = [f.metadata["flag"]] if "flag" in f.metadata else []
+        params.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=hints[f.name],
+                                        default=typer.Option(f.default, *decls, help=docs.get(f.name))))
+
+    def handler(**given) -> None:
+        out = Path(given.pop("out"))
+        options = bench.options(**given)
+        with progress_bars() as bars:
+            report = bench.run(options, out, bars)
+        console.print(report.read_text())
+        console.print(f"wrote {report.parent}")
+
+    handler.__signature__ = inspect.Signature(params)
+    handler.__doc__ = bench.help
+    handler.__name__ = f"bench_{bench.name.replace('-', '_')}"
+    return handler
+
+
+for _bench in BENCHMARKS:
+    app.command(_bench.name)(_handler(_bench))

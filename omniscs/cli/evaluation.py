@@ -107,7 +107,7 @@ def finetune(
     rehearse: list[Path] = typer.Option([], "--rehearse", help="detection: a nuScenes dataroot the base detector "
                                                                "was trained on, mixed into the fine-tuning so it "
                                                                "does not forget it (repeat; the shipped detector's: "
-                                                               "python -m omniscs.bench.detector_data)."),
+                                                               "omniscs pretrained train detector)."),
     planner_rehearsal: bool = typer.Option(True, "--planner-rehearsal/--no-planner-rehearsal",
                                            help="planning: mix in the logs the base planner was trained on (remade "
                                                 "from its training record) instead of the datasets' source logs."),

@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from omniscs.errors import ValidationError
+from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES
 from omniscs.eval.nuscenes_io import CATEGORY_TO_DETECTION, NuScenesTables
 from omniscs.progress import Progress, no_progress
@@ -68,8 +69,8 @@ WEIGHTS = "detector.safetensors"
 CONFIG = "detector_config.json"
 TRAINING = "training.json"
 README = "README.md"
-#: The detector shipped with the package (``python -m omniscs.bench.detector_data``; see its training.json).
-DEFAULT_DETECTOR = Path(__file__).parent / "checkpoints" / "detector"
+#: The detector shipped with the package (registry entry ``detector``; ``omniscs pretrained train detector``).
+DEFAULT_DETECTOR = shipped_folder("detector")
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -930,14 +931,14 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
     """A saved detector (default: the shipped one); a clear error when the folder is not one."""
     from safetensors.torch import load_file
 
-    path = Path(path) if path is not None else DEFAULT_DETECTOR
+    path = verified_folder(path if path is not None else DEFAULT_DETECTOR)
     try:
         raw = json.loads((path / CONFIG).read_text())
         config = DetectorConfig(**{**raw, "widths": tuple(raw["widths"]), "classes": tuple(raw["classes"])})
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError, KeyError) as e:
         raise ValidationError(f"{path} is not a proxy detector checkpoint ({e}); train one with "
-                              "`python -m omniscs.bench.detector_data` or name its folder") from e
+                              "`omniscs pretrained train detector` or name its folder") from e
     model = ProxyDetector(config)
     try:
         model.load_state_dict(state)

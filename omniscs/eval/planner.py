@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from omniscs.errors import ValidationError
+from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.eval.planning import EGO_LENGTH, EGO_SHIFT, EGO_WIDTH, STEP_S, STEPS, footprints_on_grid
 from omniscs.eval.scenarios import COMMANDS, PlanningExample, PlanningInput
 from omniscs.progress import Progress, no_progress
@@ -40,8 +41,8 @@ STATE = ("speed_10", "yaw_rate", *(f"command_{c}" for c in COMMANDS), "has_map")
 WEIGHTS = "planner.safetensors"
 CONFIG = "planner_config.json"
 TRAINING = "training.json"
-#: The planner shipped with the package (trained by ``omniscs bench downstream --train-base``; see its training.json).
-DEFAULT_PLANNER = Path(__file__).parent / "checkpoints" / "planner"
+#: The planner shipped with the package (registry entry ``planner``; ``omniscs pretrained train planner``).
+DEFAULT_PLANNER = shipped_folder("planner")
 
 #: The collision loss's margins (m) and weights, as UniAD configures its planner's three collision losses.
 COLLISION_MARGINS = ((0.0, 2.5), (0.5, 1.0), (1.0, 0.25))
@@ -296,13 +297,13 @@ def load_planner(path: str | Path | None = None) -> ProxyPlanner:
     """A saved planner (default: the shipped one); a clear error when the folder is not one."""
     from safetensors.torch import load_file
 
-    path = Path(path) if path is not None else DEFAULT_PLANNER
+    path = verified_folder(path if path is not None else DEFAULT_PLANNER)
     try:
         config = PlannerConfig(**json.loads((path / CONFIG).read_text()))
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError) as e:
         raise ValidationError(f"{path} is not a proxy planner checkpoint ({e}); train one with "
-                              "`omniscs bench downstream --train-base` or name its folder") from e
+                              "`omniscs pretrained train planner` or name its folder") from e
     model = ProxyPlanner(config)
     try:
         model.load_state_dict(state)

@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pytest
 
 from annotate_fixtures import fitted_scene, logged_variant
@@ -117,18 +116,3 @@ def test_a_reader_during_a_rebuild_sees_the_dataset_or_a_clear_error(annotated_d
         reader.join()
     assert failures == [] and outcomes["same"] > 0
     assert (load_scene(store).image("CAM_FRONT", 0) == expected).all()
-
-
-@pytest.mark.slow
-def test_the_dataset_benchmark_runs_end_to_end_at_thumbnail_size(tmp_path):
-    from omniscs.bench.dataset import quick_config, run_dataset_benchmark
-
-    result = run_dataset_benchmark(tmp_path / "r", tmp_path / "ws", quick_config())
-    for name in ("dataset_bench.json", "dataset_bench.md", "dataset_bench.png"):
-        assert (tmp_path / "r" / name).is_file()
-    s, scene = result["summary"], result["scenes"][0]
-    assert s["variants_per_hour"] > 0 and s["images_per_s_nuscenes_size"] > 0
-    assert scene["with fidelity"]["psnr_drift_pairs"] and not scene["without fidelity"]["psnr_drift_pairs"]
-    assert all(np.isfinite(v) for pair in scene["with fidelity"]["psnr_drift_pairs"] for v in pair)
-    proxies = scene["proxies only"]
-    assert all(p is None for p in proxies["fidelity_psnr"]) and all(d is not None for d in proxies["feature_drift"])

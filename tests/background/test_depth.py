@@ -82,7 +82,7 @@ def test_a_randomly_initialised_network_fails_the_ranking_check(held_out_view, s
 
 
 def test_missing_embedded_weights_say_how_to_make_them(tmp_path):
-    with pytest.raises(OmniscsError, match="--train-depth"):
+    with pytest.raises(OmniscsError, match="omniscs pretrained train reldepth"):
         EmbeddedDepth(tmp_path)
 
 

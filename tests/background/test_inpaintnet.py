@@ -120,9 +120,9 @@ def test_weights_round_trip_through_safetensors_in_half_precision(tmp_path):
 
 
 def test_missing_weights_say_how_to_make_them(tmp_path):
-    with pytest.raises(ValidationError, match="--install-inpaint"):
+    with pytest.raises(ValidationError, match="pretrained train inpaint --install"):
         load_inpaint_net(tmp_path)
-    with pytest.raises(OmniscsError, match="--install-inpaint"):
+    with pytest.raises(OmniscsError, match="pretrained train inpaint --install"):
         load_inpainter(f"net:{tmp_path}")
 
 
@@ -161,7 +161,7 @@ def test_a_pack_refuses_empty_holes_and_a_foreign_file(tmp_path):
 @pytest.fixture(scope="module")
 def held_out_pairs():
     """Repair pairs of two worlds that neither trained nor evaluated the shipped network (seeds 3950-3951)."""
-    from omniscs.bench.inpaint_data import InpaintDataConfig, repair_pairs
+    from omniscs.pretrained.training.inpaint import InpaintDataConfig, repair_pairs
 
     cfg = dataclasses.replace(InpaintDataConfig(), frames=(10, 30))
     parts = [repair_pairs(s, cfg) for s in (3950, 3951)]
@@ -170,7 +170,7 @@ def held_out_pairs():
 
 @pytest.mark.skipif(not (SHIPPED / "inpaint.safetensors").is_file(), reason="no shipped inpainting weights")
 def test_the_shipped_network_fills_held_out_repair_holes_better_than_fsr(held_out_pairs):
-    from omniscs.bench.inpaint_data import evaluate_inpainters
+    from omniscs.pretrained.training.inpaint import evaluate_inpainters
 
     assert len(held_out_pairs["images"]) >= 8
     report = evaluate_inpainters({"embedded": load_inpainter("embedded"), "fsr": OpenCVInpainter("fsr_fast")},
@@ -190,7 +190,7 @@ def test_repair_pairs_hide_the_agent_and_their_targets_differ_inside_the_hole(he
 
 
 def test_inpainting_data_refuse_benchmark_seeds_and_a_folder_without_weights(tmp_path):
-    from omniscs.bench.inpaint_data import InpaintDataConfig, cached_pairs, install_trained_inpaint
+    from omniscs.pretrained.training.inpaint import InpaintDataConfig, cached_pairs, install_trained_inpaint
 
     with pytest.raises(OmniscsError, match=">= 3000"):
         cached_pairs([101], InpaintDataConfig(), tmp_path)

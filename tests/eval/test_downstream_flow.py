@@ -56,7 +56,9 @@ def workspace(tmp_path_factory):
 def _two_base_logs(monkeypatch, tmp_path):
     """The base planner's rehearsal remade from a record naming two of its training logs instead of 40 (time)."""
     real = d.base_planner_logs
-    record = json.loads((Path(d.__file__).parents[1] / "eval/checkpoints/planner/training.json").read_text())
+    from omniscs.eval.planner import DEFAULT_PLANNER
+
+    record = json.loads((DEFAULT_PLANNER / "training.json").read_text())
     seeds = record["data"]["train_seeds"]
     (tmp_path / "training.json").write_text(json.dumps({"data": {**record["data"],
                                                                  "train_seeds": [seeds[0], seeds[0] + 1]}}))

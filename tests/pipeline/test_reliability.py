@@ -1,9 +1,9 @@
 """Crash safety and concurrency: per-output locks, temporaries of dead writers, overwrite only of what omniscs
-wrote, the same source given twice, SIGTERM and SIGKILL of `omniscs generate`, and concurrent runs."""
+wrote, the same source given twice (SIGTERM and SIGKILL of `omniscs generate` and concurrent runs: the reliability
+benchmark's checks, tests/bench/test_reliability_bench.py)."""
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import threading
 import time
@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from omniscs import catalog
 from omniscs.errors import OmniscsError
 from omniscs.locks import clean_stale_temps, holder, lock_path, output_lock
 from omniscs.storage import OWNER_MARKER, atomic_directory, is_owned
@@ -131,85 +130,3 @@ def test_the_same_new_source_ingested_twice_at_once_is_rendered_once(tmp_path):
     assert sorted(r.reused for r in results) == [False, True]
     assert results[0].path == results[1].path
     assert [p.name for p in (tmp_path / "scenes").iterdir()] == [Path(results[0].path).name]
-
-
-# ----------------------------------------------------------------------------- real `omniscs generate` processes
-def _wait_for(predicate, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
-
-
-def test_sigterm_stops_generate_records_the_run_and_leaves_no_server_or_temporaries(tmp_path):
-    from omniscs.bench.reliability import children, cli_command, cli_env, running, workspace_state
-
-    ws = tmp_path / "ws"
-    proc = subprocess.Popen(cli_command() + ["generate", "syn:straight:45", "--frames", "40", "--cameras", "3",
-                                             "--width", "160", "--height", "90", "--run-id", "stopped"],
-                            env=cli_env(ws, tmp_path / "prefect"), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    try:
-        assert _wait_for(lambda: any(".tmp-" in p.name for p in (ws / "scenes").glob("*")), 240), \
-            "rendering never started"
-        server = children(proc.pid)
-        assert server, "no temporary Prefect server was started"
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 128 + signal.SIGTERM
-    assert err.strip().splitlines()[-1].startswith("error: run stopped stopped by SIGTERM")
-    assert "Traceback" not in err
-    assert _wait_for(lambda: not any(running(p) for p in server), 10)
-    assert workspace_state(ws)["temporaries"] == []
-    rows = catalog.query(catalog.catalog_root(ws), "SELECT status, error FROM runs").to_pylist()
-    assert len(rows) == 1 and rows[0]["status"] == "cancelled"
-    assert "stopped by SIGTERM" in rows[0]["error"]
-
-
-def test_sigkilled_runs_rerun_to_the_clean_result(tmp_path):
-    """Fault injection, short form (one kill moment; the slow test below and `omniscs bench reliability` run 10):
-    SIGKILL at a random moment, then the same command again; the rerun's catalog and files equal one clean
-    run's."""
-    from omniscs.bench.reliability import ReliabilityConfig, fault_injection
-
-    config = ReliabilityConfig(sources=("syn:straight:46", "syn:t_junction:47:night"),
-                               options=("--frames", "10", "--cameras", "1", "--width", "96", "--height", "54"),
-                               kills=1, seed=7)
-    result = fault_injection(config, tmp_path)
-    assert len(result["kills"]) == 1
-    assert result["clean_rows"]["scenes"] == 2 and result["clean_rows"]["agents"] > 0
-    for kill in result["kills"]:
-        assert kill["orphaned_processes"] == 0, kill
-        assert kill["rerun_exit"] == 0, kill
-        assert kill["catalog_equal"] and kill["files_equal"], kill
-        assert kill["temporaries_after_rerun"] == 0, kill
-
-
-def test_four_concurrent_runs_with_overlapping_new_sources_all_succeed(tmp_path):
-    from omniscs.bench.reliability import ReliabilityConfig, concurrency
-
-    config = ReliabilityConfig(sources=("syn:straight:48", "syn:t_junction:49", "syn:intersection:50"),
-                               options=("--frames", "6", "--cameras", "1", "--width", "96", "--height", "54"),
-                               processes=4)
-    result = concurrency(config, tmp_path)
-    assert result["exit_codes"] == [0, 0, 0, 0], result["failed_output"]
-    assert result["scene_stores"] == 3  # each new scene rendered once, whoever got there first
-    assert sorted(r["status"] for r in result["runs"]) == ["completed"] * 4
-    asked = {r["run_id"]: r["n_scenes"] for r in result["runs"]}
-    assert {r["run_id"]: (r["rows"], r["scenes"]) for r in result["scenes_per_run"]} == \
-        {run: (n, n) for run, n in asked.items()}
-    assert result["scenes_twice_in_a_run"] == [] and result["temporaries_left"] == []
-
-
-@pytest.mark.slow
-def test_fault_injection_at_ten_moments(tmp_path):
-    from omniscs.bench.reliability import ReliabilityConfig, fault_injection
-
-    result = fault_injection(ReliabilityConfig(kills=10, seed=11), tmp_path)
-    assert all(k["rerun_exit"] == 0 and k["catalog_equal"] and k["files_equal"] and not k["orphaned_processes"]
-               and not k["temporaries_after_rerun"] for k in result["kills"]), result["kills"]

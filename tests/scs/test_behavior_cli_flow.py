@@ -15,7 +15,6 @@ from omniscs.errors import OmniscsError
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.bench.behavior import configurations, markdown
 from tests.conftest import write_tiny_scene
 
 ISSUE_KEYS = {"variant_id", "dt", "ego", "agents", "sizes", "adversary", "collision_step", "success", "plausible",
@@ -111,44 +110,3 @@ def test_generate_dataset_refuses_a_negative_variant_count(prefect_harness, tmp_
 
     with pytest.raises(OmniscsError, match="behavior_variants: Input should be greater than or equal to 0"):
         generate_dataset(dict(sources=["syn:straight:0"], workspace=str(tmp_path), behavior_variants=-2))
-
-
-def _summary_row(**extra) -> dict:
-    return {"scene_success_rate_any_variant": 1.0, "scene_success_rate_first_variant": 1.0,
-            "scene_success_rate_feasible": 1.0, "feasible_scenes": 1, "reachable_scenes": 1,
-            "variant_success_rate": 1.0, "successful_variants": 1, "variants": 1,
-            "violation_rate_successful": 0.0, "violation_rate_all": 0.0,
-            "adversary_abs_long_accel_mean": 1.0, "adversary_abs_long_accel_max": 2.0,
-            "adversary_lateral_accel_mean": 1.0, "adversary_lateral_accel_max": 2.0,
-            "seconds_per_variant_median": 1.0, "kinds": {"cut_in": 1}, **extra}
-
-
-def test_benchmark_markdown_has_the_l_app_comparison_with_drift():
-    from omniscs.bench.behavior import appearance_configs
-
-    configs = configurations(adversarial_preset("fast"), rule_planner=False)
-    assert len(configs) == 3
-    study = {"scenes": [{"reachable": True}], "fits": [{"status": "fitted", "heldout_psnr": 27.5}],
-             "fit_preset": "fast", "render": {"frames": 3, "downscale": 4},
-             "summary": {name: _summary_row(appearance_drift_psnr_db_mean=21.25 if w is None else 23.5,
-                                            appearance_drift_measured_variants=2)
-                         for name, w in appearance_configs((1.0,))}}
-    result = {"scenes": [{"reachable": True}], "bench": {"variants_per_scene": 1, "preset": "fast"},
-              "checkpoint_hash": "abc", "summary": {name: _summary_row() for name in configs}, "appearance": study}
-    text = markdown(result)
-    assert "| default + L_app (weight 1) | 100% (of 1) | 100% (of 1) | 100% (1/1) | 0% | 1.00 | 23.50 | 2 |" in text
-    assert "held-out PSNR 27.5 dB" in text
-    assert "Not run" in markdown({**result, "appearance": None})
-
-
-@pytest.mark.slow
-def test_benchmark_runs_on_a_small_scene_set(tmp_path):
-    from omniscs.bench.behavior import BenchConfig, run_behavior_benchmark
-
-    result = run_behavior_benchmark(tmp_path, BenchConfig(scenes_per_template=1, variants_per_scene=1,
-                                                          preset="fast", rule_planner=False, appearance_scenes=1,
-                                                          app_weights=(1.0,)),
-                                    workspace=tmp_path / "ws")
-    assert (tmp_path / "behavior_bench.md").is_file() and (tmp_path / "behavior_bench.png").is_file()
-    with_app = result["appearance"]["rows"]["default + L_app (weight 1)"]
-    assert with_app and all(r["losses"]["L_app"] is not None for r in with_app)

@@ -7,7 +7,6 @@ import torch
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.bench.behavior import _summary, mark_feasible, markdown
 from omniscs.scs.behavior.checkpoint import load_checkpoint
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.feasibility import (FeasibilityConfig, comfort_kinematics, out_of_reach, search_reach,
@@ -108,32 +107,3 @@ def test_the_search_is_deterministic_per_seed_and_rejects_bad_input(model):
         search_reach(p, p.n_nodes)
     with pytest.raises(OmniscsError, match="starts"):
         search_reach(p, node, config=FeasibilityConfig(starts=0))
-
-
-def _row(scene, success, plausible):
-    return {"scene_id": scene, "success": success, "plausible": plausible, "seconds": 1.0, "iterations": 10,
-            "attempts": 1, "kind": "cut_in", "violations": [] if plausible else ["lateral acceleration 6 > 4.9"],
-            "adversary_accel": [-1.0, 1.0], "adversary_max_lateral": 2.0}
-
-
-def test_the_benchmark_counts_a_scene_feasible_by_search_or_by_a_plausible_success():
-    scenes = [{"scene_id": "a", "reachable": True, "feasible_search": True},
-              {"scene_id": "b", "reachable": True, "feasible_search": False},   # nobody can: excluded
-              {"scene_id": "c", "reachable": False, "feasible_search": False},  # the search missed it
-              {"scene_id": "d", "reachable": True, "feasible_search": True}]    # feasible, but the method fails
-    rows = {"x": [_row("a", True, True), _row("b", True, False), _row("c", True, True), _row("d", False, True)],
-            "rule": [_row("d", True, True)]}  # another plan: no proof for the replay plan
-    mark_feasible(scenes, rows, ["x"])
-    assert [s["feasible"] for s in scenes] == [True, False, True, True]
-    assert [s["search_missed"] for s in scenes] == [False, False, True, False]
-    s = _summary(rows["x"], scenes)
-    assert s["feasible_scenes"] == 3 and s["scene_success_rate_feasible"] == pytest.approx(2 / 3)
-    assert s["failed_feasible_scenes"] == ["d"]
-    assert s["reachable_scenes"] == 3 and s["scene_success_rate_any_variant"] == pytest.approx(2 / 3)
-    result = {"scenes": scenes, "bench": {"variants_per_scene": 1, "preset": "fast",
-                                          "feasibility": {"starts": 64, "steps": 200}},
-              "checkpoint_hash": "abc", "configurations": ["x"], "summary": {"x": s}, "rows": {"x": rows["x"]},
-              "appearance": None}
-    text = markdown(result)
-    assert "3 scene(s) are **feasible**" in text and "the search missed 1: c" in text
-    assert "| x | 67% (of 3) | 67% (of 3) |" in text and "Feasible scenes a configuration failed: x: d." in text

@@ -252,22 +252,6 @@ def test_sun_casts_shadows_on_the_road():
     assert np.mean(darker > 60) > 0.02
 
 
-def test_benchmark_writes_json_markdown_and_plots(tmp_path):
-    import json
-
-    from omniscs.bench.world import run_world_benchmark
-
-    calls = []
-    result = run_world_benchmark(tmp_path, seeds=(0,), n_frames=2, n_cameras=1, width=W, height=H,
-                                 progress=lambda done, total: calls.append((done, total)))
-    assert calls[-1] == (2, 2)
-    assert result["asset_count"] >= 200 and result["runs"][0]["total_s"] > 0
-    assert json.loads((tmp_path / "world_render.json").read_text())["median_total_s"] == result["median_total_s"]
-    assert "| straight | 0 |" in (tmp_path / "world_render.md").read_text()
-    assert (tmp_path / "world_render.png").stat().st_size > 0
-    assert (tmp_path / "world_render_preview.png").stat().st_size > 0
-
-
 def test_world_without_agents_renders_only_background(world):
     empty = WorldRenderer(world.replace(agents=()))
     out = empty.render_camera(0, "CAM_FRONT")

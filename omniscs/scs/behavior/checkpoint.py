@@ -11,6 +11,7 @@ from safetensors.torch import load_file, save_file
 
 from omniscs.checks import is_finite, is_int, read_json
 from omniscs.errors import OmniscsError
+from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.scs.behavior.kinematics import KinematicLimits
 from omniscs.scs.behavior.maps import CropSpec
 from omniscs.scs.behavior.model import ModelConfig, TrafficModel
@@ -20,8 +21,8 @@ WEIGHTS = "model.safetensors"
 MODEL_CONFIG = "model_config.json"
 TRAINING = "training.json"
 
-#: The checkpoint shipped with the package (trained by ``omniscs scs train-behavior``; see its training.json).
-DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "default"
+#: The checkpoint shipped with the package (registry entry ``behavior``; ``omniscs pretrained train behavior``).
+DEFAULT_CHECKPOINT = shipped_folder("behavior")
 
 
 def save_checkpoint(model: TrafficModel, out_dir: Path, training: dict, overwrite: bool = False) -> Path:
@@ -89,8 +90,8 @@ def check_model_config(d, path: Path) -> ModelConfig:
 
 def load_checkpoint(path: Path | str | None = None) -> TrafficModel:
     """The traffic model in ``path`` (default: the shipped checkpoint), in eval mode. A missing, damaged or
-    mismatched checkpoint is one OmniscsError."""
-    path = Path(path) if path is not None else DEFAULT_CHECKPOINT
+    mismatched checkpoint is one OmniscsError; the shipped one is hash-checked against the registry first."""
+    path = verified_folder(path if path is not None else DEFAULT_CHECKPOINT)
     weights, cfg = path / WEIGHTS, path / MODEL_CONFIG
     if not weights.is_file() or not cfg.is_file():
         raise OmniscsError(f"no behaviour-model checkpoint in {path} ({WEIGHTS} and {MODEL_CONFIG} are needed); "

@@ -1,4 +1,4 @@
-"""The shipped MSNet's training data and its training (``omniscs bench agents --train-msnet``): none of it from a
+"""The shipped MSNet's training data and its training (``omniscs pretrained train msnet``): none of it from a
 benchmark world or of a benchmark pool's vehicle (see ``MSNetDataConfig``)."""
 from __future__ import annotations
 
@@ -176,7 +176,7 @@ def train_shipped_msnet(workspace: Path | None = None, config: MSNetDataConfig =
         Degradation(gain=1.3, gamma=0.8), Degradation(gain=0.6), Degradation(downsample=3.0, occlusion=0.25)]
     train = MSNetTrainConfig(steps=config.steps, seed=config.seed, id_weight=config.id_weight)
     net, info = train_msnet(crops, labels, degradations, train, progress=progress, domains=domains)
-    info.update({"command": "omniscs bench agents --train-msnet", "data": asdict(config),
+    info.update({"command": "omniscs pretrained train msnet", "data": asdict(config),
                  "n_assets": len(set(labels)), "n_keyframe_crops": int(np.sum(domains == 0)),
                  "n_camera_crops": int(np.sum(domains == 1)),
                  "machine": finish(machine_info())})

@@ -12,9 +12,9 @@ def test_benchmark_writes_reports_and_speedups(tmp_path):
     # the reference's predicted cost for 50k Gaussians is ~500x that for 100: a 2 s budget splits them robustly
     results = run_render_benchmark(tmp_path, resolutions=((48, 27),), counts=(100, 50_000), repeats=1,
                                    reference_budget_s=2.0, calibration_size=((32, 18), 300))
-    for name in ("render_bench.json", "render_bench.md", "render_bench.png", "render_sample.png"):
-        assert (tmp_path / name).stat().st_size > 0
-    assert json.loads((tmp_path / "render_bench.json").read_text())["rows"] == results["rows"]
+    for name in ("report.json", "report.md", "report.png", "sample.png"):
+        assert (tmp_path / "render" / name).stat().st_size > 0
+    assert json.loads((tmp_path / "render" / "report.json").read_text())["rows"] == results["rows"]
     by_key = {(row["count"], row["backend"]): row for row in results["rows"]}
     assert not by_key[(100, "cpu")]["skipped"] and not by_key[(100, "reference")]["skipped"]
     assert by_key[(50_000, "reference")]["skipped"]  # over budget

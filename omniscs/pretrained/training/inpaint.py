@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from omniscs.background.depthnet import working_size
-from omniscs.bench.depth_data import FIRST_DEPTH_SEED, rendered_views
+from omniscs.pretrained.training.reldepth import FIRST_DEPTH_SEED, rendered_views
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
@@ -29,8 +29,8 @@ log = logging.getLogger(__name__)
 #: Bump when the way samples are made changes, so that cached data are made again.
 DATA_VERSION = 1
 
-TRAIN_COMMAND = "omniscs bench background --export-inpaint-data PACK (then infra/inpaint_gpu/train.py, " \
-                "--install-inpaint)"
+TRAIN_COMMAND = "omniscs pretrained train inpaint --export-data PACK (then infra/inpaint_gpu/train.py, " \
+                "omniscs pretrained train inpaint --install OUT)"
 
 
 @dataclass(frozen=True)
@@ -215,7 +215,8 @@ def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataC
     info = shipping_info(state, history, data, workspace)
     info["trained_elsewhere"] = (f"trained on {history.get('device_name', history.get('device'))} (torch "
                                  f"{history.get('torch')}) by infra/inpaint_gpu/train.py from the pack of "
-                                 "--export-inpaint-data; evaluated and installed here with --install-inpaint")
+                                 "`omniscs pretrained train inpaint --export-data`; evaluated and installed here with "
+                                 "`omniscs pretrained train inpaint --install`")
     info["machine_eval"] = finish(machine_info())
     save_inpaint_net(state, InpaintNetConfig.from_dict(history["config"]["architecture"]), out or SHIPPED, info)
     return info

@@ -90,7 +90,7 @@ def test_swapping_a_worlds_vehicles_keeps_them_on_the_same_ground():
 
 def test_msnet_learns_only_from_pool_assets_no_benchmark_uses():
     from omniscs.bench.agents import POOL_QUOTA, pool_ids
-    from omniscs.bench.msnet_data import unbenched_pool_assets
+    from omniscs.pretrained.training.msnet import unbenched_pool_assets
     from omniscs.world.assets import asset_split, list_asset_ids
 
     quota = tuple(POOL_QUOTA.items())
@@ -106,11 +106,11 @@ def test_the_matching_only_benchmark_writes_its_report(tmp_path):
     from omniscs.bench.agents import quick_config, run_matching_benchmark
 
     report = run_matching_benchmark(tmp_path / "out", tmp_path / "ws", quick_config())
-    written = json.loads((tmp_path / "out" / "agents_matching.json").read_text())
+    written = json.loads((tmp_path / "out" / "agents" / "matching.json").read_text())
     assert written["target"] == report["target"] and 0 <= report["target"]["top1"] <= 1
     levels = {r["level"] for r in report["matching"]}
     assert levels == {lv for lv, _ in MATCH_LEVELS} and report["pool_size"] == 12
-    assert "## Matching" in (tmp_path / "out" / "agents_matching.md").read_text()
+    assert "## Matching" in (tmp_path / "out" / "agents" / "matching.md").read_text()
 
 
 def test_multi_view_matching_scores_a_query_as_the_dual_strategy_scores_a_track(tmp_path):

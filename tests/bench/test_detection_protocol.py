@@ -13,7 +13,7 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
     from omniscs.bench.detection_protocol import quick_config, run_detection_protocol
 
     run_detection_protocol(tmp_path / "reports", tmp_path / "ws", quick_config())
-    report = json.loads((tmp_path / "reports" / "downstream_detection_bench.json").read_text())
+    report = json.loads((tmp_path / "reports" / "downstream" / "detection.json").read_text())
     assert set(report["rows"]) == {"appearance-SCS test", "original test"}
     for models in report["rows"].values():
         assert set(models) == {"base", "fine-tuned"}
@@ -25,8 +25,8 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
     # the appearance-SCS test set holds the composited objects' classes besides the log's own
     scs_boxes = report["rows"]["appearance-SCS test"]["base"]["gt_boxes"]
     assert sum(scs_boxes.values()) > sum(report["rows"]["original test"]["base"]["gt_boxes"].values())
-    assert (tmp_path / "reports" / "downstream_detection_bench.png").stat().st_size > 5_000
-    assert "proxy" in (tmp_path / "reports" / "downstream_detection_bench.md").read_text()
+    assert (tmp_path / "reports" / "downstream" / "detection.png").stat().st_size > 5_000
+    assert "proxy" in (tmp_path / "reports" / "downstream" / "detection.md").read_text()
     # the gain's interval: the appearance-SCS test set (the log's variants) has scenes to resample, the one log not
     intervals = report["summary"]["intervals"]
     scs = intervals["appearance-SCS test"]
@@ -38,7 +38,7 @@ def test_the_quick_detection_protocol_reports_both_test_sets_for_base_and_fine_t
         for k, n in models["base"]["gt_boxes"].items():
             assert n <= report["all_round_rows"][name]["base"]["gt_boxes"][k]
     assert set(report["summary"]["all_round"]) >= {"scs_map_gain", "original_map_change", "intervals"}
-    assert "all round" in (tmp_path / "reports" / "downstream_detection_bench.md").read_text()
+    assert "all round" in (tmp_path / "reports" / "downstream" / "detection.md").read_text()
 
 
 def test_the_kept_candidate_gains_most_within_the_regression_limit_else_loses_least():

@@ -1,10 +1,10 @@
 """Data and training of the shipped proxy camera detector (``omniscs.eval.detector``): procedural logs without any
 SCS (ingested, then exported as nuScenes dataroots), the training run that wrote
-``omniscs/eval/checkpoints/detector/``, and its held-out evaluation by the nuScenes detection protocol.
+``omniscs/pretrained/weights/detector/``, and its held-out evaluation by the nuScenes detection protocol.
 
 Reproduce the shipped weights (about 25 minutes on 2 cores: 8 to make the logs, 10 to train, the rest evaluating)::
 
-    python -m omniscs.bench.detector_data --workspace omniscs-data
+    omniscs pretrained train detector --workspace omniscs-data
 
 Seeds: training logs from ``train_seed``, held-out logs from ``test_seed`` (templates in turn); no other benchmark or
 test uses them. Training dataroots are exported with every frame a keyframe (10 Hz: more, if correlated, images);
@@ -245,8 +245,9 @@ def train_shipped_detector(workspace: str | Path | None = None,
     data_s = time.perf_counter() - started
     model, record = train_detector([(root, VERSION)], config.train, config.detector, progress=progress,
                                    calibration_data=calibration)
-    record = {"command": "python -m omniscs.bench.detector_data --workspace <workspace>",
-              "python": "omniscs.bench.detector_data.train_shipped_detector(workspace, ShippedDetectorConfig())",
+    record = {"command": "omniscs pretrained train detector --workspace <workspace>",
+              "python": "omniscs.pretrained.training.detector.train_shipped_detector(workspace, "
+                        "ShippedDetectorConfig())",
               "data": {"source": "procedural logs (SyntheticSource, ingest_stage), no SCS, exported as nuScenes "
                                  f"{VERSION}", "train_logs": [list(x) for x in config.logs("train")],
                        "calibration_logs": [list(x) for x in config.logs("calibration")],

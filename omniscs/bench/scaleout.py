@@ -1,5 +1,6 @@
-"""``omniscs bench scaleout``: throughput of the ``generate_dataset`` flow on Dask worker processes (this benchmark
-runs the flow itself, so it lives beside the flows, not in the Prefect-free library).
+"""``omniscs bench scaleout``: throughput of the ``generate_dataset`` flow on Dask worker processes. The measurement
+is Prefect-free: the caller (the CLI, a top floor) passes the flow in as ``generate``, so the library never imports
+``flows/``.
 
 Eight held-out procedural scenes (ingest + fast fit + one behaviour variant + render/annotate) go through the flow
 three times, each in a fresh workspace so nothing is reused: on 1 Dask worker process (both cores' threads), on 2
@@ -18,8 +19,10 @@ import threading
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.pipeline.request import RunRequest
 from omniscs.progress import Progress, no_progress
 
 STAGES = ("ingest", "plan", "fit", "behavior", "annotate")
@@ -72,9 +75,12 @@ def _kill_first_fit(ws: Path, after_s: float, killed: list, stop: threading.Even
         stop.wait(0.2)
 
 
-def _run(config: ScaleoutBenchConfig, ws: Path, workers: int, kill: bool, progress: Progress) -> dict:
-    from flows.generate import generate_dataset
+#: The flow under test: ``flows.generate.generate_dataset`` (takes a ``RunRequest``; returns its summary).
+GenerateFlow = Callable[..., dict]
 
+
+def _run(config: ScaleoutBenchConfig, ws: Path, workers: int, kill: bool, progress: Progress,
+         generate_dataset: GenerateFlow) -> dict:
     if ws.exists():
         shutil.rmtree(ws)
     killed: list = []
@@ -84,10 +90,10 @@ def _run(config: ScaleoutBenchConfig, ws: Path, workers: int, kill: bool, progre
         watcher.start()
     progress(0, None, f"{len(config.scenes)} scenes on {workers} Dask worker(s){' (one killed)' if kill else ''}")
     started = time.monotonic()
-    out = generate_dataset(list(config.scenes), workspace=str(ws), n_frames=config.n_frames, n_cameras=1,
-                           width=config.width, height=config.height, previews=False, fit_preset=config.fit_preset,
-                           behavior_variants=config.behavior_variants, behavior_preset="fast", annotate=True,
-                           task_runner="dask", workers=workers)
+    out = generate_dataset(RunRequest(
+        sources=list(config.scenes), workspace=str(ws), n_frames=config.n_frames, n_cameras=1, width=config.width,
+        height=config.height, previews=False, fit_preset=config.fit_preset, behavior_variants=config.behavior_variants,
+        behavior_preset="fast", annotate=True, task_runner="dask", workers=workers))
     wall = time.monotonic() - started
     stop.set()
     stage_s = {s: [float(sc["stages"][s]["seconds"]) for sc in out["scenes"] if s in sc["stages"]] for s in STAGES}
@@ -112,18 +118,21 @@ def projection(two: dict, config: ScaleoutBenchConfig) -> dict:
     return out
 
 
-def run_scaleout_benchmark(out_dir: str | Path, workspace: str | Path, config: ScaleoutBenchConfig = ScaleoutBenchConfig(),
+def run_scaleout_benchmark(out_dir: str | Path, workspace: str | Path, generate: GenerateFlow,
+                           config: ScaleoutBenchConfig = ScaleoutBenchConfig(),
                            progress: Progress = no_progress) -> dict:
+    """Run ``generate`` (the ``generate_dataset`` flow) on each set-up in fresh workspaces under ``workspace``; write
+    reports/scaleout/report.{json,md,png} under the reports root ``out_dir``."""
     machine = machine_info()
     ws = Path(workspace)
-    runs = [_run(config, ws / f"workers-{n}", n, False, progress) for n in config.workers]
-    resume = _run(config, ws / "resume", max(config.workers), True, progress)
+    runs = [_run(config, ws / f"workers-{n}", n, False, progress, generate) for n in config.workers]
+    resume = _run(config, ws / "resume", max(config.workers), True, progress, generate)
     by_n = {r["workers"]: r for r in runs}
     one, two = by_n[min(by_n)], by_n[max(by_n)]
     result = {"config": asdict(config), "runs": runs, "resume": resume,
               "speedup": one["wall_s"] / two["wall_s"], "resume_cost_s": resume["wall_s"] - two["wall_s"],
               "projection": projection(two, config), "machine": finish(machine)}
-    write_report(out_dir, "scaleout_bench", result, markdown(result), {"": lambda f: _plot(result, f)})
+    write_report(out_dir, "scaleout", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
 

@@ -353,8 +353,8 @@ def install_trained_depth(folder: Path, data: DepthDataConfig = DepthDataConfig(
     info = shipping_info(state, history, data)
     info["trained_elsewhere"] = (
         f"trained on {history.get('device_name', history.get('device'))} (torch {history.get('torch')}) by "
-        f"infra/depth_gpu/train.py from the pack of `{TRAIN_COMMAND.replace('--train-depth', '--export-depth-data')}"
-        " PACK`; evaluated and installed here with --install-depth")
+        f"infra/depth_gpu/train.py from the pack of `{TRAIN_COMMAND} --export-data PACK`; evaluated and installed "
+        f"here with `{TRAIN_COMMAND} --install OUT`")
     info["machine_eval"] = finish(machine_info())
     save_depth_net(state, DepthTrainConfig.from_dict(history["config"]).architecture, out, info)
     return info

@@ -11,8 +11,8 @@ def test_the_quick_benchmark_reports_speed_scores_and_load(tmp_path):
     from omniscs.bench.closedloop import quick_config, run_closedloop_benchmark
 
     result = run_closedloop_benchmark(tmp_path / "reports", tmp_path / "ws", quick_config())
-    report = json.loads((tmp_path / "reports" / "closedloop_bench.json").read_text(), parse_constant=float)
-    assert (tmp_path / "reports" / "closedloop_bench.png").stat().st_size > 10_000
+    report = json.loads((tmp_path / "reports" / "closedloop" / "report.json").read_text(), parse_constant=float)
+    assert (tmp_path / "reports" / "closedloop" / "report.png").stat().st_size > 10_000
     assert {(r["cameras"], r["outputs"]) for r in report["speed"]} == {
         (1, "rgb+depth"), (1, "rgb+depth+instance+semantic"), (2, "rgb+depth"), (2, "rgb+depth+instance+semantic")}
     assert all(r["steps_per_s"] > 0 and 0 < r["render_share"] <= 1 for r in report["speed"])
@@ -20,4 +20,4 @@ def test_the_quick_benchmark_reports_speed_scores_and_load(tmp_path):
     assert kinds == {(p, k) for p in ("replay", "rule", "proxy") for k in ("log", "behavior")}
     assert result["load"]["errors"] == 0 and result["load"]["steps"] > 0
     assert result["load"]["latency_ms"]["p50"] <= result["load"]["latency_ms"]["p99"]
-    assert "Closed-loop testing benchmark" in (tmp_path / "reports" / "closedloop_bench.md").read_text()
+    assert "Closed-loop testing benchmark" in (tmp_path / "reports" / "closedloop" / "report.md").read_text()

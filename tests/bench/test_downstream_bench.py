@@ -12,8 +12,8 @@ def test_the_quick_protocol_writes_its_report_with_both_test_sets(tmp_path):
     from omniscs.bench.downstream import quick_config, run_downstream_benchmark
 
     result = run_downstream_benchmark(tmp_path / "reports", tmp_path / "ws", quick_config())
-    report = json.loads((tmp_path / "reports" / "downstream_bench.json").read_text())
-    assert (tmp_path / "reports" / "downstream_bench.png").stat().st_size > 10_000
+    report = json.loads((tmp_path / "reports" / "downstream" / "report.json").read_text())
+    assert (tmp_path / "reports" / "downstream" / "report.png").stat().st_size > 10_000
     assert set(report["rows"]) == {"behaviour-SCS test", "original test"}
     assert all(set(models) == {"straight on", "base", "fine-tuned", "logs-only control"}
                for models in report["rows"].values())
@@ -22,7 +22,7 @@ def test_the_quick_protocol_writes_its_report_with_both_test_sets(tmp_path):
     for models in result["rows"].values():
         for m in models.values():
             assert m["n"] > 0 and all(np.isfinite(v) for v in (*m["L2"].values(), *m["collision"].values()))
-    assert "proxy" in (tmp_path / "reports" / "downstream_bench.md").read_text()
+    assert "proxy" in (tmp_path / "reports" / "downstream" / "report.md").read_text()
     # the fine-tuning settings are chosen on the validation scenes, one row per candidate
     grid = report["finetune_selection"]
     assert len(grid) == 2 and all(np.isfinite(g["l2_change_3s"]) for g in grid)

@@ -1,0 +1,18 @@
+"""The dataset benchmark (``omniscs bench dataset``) end to end at thumbnail size."""
+import numpy as np
+import pytest
+
+
+@pytest.mark.slow
+def test_the_dataset_benchmark_runs_end_to_end_at_thumbnail_size(tmp_path):
+    from omniscs.bench.dataset import quick_config, run_dataset_benchmark
+
+    result = run_dataset_benchmark(tmp_path / "r", tmp_path / "ws", quick_config())
+    for name in ("report.json", "report.md", "report.png"):
+        assert (tmp_path / "r" / "dataset" / name).is_file()
+    s, scene = result["summary"], result["scenes"][0]
+    assert s["variants_per_hour"] > 0 and s["images_per_s_nuscenes_size"] > 0
+    assert scene["with fidelity"]["psnr_drift_pairs"] and not scene["without fidelity"]["psnr_drift_pairs"]
+    assert all(np.isfinite(v) for pair in scene["with fidelity"]["psnr_drift_pairs"] for v in pair)
+    proxies = scene["proxies only"]
+    assert all(p is None for p in proxies["fidelity_psnr"]) and all(d is not None for d in proxies["feature_drift"])
