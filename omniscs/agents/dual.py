@@ -25,6 +25,7 @@ from omniscs.geometry import box_corners_from_pose, invert_transform, transform_
 from omniscs.nsg.agent import track_poses
 from omniscs.nsg.edit import scale_to_box
 from omniscs.nsg.graph import SceneGraph, agent_key, render_view
+from omniscs.quality import psnr_from_mse
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rotate_sh
 
 STRATEGIES = ("fitted", "online", "pool")
@@ -696,7 +697,7 @@ def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: in
         weights += 3.0 * m.sum()
     if weights == 0:
         return None
-    return float(10.0 * np.log10(1.0 / max(errors / weights, 1e-10)))
+    return psnr_from_mse(errors / weights)
 
 
 def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool, min_psnr: float,

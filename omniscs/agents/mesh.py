@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from omniscs.errors import ValidationError
+from omniscs.quality import psnr
 from omniscs.gaussians import GaussianParams, activate, params_from_values
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
@@ -231,13 +232,13 @@ def keyframes(params: GaussianParams, size: np.ndarray, n: int = KEYFRAMES) -> n
     return (rgba.numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def view_psnr(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera]) -> float:
-    """PSNR (dB) of the model's renders against reference views over the pixels either covers."""
+def view_psnr(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera]) -> float | None:
+    """PSNR (dB, ``omniscs.quality.psnr``) of the model's renders against reference views over the pixels either
+    covers; None when neither covers any."""
     with torch.no_grad():
         got, got_alpha = _render(params, cameras)
     mask = (torch.as_tensor(alpha) > 0.5) | (got_alpha > 0.5)
-    err = ((got - torch.as_tensor(rgb, dtype=torch.float32)) ** 2).mean(-1)[mask]
-    return float(10 * torch.log10(1.0 / err.mean().clamp_min(1e-10))) if len(err) else float("inf")
+    return psnr(got, torch.as_tensor(rgb, dtype=torch.float32), mask)
 
 
 def refine(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera], steps: int = 100,

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from omniscs.errors import OmniscsError
+from omniscs.quality import psnr
 
 FEATURE_NET_KINDS = ("random", "state_dict", "export", "torchscript")
 
@@ -174,17 +175,14 @@ def masked_psnr(rendered: np.ndarray,      # [T, H, W, 3] or [T, 3, H, W] float 
                 ground_truth: np.ndarray,  # same shape
                 mask: np.ndarray,          # [T, H, W] bool: the adversary's pixels
                 ) -> float | None:
-    """PSNR (dB) over masked pixels; None when the mask is empty (the adversary is never seen)."""
+    """PSNR (dB, ``omniscs.quality.psnr``) over masked pixels of frames in either layout; None when the mask is
+    empty (the adversary is never seen)."""
     r, g = np.asarray(rendered, np.float64), np.asarray(ground_truth, np.float64)
     if r.shape != g.shape:
         raise OmniscsError(f"rendered {r.shape} and ground-truth {g.shape} frames differ in shape")
     if r.shape[1] == 3 and r.shape[-1] != 3:
         r, g = np.moveaxis(r, 1, -1), np.moveaxis(g, 1, -1)
-    m = np.asarray(mask, dtype=bool)
-    if not m.any():
-        return None
-    mse = float(((r - g) ** 2)[m].mean())
-    return float(10.0 * np.log10(1.0 / max(mse, 1e-12)))
+    return psnr(r, g, mask)
 
 
 def variant_ego_poses(variant: dict, logged: np.ndarray) -> np.ndarray:  # [F, 4, 4] -> [F, 4, 4]
