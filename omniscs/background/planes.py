@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omniscs.background.holes import RemovedObject, lift_pixels, pixel_rays, points_in_box
-from omniscs.geometry import invert_transform, transform_points
+from omniscs.background.holes import RemovedObject, lift_pixels, pixel_rays
+from omniscs.geometry import invert_transform, points_in_box, transform_points
 from omniscs.nsg.observations import View, project_points
 
 log = logging.getLogger(__name__)

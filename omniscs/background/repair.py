@@ -33,9 +33,10 @@ from omniscs.background.drnet import DRNetConfig, FittedDRNet, aligned_inverse, 
 from omniscs.background.planes import (Donor, FreeSpace, PlaneConfig, build_textures, fit_planes, plane_hits,
                                        region_points, texture_colours)
 from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, dilate, hole_bbox, hole_mask,
-                                      lift_pixels, points_in_box, ray_norms)
+                                      lift_pixels, ray_norms)
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate, concat_params, with_sh_degree
+from omniscs.geometry import points_in_box
 from omniscs.nsg.background import init_background, voxel_subsample
 from omniscs.nsg.config import FitConfig
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key

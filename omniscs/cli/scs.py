@@ -79,7 +79,7 @@ def scs_behavior(
     from omniscs.pipeline.procedural import traffic_for_source
     from omniscs.scene import SyntheticSource, parse_source
     from omniscs.scs.behavior import PlannerConfig, adversarial_preset, now_and_horizon, write_scene_variants
-    from omniscs.scs.behavior.checkpoint import load_checkpoint
+    from omniscs.scs.behavior.checkpoint import load_traffic_model
     from omniscs.scs.behavior.planner import check_planner
 
     # the options first (cheap), then the scene and the checkpoint
@@ -94,7 +94,7 @@ def scs_behavior(
     check_out(out, overwrite=True)  # variants.json and the pictures go into --out (an existing folder is fine)
     source = parse_source(scene, n_frames=frames)
     traffic = traffic_for_source(source)
-    now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
+    now_and_horizon(traffic, load_traffic_model(checkpoint).config, config)  # user errors before any progress bar
     appearance = None
     if nsg is not None:
         from omniscs.scene import load_scene

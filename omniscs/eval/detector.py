@@ -46,6 +46,7 @@ from omniscs.errors import ValidationError
 from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES
 from omniscs.eval.nuscenes_io import CATEGORY_TO_DETECTION, NuScenesTables
 from omniscs.progress import Progress, no_progress
+from omniscs.quaternions import yaw_from_quaternion
 from omniscs.storage import atomic_directory, atomic_write_json, atomic_write_text
 
 #: Output stride of the heads (input pixels per heatmap cell).
@@ -257,12 +258,6 @@ def global_yaw(alpha: np.ndarray, centres_global: np.ndarray, global_from_camera
     return np.arctan2(np.sin(a), np.cos(a))
 
 
-def yaw_from_quaternion(rotation: np.ndarray) -> np.ndarray:  # [N, 4] w, x, y, z -> [N]
-    from omniscs.eval.detection import yaw_of
-
-    return yaw_of(np.asarray(rotation, np.float64).reshape(-1, 4))
-
-
 def quaternion_from_yaw(yaw: np.ndarray) -> np.ndarray:  # [N] -> [N, 4] w, x, y, z about +z
     yaw = np.asarray(yaw, np.float64)
     return np.stack([np.cos(yaw / 2), np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2)], -1)
@@ -387,7 +382,7 @@ def view_boxes(view: CameraView, annotations: list[dict], classes: tuple[str, ..
         cuv = cuv[cz > 0.1] if (cz > 0.1).any() else uv
         x0, y0 = np.clip(cuv.min(0), 0, [view.width, view.height])
         x1, y1 = np.clip(cuv.max(0), 0, [view.width, view.height])
-        yaw = yaw_from_quaternion(np.asarray(ann["rotation"]))
+        yaw = yaw_from_quaternion(np.asarray(ann["rotation"])[None])  # [1]
         azimuth = ray_azimuth(centre, view.global_from_camera)[0]
         bottom = centre - [0.0, 0.0, float(ann["size"][2]) / 2]  # nuScenes boxes turn about z only
         buv, bz = project_to_camera(bottom, view.intrinsics, view.global_from_camera)

@@ -15,7 +15,6 @@ from omniscs.geometry import (
     invert_transform,
     make_transform,
     project,
-    transform_points,
 )
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ego_from_lidar_of, global_from_world_of, load_attributes
@@ -70,12 +69,6 @@ def box_velocities(scene: Scene) -> np.ndarray:  # -> [N, 3] world-frame velocit
         grad = np.gradient(xyz, t, axis=0)
         vel[boxes.index.get_indexer(idx)] = grad
     return vel
-
-
-def points_in_box(points_ego: np.ndarray, ego_from_box: np.ndarray, size: np.ndarray,
-                  margin: float = BOX_POINT_MARGIN_M) -> int:  # [N, 3+], [4, 4], [3] -> count
-    local = transform_points(invert_transform(ego_from_box), points_ego[:, :3])
-    return int(np.all(np.abs(local) <= 0.5 * np.asarray(size) + margin, axis=1).sum())
 
 
 def projected_rect(camera_from_box: np.ndarray, size: np.ndarray, K: np.ndarray, width: int, height: int

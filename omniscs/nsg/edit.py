@@ -48,8 +48,8 @@ def node_model_resolver(graph: SceneGraph) -> ModelResolver:
             raise OmniscsError(f"asset {asset_id!r}: {track!r} is not a track id") from None
         source = graph
         if ckpt:
-            from omniscs.nsg.checkpoint import load_checkpoint
-            source = load_checkpoint(Path(ckpt), device=graph.device)
+            from omniscs.nsg.checkpoint import load_graph
+            source = load_graph(Path(ckpt), device=graph.device)
         node = source.agent(track_id)
         return AgentModel(node.gaussians, np.array(node.size), node.category)
     return resolve

@@ -384,7 +384,7 @@ def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool)
 
 
 def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_turned(scene, graph, pool, tmp_path):
-    from omniscs.nsg.checkpoint import load_checkpoint, save_checkpoint
+    from omniscs.nsg.checkpoint import load_graph, save_checkpoint
     from omniscs.nsg.edit import apply_graph_edits
 
     frames = range(scene.n_frames)
@@ -400,7 +400,7 @@ def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_t
     view = turned.view(scene.camera_names[0], 2)
     out = turned.render(view)
     assert bool(torch.isfinite(out.rgb).all())
-    back = load_checkpoint(save_checkpoint(completed, tmp_path / "ckpt"))
+    back = load_graph(save_checkpoint(completed, tmp_path / "ckpt"))
     assert torch.allclose(back.render(view).rgb, completed.render(view).rgb, atol=1e-6)
     # a track seen large enough: a model with a material is relit whole; one without keeps the track's fitted
     # Gaussians on the seen sides, with no relight data

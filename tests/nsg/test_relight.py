@@ -158,10 +158,10 @@ def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph,
     import json
     import shutil
 
-    from omniscs.nsg.checkpoint import GRAPH_JSON, load_checkpoint, save_checkpoint
+    from omniscs.nsg.checkpoint import GRAPH_JSON, load_graph, save_checkpoint
 
     folder = save_checkpoint(graph, tmp_path / "ckpt")
-    back = load_checkpoint(folder)
+    back = load_graph(folder)
     r, s = graph.agent(1).relight, back.agent(1).relight
     assert all(torch.equal(getattr(r, k), getattr(s, k)) for k in RELIGHT_TENSORS)
     assert back.agent(2).relight is None
@@ -184,12 +184,12 @@ def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph,
     record[TENSORS_RECORD] = {"bytes": (old / TENSORS).stat().st_size, "sha256": file_sha256(old / TENSORS)}
     (old / GRAPH_JSON).write_text(json.dumps(record))
     with pytest.raises(OmniscsError, match="earlier light model"):
-        load_checkpoint(old)
+        load_graph(old)
     meta = json.loads((folder / GRAPH_JSON).read_text())
     meta["agents"][[a["track_id"] for a in meta["agents"]].index(1)]["relight"] = "yes"
     (folder / GRAPH_JSON).write_text(json.dumps(meta))
     with pytest.raises(OmniscsError, match="relight"):
-        load_checkpoint(folder)
+        load_graph(folder)
 
 
 def relit_node_checks(graph, device: str) -> dict:

@@ -18,7 +18,7 @@ from omniscs.nsg.train import fit_scene
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
 from omniscs.scs.behavior import adversarial_preset, generate_variants, traffic_from_scene
-from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.scene_render import (AppearanceRenderConfig, GraphTrajectoryRenderer,
                                                 scene_graph_appearance)
 
@@ -145,7 +145,7 @@ def test_agent_culling_leaves_the_image_unchanged_and_drops_agents_that_cannot_s
 def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)
-    model = load_checkpoint()
+    model = load_traffic_model()
     config = adversarial_preset("fast")
     term = scene_graph_appearance(graph, traffic, model, config, AppearanceRenderConfig(downscale=1, frames=3))
     steps = np.arange(10, 40)
@@ -182,7 +182,7 @@ def test_l_app_stays_finite_for_an_agent_ten_kilometres_away(fitted):
 def test_variants_with_l_app_record_it_and_stay_finite(fitted):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)
-    model = load_checkpoint()
+    model = load_traffic_model()
     config = adversarial_preset("fast")
     term = scene_graph_appearance(graph, traffic, model, config)
     (variant,) = generate_variants(traffic, model, 1, config, term)
@@ -198,7 +198,7 @@ def test_renderer_refuses_resampled_logs_and_foreign_graphs(fitted):
     import dataclasses
     other = dataclasses.replace(traffic, scene_id="another-scene")
     with pytest.raises(OmniscsError, match="does not belong"):
-        scene_graph_appearance(graph, other, load_checkpoint())
+        scene_graph_appearance(graph, other, load_traffic_model())
 
 
 def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_with_l_app(prefect_harness, tmp_path,

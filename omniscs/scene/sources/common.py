@@ -32,7 +32,7 @@ from omniscs.geometry import (
     invert_transform,
     make_transform,
     rotmat_from_euler,
-    yaw_of,
+    yaw_from_matrix,
 )
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat, slerp
 from omniscs.scene.store import CameraRecord, Scene
@@ -191,7 +191,7 @@ class LogReader(Protocol):
 # ----------------------------------------------------------------------------- frames and poses
 def world_from_global_at(global_from_ego: np.ndarray) -> np.ndarray:  # [4, 4] -> [4, 4]
     """Re-origin at an ego pose keeping the global up axis: the inverse of (its translation, its yaw)."""
-    yaw = float(yaw_of(global_from_ego[:3, :3]))
+    yaw = float(yaw_from_matrix(global_from_ego[:3, :3]))
     return invert_transform(make_transform(rotmat_from_euler(yaw=yaw), global_from_ego[:3, 3]))
 
 
@@ -486,7 +486,7 @@ def _box_row(frame_idx: int, track_id: int, box: RawBox, world_from_global: np.n
             "source_category": box.source_category,
             "cx": pose[0, 3], "cy": pose[1, 3], "cz": pose[2, 3],
             "length": float(box.size[0]), "width": float(box.size[1]), "height": float(box.size[2]),
-            "yaw": float(yaw_of(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
+            "yaw": float(yaw_from_matrix(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
             "num_lidar_points": int(box.num_lidar_points), "visible_pixels": -1}
 
 

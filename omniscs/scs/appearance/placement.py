@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import invert_transform, wrap_angle, yaw_of
+from omniscs.geometry import invert_transform, wrap_angle, yaw_from_matrix
 
 #: track_id of the ego vehicle's box in ``Obstacles``.
 EGO_TRACK_ID = -1
@@ -146,7 +146,7 @@ class Obstacles:
             raise OmniscsError(f"ego_centre_ahead_m {ego_centre_ahead_m} must be a finite number of metres")
         world_from_ego = np.asarray(scene.world_from_ego_all, dtype=np.float64).reshape(-1, 4, 4)
         n_frames = len(world_from_ego)
-        ego_yaw = yaw_of(world_from_ego[:, :3, :3])
+        ego_yaw = yaw_from_matrix(world_from_ego[:, :3, :3])
         ego_centre = world_from_ego[:, :3, 3].copy()
         ego_centre[:, 0] += ego_centre_ahead_m * np.cos(ego_yaw)
         ego_centre[:, 1] += ego_centre_ahead_m * np.sin(ego_yaw)

@@ -11,11 +11,12 @@ from the log's latents (and a standing one from the outset) restarts from a warm
 knots finds a comfortable path into the ego (``optimisation.intercept``) and its latent is refitted to that path.
 ``generation`` schedules adversaries and time windows into N distinct variants.
 """
-from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, ComfortBounds, adversarial_preset
+from omniscs.comfort import ComfortBounds
+from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, adversarial_preset
 from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNet, FeatureNetConfig,
                                              build_feature_net, masked_psnr)
 from omniscs.devices import resolve_device
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model, save_checkpoint
 from omniscs.scs.behavior.evaluation import Evaluation, VariantResult, evaluate
 from omniscs.scs.behavior.generation import distinct_variants, generate_variants
 from omniscs.scs.behavior.kinematics import KinematicLimits, rollout
@@ -31,7 +32,7 @@ __all__ = [
     "PRESETS", "AdversarialConfig", "BehaviorProblem", "ComfortBounds", "Evaluation", "VariantResult",
     "adversarial_preset", "behavior_loss", "distinct_variants", "evaluate", "generate_variants", "now_and_horizon",
     "AgentTrajectories", "AppearanceTerm", "FeatureNet", "FeatureNetConfig", "build_feature_net", "masked_psnr",
-    "DEFAULT_CHECKPOINT", "load_checkpoint", "resolve_device", "save_checkpoint", "KinematicLimits", "rollout",
+    "DEFAULT_CHECKPOINT", "load_traffic_model", "resolve_device", "save_checkpoint", "KinematicLimits", "rollout",
     "ModelConfig", "TrafficModel", "PlannerConfig", "EgoBox", "TrafficScene", "traffic_from_log",
     "traffic_from_scene", "TrainConfig", "train_model", "train_preset", "variant_spec", "write_scene_variants",
 ]

@@ -5,6 +5,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.comfort import ComfortBounds
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial_config import NON_ADVERSARY_CATEGORIES, AdversarialConfig
 from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
@@ -13,7 +14,7 @@ from omniscs.scs.behavior.checkpoint import model_on
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
 from omniscs.scs.behavior.losses import track_fit_loss
-from omniscs.scs.behavior.model import ComfortLimits, Decoded, TrafficModel
+from omniscs.scs.behavior.model import Decoded, TrafficModel
 from omniscs.scs.behavior.planner import check_planner, rule_based_plan
 from omniscs.scs.behavior.tracks import TrafficScene
 
@@ -98,13 +99,13 @@ class BehaviorProblem:
 
     # -- model ----------------------------------------------------------------------------------------
     @property
-    def comfort_limits(self) -> ComfortLimits | None:
+    def comfort_limits(self) -> ComfortBounds | None:
         """Decoding limits just inside the comfort bounds (None when comfort decoding is off)."""
         cfg = self.config
         if not cfg.comfort_decoding:
             return None
         cb, m = cfg.comfort, cfg.comfort_decoding_margin
-        return ComfortLimits(m * cb.max_accel, m * cb.max_decel, m * cb.max_lateral_accel, m * cb.max_yaw_rate)
+        return cb.scaled(m)
 
     @property
     def fitted_np(self) -> np.ndarray:  # [N, T, 5] the reconstruction's states (scene frame), float64 on the CPU
@@ -223,9 +224,9 @@ class BehaviorProblem:
         travelled = np.cumsum(np.linalg.norm(np.diff(np.vstack([state0[None, :2], fitted[:, :2]]), axis=0),
                                              axis=1))
         longer = 0.5 * self.config.reach_accel_long * tau ** 2
-        shorter = np.minimum(0.5 * cb.max_decel * tau ** 2, travelled)
+        shorter = np.minimum(-0.5 * cb.min_lon_accel * tau ** 2, travelled)
         s_max = travelled + longer
-        side = np.minimum(0.5 * cb.max_lateral_accel * tau ** 2,
+        side = np.minimum(0.5 * cb.max_abs_lat_accel * tau ** 2,
                           0.5 * self.model.config.limits.max_curvature * s_max ** 2)
         c, s = np.cos(fitted[:, 2]), np.sin(fitted[:, 2])
         d = plan[:, :2] - fitted[:, :2]

@@ -142,8 +142,8 @@ def appearance_from_checkpoint(nsg_dir: str | Path, scene, traffic: TrafficScene
                                adversarial: AdversarialConfig = AdversarialConfig(),
                                config: AppearanceRenderConfig = AppearanceRenderConfig()) -> AppearanceTerm:
     """L_app from a scene-graph checkpoint folder of ``scene`` (refused when it belongs to another scene)."""
-    from omniscs.nsg.checkpoint import load_checkpoint as load_graph
-    from omniscs.scs.behavior.checkpoint import load_checkpoint as load_model
+    from omniscs.nsg.checkpoint import load_graph
+    from omniscs.scs.behavior.checkpoint import load_traffic_model as load_model
 
     return scene_graph_appearance(load_graph(nsg_dir, scene), traffic, load_model(behavior_checkpoint),
                                   adversarial, config)

@@ -13,7 +13,7 @@ import numpy as np
 
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
 from omniscs.scs.behavior.appearance import AppearanceTerm
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model
 from omniscs.scs.behavior.evaluation import VariantResult
 from omniscs.scs.behavior.generation import generate_variants
 from omniscs.scs.behavior.tracks import TrafficScene
@@ -205,7 +205,7 @@ def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, 
     out_dir = Path(out_dir)
     final_dir = Path(published_dir) if published_dir is not None else out_dir
     ckpt = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
-    model = load_checkpoint(ckpt)
+    model = load_traffic_model(ckpt)
     ckpt_hash = checkpoint_hash(ckpt)
     target = out_dir / VARIANTS_JSON
     started = time.perf_counter()
