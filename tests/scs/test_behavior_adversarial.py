@@ -10,7 +10,7 @@ import torch
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.scs.behavior.appearance import AppearanceTerm
+from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
 from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.collision import footprints, overlapping
 from omniscs.scs.behavior.evaluation import evaluate
@@ -21,7 +21,7 @@ from omniscs.scs.behavior.planner import PlannerConfig, rule_based_plan
 from omniscs.scs.behavior.problem import BehaviorProblem
 from omniscs.scs.behavior.variants import variant_spec
 from tests.behavior_fixtures import straight_world
-from tests.scs.test_behavior_appearance import blob_renderer
+from tests.scs.test_behavior_render_consistency import blob_renderer
 
 FAST = adversarial_preset("fast")
 
@@ -119,10 +119,10 @@ def test_l_app_enters_the_loss_only_when_a_renderer_is_supplied(model):
 
     render = blob_renderer(size=24, extent_m=60.0)
     original = render(plain.world_trajectories(plain.fitted.states)).detach()
-    appearance = AppearanceTerm(render, original)
+    appearance = RenderConsistencyTerm(render, original)
     seen = []
-    wrapped = AppearanceTerm(lambda traj: seen.append(traj.poses.requires_grad) or render(traj), original)
-    with_app = BehaviorProblem(traffic, model, FAST, appearance=wrapped)
+    wrapped = RenderConsistencyTerm(lambda traj: seen.append(traj.poses.requires_grad) or render(traj), original)
+    with_app = BehaviorProblem(traffic, model, FAST, render_consistency=wrapped)
     result = optimise(with_app, 1, (0, with_app.horizon), "v", True)
     assert result.losses["L_app"] is not None and np.isfinite(result.losses["L_app"])
     assert seen and all(seen)  # the renderer received differentiable trajectories every step

@@ -41,7 +41,7 @@ class AdversarialConfig:
     restore_weight: float = 0.005
     """Weight of L_restore = sum ||z - z_init||² over non-ego agents."""
     app_weight: float = 1.0
-    """Weight of L_app (used only when an AppearanceTerm is supplied)."""
+    """Weight of L_app (used only when an RenderConsistencyTerm is supplied)."""
     comfort_decoding: bool = True
     """Decode with accelerations and yaw rates saturated just inside the comfort bounds, so every agent's
     trajectory is comfortable by construction (the latent fit to the log uses the same decoder)."""

@@ -8,7 +8,7 @@ from torch import Tensor
 from omniscs.comfort import ComfortBounds
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial_config import NON_ADVERSARY_CATEGORIES, AdversarialConfig
-from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
+from omniscs.scs.behavior.render_consistency import AgentTrajectories, RenderConsistencyTerm
 from omniscs.devices import resolve_device
 from omniscs.scs.behavior.checkpoint import model_on
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
@@ -43,14 +43,14 @@ class BehaviorProblem:
     of a problem (``evaluation``, ``optimisation``)."""
 
     def __init__(self, traffic: TrafficScene, model: TrafficModel, config: AdversarialConfig = AdversarialConfig(),
-                 appearance: AppearanceTerm | None = None) -> None:
+                 render_consistency: RenderConsistencyTerm | None = None) -> None:
         check_planner(config.planner.kind)
         mc = model.config
         if abs(traffic.dt - mc.dt) > 1e-3 * mc.dt:
             raise OmniscsError(f"scene {traffic.scene_id} has {traffic.dt:.3f} s steps but the model expects "
                                f"{mc.dt:.3f} s; load it with traffic_from_scene(scene, dt={mc.dt})")
         self.device = resolve_device(config.device)
-        self.traffic, self.config, self.appearance = traffic, config, appearance
+        self.traffic, self.config, self.render_consistency = traffic, config, render_consistency
         self.model = model_on(model, self.device)
         self.now, self.horizon = now_and_horizon(traffic, mc, config)
         now = self.now
@@ -98,6 +98,16 @@ class BehaviorProblem:
                     self.fitted = self.decode(self.z_fit)
 
     # -- model ----------------------------------------------------------------------------------------
+    @property
+    def appearance(self) -> RenderConsistencyTerm | None:
+        """Old name of ``render_consistency`` (L_app), kept for omniscs/bench/behavior.py, which sets it; delete once
+        it sets ``render_consistency``."""
+        return self.render_consistency
+
+    @appearance.setter
+    def appearance(self, term: RenderConsistencyTerm | None) -> None:
+        self.render_consistency = term
+
     @property
     def comfort_limits(self) -> ComfortBounds | None:
         """Decoding limits just inside the comfort bounds (None when comfort decoding is off)."""

@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
-from omniscs.scs.behavior.appearance import AppearanceTerm
+from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model
 from omniscs.scs.behavior.evaluation import VariantResult
 from omniscs.scs.behavior.generation import generate_variants
@@ -195,8 +195,8 @@ class VariantsOutput:
 
 
 def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, checkpoint: Path | str | None = None,
-                         config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
-                         pictures: bool = True, progress: Callable[[int, int], None] | None = None,
+                         config: AdversarialConfig = AdversarialConfig(),
+                         render_consistency: RenderConsistencyTerm | None = None, pictures: bool = True, progress: Callable[[int, int], None] | None = None,
                          published_dir: Path | None = None) -> VariantsOutput:
     """Generate ``n_variants`` variants of ``traffic`` and write ``out_dir/variants.json`` (+ one BEV PNG each,
     and ``catalog_rows.json``). ``published_dir``: where the folder will finally live when ``out_dir`` is a
@@ -209,7 +209,7 @@ def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, 
     ckpt_hash = checkpoint_hash(ckpt)
     target = out_dir / VARIANTS_JSON
     started = time.perf_counter()
-    results = generate_variants(traffic, model, n_variants, config, appearance, progress)
+    results = generate_variants(traffic, model, n_variants, config, render_consistency, progress)
     specs = [variant_spec(v) for v in results]
     pngs = [bev_picture(v, traffic, out_dir / f"{v.variant_id}.png") for v in results] if pictures else []
     atomic_write_json(target, specs)
