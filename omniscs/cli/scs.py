@@ -189,7 +189,7 @@ def scs_mine(
 ) -> None:
     """What a detector misses: ground-truth boxes no detection matches (nuScenes' centre-distance rule), by category,
     distance, visibility, orientation and pose, and the objects worth compositing (appearance-level SCS)."""
-    from omniscs.scs.appearance.mining import MiningConfig, mine, pick_scs_objects
+    from omniscs.eval.mining import MiningConfig, mine, pick_scs_objects
 
     check_out(out, overwrite)
     report = mine(dataset, version, results, out, MiningConfig(match_distance_m=match_distance, min_score=min_score),
