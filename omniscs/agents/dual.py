@@ -22,13 +22,15 @@ from omniscs.agents.pool import Pool
 from omniscs.agents.relight import fit_lighting, relight_base
 from omniscs.agents.track_pixels import shared_masks, track_alone
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import GaussianParams, with_sh_degree
+from omniscs.gaussians import GaussianParams, activate, with_sh_degree
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
 from omniscs.nsg.agent import track_poses
 from omniscs.nsg.edit import scale_to_box
 from omniscs.nsg.graph import SceneGraph, agent_key, render_view
 from omniscs.quality import psnr_from_mse
-from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rotate_sh
+from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rgb_to_sh_dc, rotate_sh
+from omniscs.storage import atomic_write_json
+from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 STRATEGIES = ("fitted", "online", "pool")
 MIRROR_Y = np.diag([1.0, -1.0, 1.0])  # the vehicle's x-z plane
@@ -410,8 +412,6 @@ def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams,
     ``material`` its material when it has one) and its Relight with the scene's light fitted to the track's views;
     the Gaussians' stored colours become the relit ones at the track's first logged pose, each Gaussian seen
     head-on (what a reader that ignores the relight data shows)."""
-    from omniscs.render.sh import rgb_to_sh_dc
-
     scale = np.asarray(node_size, dtype=np.float64) / np.maximum(np.asarray(meta["size"], dtype=np.float64), 1e-3)
     base = relight_base(candidate, meta.get("provenance") == "mesh", scale, material)
     relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps, render_steps=render_steps)
@@ -646,8 +646,6 @@ def boxes_cleared(graph: SceneGraph, track_ids, config: DualConfig = DualConfig(
 def background_in_boxes(graph: SceneGraph, track_ids, margin_m: float, floor_m: float) -> np.ndarray:
     """[N] bool: the background Gaussians whose centre lies in the box of one of ``track_ids`` at any of its logged
     poses, the box grown by ``margin_m`` on the sides and the top and starting ``floor_m`` above its bottom."""
-    from omniscs.gaussians import activate
-
     means = activate(graph.background.detached()).means.cpu().numpy().astype(np.float64)
     inside = np.zeros(len(means), bool)
     for t in track_ids:
@@ -685,8 +683,6 @@ def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool
     left out), completed by mirror symmetry where one side is missing, scored on its held-out views; those at
     ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>'). Returns, per
     candidate track, (pool model id or None, held-out PSNR or None)."""
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-
     out = {}
     for node in graph.agents:
         if node.category not in VEHICLE_CATEGORIES:
@@ -709,8 +705,6 @@ def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool
 
 
 def write_decisions(path: str | Path, decisions: list[Decision]) -> None:
-    from omniscs.storage import atomic_write_json
-
     atomic_write_json(Path(path), {"tracks": [d.to_dict() for d in decisions]})
 
 

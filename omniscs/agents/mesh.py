@@ -24,9 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from omniscs.agents.material import GaussianMaterial
 from omniscs.errors import ValidationError
 from omniscs.quality import psnr
 from omniscs.gaussians import GaussianParams, activate, params_from_values
+from omniscs.geometry import intrinsics_from_fov
+from omniscs.quaternions import rotmat_to_quat
+from omniscs.render import rasterize
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
 #: Light for shading the mesh colours: a direction (towards the light) and the ambient share.
@@ -121,7 +125,6 @@ def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: in
     (the Gaussians, the index of the face each lies on)."""
     import trimesh
 
-    from omniscs.quaternions import rotmat_to_quat
 
     v, f, c = _check_mesh(vertices, faces, face_colours)
     mesh = trimesh.Trimesh(v, f, process=False)
@@ -164,8 +167,6 @@ def orbit_cameras(size: np.ndarray, n: int = KEYFRAMES, elevation_deg: float = K
                   image: int = KEYFRAME_SIZE, fov_deg: float = 40.0) -> list[Camera]:
     """``n`` cameras around the origin at equal azimuth steps (the first in front of the model, looking back at
     it), all at one elevation, far enough that the whole box fits the image."""
-    from omniscs.geometry import intrinsics_from_fov
-
     radius = 0.5 * float(np.linalg.norm(size))
     distance = 1.15 * radius / np.sin(np.radians(fov_deg) / 2)
     K = intrinsics_from_fov(image, image, np.radians(fov_deg))
@@ -213,8 +214,6 @@ def raycast_views(vertices, faces, face_colours, cameras: list[Camera]) -> tuple
 
 def _render(params: GaussianParams, cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
     """[C, H, W, 3] colour on black and [C, H, W] alpha of the Gaussians alone."""
-    from omniscs.render import rasterize
-
     g = activate(params)
     view = torch.stack([torch.as_tensor(np.linalg.inv(c.world_from_camera), dtype=torch.float32) for c in cameras])
     K = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
@@ -277,8 +276,6 @@ def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps
     material, ...}: "material" is each Gaussian's ``GaussianMaterial`` from its face (the face colour as albedo;
     ``face_specular`` [F] and ``face_shininess`` [F] when the mesh has them, else matte; ``face_albedo`` [F, 3]
     linear when the diffuse reflectance differs from the colour the surface shows, as a metal's does)."""
-    from omniscs.agents.material import GaussianMaterial
-
     started = time.perf_counter()
     v, f, c = _check_mesh(vertices, faces, face_colours)
     size = v.max(0) - v.min(0)

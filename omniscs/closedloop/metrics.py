@@ -416,8 +416,8 @@ def comfortable(xy: np.ndarray,     # [n, 2] world box centres at a fixed spacin
         checks = [(lon_accel >= bounds.min_lon_accel) & (lon_accel <= bounds.max_lon_accel),
                   np.abs(lat_accel) <= bounds.max_abs_lat_accel,
                   np.abs(yaw_rate) <= bounds.max_abs_yaw_rate]
-        checks += [np.abs(value) <= bound for value, bound in ((yaw_accel, bounds.max_abs_yaw_accel),
-                                                                (lon_jerk, bounds.max_abs_lon_jerk)) if bound is not None]
+        optional = ((yaw_accel, bounds.max_abs_yaw_accel), (lon_jerk, bounds.max_abs_lon_jerk))
+        checks += [np.abs(value) <= bound for value, bound in optional if bound is not None]
         if bounds.max_abs_jerk is not None:
             jerk = _derivative(np.hypot(lon_accel, lat_accel), dt, smooth)
             checks.append(np.abs(jerk) <= bounds.max_abs_jerk)

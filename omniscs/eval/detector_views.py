@@ -12,13 +12,12 @@ import numpy as np
 from omniscs.errors import ValidationError
 from omniscs.eval.detector_config import DetectorTrainConfig
 from omniscs.eval.nuscenes_io import CATEGORY_TO_DETECTION, NuScenesTables
-from omniscs.quaternions import yaw_from_quaternion
+from omniscs.geometry import invert_transform, make_transform
+from omniscs.quaternions import quat_to_rotmat, yaw_from_quaternion
 
 
 # ----------------------------------------------------------------------------- geometry
 def transform_of(record: dict) -> np.ndarray:  # {translation [3], rotation [4] w, x, y, z} -> [4, 4]
-    from omniscs.geometry import make_transform
-    from omniscs.quaternions import quat_to_rotmat
 
     return make_transform(quat_to_rotmat(np.asarray(record["rotation"], np.float64)),
                           np.asarray(record["translation"], np.float64))
@@ -29,8 +28,6 @@ def project_to_camera(points_global: np.ndarray,      # [N, 3] global
                       global_from_camera: np.ndarray,  # [4, 4]
                       ) -> tuple[np.ndarray, np.ndarray]:  # uv [N, 2] px, depth [N] m along the optical axis
     """Pixels and depths of global points (uv is meaningless where depth <= 0)."""
-    from omniscs.geometry import invert_transform
-
     cam = np.asarray(points_global, np.float64) @ invert_transform(global_from_camera)[:3, :3].T \
         + invert_transform(global_from_camera)[:3, 3]
     depth = cam[:, 2]
@@ -76,8 +73,6 @@ def quaternion_from_yaw(yaw: np.ndarray) -> np.ndarray:  # [N] -> [N, 4] w, x, y
 
 def box_corners_global(translation: np.ndarray, size_wlh: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """[3], [3] (w, l, h), [4] -> [8, 3]: corners of a nuScenes box."""
-    from omniscs.quaternions import quat_to_rotmat
-
     w, length, h = np.asarray(size_wlh, np.float64)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
     local = signs * np.array([length, w, h]) / 2

@@ -11,11 +11,7 @@ import numpy as np
 import pandas as pd
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import (
-    invert_transform,
-    make_transform,
-    project,
-)
+from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform, project
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ego_from_lidar_of, global_from_world_of, load_attributes
 from omniscs.scene.store import Scene, load_scene
@@ -77,8 +73,6 @@ def projected_rect(camera_from_box: np.ndarray, size: np.ndarray, K: np.ndarray,
     outside the image, whether all corners are in front of the camera), or None when the box centre is nearer
     than MIN_LABEL_DEPTH_M or the rectangle is empty. Corners behind the camera are left out of the rectangle.
     """
-    from omniscs.geometry import box_corners_from_pose
-
     if camera_from_box[2, 3] < MIN_LABEL_DEPTH_M:
         return None
     corners = box_corners_from_pose(camera_from_box, size)

@@ -296,8 +296,8 @@ def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], table
                 if f not in lidar_cache:
                     lidar_cache = {f: scene.lidar(f)}
                 ego_from_box = invert_transform(scene.world_from_ego(f)) @ world_from_box[i]
-                n_points = int(points_in_box(lidar_cache[f], ego_from_box, np.array([row.length, row.width, row.height]),
-                                             BOX_POINT_MARGIN_M).sum())
+                size = np.array([row.length, row.width, row.height])
+                n_points = int(points_in_box(lidar_cache[f], ego_from_box, size, BOX_POINT_MARGIN_M).sum())
             else:
                 n_points = 0
         if (f, tid) in kept_visibility and kept_visibility[(f, tid)] in level_tokens:

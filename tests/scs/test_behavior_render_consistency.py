@@ -5,8 +5,8 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.quality import MAX_PSNR_DB
-from omniscs.scs.behavior.render_consistency import (AgentTrajectories, RenderConsistencyTerm, FeatureNet, FeatureNetConfig,
-                                             build_feature_net, masked_psnr)
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNet, FeatureNetConfig,
+                                                    RenderConsistencyTerm, build_feature_net, masked_psnr)
 
 
 def blob_renderer(size: int = 32, extent_m: float = 40.0):

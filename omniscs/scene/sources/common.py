@@ -28,12 +28,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError, ValidationError
-from omniscs.geometry import (
-    invert_transform,
-    make_transform,
-    rotmat_from_euler,
-    yaw_from_matrix,
-)
+from omniscs.geometry import invert_transform, is_rigid, make_transform, rotmat_from_euler, yaw_from_matrix
+from omniscs.ids import is_safe_id
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat, slerp
 from omniscs.scene.store import CameraRecord, Scene
 from omniscs.scene.writer import SceneWriter
@@ -238,9 +234,6 @@ def read_text_file(path: Path, what: str) -> str:
 def check_camera(camera: CameraRecord, where) -> CameraRecord:
     """A camera a reader built from calibration: positive size, pinhole K, rigid finite mount; else one
     ValidationError naming ``where`` (the calibration file and record) before anything is written."""
-    from omniscs.geometry import is_rigid
-    from omniscs.ids import is_safe_id
-
     K = np.asarray(camera.K, dtype=np.float64)
     if not is_safe_id(camera.name):
         raise ValidationError(f"{where}: camera name {camera.name!r} cannot name a folder")
@@ -317,6 +310,19 @@ def fingerprint(paths: Iterable[Path], root: Path) -> list:
             st = p.stat()
             out.append([os.path.relpath(p, root), st.st_size, st.st_mtime_ns])
     return out
+
+
+def pick_scene(available: list[str], named: str | None, where, kind: str, example: str) -> str:
+    """The ``named`` scene (a nuScenes scene, a KITTI sequence, a Waymo segment: ``kind``) of the ``available`` ones
+    in ``where``, or the only one when none is named; a user mistake otherwise (``example``: a source that names one).
+    """
+    if named is None:
+        if len(available) != 1:
+            raise OmniscsError(f"{where} holds {len(available)} {kind}s; name one, e.g. {example}")
+        return available[0]
+    if named not in available:
+        raise OmniscsError(f"{where} has no {kind} {named!r}; it has {available[:20]}")
+    return named
 
 
 def select_cameras(available: list[str], wanted: tuple[str, ...] | None, where: str) -> list[str]:

@@ -4,17 +4,17 @@ kinematic bicycle decoding) and adversarial latent optimisation with L_adv = L_b
 The traffic model first reproduces the log (posterior latents, refined by fitting them to the logged future:
 ``problem``); then, per variant, every agent's latent is optimised so that the chosen adversary reaches the
 planner's trajectory (L_beh, a log-sum-exp softmax over agents and steps: ``losses``), the rendered scene keeps its
-look (L_app, only when a differentiable renderer is supplied: ``render_consistency``) and the latents stay near where they
-started (L_restore). A documented plausibility penalty (comfort, collisions with others, leaving the road:
-``evaluation``) is added by default; set its weights to 0 for the paper's three terms alone. An adversary that fails
-from the log's latents (and a standing one from the outset) restarts from a warm start: a search over its control
-knots finds a comfortable path into the ego (``optimisation.intercept``) and its latent is refitted to that path.
-``generation`` schedules adversaries and time windows into N distinct variants.
+look (L_app, the render-consistency term, only when a differentiable renderer is supplied: ``render_consistency``)
+and the latents stay near where they started (L_restore). A documented plausibility penalty (comfort, collisions
+with others, leaving the road: ``evaluation``) is added by default; set its weights to 0 for the paper's three terms
+alone. An adversary that fails from the log's latents (and a standing one from the outset) restarts from a warm
+start: a search over its control knots finds a comfortable path into the ego (``optimisation.intercept``) and its
+latent is refitted to that path. ``generation`` schedules adversaries and time windows into N distinct variants.
 """
 from omniscs.comfort import ComfortBounds
 from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, adversarial_preset
-from omniscs.scs.behavior.render_consistency import (AgentTrajectories, RenderConsistencyTerm, FeatureNet, FeatureNetConfig,
-                                             build_feature_net, masked_psnr)
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNet, FeatureNetConfig,
+                                                    RenderConsistencyTerm, build_feature_net, masked_psnr)
 from omniscs.devices import resolve_device
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model, save_checkpoint
 from omniscs.scs.behavior.evaluation import Evaluation, VariantResult, evaluate

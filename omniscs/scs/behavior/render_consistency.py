@@ -1,12 +1,13 @@
-"""The render-consistency term (the paper's appearance term) L_app = sum_t || F(Re(NSG_perturbed))_t - F(Re(NSG))_t ||^2 and its feature net F.
+"""The render-consistency term (the paper's appearance term)
+L_app = sum_t || F(Re(NSG_perturbed))_t - F(Re(NSG))_t ||^2 and its feature net F.
 
 ``RenderConsistencyTerm`` takes any differentiable renderer ``render(trajectories) -> images [T, 3, H, W]`` (the
-Gaussian scene graph's: ``scene_render.GraphTrajectoryRenderer``) and the images of the unperturbed scene. The feature net defaults to
-a *fixed, seeded random-init* CNN: no pretrained ImageNet weights exist here, a random multi-scale filter
-bank of this kind still responds to edges, colour and texture placement (the "random-weight features as a
-perceptual metric" observation), it needs no file and no training data, and it cannot bake the look of the
-procedural world into the metric (a net self-trained on our renders would). A user's pretrained network
-plugs in from local weights: a state dict for this architecture, or a torch.export / TorchScript file of any CNN.
+Gaussian scene graph's: ``scene_render.GraphTrajectoryRenderer``) and the images of the unperturbed scene. The
+feature net defaults to a *fixed, seeded random-init* CNN: no pretrained ImageNet weights exist here, a random
+multi-scale filter bank of this kind still responds to edges, colour and texture placement (the "random-weight
+features as a perceptual metric" observation), it needs no file and no training data, and it cannot bake the look of
+the procedural world into the metric (a net self-trained on our renders would). A user's pretrained network plugs in
+from local weights: a state dict for this architecture, or a torch.export / TorchScript file of any CNN.
 
 Also here: the drift metric of the benchmark (PSNR of rendered perturbed frames against ground
 truth, masked to the adversary) and the ego's poses under a variant's plan.
@@ -23,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from omniscs.errors import OmniscsError
+from omniscs.geometry import pose_from_xyz_yaw
 from omniscs.quality import psnr
 
 FEATURE_NET_KINDS = ("random", "state_dict", "export", "torchscript")
@@ -187,8 +189,6 @@ def masked_psnr(rendered: np.ndarray,      # [T, H, W, 3] or [T, 3, H, W] float 
 
 def variant_ego_poses(variant: dict, logged: np.ndarray) -> np.ndarray:  # [F, 4, 4] -> [F, 4, 4]
     """The ego's poses under a variant's plan (the box centre lies ahead of the ego origin; heights logged)."""
-    from omniscs.geometry import pose_from_xyz_yaw
-
     poses = np.array(logged, dtype=np.float64, copy=True)
     ahead = float(variant.get("ego_centre_ahead_of_origin_m", 0.0))
     for step, pose in zip(variant["source_frames"], variant["ego"]):

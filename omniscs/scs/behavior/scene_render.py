@@ -23,11 +23,13 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.compose import NodePose
 from omniscs.nsg.graph import SceneGraph, agent_may_show, node_radius, render_view, static_layer
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
-from omniscs.scs.behavior.render_consistency import (AgentTrajectories, RenderConsistencyTerm, FeatureNetConfig, build_feature_net,
-                                            variant_ego_poses)
+from omniscs.scs.behavior.checkpoint import load_traffic_model as load_model
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNetConfig, RenderConsistencyTerm,
+                                                    build_feature_net, variant_ego_poses)
 from omniscs.scs.behavior.model import TrafficModel
 from omniscs.scs.behavior.problem import now_and_horizon
 from omniscs.scs.behavior.tracks import TrafficScene
@@ -142,9 +144,6 @@ def render_consistency_from_checkpoint(nsg_dir: str | Path, scene, traffic: Traf
                                adversarial: AdversarialConfig = AdversarialConfig(),
                                config: RenderConsistencyConfig = RenderConsistencyConfig()) -> RenderConsistencyTerm:
     """L_app from a scene-graph checkpoint folder of ``scene`` (refused when it belongs to another scene)."""
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.scs.behavior.checkpoint import load_traffic_model as load_model
-
     return scene_graph_render_consistency(load_graph(nsg_dir, scene), traffic, load_model(behavior_checkpoint),
                                   adversarial, config)
 

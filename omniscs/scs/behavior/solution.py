@@ -10,6 +10,7 @@ bounds (with a small tolerance) and the road. When no start passes, the best att
 variant stays a test case."""
 from __future__ import annotations
 
+import io
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -25,6 +26,7 @@ from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.kinematics import KinematicLimits, bound_controls, rollout, soft_clip_accel
 from omniscs.scs.behavior.losses import box_gap
 from omniscs.scs.behavior.tracks import TrafficScene
+from omniscs.storage import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -306,13 +308,10 @@ def solution_bev_picture(variant: dict, solution: EgoSolution, traffic: TrafficS
     """The variant over the map: the ego's plan (dashed black), its solution (solid green), the adversary's
     variant trajectory (red), footprints at the plan's collision step (or closest approach) for the plan, the
     solution and the adversary. Written atomically."""
-    import io
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from omniscs.storage import atomic_write_bytes
 
     plan, now, dt, agents, sizes, ego_size = _parse(variant)
     adv_key = str(variant.get("adversary"))
