@@ -198,8 +198,8 @@ def relit_node_checks(graph, device: str) -> dict:
     the CPU render), and its light fits back through that device's rasterizer (agents.relight.fit_lighting, as the
     dual strategy calls it), and the dual strategy's colour correction and refinement run there (they read the
     renders back to the CPU). Asserts; returns the figures (infra/gpu_check/relight_cuda.py prints them)."""
-    from omniscs.agents.dual import _alone
     from omniscs.agents.relight import fit_lighting
+    from omniscs.agents.track_pixels import track_alone
     from omniscs.nsg.edit import apply_graph_edits
     from omniscs.nsg.graph import render_view
     from omniscs.nsg.relight import neutral_lighting
@@ -226,7 +226,7 @@ def relit_node_checks(graph, device: str) -> dict:
     assert figures["baked_max_diff"] < 1e-4 and figures["cpu_mean_diff"] < 2e-3, figures
     # the light, fitted back from renders made with it, starting from an even light
     node = moved.agent(1)
-    alone = _alone(moved, 1, node.gaussians).replace(agents=(node,))
+    alone = track_alone(moved, 1, node.gaussians).replace(agents=(node,))
     samples = []
     for f in range(graph.n_frames):
         out = render_view(alone, moved.view(cam, f))
