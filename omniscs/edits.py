@@ -9,7 +9,7 @@ points to the agent's former right).
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 
 import numpy as np
 
@@ -125,8 +125,6 @@ def _is_sequence(v) -> bool:
 
 def _fields_of(cls) -> tuple[list[str], list[str]]:
     """(every field a user may give, the required ones) of an edit class."""
-    from dataclasses import MISSING, fields
-
     given = [f for f in fields(cls) if f.init]
     return [f.name for f in given], [f.name for f in given if f.default is MISSING and f.default_factory is MISSING]
 
@@ -228,7 +226,6 @@ def edit_from_dict(d: dict, index: int | None = None) -> Edit:
 def check_edit(edit: Edit, index: int | None = None) -> Edit:
     """An edit object with every field checked as ``edit_from_dict`` checks JSON (a normalised copy)."""
     where = _where(index, edit.op)
-    from dataclasses import fields
 
     return _build(type(edit), {f.name: getattr(edit, f.name) for f in fields(edit) if f.init}, where)
 

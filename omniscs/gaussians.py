@@ -12,8 +12,8 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-from omniscs.quaternions import normalize_quats
-from omniscs.render.sh import num_sh_bases, rgb_to_sh_dc
+from omniscs.quaternions import normalize_quats, quat_multiply, rotmat_to_quat
+from omniscs.render.sh import num_sh_bases, rgb_to_sh_dc, rotate_sh
 
 #: Opacities are kept inside (eps, 1 - eps) when turned into logits, so logits stay finite.
 OPACITY_EPS = 1e-6
@@ -135,9 +135,6 @@ def params_from_values(means: Tensor,     # [N, 3]
 def rigidly_moved(params: GaussianParams, rotation, translation) -> GaussianParams:
     """``params`` moved by p -> R p + t: means and orientations turn, and so do the view-dependent colours (every SH
     band turned with the rotation: the Gaussians look from R d as they looked from d); scales and opacities stay."""
-    from omniscs.quaternions import quat_multiply, rotmat_to_quat
-    from omniscs.render.sh import rotate_sh
-
     R = torch.as_tensor(rotation, dtype=torch.float64)
     t = torch.as_tensor(translation, dtype=torch.float64)
     dtype = params.means.dtype

@@ -21,10 +21,14 @@ def rotmat_from_euler(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -
     return rz @ ry @ rx
 
 
-def yaw_of(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] -> [...]
-    """Heading of the rotated x axis in the xy plane."""
+def yaw_from_matrix(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] (or the rotation block of a pose) -> [...] rad
+    """Heading of the rotated x axis in the xy plane (``quaternions.yaw_from_quaternion`` for quaternions)."""
     R = np.asarray(R, dtype=np.float64)
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
+
+
+#: Old name of ``yaw_from_matrix``, kept for omniscs/pipeline/procedural.py until it imports the new name.
+yaw_of = yaw_from_matrix
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:
@@ -121,9 +125,13 @@ def clip_segment_to_near(a: np.ndarray, b: np.ndarray, near: float = DEFAULT_NEA
     return (cut, b) if za < near else (a, cut)
 
 
-def points_in_box(points: np.ndarray, center: np.ndarray, size: np.ndarray, yaw: float,
-                  margin: float = 0.0) -> np.ndarray:  # [N, 3] -> [N] bool
-    local = transform_points(invert_transform(world_from_box(center, yaw)), points)
+def points_in_box(points: np.ndarray,         # [N, 3+] in some frame (columns past xyz are ignored)
+                  frame_from_box: np.ndarray,  # [4, 4] the box's pose in that frame
+                  size: np.ndarray,            # [3] length, width, height
+                  margin: float = 0.0,         # metres added on every side
+                  ) -> np.ndarray:             # -> [N] bool
+    """Which points lie in the box (its faces included), grown by ``margin`` on every side."""
+    local = transform_points(invert_transform(frame_from_box), np.asarray(points, dtype=np.float64)[:, :3])
     half = 0.5 * np.asarray(size, dtype=np.float64) + margin
     return np.all(np.abs(local) <= half, axis=-1)
 

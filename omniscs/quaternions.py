@@ -101,6 +101,14 @@ def yaw_to_quat(yaw: float | np.ndarray) -> np.ndarray:  # [...] radians about +
     return np.stack([np.cos(half), zero, zero, np.sin(half)], -1)
 
 
+def yaw_from_quaternion(q: np.ndarray) -> np.ndarray:  # [..., 4] (w, x, y, z), any non-zero norm -> [...] rad
+    """Heading of the rotated +x axis in the ground plane (``geometry.yaw_from_matrix`` for matrices)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:  # [4], [4], scalar -> [4] (w, x, y, z)
     """Spherical interpolation along the shorter arc (q and -q are the same rotation)."""
     q0, q1 = quat_normalize(q0), quat_normalize(q1)

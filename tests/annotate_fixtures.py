@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from nsg_fixtures import nsg_world, tiny_fit_config, write_nsg_scene
-from omniscs.geometry import yaw_of
+from omniscs.geometry import yaw_from_matrix
 
 #: Ego box centre ahead of the ego origin (the synthetic ego's, as the behaviour model uses it).
 AHEAD_M = 1.3
@@ -15,7 +15,7 @@ AHEAD_M = 1.3
 
 def fitted_scene(out: Path, agents=None, n_frames: int = 10, n_cameras: int = 2, iterations: int = 200):
     """(scene, graph) of ``nsg_world`` fitted at thumbnail size, every track an agent node."""
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.train import fit_scene
     from omniscs.plan import make_plan
     from omniscs.scene import load_scene
@@ -26,7 +26,7 @@ def fitted_scene(out: Path, agents=None, n_frames: int = 10, n_cameras: int = 2,
     config = tiny_fit_config(iterations)
     plan = make_plan(scene, config=config.plan, behavior_variants=1)
     fit_scene(scene, config, plan, checkpoint_dir=out / "graph", overwrite=True)
-    return scene, load_checkpoint(out / "graph", scene)
+    return scene, load_graph(out / "graph", scene)
 
 
 def logged_variant(scene, shift: dict[int, float] | None = None, adversary: int = 2, ego_lateral=None) -> dict:
@@ -42,7 +42,7 @@ def logged_variant(scene, shift: dict[int, float] | None = None, adversary: int 
     ego = scene.world_from_ego_all
     rows = []
     for f in frames:
-        yaw = float(yaw_of(ego[f, :3, :3]))
+        yaw = float(yaw_from_matrix(ego[f, :3, :3]))
         lateral = 0.0 if ego_lateral is None else float(ego_lateral(f))
         rows.append([float(ego[f, 0, 3] + AHEAD_M * np.cos(yaw) - lateral * np.sin(yaw)),
                      float(ego[f, 1, 3] + AHEAD_M * np.sin(yaw) + lateral * np.cos(yaw)), yaw])

@@ -7,6 +7,11 @@ ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ROOT / "omniscs"
 #: Model packages (present and future): they may not import the procedural world.
 MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate", "eval")
+#: Model packages under DESIGN.md's layers: they may import the ground and data floors, never what sits above them.
+MODELS = ("nsg", "agents", "background", "scs")
+#: The product and wiring floors above the models (evaluation, annotation, closed loop, stages, benchmarks, CLI).
+ABOVE_MODELS = ("omniscs.eval", "omniscs.annotate", "omniscs.closedloop", "omniscs.pipeline", "omniscs.bench",
+                "omniscs.cli", "omniscs.server")
 #: Top floors that start flows or serve requests; everything else in omniscs/ is Prefect-free.
 TOP_FLOORS = ("cli",)
 
@@ -48,6 +53,12 @@ def test_model_code_never_imports_the_procedural_world():
     assert violations(files, ("omniscs.world",)) == []
 
 
+def test_model_code_never_imports_the_floors_above_it():
+    files = [f for f in library_files() if f.relative_to(LIBRARY).parts[0] in MODELS]
+    assert files, "no model package found"
+    assert violations(files, ABOVE_MODELS) == []
+
+
 def test_the_check_itself_sees_a_forbidden_import(tmp_path):
     fake = tmp_path / "omniscs" / "nsg" / "probe.py"
     fake.parent.mkdir(parents=True)
@@ -56,3 +67,60 @@ def test_the_check_itself_sees_a_forbidden_import(tmp_path):
     names = violations([fake], ("omniscs.world", "prefect"), root=tmp_path)
     # the module and its name, the relative module and its name, prefect; never a mere prefix like "worldly"
     assert len(names) == 5 and not any("worldly" in n for n in names)
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the library modules it imports anywhere in its body (a package's own parents left out: a module
+    importing the package it belongs to is how packages are built, not a circle)."""
+    modules = {}
+    for f in (root / "omniscs").rglob("*.py"):
+        name = ".".join(f.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
+        modules[name] = f
+    graph = {}
+    for name, f in modules.items():
+        deps = set()
+        for _, imported in imported_modules(f, root):
+            parts = imported.split(".")
+            while parts and ".".join(parts) not in modules:
+                parts.pop()
+            dep = ".".join(parts)
+            if dep and dep != name and not name.startswith(dep + "."):
+                deps.add(dep)
+        graph[name] = deps
+    return graph
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (each an import circle)."""
+    order, low, stack, on_stack, circles = {}, {}, [], set(), []
+
+    def visit(v: str) -> None:
+        order[v] = low[v] = len(order)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in order:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], order[w])
+        if low[v] == order[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+                on_stack.discard(group[-1])
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in order:
+            visit(v)
+    return circles
+
+
+def test_no_two_library_modules_import_each_other_even_inside_functions():
+    assert import_circles(import_graph()) == []
+
+
+def test_the_circle_check_itself_finds_a_circle():
+    assert import_circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

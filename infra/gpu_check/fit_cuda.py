@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from omniscs.nsg import fit_preset, fit_scene, load_checkpoint
+from omniscs.nsg import fit_preset, fit_scene, load_graph
 from omniscs.plan import PlanConfig, make_plan
 from omniscs.scene import load_scene
 
@@ -26,7 +26,7 @@ def tiny_cuda_fit(out: Path) -> dict:
     result = fit_scene(scene, config, make_plan(scene, None, config.plan), checkpoint_dir=out)
     graph = result.graph
     rendered = graph.render(graph.view("CAM_FRONT", 2))
-    on_cpu = load_checkpoint(out, device="cpu")
+    on_cpu = load_graph(out, device="cpu")
     return {"graph_on_cuda": graph.device.type == "cuda" and all(a.gaussians.device.type == "cuda"
                                                                  for a in graph.agents),
             "sky_and_exposure_on_cuda": bool(graph.sky.texture.is_cuda

@@ -14,12 +14,12 @@ import numpy as np
 import torch
 
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.generation import generate_variants
 
 FAST = adversarial_preset("fast")
 traffic = pickle.loads((Path(os.environ.get("GPU_CHECK_SCENES", ".gpu_check")) / "traffic.pkl").read_bytes())
-model = load_checkpoint()
+model = load_traffic_model()
 (v,) = generate_variants(traffic["straight"], model, 1, replace(FAST, device="cuda"))
 (cpu,) = generate_variants(traffic["straight"], model, 1, FAST)
 print("straight road, CUDA vs CPU:", {"success": v.success, "plausible": v.plausible,

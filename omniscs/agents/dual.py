@@ -19,13 +19,18 @@ import torch
 
 from omniscs.agents.matching import CROP, Embedder, assign, crop_scale, crop_square, match_scores, match_tracks
 from omniscs.agents.pool import Pool
+from omniscs.agents.relight import fit_lighting, relight_base
+from omniscs.agents.track_pixels import shared_masks, track_alone
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import GaussianParams, with_sh_degree
+from omniscs.gaussians import GaussianParams, activate, with_sh_degree
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
 from omniscs.nsg.agent import track_poses
 from omniscs.nsg.edit import scale_to_box
 from omniscs.nsg.graph import SceneGraph, agent_key, render_view
-from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rotate_sh
+from omniscs.quality import psnr_from_mse
+from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rgb_to_sh_dc, rotate_sh
+from omniscs.storage import atomic_write_json
+from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 STRATEGIES = ("fitted", "online", "pool")
 MIRROR_Y = np.diag([1.0, -1.0, 1.0])  # the vehicle's x-z plane
@@ -343,14 +348,6 @@ def largest_views(views: list[TrackView], n: int) -> list[TrackView]:
     return sorted(views, key=lambda v: -v.pixels)[:n]
 
 
-def _alone(graph: SceneGraph, track_id: int, params: GaussianParams) -> SceneGraph:
-    """The graph holding only the track's node (with ``params``), no background, no exposure correction."""
-    from omniscs.gaussians import empty_params
-
-    node = graph.agent(track_id).with_changes(gaussians=params)
-    return graph.replace(background=empty_params(graph.sh_degree).to(graph.device), agents=(node,), exposure={})
-
-
 def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianParams, samples: list[tuple],
                           ridge: float = 0.02) -> np.ndarray:
     """The colour map [A | b] (per channel: A diagonal) that makes ``candidate`` (in the track's node) look like the
@@ -359,7 +356,7 @@ def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianP
     identity = np.hstack([np.eye(3), np.zeros((3, 1))])
     if not samples:
         return identity
-    alone = _alone(graph, track_id, candidate)
+    alone = track_alone(graph, track_id, candidate)
     xs, ys, ws = [], [], []
     with torch.no_grad():
         for view, target, weight in samples:
@@ -382,28 +379,13 @@ def fit_colour_correction(graph: SceneGraph, track_id: int, candidate: GaussianP
     return affine if np.all(np.isfinite(affine)) else identity
 
 
-def shared_masks(alone: SceneGraph, samples: list[tuple]) -> list[tuple]:
-    """Per colour sample (``colour_samples``), the pixels both the fitted track (weight > 0.9) and the candidate
-    (``alone``: the graph holding only its node) cover, eroded by 2 pixels so that no background colour leaks onto
-    the model's rim: (view, target, mask) where at least 20 pixels remain."""
-    kernel = np.ones((5, 5), np.uint8)
-    out = []
-    with torch.no_grad():
-        for view, target, weight in samples:
-            covered = render_view(alone, view).alpha.cpu().numpy() > 0.9
-            shared = cv2.erode(((weight.numpy() > 0.9) & covered).astype(np.uint8), kernel) > 0
-            if shared.sum() >= 20:
-                out.append((view, target, torch.from_numpy(shared)))
-    return out
-
-
 def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, samples: list[tuple],
                    steps: int = 40, lr: float = 0.02) -> GaussianParams:
     """``candidate``'s colours (view-independent band) fitted for ``steps`` Adam steps to the logged images, only
     where the fitted track is what the camera saw *and* the candidate covers the pixel (a silhouette the two
     share, eroded by 2 pixels, so that no background colour leaks onto the model's rim); Gaussians no such pixel
     sees keep their colours. ``samples``: ``colour_samples`` of the track."""
-    masked = shared_masks(_alone(graph, track_id, candidate), samples)
+    masked = shared_masks(track_alone(graph, track_id, candidate), samples)
     if not masked or steps <= 0:
         return candidate
     dc = candidate.sh_dc.detach().clone().requires_grad_(True)
@@ -412,7 +394,7 @@ def refine_colours(graph: SceneGraph, track_id: int, candidate: GaussianParams, 
         view, target, mask = masked[step % len(masked)]
         params = GaussianParams(candidate.means, candidate.quats, candidate.log_scales, candidate.opacity_logits, dc,
                                 candidate.sh_rest)
-        out = render_view(_alone(graph, track_id, params), view)
+        out = render_view(track_alone(graph, track_id, params), view)
         loss = (out.rgb - target.to(out.rgb.device)).abs().sum(-1)[mask.to(out.rgb.device)].mean()
         opt.zero_grad()
         loss.backward()
@@ -430,9 +412,6 @@ def relit_candidate(graph: SceneGraph, track_id: int, candidate: GaussianParams,
     ``material`` its material when it has one) and its Relight with the scene's light fitted to the track's views;
     the Gaussians' stored colours become the relit ones at the track's first logged pose, each Gaussian seen
     head-on (what a reader that ignores the relight data shows)."""
-    from omniscs.agents.relight import fit_lighting, relight_base
-    from omniscs.render.sh import rgb_to_sh_dc
-
     scale = np.asarray(node_size, dtype=np.float64) / np.maximum(np.asarray(meta["size"], dtype=np.float64), 1e-3)
     base = relight_base(candidate, meta.get("provenance") == "mesh", scale, material)
     relight, _ = fit_lighting(graph, track_id, candidate, base, samples, steps, render_steps=render_steps)
@@ -667,8 +646,6 @@ def boxes_cleared(graph: SceneGraph, track_ids, config: DualConfig = DualConfig(
 def background_in_boxes(graph: SceneGraph, track_ids, margin_m: float, floor_m: float) -> np.ndarray:
     """[N] bool: the background Gaussians whose centre lies in the box of one of ``track_ids`` at any of its logged
     poses, the box grown by ``margin_m`` on the sides and the top and starting ``floor_m`` above its bottom."""
-    from omniscs.gaussians import activate
-
     means = activate(graph.background.detached()).means.cpu().numpy().astype(np.float64)
     inside = np.zeros(len(means), bool)
     for t in track_ids:
@@ -696,7 +673,7 @@ def heldout_psnr(graph: SceneGraph, scene, track_id: int, frames, min_pixels: in
         weights += 3.0 * m.sum()
     if weights == 0:
         return None
-    return float(10.0 * np.log10(1.0 / max(errors / weights, 1e-10)))
+    return psnr_from_mse(errors / weights)
 
 
 def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool, min_psnr: float,
@@ -706,8 +683,6 @@ def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool
     left out), completed by mirror symmetry where one side is missing, scored on its held-out views; those at
     ``min_psnr`` or better join the pool (provenance 'scene_track', source '<scene>/track-<id>'). Returns, per
     candidate track, (pool model id or None, held-out PSNR or None)."""
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-
     out = {}
     for node in graph.agents:
         if node.category not in VEHICLE_CATEGORIES:
@@ -730,8 +705,6 @@ def grow_pool(graph: SceneGraph, scene, train_frames, heldout_frames, pool: Pool
 
 
 def write_decisions(path: str | Path, decisions: list[Decision]) -> None:
-    from omniscs.storage import atomic_write_json
-
     atomic_write_json(Path(path), {"tracks": [d.to_dict() for d in decisions]})
 
 

@@ -24,8 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from omniscs.agents.material import GaussianMaterial
 from omniscs.errors import ValidationError
+from omniscs.quality import psnr
 from omniscs.gaussians import GaussianParams, activate, params_from_values
+from omniscs.geometry import intrinsics_from_fov
+from omniscs.quaternions import rotmat_to_quat
+from omniscs.render import rasterize
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
 #: Light for shading the mesh colours: a direction (towards the light) and the ambient share.
@@ -120,7 +125,6 @@ def gaussians_from_mesh(vertices, faces, face_colours, n: int = 20_000, seed: in
     (the Gaussians, the index of the face each lies on)."""
     import trimesh
 
-    from omniscs.quaternions import rotmat_to_quat
 
     v, f, c = _check_mesh(vertices, faces, face_colours)
     mesh = trimesh.Trimesh(v, f, process=False)
@@ -163,8 +167,6 @@ def orbit_cameras(size: np.ndarray, n: int = KEYFRAMES, elevation_deg: float = K
                   image: int = KEYFRAME_SIZE, fov_deg: float = 40.0) -> list[Camera]:
     """``n`` cameras around the origin at equal azimuth steps (the first in front of the model, looking back at
     it), all at one elevation, far enough that the whole box fits the image."""
-    from omniscs.geometry import intrinsics_from_fov
-
     radius = 0.5 * float(np.linalg.norm(size))
     distance = 1.15 * radius / np.sin(np.radians(fov_deg) / 2)
     K = intrinsics_from_fov(image, image, np.radians(fov_deg))
@@ -212,8 +214,6 @@ def raycast_views(vertices, faces, face_colours, cameras: list[Camera]) -> tuple
 
 def _render(params: GaussianParams, cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
     """[C, H, W, 3] colour on black and [C, H, W] alpha of the Gaussians alone."""
-    from omniscs.render import rasterize
-
     g = activate(params)
     view = torch.stack([torch.as_tensor(np.linalg.inv(c.world_from_camera), dtype=torch.float32) for c in cameras])
     K = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
@@ -231,13 +231,13 @@ def keyframes(params: GaussianParams, size: np.ndarray, n: int = KEYFRAMES) -> n
     return (rgba.numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def view_psnr(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera]) -> float:
-    """PSNR (dB) of the model's renders against reference views over the pixels either covers."""
+def view_psnr(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera]) -> float | None:
+    """PSNR (dB, ``omniscs.quality.psnr``) of the model's renders against reference views over the pixels either
+    covers; None when neither covers any."""
     with torch.no_grad():
         got, got_alpha = _render(params, cameras)
     mask = (torch.as_tensor(alpha) > 0.5) | (got_alpha > 0.5)
-    err = ((got - torch.as_tensor(rgb, dtype=torch.float32)) ** 2).mean(-1)[mask]
-    return float(10 * torch.log10(1.0 / err.mean().clamp_min(1e-10))) if len(err) else float("inf")
+    return psnr(got, torch.as_tensor(rgb, dtype=torch.float32), mask)
 
 
 def refine(params: GaussianParams, rgb: np.ndarray, alpha: np.ndarray, cameras: list[Camera], steps: int = 100,
@@ -276,8 +276,6 @@ def model_from_mesh(vertices, faces, face_colours, n: int = 20_000, refine_steps
     material, ...}: "material" is each Gaussian's ``GaussianMaterial`` from its face (the face colour as albedo;
     ``face_specular`` [F] and ``face_shininess`` [F] when the mesh has them, else matte; ``face_albedo`` [F, 3]
     linear when the diffuse reflectance differs from the colour the surface shows, as a metal's does)."""
-    from omniscs.agents.material import GaussianMaterial
-
     started = time.perf_counter()
     v, f, c = _check_mesh(vertices, faces, face_colours)
     size = v.max(0) - v.min(0)

@@ -22,7 +22,7 @@ import torch
 
 from omniscs.errors import ValidationError
 from omniscs.gaussians import GaussianParams
-from omniscs.render.sh import num_sh_bases
+from omniscs.render.sh import MAX_SH_DEGREE, num_sh_bases
 from omniscs.storage import atomic_write_bytes
 
 #: PLY scalar type names (with their aliases) -> numpy type code (the byte order comes from the file's format).
@@ -34,7 +34,7 @@ PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": 
 PLY_FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
 
 #: Number of f_rest properties -> SH degree.
-DEGREE_OF_REST_COUNT = {3 * (num_sh_bases(d) - 1): d for d in range(4)}
+DEGREE_OF_REST_COUNT = {3 * (num_sh_bases(d) - 1): d for d in range(MAX_SH_DEGREE + 1)}
 
 #: Properties every Gaussian PLY file must have, in the order the reader stacks them.
 REQUIRED_PROPERTIES = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",

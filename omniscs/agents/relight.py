@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from omniscs.agents.mesh import AMBIENT, LIGHT_DIRECTION
+from omniscs.agents.track_pixels import shared_masks, track_alone
 from omniscs.gaussians import GaussianParams, activate
 from omniscs.nsg.graph import SceneGraph, render_view
 from omniscs.nsg.relight import Relight, matte, neutral_lighting, shade, srgb_decode
@@ -91,11 +92,9 @@ def relight_base(params: GaussianParams, mesh_light: bool, scale: np.ndarray | N
 def light_samples(graph: SceneGraph, track_id: int, candidate: GaussianParams, masked: list[tuple]) -> dict | None:
     """The colour pairs of the light's fit (module docstring): per pair the Gaussian's index, its node's rotation
     at that frame [3, 3], the view direction (world, camera to centre) and the logged colour; None without any.
-    ``masked``: (view, target, mask) from ``dual.shared_masks``."""
-    from omniscs.agents.dual import _alone
-
+    ``masked``: (view, target, mask) from ``track_pixels.shared_masks``."""
     node = graph.agent(track_id)
-    alone = _alone(graph, track_id, candidate)
+    alone = track_alone(graph, track_id, candidate)
     means = activate(candidate.detached()).means.cpu().double().numpy()
     index, rotation, view_dir, colour = [], [], [], []
     with torch.no_grad():
@@ -194,9 +193,7 @@ def fit_lighting(graph: SceneGraph, track_id: int, candidate: GaussianParams, re
     share), where Gaussians blend as they do in the image. loss_first / loss_last: that render loss over every view
     with the given light / the light returned, which is the better of the two stages' by it. With no usable view, or
     a fit that does not stay finite, ``relight`` comes back unchanged."""
-    from omniscs.agents.dual import _alone, shared_masks
-
-    alone = _alone(graph, track_id, candidate)
+    alone = track_alone(graph, track_id, candidate)
     masked = shared_masks(alone, samples)
     info = {"views": len(masked), "pairs": 0, "loss_first": None, "loss_last": None, "pair_loss": None}
     if not masked or steps + render_steps <= 0:

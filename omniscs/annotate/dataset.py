@@ -19,6 +19,7 @@ import numpy as np
 
 from omniscs.annotate.scene import read_rows
 from omniscs.errors import OmniscsError
+from omniscs.preview import track_colour
 from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 CARD_JSON = "dataset.json"
@@ -166,8 +167,6 @@ def card_markdown(card: dict) -> str:
 
 
 def _colour(track_id: int) -> tuple[int, int, int]:
-    from omniscs.preview import track_colour
-
     return tuple(int(c) for c in track_colour(int(track_id)))
 
 

@@ -24,6 +24,8 @@ import numba as nb
 import numpy as np
 import torch
 
+from omniscs.quality import psnr, ssim, ssim_map
+
 #: Descriptor grid (rows, columns) over the image.
 DRIFT_CELLS = (6, 8)
 #: Gradient orientation bins over [0, pi).
@@ -41,15 +43,12 @@ def finite_or_none(x) -> float | None:
 
 def image_fidelity(rendered: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> dict:
     """PSNR / SSIM of a rendered frame against its reference, over the image and over ``mask`` (None when empty)."""
-    from omniscs.nsg.metrics import psnr, ssim, ssim_map
-
     r = torch.from_numpy(rendered.astype(np.float32) / 255.0)
     g = torch.from_numpy(reference.astype(np.float32) / 255.0)
     m = torch.from_numpy(mask)
     smap = ssim_map(r, g)
-    return {"psnr": finite_or_none(psnr(r, g)), "ssim": finite_or_none(ssim(r, g, smap=smap)),
-            "masked_psnr": finite_or_none(psnr(r, g, m)) if mask.any() else None,
-            "masked_ssim": finite_or_none(ssim(r, g, m, smap=smap)) if mask.any() else None}
+    return {"psnr": psnr(r, g), "ssim": finite_or_none(ssim(r, g, smap=smap)),
+            "masked_psnr": psnr(r, g, m), "masked_ssim": finite_or_none(ssim(r, g, m, smap=smap))}
 
 
 def structure_descriptor(rgb: np.ndarray,  # uint8 [H, W, 3]

@@ -50,7 +50,7 @@ def variant_frames(scene: Scene, variant: dict, agent_nodes: set[int] | frozense
     variant whose ``ego`` is null keeps the logged ego poses. ``edited`` ({track id: node annotation boxes, or None
     for a removed track}; ``omniscs.scs.appearance.compose.node_boxes``) gives the boxes of tracks an edit changed,
     replaced or inserted: they come from the edited graph's nodes, which draw themselves where they are."""
-    from omniscs.scs.behavior.appearance import variant_ego_poses
+    from omniscs.scs.behavior.render_consistency import variant_ego_poses
 
     steps_frames = variant.get("source_frames")
     if steps_frames is None:

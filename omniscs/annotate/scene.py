@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 
 from omniscs.annotate.config import AnnotateConfig
-from omniscs.annotate.replay import Replay
+from omniscs.annotate.replay import Replay, write_replay
 from omniscs.annotate.variant import AnnotatedVariant, Reference, background_tracks, write_annotated_variant
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
@@ -109,8 +109,6 @@ def read_rows(out_dir: str | Path) -> dict:
 def replay_scene(graph: SceneGraph, scene: Scene, out_dir: str | Path, progress: Progress = no_progress) -> dict:
     """Every logged view of ``scene`` rendered through ``graph`` unedited, with its PSNR against the logged image,
     written as a replay (``omniscs.annotate.replay``) into ``out_dir``."""
-    from omniscs.annotate.replay import write_replay
-
     if graph.scene_id != scene.scene_id:
         raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
     annotator = ViewAnnotator(graph)

@@ -24,7 +24,8 @@ from omniscs.annotate.fidelity import box_mask, feature_drift, finite_or_none, i
 from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
 from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
-from omniscs.geometry import invert_transform, make_transform, transform_points, unproject, yaw_of
+from omniscs.geometry import (invert_transform, make_transform, points_in_box, transform_points, unproject,
+                              yaw_from_matrix)
 from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
@@ -103,8 +104,7 @@ def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: n
         hi = int(np.searchsorted(xyz[:, 0], T[0, 3] + reach, side="right"))
         cand = xyz[lo:hi]
         near = np.abs(cand[:, 1:] - T[1:3, 3]).max(1) <= reach if len(cand) else np.zeros(0, bool)
-        local = transform_points(invert_transform(T), cand[near])
-        counts[i] = int(np.all(np.abs(local) <= 0.5 * size, axis=1).sum())
+        counts[i] = int(points_in_box(cand[near], T, size).sum())
     return counts
 
 
@@ -297,7 +297,7 @@ def _sample_row(scene: Scene, variant: dict, store_id: str, vf: VariantFrames, t
             "frame_idx": t, "scene_frame": int(vf.scene_frames[t]), "camera": camera,
             "timestamp_us": int(vf.timestamps_us[t]), "image_path": image_path(Path(), camera, t).as_posix(),
             "gt_path": gt_path(Path(), camera, t).as_posix(), "ego_x": float(pose[0, 3]), "ego_y": float(pose[1, 3]),
-            "ego_yaw": float(yaw_of(pose[:3, :3])), "command": COMMANDS[int(vf.commands[t])],
+            "ego_yaw": float(yaw_from_matrix(pose[:3, :3])), "command": COMMANDS[int(vf.commands[t])],
             "n_boxes": len(ann.labels), "n_visible": sum(lab.mask_pixels > 0 for lab in ann.labels),
             "viewpoint_offset_m": float(vf.viewpoint_offset_m[t]), "fidelity_psnr": fid.get("psnr"),
             "fidelity_ssim": fid.get("ssim"), "fidelity_masked_psnr": fid.get("masked_psnr"),
@@ -319,7 +319,7 @@ def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant:
             "cx": float(row.cx), "cy": float(row.cy), "cz": float(row.cz), "length": float(row.length),
             "width": float(row.width), "height": float(row.height), "yaw": float(row.yaw),
             "ego_x": float(ego_from_box[0, 3]), "ego_y": float(ego_from_box[1, 3]), "ego_z": float(ego_from_box[2, 3]),
-            "ego_yaw": float(yaw_of(ego_from_box[:3, :3])),
+            "ego_yaw": float(yaw_from_matrix(ego_from_box[:3, :3])),
             "cam_x": float(label.camera_from_box[0, 3]), "cam_y": float(label.camera_from_box[1, 3]),
             "cam_z": float(label.camera_from_box[2, 3]),
             "x1": b[0], "y1": b[1], "x2": b[2], "y2": b[3],

@@ -22,7 +22,7 @@ from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_
                               make_transform)
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, agent_may_show, node_radius, render_view
-from omniscs.nsg.metrics import psnr
+from omniscs.quality import psnr
 from omniscs.nsg.observations import View
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
 from omniscs.render import rasterize

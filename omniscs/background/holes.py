@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import invert_transform, transform_points
+from omniscs.geometry import invert_transform
 from omniscs.nsg.observations import View
 
 #: Pixels added around the projected box of a removed object (at full resolution).
@@ -68,13 +68,6 @@ class RemovedObject:
 
 def roi_size(size: np.ndarray) -> np.ndarray:
     return np.asarray(size, dtype=np.float64) * ROI_SCALE + 2.0 * ROI_MARGIN_M
-
-
-def points_in_box(points: np.ndarray,          # [N, 3] world
-                  world_from_box: np.ndarray,  # [4, 4]
-                  size: np.ndarray) -> np.ndarray:  # -> [N] bool
-    local = transform_points(invert_transform(world_from_box), np.asarray(points, dtype=np.float64))
-    return np.all(np.abs(local) <= 0.5 * np.asarray(size, dtype=np.float64), axis=1)
 
 
 def pixel_rays(view: View) -> np.ndarray:  # [H, W, 3] float64 world-frame directions with camera z = 1

@@ -22,9 +22,11 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
-from omniscs.background.holes import RemovedObject, lift_pixels, pixel_rays, points_in_box
-from omniscs.geometry import invert_transform, transform_points
+from omniscs.background.holes import RemovedObject, lift_pixels, pixel_rays
+from omniscs.errors import OmniscsError
+from omniscs.geometry import invert_transform, points_in_box, transform_points
 from omniscs.nsg.observations import View, project_points
 
 log = logging.getLogger(__name__)
@@ -116,8 +118,6 @@ class PlaneConfig:
     (visibility alone +1.04 / +0.28, the median +0.19 / +0.23, the free-space check -0.06 on log 90)."""
 
     def __post_init__(self) -> None:
-        from omniscs.errors import OmniscsError
-
         if self.texel_colour not in ("median", "nearest"):
             raise OmniscsError(f"unknown texel_colour {self.texel_colour!r}; use 'median' or 'nearest'")
         if self.texel_visibility not in ("unoccluded", "agree"):
@@ -183,7 +183,6 @@ def fit_planes(points: np.ndarray, config: PlaneConfig = PlaneConfig(),
     """Planes among ``points`` [N, 3] (world), largest first; [] when none has enough inliers. ``street`` (a world
     direction, e.g. a parked vehicle's heading) is kept on each plane for filling its unobserved texels."""
     import open3d as o3d
-    from scipy.spatial import ConvexHull, QhullError
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) < max(3, config.min_points):

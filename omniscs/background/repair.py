@@ -29,13 +29,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from omniscs.background.depth import load_depth_model
 from omniscs.background.drnet import DRNetConfig, FittedDRNet, aligned_inverse, least_squares_depth, train_drnet
 from omniscs.background.planes import (Donor, FreeSpace, PlaneConfig, build_textures, fit_planes, plane_hits,
                                        region_points, texture_colours)
 from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, dilate, hole_bbox, hole_mask,
-                                      lift_pixels, points_in_box, ray_norms)
+                                      lift_pixels, ray_norms)
+from omniscs.background.inpaint import load_inpainter
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import activate, concat_params, with_sh_degree
+from omniscs.geometry import points_in_box
 from omniscs.nsg.background import init_background, voxel_subsample
 from omniscs.nsg.config import FitConfig
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key
@@ -610,9 +613,6 @@ def repair_background(graph: SceneGraph, obs: Observations, track_ids, train_vie
     hid, from the ``train_views`` (camera, frame) the graph was fitted on. Returns the repaired graph, with those
     nodes back where they were (an edit that removes or moves them shows the repaired background), and what was
     done."""
-    from omniscs.background.depth import load_depth_model
-    from omniscs.background.inpaint import load_inpainter
-
     inpainter = inpainter or load_inpainter(config.inpainter)
     depth_model = depth_model or load_depth_model(config.depth_model)
     objects = removed_objects(graph, track_ids)

@@ -79,7 +79,7 @@ def scs_behavior(
     from omniscs.pipeline.procedural import traffic_for_source
     from omniscs.scene import SyntheticSource, parse_source
     from omniscs.scs.behavior import PlannerConfig, adversarial_preset, now_and_horizon, write_scene_variants
-    from omniscs.scs.behavior.checkpoint import load_checkpoint
+    from omniscs.scs.behavior.checkpoint import load_traffic_model
     from omniscs.scs.behavior.planner import check_planner
 
     # the options first (cheap), then the scene and the checkpoint
@@ -94,18 +94,19 @@ def scs_behavior(
     check_out(out, overwrite=True)  # variants.json and the pictures go into --out (an existing folder is fine)
     source = parse_source(scene, n_frames=frames)
     traffic = traffic_for_source(source)
-    now_and_horizon(traffic, load_checkpoint(checkpoint).config, config)  # user errors before any progress bar
-    appearance = None
+    now_and_horizon(traffic, load_traffic_model(checkpoint).config, config)  # user errors before any progress bar
+    consistency = None
     if nsg is not None:
         from omniscs.scene import load_scene
-        from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, appearance_from_checkpoint
+        from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_consistency_from_checkpoint
 
         if isinstance(source, SyntheticSource):
             raise OmniscsError("--nsg needs a rendered scene store (a syn: log has no images to fit a graph to)")
-        appearance = appearance_from_checkpoint(nsg, load_scene(Path(scene)), traffic, checkpoint, config,
-                                                AppearanceRenderConfig(frames=app_frames, downscale=app_downscale))
+        consistency = render_consistency_from_checkpoint(nsg, load_scene(Path(scene)), traffic, checkpoint, config,
+                                                         RenderConsistencyConfig(frames=app_frames,
+                                                                                 downscale=app_downscale))
     with progress_bars() as bars:
-        result = write_scene_variants(traffic, out, variants, checkpoint, config, appearance,
+        result = write_scene_variants(traffic, out, variants, checkpoint, config, consistency,
                                       progress=bars.sink(f"variants of {traffic.scene_id}"))
     if not result.rows:
         raise OmniscsError(f"scene {traffic.scene_id} has no vehicle besides the ego at the now step; "
@@ -114,7 +115,7 @@ def scs_behavior(
                    "t (s)": r["collision_time_s"], "L_beh": r["loss_beh"], "L_app": r["loss_app"],
                    "L_restore": r["loss_restore"],
                    "s": r["optimisation_seconds"]} for r in result.rows], title=str(result.variants_json))
-    if appearance is None:
+    if consistency is None:
         console.print("L_app: off (give --nsg with the scene's fitted scene graph to add it)")
     for r in result.rows:
         for v in json.loads(result.variants_json.read_text()):
@@ -188,7 +189,7 @@ def scs_mine(
 ) -> None:
     """What a detector misses: ground-truth boxes no detection matches (nuScenes' centre-distance rule), by category,
     distance, visibility, orientation and pose, and the objects worth compositing (appearance-level SCS)."""
-    from omniscs.scs.appearance.mining import MiningConfig, mine, pick_scs_objects
+    from omniscs.eval.mining import MiningConfig, mine, pick_scs_objects
 
     check_out(out, overwrite)
     report = mine(dataset, version, results, out, MiningConfig(match_distance_m=match_distance, min_score=min_score),

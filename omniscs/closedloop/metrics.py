@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_filter
 
+from omniscs.comfort import HUGSIM_COMFORT, NAVSIM_COMFORT, ComfortBounds
 from omniscs.errors import ValidationError
 from omniscs.geometry import wrap_angle
 from omniscs.scs.behavior.collision import footprints, overlapping
@@ -41,36 +42,6 @@ HD_TTC_TIMES_S = (0.5, 1.0)
 HD_MIN_PATH_M = 1.0
 #: Waypoints of the executed-path stand-in for a step with no plan when the run has no plan at all (UniAD: 6).
 DEFAULT_PLAN_POINTS = 6
-
-
-@dataclass(frozen=True)
-class ComfortBounds:
-    """Bounds of the comfort test on a trajectory's kinematics; a bound set to None is not checked."""
-
-    min_lon_accel: float
-    """Most negative longitudinal acceleration allowed (m/s^2)."""
-    max_lon_accel: float
-    """Largest longitudinal acceleration allowed (m/s^2)."""
-    max_abs_lat_accel: float
-    """Largest |lateral acceleration| (m/s^2), lateral acceleration = longitudinal speed * yaw rate."""
-    max_abs_yaw_rate: float
-    """Largest |yaw rate| (rad/s)."""
-    max_abs_yaw_accel: float
-    """Largest |yaw acceleration| (rad/s^2)."""
-    max_abs_lon_jerk: float
-    """Largest |longitudinal jerk| (m/s^3)."""
-    max_abs_jerk: float | None
-    """Largest |time derivative of the acceleration magnitude| (m/s^3); None: not checked."""
-
-
-#: nuPlan's comfort bounds as NAVSIM's PDM score uses them.
-NAVSIM_COMFORT = ComfortBounds(min_lon_accel=-4.05, max_lon_accel=2.40, max_abs_lat_accel=4.89,
-                               max_abs_yaw_rate=0.95, max_abs_yaw_accel=1.93, max_abs_lon_jerk=4.13,
-                               max_abs_jerk=8.37)
-#: HUGSIM's bounds (its score calculator has no jerk-magnitude bound and a looser longitudinal jerk).
-HUGSIM_COMFORT = ComfortBounds(min_lon_accel=-4.05, max_lon_accel=2.40, max_abs_lat_accel=4.89,
-                               max_abs_yaw_rate=0.95, max_abs_yaw_accel=1.93, max_abs_lon_jerk=8.37,
-                               max_abs_jerk=None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,9 +415,9 @@ def comfortable(xy: np.ndarray,     # [n, 2] world box centres at a fixed spacin
         lat_accel = lon_speed * yaw_rate
         checks = [(lon_accel >= bounds.min_lon_accel) & (lon_accel <= bounds.max_lon_accel),
                   np.abs(lat_accel) <= bounds.max_abs_lat_accel,
-                  np.abs(yaw_rate) <= bounds.max_abs_yaw_rate,
-                  np.abs(yaw_accel) <= bounds.max_abs_yaw_accel,
-                  np.abs(lon_jerk) <= bounds.max_abs_lon_jerk]
+                  np.abs(yaw_rate) <= bounds.max_abs_yaw_rate]
+        optional = ((yaw_accel, bounds.max_abs_yaw_accel), (lon_jerk, bounds.max_abs_lon_jerk))
+        checks += [np.abs(value) <= bound for value, bound in optional if bound is not None]
         if bounds.max_abs_jerk is not None:
             jerk = _derivative(np.hypot(lon_accel, lat_accel), dt, smooth)
             checks.append(np.abs(jerk) <= bounds.max_abs_jerk)

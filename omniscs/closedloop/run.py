@@ -15,6 +15,7 @@ from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.simulator import Simulator
 from omniscs.errors import ValidationError
 from omniscs.progress import Progress, no_progress
+from omniscs.scs.behavior.collision import footprints
 from omniscs.storage import atomic_directory, atomic_write_json
 
 log = logging.getLogger(__name__)
@@ -133,7 +134,6 @@ def bev_picture(sim: Simulator, summary: dict, out_png: Path) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Polygon
 
-    from omniscs.scs.behavior.collision import footprints
 
     ep = sim.episode
     sc = ep.scenario

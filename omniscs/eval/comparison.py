@@ -6,6 +6,7 @@ Each model is one colour of bars, so base against fine-tuned reads at a glance; 
 (undefined, or its evaluation failed) is an empty slot marked "n/a", never a zero."""
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,6 @@ def _panels(rows: list[dict]) -> dict[tuple[str, str, str], dict[str, dict[str, 
 
 def comparison_png(rows: list[dict], title: str = "") -> bytes:
     """The figure of ``rows`` (``evaluations`` records) as PNG bytes; a clear error when no row can be drawn."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from omniscs.errors import ValidationError
+from omniscs.quaternions import yaw_from_quaternion
 
 #: The ten nuScenes detection classes, in the devkit's order.
 DETECTION_NAMES: tuple[str, ...] = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
@@ -142,13 +143,6 @@ class MetricData:
         return int(nz[-1]) if len(nz) else 0
 
 
-def yaw_of(rotation: np.ndarray) -> np.ndarray:  # [N, 4] w, x, y, z -> [N] rad
-    """Heading of the box's +x axis in the ground plane."""
-    q = rotation / np.linalg.norm(rotation, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def angle_diff(a: np.ndarray, b: np.ndarray, period: float) -> np.ndarray:
     """Smallest signed difference a - b for angles of the given period, in (-pi, pi]."""
     d = (a - b + period / 2) % period - period / 2
@@ -224,7 +218,8 @@ def accumulate(gt: Boxes, pred: Boxes, class_name: str, dist_th: float) -> Metri
         "trans_err": np.hypot(*(gt_c.translation[g_rows, :2] - pr.translation[p_rows, :2]).T),
         "vel_err": np.linalg.norm(pr.velocity[p_rows] - gt_c.velocity[g_rows], axis=1),
         "scale_err": 1.0 - scale_iou(gt_c.size[g_rows], pr.size[p_rows]),
-        "orient_err": np.abs(angle_diff(yaw_of(gt_c.rotation[g_rows]), yaw_of(pr.rotation[p_rows]), period)),
+        "orient_err": np.abs(angle_diff(yaw_from_quaternion(gt_c.rotation[g_rows]),
+                                        yaw_from_quaternion(pr.rotation[p_rows]), period)),
         "attr_err": np.where(g_attr == "", np.nan, 1.0 - (g_attr == pr.attribute[p_rows].astype(str))),
     }
     match_conf = conf[hit]

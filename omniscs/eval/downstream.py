@@ -18,8 +18,11 @@ import numpy as np
 from omniscs.annotate.dataset import CARD_JSON
 from omniscs.annotate.variant import VARIANT_JSON
 from omniscs.errors import ValidationError
+from omniscs.eval.planning import HORIZONS
 from omniscs.eval.scenarios import (PlanningExample, planning_examples, scenario_from_traffic, scenario_from_variant,
                                    variant_keyframes)
+from omniscs.scene import load_scene
+from omniscs.scs.behavior import traffic_from_scene
 
 log = logging.getLogger(__name__)
 
@@ -35,9 +38,6 @@ def dataset_card(dataset_path: str | Path) -> dict:
 def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], dict]:
     """The behaviour-SCS examples of a dataset (``variant_keyframes`` of each solved variant: its now step and the
     keyframes after it with at least 1 s of known future) and counts."""
-    from omniscs.scene import load_scene
-    from omniscs.scs.behavior import traffic_from_scene
-
     root = Path(dataset_path)
     card = dataset_card(root)
     out, counts = [], {"variants": 0, "unsolved": 0, "too_short": 0}
@@ -67,9 +67,6 @@ def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], d
 
 def log_examples(scene_paths: list[str | Path]) -> list[PlanningExample]:
     """Planning examples of logs (scene stores), one every 0.5 s."""
-    from omniscs.scene import load_scene
-    from omniscs.scs.behavior import traffic_from_scene
-
     out = []
     for path in scene_paths:
         out += planning_examples(scenario_from_traffic(traffic_from_scene(load_scene(path))))
@@ -78,8 +75,6 @@ def log_examples(scene_paths: list[str | Path]) -> list[PlanningExample]:
 
 def planner_rows(eval_id: str, model_id: str, dataset_id: str | None, split: str, metrics: dict) -> list[dict]:
     """``evaluations`` rows of one planning evaluation (``omniscs.eval.planning.evaluate_planning``'s output)."""
-    from omniscs.eval.planning import HORIZONS
-
     rows = []
     known = metrics.get("known_per_step")
     for convention in ("uniad", "stp3"):

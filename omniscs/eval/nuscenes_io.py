@@ -12,7 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.errors import ValidationError
-from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig
+from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig, evaluate, filter_boxes
+from omniscs.eval.planning import STEP_S, STEPS, PlanningSample, evaluate_planning
+from omniscs.geometry import make_transform
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
 
 #: nuScenes category -> detection class (the devkit's ``category_to_detection_name``).
@@ -258,8 +261,6 @@ def _checked_box(box, where: str) -> dict:
 
 def evaluated_classes(gt: Boxes, racks: dict[str, np.ndarray]) -> tuple[str, ...]:
     """The detection classes among the ground-truth boxes the protocol evaluates (``filter_boxes``), sorted."""
-    from omniscs.eval.detection import filter_boxes
-
     return tuple(sorted(set(filter_boxes(gt, DetectionConfig(), racks).name)))
 
 
@@ -280,8 +281,6 @@ def evaluate_detection_results(dataroot: str | Path, version: str, results: str 
     predictions for exactly those samples, both filtered, then ``detection.evaluate``. ``camera_view``: ground
     truth and predictions alike only where a camera sees them (``in_camera_view``); nuScenes' own protocol has no
     such filter, as its six cameras look all round."""
-    from omniscs.eval.detection import evaluate, filter_boxes
-
     tables = NuScenesTables.load(dataroot, version)
     samples = tables.scene_samples(scenes)
     if not samples:
@@ -300,8 +299,6 @@ STEP_TOLERANCE_S = 0.1
 
 
 def _transform(record: dict) -> np.ndarray:  # a record's translation + rotation -> [4, 4]
-    from omniscs.geometry import make_transform
-    from omniscs.quaternions import quat_to_rotmat
 
     return make_transform(quat_to_rotmat(np.asarray(record["rotation"], np.float64)), record["translation"])
 
@@ -321,8 +318,6 @@ def load_planning_samples(tables: NuScenesTables, samples: list[str], steps: int
     """The evaluated keyframes of ``samples``: those with ``steps`` future keyframes in their scene, each with the
     true future of the LiDAR origin and the vehicle boxes at each step in its planning frame. Returns the samples
     and how many keyframes had too short a future."""
-    from omniscs.eval.planning import STEP_S, STEPS, PlanningSample
-
     steps = STEPS if steps is None else steps
     anns_by_sample: dict[str, list[dict]] = {}
     for ann in tables["sample_annotation"].values():
@@ -363,8 +358,6 @@ def load_planning_results(path: str | Path, samples: list[str], steps: int | Non
     """Planned trajectories: ``{"results": {sample_token: {"trajectory": [[x, y], ...]}}}`` (or the token mapped
     straight to the waypoints), in the planning frame; every evaluated sample must be there, and no token outside
     ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there)."""
-    from omniscs.eval.planning import STEPS
-
     steps = STEPS if steps is None else steps
     try:
         data = json.loads(Path(path).read_text())
@@ -398,8 +391,6 @@ def load_planning_results(path: str | Path, samples: list[str], steps: int | Non
 def evaluate_planning_results(dataroot: str | Path, version: str, results: str | Path,
                               scenes: list[str] | None = None) -> dict:
     """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future."""
-    from omniscs.eval.planning import evaluate_planning
-
     tables = NuScenesTables.load(dataroot, version)
     keyframes = tables.scene_samples(scenes)
     samples, short = load_planning_samples(tables, keyframes)

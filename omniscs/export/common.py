@@ -11,12 +11,7 @@ import numpy as np
 import pandas as pd
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import (
-    invert_transform,
-    make_transform,
-    project,
-    transform_points,
-)
+from omniscs.geometry import box_corners_from_pose, invert_transform, make_transform, project
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.common import ego_from_lidar_of, global_from_world_of, load_attributes
 from omniscs.scene.store import Scene, load_scene
@@ -72,20 +67,12 @@ def box_velocities(scene: Scene) -> np.ndarray:  # -> [N, 3] world-frame velocit
     return vel
 
 
-def points_in_box(points_ego: np.ndarray, ego_from_box: np.ndarray, size: np.ndarray,
-                  margin: float = BOX_POINT_MARGIN_M) -> int:  # [N, 3+], [4, 4], [3] -> count
-    local = transform_points(invert_transform(ego_from_box), points_ego[:, :3])
-    return int(np.all(np.abs(local) <= 0.5 * np.asarray(size) + margin, axis=1).sum())
-
-
 def projected_rect(camera_from_box: np.ndarray, size: np.ndarray, K: np.ndarray, width: int, height: int
                    ) -> tuple[np.ndarray, float, bool] | None:
     """The image rectangle of a box: ([x1, y1, x2, y2] clipped to the image, fraction of the unclipped rectangle
     outside the image, whether all corners are in front of the camera), or None when the box centre is nearer
     than MIN_LABEL_DEPTH_M or the rectangle is empty. Corners behind the camera are left out of the rectangle.
     """
-    from omniscs.geometry import box_corners_from_pose
-
     if camera_from_box[2, 3] < MIN_LABEL_DEPTH_M:
         return None
     corners = box_corners_from_pose(camera_from_box, size)

@@ -13,6 +13,7 @@ upright in the rectified frame (rotation_y only). Truncation and occlusion level
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Callable
 
@@ -130,8 +131,6 @@ def _write_sequence(scene: Scene, base: Path, seq: str, camera: str):
 
 
 def _dont_care(scene: Scene, camera: str) -> dict[int, list[list[float]]]:
-    import json
-
     attrs = load_attributes(scene)
     attrs = attrs[(attrs["name"] == "dont_care_bbox") & (attrs["camera"] == camera)]
     out: dict[int, list[list[float]]] = {}

@@ -30,6 +30,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.export.common import (
+    BOX_POINT_MARGIN_M,
     STILL_SPEED_MPS,
     attribute_lookup,
     box_poses,
@@ -37,13 +38,12 @@ from omniscs.export.common import (
     ego_from_lidar,
     encode_jpeg,
     encode_png,
-    points_in_box,
     token,
     visible_fraction,
     write_bytes,
 )
 from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M, ScenePlacement, map_expansions, place_scenes
-from omniscs.geometry import invert_transform
+from omniscs.geometry import invert_transform, points_in_box
 from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
@@ -296,7 +296,8 @@ def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], table
                 if f not in lidar_cache:
                     lidar_cache = {f: scene.lidar(f)}
                 ego_from_box = invert_transform(scene.world_from_ego(f)) @ world_from_box[i]
-                n_points = points_in_box(lidar_cache[f], ego_from_box, np.array([row.length, row.width, row.height]))
+                size = np.array([row.length, row.width, row.height])
+                n_points = int(points_in_box(lidar_cache[f], ego_from_box, size, BOX_POINT_MARGIN_M).sum())
             else:
                 n_points = 0
         if (f, tid) in kept_visibility and kept_visibility[(f, tid)] in level_tokens:

@@ -35,6 +35,7 @@ import numpy as np
 from omniscs.errors import OmniscsError
 from omniscs.export.common import token
 from omniscs.geometry import make_transform, wrap_angle
+from omniscs.roadmap import in_convex_polygon
 from omniscs.scene.sources.common import global_from_world_of
 from omniscs.scene.store import Scene
 
@@ -451,8 +452,6 @@ class MapExpansion:
 
 
 def _segment_of(xy: np.ndarray, segments: list[tuple[str, np.ndarray]]) -> str:
-    from omniscs.roadmap import in_convex_polygon
-
     for seg, ring in segments:
         if in_convex_polygon(np.asarray(xy).reshape(1, 2), _ccw(ring))[0]:
             return seg

@@ -28,17 +28,17 @@ import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError
 from omniscs.export.common import (
+    BOX_POINT_MARGIN_M,
     attribute_lookup,
     box_poses,
     box_velocities,
     ego_from_lidar,
     encode_jpeg,
     global_poses,
-    points_in_box,
     projected_rect,
     token,
 )
-from omniscs.geometry import invert_transform, yaw_of
+from omniscs.geometry import invert_transform, points_in_box, yaw_from_matrix
 from omniscs.scene.sources.waymo_v2 import (
     CALIB,
     CAMERA_BOX,
@@ -217,13 +217,13 @@ def _write_boxes(scene: Scene, segment: str, root: Path, cams: list[str], poses:
         if n_points < 0 and scene.has_lidar:
             if f not in lidar:
                 lidar = {f: scene.lidar(f)}
-            n_points = points_in_box(lidar[f], vehicle_from_box, size)
+            n_points = int(points_in_box(lidar[f], vehicle_from_box, size, BOX_POINT_MARGIN_M).sum())
         box_type = BOX_TYPE_OF.get(row.category, TYPE_UNKNOWN)
         cols["ts"].append(int(ts[f]))
         cols["id"].append(ids[int(row.track_id)])
         cols["center"].append(vehicle_from_box[:3, 3])
         cols["size"].append(size)
-        cols["heading"].append(float(yaw_of(vehicle_from_box[:3, :3])))
+        cols["heading"].append(float(yaw_from_matrix(vehicle_from_box[:3, :3])))
         cols["type"].append(box_type)
         cols["points"].append(max(n_points, 0))
         cols["speed"].append(vehicle_from_world[:3, :3] @ velocity[i])

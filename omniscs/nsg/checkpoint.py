@@ -17,6 +17,7 @@ from omniscs.nsg.graph import BACKGROUND, RenderSettings, SceneGraph, agent_key
 from omniscs.nsg.relight import LIGHTING_ROWS, RELIGHT_TENSORS, Relight
 from omniscs.nsg.sky import SkyParams
 from omniscs.plan import ScenePlan
+from omniscs.render.sh import MAX_SH_DEGREE
 from omniscs.scene.store import CameraRecord
 from omniscs.storage import atomic_directory, atomic_write_json, file_sha256
 
@@ -100,7 +101,7 @@ def _is_matrix(v, n: int) -> bool:
 
 
 def _check_meta(path: Path, meta: dict) -> None:
-    """Every field ``load_checkpoint`` uses is there with the right type; else one OmniscsError naming it."""
+    """Every field ``load_graph`` uses is there with the right type; else one OmniscsError naming it."""
     def bad(field: str, what: str):
         value = repr(meta.get(field) if "." not in field else "...")
         raise OmniscsError(f"{path}: field {field} must be {what}; got {value[:60]} ({_AGAIN})")
@@ -113,7 +114,7 @@ def _check_meta(path: Path, meta: dict) -> None:
     for key, kind in required.items():
         if not (is_int(meta[key]) if kind is int else isinstance(meta[key], kind)):
             bad(key, f"a JSON {'integer' if kind is int else kind.__name__.replace('dict', 'object')}")
-    if not 0 <= meta["sh_degree"] <= MAX_SH_DEGREE:
+    if not 0 <= meta["sh_degree"] <= MAX_SH_DEGREE:  # a degree the renderer cannot draw is refused on reading
         bad("sh_degree", f"0..{MAX_SH_DEGREE}")
     known = {f.name for f in dataclasses.fields(RenderSettings)}
     if set(meta["settings"]) - known:
@@ -135,10 +136,6 @@ def _check_meta(path: Path, meta: dict) -> None:
     if record is not None and not (isinstance(record, dict) and is_int(record.get("bytes"))
                                    and isinstance(record.get("sha256"), str)):
         bad(TENSORS_RECORD, "an object with bytes and sha256")
-
-
-#: Highest spherical-harmonics degree a checkpoint may name.
-MAX_SH_DEGREE = 4
 
 
 def read_checkpoint_meta(ckpt_dir: str | Path) -> dict:
@@ -190,7 +187,7 @@ def _tensor(t: dict, path: Path, key: str, shape: tuple, floating: bool = True) 
     return x
 
 
-def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str = "cpu") -> SceneGraph:
+def load_graph(ckpt_dir: str | Path, scene=None, device: torch.device | str = "cpu") -> SceneGraph:
     """The graph saved in ``ckpt_dir`` with its tensors on ``device`` (wherever it was fitted); with ``scene``,
     refuse a checkpoint fitted to other scene content. A damaged, truncated or incomplete checkpoint is one
     OmniscsError."""
@@ -237,6 +234,11 @@ def load_checkpoint(ckpt_dir: str | Path, scene=None, device: torch.device | str
                        SkyParams(_tensor(t, path, "sky.texture", (3, None, None))), exposure, cameras,
                        world_from_ego, int(meta["sh_degree"]), RenderSettings(**meta["settings"]))
     return graph.to(device)  # poses and sizes stay numpy on the host; only the tensors move
+
+
+#: Old name of ``load_graph``, kept for omniscs/pipeline/, omniscs/bench/ and omniscs/cli/nsg.py until they import
+#: the new one (the traffic model's reader is ``scs.behavior.checkpoint.load_traffic_model``).
+load_checkpoint = load_graph
 
 
 def check_same_scene(meta_or_graph, scene, ckpt_dir: str | Path | None = None) -> None:

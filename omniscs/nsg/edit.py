@@ -16,6 +16,7 @@ from omniscs.geometry import make_transform
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.graph import SceneGraph
 from omniscs.quaternions import normalize_quats, quat_to_rotmat, rotmat_to_quat
+from omniscs.taxonomy import CATEGORIES
 
 #: Prefix of asset ids that name a fitted agent node: ``nsg:<track_id>`` (this graph) or
 #: ``nsg:<track_id>@<checkpoint folder>`` (another fit). The model pool of later stages adds other sources.
@@ -48,8 +49,8 @@ def node_model_resolver(graph: SceneGraph) -> ModelResolver:
             raise OmniscsError(f"asset {asset_id!r}: {track!r} is not a track id") from None
         source = graph
         if ckpt:
-            from omniscs.nsg.checkpoint import load_checkpoint
-            source = load_checkpoint(Path(ckpt), device=graph.device)
+            from omniscs.nsg.checkpoint import load_graph
+            source = load_graph(Path(ckpt), device=graph.device)
         node = source.agent(track_id)
         return AgentModel(node.gaussians, np.array(node.size), node.category)
     return resolve
@@ -122,8 +123,6 @@ def apply_graph_edits(graph: SceneGraph, edits, resolve: ModelResolver | None = 
 
 
 def _inserted_node(graph: SceneGraph, edit: Insert, resolve: ModelResolver) -> AgentNode:
-    from omniscs.taxonomy import CATEGORIES
-
     if edit.track_id < 0:
         raise OmniscsError(f"inserted track id must be a non-negative integer; got {edit.track_id!r}")
     if edit.category not in CATEGORIES:

@@ -20,7 +20,7 @@ from omniscs.nsg.config import FitConfig
 from omniscs.gaussians import GaussianParams, concat_params
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, render_view
 from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_graph, node_budgets
-from omniscs.nsg.metrics import psnr, ssim
+from omniscs.quality import psnr, ssim
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
 from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities

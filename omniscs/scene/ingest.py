@@ -10,6 +10,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.scene.sources.common import FORMATS, DatasetSource
+from omniscs.scene.store import verify_store
 from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene
 
 
@@ -31,8 +32,6 @@ class StoreSource:
     def verify(self, progress: Callable[[int, int], None] | None = None):
         """The store, fully checked (``omniscs.scene.store.verify_store``: every file's sha256, or a decode of
         every file for stores written before sizes and hashes were recorded): what ingest uses in place."""
-        from omniscs.scene.store import verify_store
-
         return verify_store(self.path, progress=progress)
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zipfile
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path, PurePosixPath
@@ -371,8 +372,6 @@ GT_ARRAYS = {"depth": "f", "instance": "i", "semantic": "u"}
 def read_store_gt(path: Path, camera: CameraRecord, keys=tuple(GT_ARRAYS)) -> dict[str, np.ndarray]:
     """Load arrays ``keys`` of one ground-truth file (depth, instance, semantic); ValidationError when the file is
     missing or damaged or an array is absent or of the wrong size or type."""
-    import zipfile
-
     if not path.is_file():
         raise ValidationError(f"{path}: ground-truth file is missing")
     try:

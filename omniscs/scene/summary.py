@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from omniscs.geometry import yaw_of
+from omniscs.geometry import yaw_from_matrix
 from omniscs.scene.store import Scene
 
 #: A track whose box centre travels further than this over the log counts as moving (metres).
@@ -59,7 +59,7 @@ def frame_rows(scene: Scene) -> list[dict]:
     counts = scene.boxes.groupby("frame_idx").size()
     visible = scene.boxes[scene.boxes.visible_pixels > 0].groupby("frame_idx").size()
     known_vis = bool(len(scene.boxes) == 0 or (scene.boxes.visible_pixels >= 0).all())
-    yaw = yaw_of(poses[:, :3, :3])
+    yaw = yaw_from_matrix(poses[:, :3, :3])
     return [{
         "scene_id": scene.scene_id, "frame_idx": int(f), "timestamp_us": int(ts[f]),
         "ego_x": float(poses[f, 0, 3]), "ego_y": float(poses[f, 1, 3]), "ego_z": float(poses[f, 2, 3]),

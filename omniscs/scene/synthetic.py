@@ -7,7 +7,7 @@ from typing import Callable
 
 import numpy as np
 
-from omniscs.geometry import invert_transform, transform_points, yaw_of
+from omniscs.geometry import invert_transform, transform_points, yaw_from_matrix
 from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.store import CameraRecord
 from omniscs.scene.writer import SceneWriter
@@ -58,7 +58,7 @@ def boxes_from_world(world, lidar_world: list[np.ndarray] | None = None,
                 "source_category": agent.asset_id.split("-")[0],
                 "cx": centre[0], "cy": centre[1], "cz": centre[2],
                 "length": agent.size[0], "width": agent.size[1], "height": agent.size[2],
-                "yaw": float(yaw_of(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
+                "yaw": float(yaw_from_matrix(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
                 "num_lidar_points": n_pts,
                 "visible_pixels": -1 if visible_pixels is None else int(visible_pixels.get((int(f), agent.track_id), 0)),
             })

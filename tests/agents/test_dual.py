@@ -350,7 +350,8 @@ def test_normals_point_out_of_the_model_and_the_mesh_builds_light_comes_off():
 def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool):
     """Images of a pool model (its own material) lit by a known sun and sky: fitted from the neutral light, the
     renders match them far better than the neutral light does."""
-    from omniscs.agents.dual import _alone, placed_candidate
+    from omniscs.agents.dual import placed_candidate
+    from omniscs.agents.track_pixels import track_alone
     from omniscs.agents.relight import fit_lighting, relight_base
     from omniscs.nsg.graph import render_view
 
@@ -361,7 +362,7 @@ def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool)
     assert float(base.specular.max()) > 0  # glass and paint mirror the sky
     truth = torch.tensor([[2.0, 1.8, 1.5], [-0.6, 0.3, 0.7], [0.5, 0.6, 0.8], [0.2, 0.18, 0.15], [0.3, 0.45, 0.9],
                           [0.7, 0.75, 0.8], [0.25, 0.25, 0.25]])
-    lit = _alone(graph, 1, g).replace(agents=(node.with_changes(gaussians=g, relight=base.with_lighting(truth)),))
+    lit = track_alone(graph, 1, g).replace(agents=(node.with_changes(gaussians=g, relight=base.with_lighting(truth)),))
     samples = []
     for f in range(scene.n_frames):
         view = graph.view(scene.camera_names[0], f)
@@ -384,7 +385,7 @@ def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool)
 
 
 def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_turned(scene, graph, pool, tmp_path):
-    from omniscs.nsg.checkpoint import load_checkpoint, save_checkpoint
+    from omniscs.nsg.checkpoint import load_graph, save_checkpoint
     from omniscs.nsg.edit import apply_graph_edits
 
     frames = range(scene.n_frames)
@@ -400,7 +401,7 @@ def test_a_relit_pool_model_completes_a_small_track_and_follows_the_light_when_t
     view = turned.view(scene.camera_names[0], 2)
     out = turned.render(view)
     assert bool(torch.isfinite(out.rgb).all())
-    back = load_checkpoint(save_checkpoint(completed, tmp_path / "ckpt"))
+    back = load_graph(save_checkpoint(completed, tmp_path / "ckpt"))
     assert torch.allclose(back.render(view).rgb, completed.render(view).rgb, atol=1e-6)
     # a track seen large enough: a model with a material is relit whole; one without keeps the track's fitted
     # Gaussians on the seen sides, with no relight data

@@ -7,9 +7,9 @@ from torch import nn
 
 from omniscs.background.drnet import (DRNet, DRNetConfig, DRNetDiverged, SpatialAttention, aligned_inverse,
                                       least_squares_depth, train_drnet)
-from omniscs.background.holes import (RemovedObject, box_entry_distance, crop_view, hole_bbox, hole_mask,
-                                      points_in_box, roi_size)
+from omniscs.background.holes import RemovedObject, box_entry_distance, crop_view, hole_bbox, hole_mask, roi_size
 from omniscs.errors import OmniscsError
+from omniscs.geometry import points_in_box
 from omniscs.nsg.observations import View, project_points
 
 K = np.array([[50.0, 0, 40.0], [0, 50.0, 30.0], [0, 0, 1.0]])

@@ -45,7 +45,7 @@ def fitted(tmp_path_factory):
 
 
 def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.observations import Observations
     from omniscs.scene import load_scene
     from omniscs.world import WorldRenderer
@@ -53,7 +53,7 @@ def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
     store, plan, record, _ = fitted
     assert plan.background_repair == (TRUCK,) and plan.stages["background_repair"]
     scene = load_scene(store)
-    graph = load_checkpoint(record.path, scene)
+    graph = load_graph(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
     holes = prepare_views(graph, Observations(scene, plan.cameras), removed_objects(graph, [TRUCK]), views,
                           RepairConfig(factor=1))
@@ -69,14 +69,14 @@ def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
 
 
 def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted):
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import apply_graph_edits
     from omniscs.nsg.observations import Observations
     from omniscs.scene import load_scene
 
     store, plan, record, _ = fitted
     scene = load_scene(store)
-    graph = load_checkpoint(record.path, scene)
+    graph = load_graph(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
     result = repair_background(graph, Observations(scene, plan.cameras), [TRUCK], views,
                                tiny_fit_config(60), SMALL)
@@ -118,13 +118,13 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
 
 def test_the_refit_runs_at_the_fits_learning_rates_times_refit_lr_scale(fitted, monkeypatch):
     import omniscs.background.repair as repair
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.observations import Observations
     from omniscs.scene import load_scene
 
     store, plan, record, _ = fitted
     scene = load_scene(store)
-    graph = load_checkpoint(record.path, scene)
+    graph = load_graph(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
     rates = []
 
@@ -151,7 +151,7 @@ def test_the_refit_runs_at_the_fits_learning_rates_times_refit_lr_scale(fitted, 
 
 def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_pixel(fitted):
     from omniscs.background.inpaintnet import SHIPPED
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.observations import Observations
     from omniscs.scene import load_scene
 
@@ -159,7 +159,7 @@ def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_p
         pytest.skip("no shipped inpainting weights")
     store, plan, record, _ = fitted
     scene = load_scene(store)
-    graph = load_checkpoint(record.path, scene)
+    graph = load_graph(record.path, scene)
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
     config = dataclasses.replace(SMALL, inpainter="embedded", keep_observed=False, refit="none", planes=False,
                                  seed_inpainted=True)
@@ -198,14 +198,14 @@ def test_fill_views_refuses_when_no_view_knows_any_depth():
 
 
 def test_the_background_stage_writes_a_repaired_checkpoint_its_files_and_rows_and_reuses_them(fitted):
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
 
     store, plan, record, tmp = fitted
     ws = tmp / "ws"
     first = background_stage(store, plan, record, ws, config=SMALL)
     assert not first.reused and first.info["repaired"] == [TRUCK]
     assert Path(first.path).parent.parent == ws / "repaired"
-    graph = load_checkpoint(first.path)
+    graph = load_graph(first.path)
     assert TRUCK in graph.agent_ids
     repair = Path(first.path) / "repair"
     info = json.loads((repair / "repair.json").read_text())

@@ -204,7 +204,7 @@ def test_the_oracle_colour_fit_moves_the_vehicle_towards_the_truth(tiny_graph):
     from types import SimpleNamespace
 
     from omniscs.bench.agents import truth_fitted
-    from omniscs.nsg.metrics import psnr
+    from omniscs.quality import psnr
     from omniscs.render.sh import rgb_to_sh_dc
 
     node = tiny_graph.agents[0]

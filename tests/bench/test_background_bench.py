@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from omniscs.bench.background import EvalView, object_light_cost, score_view
-from omniscs.nsg.metrics import MAX_PSNR_DB
+from omniscs.quality import MAX_PSNR_DB
 
 
 def _view(kind: str, gt: np.ndarray, lit: np.ndarray | None, hole: np.ndarray) -> EvalView:

@@ -13,32 +13,16 @@ import torch
 
 from omniscs.errors import ValidationError
 from omniscs.eval.detection import DETECTION_NAMES
-from omniscs.eval.detector import (
-    DEFAULT_DETECTOR,
-    DetectConfig,
-    DetectorConfig,
-    DetectorTrainConfig,
-    ProxyDetector,
-    annotations_by_sample,
-    back_project,
-    camera_views,
-    detect,
-    global_yaw,
-    load_detector,
-    observation_angle,
-    output_size,
-    photometric_jitter,
-    project_to_camera,
-    save_detector,
-    targets,
-    train_detector,
-    training_set,
-    view_boxes,
-    write_results,
-    yaw_from_quaternion,
-)
+from omniscs.eval.detector import DEFAULT_DETECTOR, load_detector, save_detector
+from omniscs.eval.detector_config import DetectConfig, DetectorConfig, DetectorTrainConfig
+from omniscs.eval.detector_decoding import detect, write_results
+from omniscs.eval.detector_network import ProxyDetector, output_size
+from omniscs.eval.detector_training import photometric_jitter, targets, train_detector, training_set
+from omniscs.eval.detector_views import (annotations_by_sample, back_project, camera_views, global_yaw,
+                                        observation_angle, project_to_camera, view_boxes)
 from omniscs.eval.nuscenes_io import NuScenesTables, evaluate_detection_results, load_results
 from omniscs.export import export_scenes
+from omniscs.quaternions import yaw_from_quaternion
 from tests.dataset_fixtures import synthetic_store
 
 VERSION = "v1.0-mini"
@@ -138,7 +122,8 @@ def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroo
     """A network that output exactly its targets would detect every learned box where it is, as large as it is and
     heading where it heads: encoding (targets) and decoding (back-projection, and the ground contact where the
     errors are measured) are inverse."""
-    from omniscs.eval.detector import _decode_view, _scaled
+    from omniscs.eval.detector_decoding import _decode_view
+    from omniscs.eval.detector_training import _scaled
 
     tables = NuScenesTables.load(dataroot, VERSION)
     anns = annotations_by_sample(tables)
@@ -162,7 +147,7 @@ def test_decoding_the_training_targets_gives_back_the_ground_truth_boxes(dataroo
 
 
 def test_boxes_of_one_object_seen_by_two_cameras_are_merged():
-    from omniscs.eval.detector import centre_nms
+    from omniscs.eval.detector_decoding import centre_nms
 
     box = {"translation": [10.0, 5.0, 1.0], "detection_name": "car", "detection_score": 0.9}
     kept = centre_nms([box, {**box, "translation": [10.5, 5.0, 1.0], "detection_score": 0.8},
@@ -172,7 +157,7 @@ def test_boxes_of_one_object_seen_by_two_cameras_are_merged():
 
 
 def test_flipping_an_image_mirrors_its_heatmap_targets(dataroot):
-    from omniscs.eval.detector import _flipped
+    from omniscs.eval.detector_training import _flipped
 
     data = training_set([(dataroot, VERSION)], TINY)
     i = int(np.argmax([len(b) for b in data.boxes]))
@@ -206,7 +191,8 @@ def test_a_few_training_steps_lower_the_loss_and_the_same_seed_gives_the_same_we
 def test_the_ground_contact_reads_a_box_on_flat_ground_and_is_refused_above_the_horizon():
     """A car 12 m ahead of a camera 1.5 m above flat ground: the ray through the pixel of its bottom centre meets
     the ground at the bottom centre; a pixel above the horizon never meets it."""
-    from omniscs.eval.detector import CameraView, ground_contact_centres
+    from omniscs.eval.detector_decoding import ground_contact_centres
+    from omniscs.eval.detector_views import CameraView
 
     K = np.array([[200.0, 0, 160], [0, 200.0, 90], [0, 0, 1]])
     # OpenCV camera looking along ego +x: x_cam = -y_ego, y_cam = -z_ego, z_cam = x_ego
@@ -338,7 +324,7 @@ def test_view_boxes_keep_only_annotations_in_front_within_range_and_in_the_image
 
 
 def _boxes(labels: list[int]):
-    from omniscs.eval.detector import ViewBoxes
+    from omniscs.eval.detector_views import ViewBoxes
 
     n = len(labels)
     return ViewBoxes(np.zeros((n, 2)), np.ones(n), np.ones((n, 3)), np.zeros(n), np.zeros((n, 2)),
@@ -348,7 +334,7 @@ def _boxes(labels: list[int]):
 def test_class_balanced_sampling_shows_each_class_about_equally_often_and_zero_balance_is_uniform():
     """Eight images show only class 0 (cars), one shows class 3 and one shows nothing: at balance 1 each of the three
     (class 0, class 3, no box) gets a third of the draws; at 0 every image a tenth; in between, in between."""
-    from omniscs.eval.detector import sampling_weights
+    from omniscs.eval.detector_training import sampling_weights
 
     boxes = [_boxes([0, 0])] * 8 + [_boxes([3])] + [_boxes([])]
     full = sampling_weights(boxes, 10, 1.0)

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from omniscs.geometry import (box_corners, box_corners_from_pose, clip_segment_to_near, compose,
                               ego_from_camera_mount, intrinsics_from_fov, invert_transform, is_rigid,
                               make_transform, points_in_box, pose_from_xyz_yaw, project, rotmat_from_euler,
-                              transform_points, unproject, wrap_angle, yaw_of)
+                              transform_points, unproject, world_from_box, wrap_angle, yaw_from_matrix)
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 
@@ -30,14 +30,17 @@ def test_is_rigid_rejects_scaling_reflection_and_nan():
 
 @given(st.floats(-20, 20))
 def test_yaw_round_trips_through_rotation(yaw):
-    assert abs(wrap_angle(yaw_of(rotmat_from_euler(yaw=yaw)) - yaw)) < 1e-9
+    assert abs(wrap_angle(yaw_from_matrix(rotmat_from_euler(yaw=yaw)) - yaw)) < 1e-9
 
 
 def test_box_corners_front_face_is_ahead_and_points_in_box():
     corners = box_corners(np.array([10.0, 5.0, 1.0]), np.array([4.0, 2.0, 1.5]), np.pi / 2)
     assert np.allclose(corners[:4, 1], 7.0)  # heading +y: the front face is at y = 5 + 2
-    assert points_in_box(np.array([[10.0, 6.9, 1.0]]), [10, 5, 1], [4, 2, 1.5], np.pi / 2).all()
-    assert not points_in_box(np.array([[11.5, 5.0, 1.0]]), [10, 5, 1], [4, 2, 1.5], np.pi / 2).any()
+    box = world_from_box([10, 5, 1], np.pi / 2)
+    assert points_in_box(np.array([[10.0, 6.9, 1.0]]), box, [4, 2, 1.5]).all()
+    assert not points_in_box(np.array([[11.5, 5.0, 1.0]]), box, [4, 2, 1.5]).any()
+    assert points_in_box(np.array([[11.5, 5.0, 1.0]]), box, [4, 2, 1.5], margin=0.6).all()  # grown on every side
+    assert points_in_box(np.array([[10.0, 7.0, 1.0, 0.3]]), box, [4, 2, 1.5]).all()  # faces count; extra columns not
 
 
 def test_overturned_box_corners_match_the_upright_box_set():

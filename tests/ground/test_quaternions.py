@@ -7,9 +7,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import rotmat_from_euler
+from omniscs.geometry import rotmat_from_euler, wrap_angle, yaw_from_matrix
 from omniscs.quaternions import (normalize_quats, quat_from_axis_angle, quat_multiply, quat_normalize, quat_to_rotmat,
-                                 rotmat_to_quat, rotmats_from_quats, rotmats_from_unit_quats, yaw_to_quat)
+                                 rotmat_to_quat, rotmats_from_quats, rotmats_from_unit_quats, yaw_from_quaternion,
+                                 yaw_to_quat)
 
 quats = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
     lambda q: np.linalg.norm(q) > 1e-3)
@@ -127,3 +128,19 @@ def test_unit_rotation_of_a_normalised_quaternion_is_the_rotation_of_the_raw_one
     raw = torch.tensor(q, dtype=torch.float64)
     assert torch.equal(rotmats_from_unit_quats(normalize_quats(raw)), rotmats_from_quats(raw))
     assert torch.allclose(normalize_quats(raw).norm(), torch.tensor(1.0, dtype=torch.float64))
+
+
+@given(quats)
+def test_the_yaw_of_a_quaternion_is_the_yaw_of_its_matrix_and_the_same_for_minus_q(q):
+    q = np.array(q)
+    yaw = yaw_from_quaternion(q)
+    assert np.isfinite(yaw)
+    R = quat_to_rotmat(q)
+    if np.hypot(R[0, 0], R[1, 0]) > 1e-6:  # x axis not straight up or down, where the heading is undefined
+        assert abs(wrap_angle(yaw - yaw_from_matrix(R))) < 1e-9
+    assert abs(wrap_angle(yaw - yaw_from_quaternion(-q))) < 1e-12
+
+
+def test_yaw_from_quaternion_inverts_yaw_to_quat_over_a_batch():
+    yaws = np.linspace(-3.0, 3.0, 7)
+    assert np.allclose(yaw_from_quaternion(3.0 * yaw_to_quat(yaws)), yaws)  # any non-zero norm

@@ -18,7 +18,7 @@ from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams
 from omniscs.geometry import ego_from_camera_mount, intrinsics_from_fov, pose_from_xyz_yaw
 from omniscs.nsg.agent import AgentNode
-from omniscs.nsg.checkpoint import (GRAPH_JSON, METRICS_JSON, PLAN_JSON, TENSORS, TENSORS_RECORD, load_checkpoint,
+from omniscs.nsg.checkpoint import (GRAPH_JSON, METRICS_JSON, PLAN_JSON, TENSORS, TENSORS_RECORD, load_graph,
                                     load_metrics, load_plan, read_checkpoint_meta, save_checkpoint)
 from omniscs.nsg.graph import RenderSettings, SceneGraph
 from omniscs.nsg.sky import SkyParams
@@ -100,7 +100,8 @@ CASES = {
     "missing agents field": (meta_change(lambda m: m.pop("agents")), r"graph.json: missing field\(s\) \['agents'\]"),
     "cameras a dict": (meta_change(lambda m: m.update(cameras={})), r"field cameras must be a JSON list"),
     "sh_degree a string": (meta_change(lambda m: m.update(sh_degree="1")), r"field sh_degree must be a JSON integer"),
-    "sh_degree huge": (meta_change(lambda m: m.update(sh_degree=40)), r"field sh_degree must be 0..4"),
+    "sh_degree huge": (meta_change(lambda m: m.update(sh_degree=40)), r"field sh_degree must be 0..3"),
+    "sh_degree beyond the renderer": (meta_change(lambda m: m.update(sh_degree=4)), r"field sh_degree must be 0..3"),
     "unknown render setting": (meta_change(lambda m: m["settings"].update(turbo=True)),
                                r"field settings must be an object with fields among"),
     "camera without K": (meta_change(lambda m: m["cameras"][0].pop("K")), r"field cameras.0 must be a camera"),
@@ -147,7 +148,7 @@ def test_a_damaged_checkpoint_is_one_domain_error_line(case, pristine, tmp_path)
     damage(ckpt)
     before = files_under(tmp_path)
     with pytest.raises(OmniscsError, match=message) as info:
-        load_checkpoint(ckpt)
+        load_graph(ckpt)
     assert len(str(info.value).splitlines()) == 1
     assert files_under(tmp_path) == before
 
@@ -162,7 +163,7 @@ SIDE_CASES = {
     "metrics.json a number": (write(METRICS_JSON, b"3"), load_metrics, r"metrics.json must be a JSON object"),
     "not a checkpoint folder": (lambda ckpt: shutil.rmtree(ckpt) or ckpt.mkdir(), read_checkpoint_meta,
                                 r"is not a scene-graph checkpoint \(no graph.json\); fit one"),
-    "a file, not a folder": (lambda ckpt: shutil.rmtree(ckpt) or ckpt.write_text("x"), load_checkpoint,
+    "a file, not a folder": (lambda ckpt: shutil.rmtree(ckpt) or ckpt.write_text("x"), load_graph,
                              r"is not a scene-graph checkpoint"),
 }
 
@@ -186,13 +187,13 @@ def test_a_damaged_plan_metrics_or_folder_is_one_domain_error_line(case, pristin
 
 
 def test_a_good_checkpoint_loads_with_its_record_and_without_it(pristine, tmp_path):
-    graph = load_checkpoint(pristine)
+    graph = load_graph(pristine)
     assert graph.agent_ids == (3,) and graph.n_gaussians == 240 and graph.n_frames == N_FRAMES
     record = json.loads((pristine / GRAPH_JSON).read_text())[TENSORS_RECORD]
     assert record["bytes"] == (pristine / TENSORS).stat().st_size and len(record["sha256"]) == 64
     old = Path(shutil.copytree(pristine, tmp_path / "old"))
     old_checkpoint()(old)  # checkpoints written before the record existed stay readable
-    assert torch.equal(load_checkpoint(old).background.means, graph.background.means)
+    assert torch.equal(load_graph(old).background.means, graph.background.means)
     assert load_metrics(pristine) == {"status": "fitted"} and load_plan(tmp_path) is None
 
 
@@ -212,7 +213,7 @@ def test_any_truncation_of_the_tensors_is_one_domain_error(pristine, tensor_byte
         old_checkpoint()(ckpt)
     (ckpt / TENSORS).write_bytes(tensor_bytes[: int(len(tensor_bytes) * fraction)])
     with pytest.raises(OmniscsError) as info:
-        load_checkpoint(ckpt)
+        load_graph(ckpt)
     assert len(str(info.value).splitlines()) == 1
 
 
@@ -223,5 +224,5 @@ def test_any_truncation_of_graph_json_is_one_domain_error(pristine, tmp_path_fac
     text = (ckpt / GRAPH_JSON).read_bytes()
     (ckpt / GRAPH_JSON).write_bytes(text[: min(cut_at, len(text.rstrip()) - 1)])  # a trailing newline is not damage
     with pytest.raises(OmniscsError) as info:
-        load_checkpoint(ckpt)
+        load_graph(ckpt)
     assert len(str(info.value).splitlines()) == 1

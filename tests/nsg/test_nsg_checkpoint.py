@@ -8,7 +8,7 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.nsg import fit_scene
-from omniscs.nsg.checkpoint import GRAPH_JSON, load_checkpoint, load_metrics, load_plan, save_checkpoint
+from omniscs.nsg.checkpoint import GRAPH_JSON, load_graph, load_metrics, load_plan, save_checkpoint
 from omniscs.nsg.edit import apply_graph_edits
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
@@ -27,7 +27,7 @@ def fitted(tmp_path_factory):
 
 def test_round_trip_renders_bit_identically_without_refitting(fitted):
     scene, result, ckpt = fitted
-    loaded = load_checkpoint(ckpt, scene)
+    loaded = load_graph(ckpt, scene)
     for f in (0, 3):
         a = result.graph.render(result.graph.view("CAM_FRONT", f))
         b = loaded.render(loaded.view("CAM_FRONT", f))
@@ -40,7 +40,7 @@ def test_round_trip_renders_bit_identically_without_refitting(fitted):
 def test_an_edited_graph_with_shared_tensors_saves_and_loads(fitted, tmp_path):
     scene, result, _ = fitted
     edited = apply_graph_edits(result.graph, [{"op": "replace_model", "track_id": 1, "asset_id": "nsg:2"}])
-    loaded = load_checkpoint(save_checkpoint(edited, tmp_path / "edited"))
+    loaded = load_graph(save_checkpoint(edited, tmp_path / "edited"))
     assert torch.equal(loaded.agent(1).gaussians.means, edited.agent(1).gaussians.means)
 
 
@@ -48,7 +48,7 @@ def test_a_checkpoint_of_another_scene_is_refused(fitted, tmp_path):
     _, _, ckpt = fitted
     other = load_scene(write_tiny_scene(tmp_path / "other"))
     with pytest.raises(OmniscsError, match="fitted to scene nsg-test"):
-        load_checkpoint(ckpt, other)
+        load_graph(ckpt, other)
 
 
 def test_a_checkpoint_of_another_version_is_refused(fitted, tmp_path):
@@ -61,9 +61,9 @@ def test_a_checkpoint_of_another_version_is_refused(fitted, tmp_path):
     meta["version"] = 0
     (old / GRAPH_JSON).write_text(json.dumps(meta))
     with pytest.raises(OmniscsError, match="version 0 scene-graph checkpoint"):
-        load_checkpoint(old)
+        load_graph(old)
     with pytest.raises(OmniscsError, match="not a scene-graph checkpoint"):
-        load_checkpoint(tmp_path)
+        load_graph(tmp_path)
 
 
 def test_saving_over_an_existing_checkpoint_needs_overwrite(fitted):

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from omniscs.errors import OmniscsError
-from omniscs.nsg import FitConfig, fit_preset, fit_scene, load_checkpoint
+from omniscs.nsg import FitConfig, fit_preset, fit_scene, load_graph
 from omniscs.nsg.config import resolve_device
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
@@ -59,12 +59,12 @@ def test_the_device_is_not_part_of_what_a_fit_means():
 def test_a_checkpoint_loads_onto_the_chosen_device_and_cuda_without_cuda_is_refused(scene, tmp_path, monkeypatch):
     config = tiny_fit_config(5)
     fit_scene(scene, config, make_plan(scene, None, config.plan), evaluate=False, checkpoint_dir=tmp_path / "ckpt")
-    graph = load_checkpoint(tmp_path / "ckpt", device="cpu")
+    graph = load_graph(tmp_path / "ckpt", device="cpu")
     assert graph.device == torch.device("cpu")
     assert all(a.gaussians.device == torch.device("cpu") for a in graph.agents)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(OmniscsError, match="no CUDA GPU"):
-        load_checkpoint(tmp_path / "ckpt", device="cuda")
+        load_graph(tmp_path / "ckpt", device="cuda")
 
 
 def test_moving_a_graph_to_where_it_is_shares_its_tensors(scene):
@@ -88,5 +88,5 @@ def test_a_tiny_cuda_fit_trains_and_renders_through_gsplat(scene, tmp_path):
     assert out.rgb.is_cuda and out.meta["backend"] == "gsplat"
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
     assert result.metrics["heldout_psnr"] > 10.0
-    on_cpu = load_checkpoint(tmp_path / "ckpt", device="cpu")  # fitted on a GPU, inspected anywhere
+    on_cpu = load_graph(tmp_path / "ckpt", device="cpu")  # fitted on a GPU, inspected anywhere
     assert on_cpu.device.type == "cpu" and on_cpu.render(on_cpu.view("CAM_FRONT", 2)).meta["backend"] == "cpu"

@@ -158,10 +158,10 @@ def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph,
     import json
     import shutil
 
-    from omniscs.nsg.checkpoint import GRAPH_JSON, load_checkpoint, save_checkpoint
+    from omniscs.nsg.checkpoint import GRAPH_JSON, load_graph, save_checkpoint
 
     folder = save_checkpoint(graph, tmp_path / "ckpt")
-    back = load_checkpoint(folder)
+    back = load_graph(folder)
     r, s = graph.agent(1).relight, back.agent(1).relight
     assert all(torch.equal(getattr(r, k), getattr(s, k)) for k in RELIGHT_TENSORS)
     assert back.agent(2).relight is None
@@ -184,12 +184,12 @@ def test_relight_data_survives_a_checkpoint_and_a_damaged_flag_is_refused(graph,
     record[TENSORS_RECORD] = {"bytes": (old / TENSORS).stat().st_size, "sha256": file_sha256(old / TENSORS)}
     (old / GRAPH_JSON).write_text(json.dumps(record))
     with pytest.raises(OmniscsError, match="earlier light model"):
-        load_checkpoint(old)
+        load_graph(old)
     meta = json.loads((folder / GRAPH_JSON).read_text())
     meta["agents"][[a["track_id"] for a in meta["agents"]].index(1)]["relight"] = "yes"
     (folder / GRAPH_JSON).write_text(json.dumps(meta))
     with pytest.raises(OmniscsError, match="relight"):
-        load_checkpoint(folder)
+        load_graph(folder)
 
 
 def relit_node_checks(graph, device: str) -> dict:
@@ -198,8 +198,8 @@ def relit_node_checks(graph, device: str) -> dict:
     the CPU render), and its light fits back through that device's rasterizer (agents.relight.fit_lighting, as the
     dual strategy calls it), and the dual strategy's colour correction and refinement run there (they read the
     renders back to the CPU). Asserts; returns the figures (infra/gpu_check/relight_cuda.py prints them)."""
-    from omniscs.agents.dual import _alone
     from omniscs.agents.relight import fit_lighting
+    from omniscs.agents.track_pixels import track_alone
     from omniscs.nsg.edit import apply_graph_edits
     from omniscs.nsg.graph import render_view
     from omniscs.nsg.relight import neutral_lighting
@@ -226,7 +226,7 @@ def relit_node_checks(graph, device: str) -> dict:
     assert figures["baked_max_diff"] < 1e-4 and figures["cpu_mean_diff"] < 2e-3, figures
     # the light, fitted back from renders made with it, starting from an even light
     node = moved.agent(1)
-    alone = _alone(moved, 1, node.gaussians).replace(agents=(node,))
+    alone = track_alone(moved, 1, node.gaussians).replace(agents=(node,))
     samples = []
     for f in range(graph.n_frames):
         out = render_view(alone, moved.view(cam, f))

@@ -38,7 +38,7 @@ def _fitted(tmp_path, edits):
 
 
 def test_the_agents_stage_writes_a_completed_graph_and_its_decisions(tmp_path, monkeypatch, small_pool):
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import apply_graph_edits
 
     monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(10))
@@ -47,7 +47,7 @@ def test_the_agents_stage_writes_a_completed_graph_and_its_decisions(tmp_path, m
     record = agents_stage(store, plan, fitted, tmp_path / "ws", small_pool)
     assert not record.reused and record.info["status"] == "fitted" and record.info["strategies"] == {"1": "pool"}
     assert Path(record.path).parent.parent == tmp_path / "ws" / "agent_models"
-    graph = load_checkpoint(record.path)  # a checkpoint like any other: later stages render it
+    graph = load_graph(record.path)  # a checkpoint like any other: later stages render it
     decisions = json.loads((Path(record.path) / "decisions.json").read_text())["tracks"]
     assert {d["track_id"]: d["strategy"] for d in decisions} == {1: "pool", 2: "fitted"}
     rows = record.rows["agent_models"]
@@ -55,7 +55,7 @@ def test_the_agents_stage_writes_a_completed_graph_and_its_decisions(tmp_path, m
     row = next(r for r in rows if r["track_id"] == 1)
     assert row["pool_model_id"] in set(Pool(small_pool).table().model_id) and row["needs_360"]
     assert np.isfinite(row["distance"]) and 0 <= row["clarity"] <= 1
-    naive = load_checkpoint(fitted.path)
+    naive = load_graph(fitted.path)
     a = apply_graph_edits(naive, [TURN]).render(naive.view("CAM_FRONT", 3)).rgb
     b = apply_graph_edits(graph, [TURN]).render(graph.view("CAM_FRONT", 3)).rgb
     assert float((a - b).abs().mean()) > 1e-3 and bool(b.isfinite().all())

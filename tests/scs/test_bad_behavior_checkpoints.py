@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.checkpoint import (DEFAULT_CHECKPOINT, MODEL_CONFIG, TRAINING, WEIGHTS, checkpoint_hash,
-                                             load_checkpoint, training_record)
+                                             load_traffic_model, training_record)
 from tests.damage import cut, files_under, write
 
 
@@ -93,7 +93,7 @@ def test_a_damaged_behavior_checkpoint_is_one_domain_error_line(case, pristine, 
     damage(ckpt)
     before = files_under(tmp_path)
     with pytest.raises(OmniscsError, match=message) as info:
-        load_checkpoint(ckpt)
+        load_traffic_model(ckpt)
     assert len(str(info.value).splitlines()) == 1
     assert files_under(tmp_path) == before
 
@@ -103,7 +103,7 @@ SIDE_CASES = {
     "training record a list": (write(TRAINING, b"[]"), training_record, r"training.json must be a JSON object"),
     "hash of a missing folder": (lambda ckpt: shutil.rmtree(ckpt), checkpoint_hash,
                                  r"cannot read .*model.safetensors .*pass a behaviour-model checkpoint folder"),
-    "a file, not a folder": (lambda ckpt: shutil.rmtree(ckpt) or ckpt.write_text("x"), load_checkpoint,
+    "a file, not a folder": (lambda ckpt: shutil.rmtree(ckpt) or ckpt.write_text("x"), load_traffic_model,
                              r"no behaviour-model checkpoint in"),
 }
 
@@ -121,7 +121,7 @@ def test_side_files_of_a_checkpoint_are_refused_in_one_line(case, pristine, tmp_
 
 
 def test_the_pristine_copy_loads(pristine):
-    model = load_checkpoint(pristine)
+    model = load_traffic_model(pristine)
     assert not model.training and checkpoint_hash(pristine) == checkpoint_hash(None)
     assert training_record(pristine) == training_record(None)
 
@@ -138,5 +138,5 @@ def test_any_truncation_of_the_weights_is_one_domain_error(pristine, weight_byte
     ckpt = Path(shutil.copytree(pristine, tmp_path_factory.mktemp("cut") / "ckpt"))
     (ckpt / WEIGHTS).write_bytes(weight_bytes[: int(len(weight_bytes) * fraction)])
     with pytest.raises(OmniscsError) as info:
-        load_checkpoint(ckpt)
+        load_traffic_model(ckpt)
     assert len(str(info.value).splitlines()) == 1

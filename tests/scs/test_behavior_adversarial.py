@@ -10,8 +10,8 @@ import torch
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.scs.behavior.appearance import AppearanceTerm
-from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.collision import footprints, overlapping
 from omniscs.scs.behavior.evaluation import evaluate
 from omniscs.scs.behavior.generation import distinct_variants, generate_variants, variant_schedule
@@ -21,14 +21,14 @@ from omniscs.scs.behavior.planner import PlannerConfig, rule_based_plan
 from omniscs.scs.behavior.problem import BehaviorProblem
 from omniscs.scs.behavior.variants import variant_spec
 from tests.behavior_fixtures import straight_world
-from tests.scs.test_behavior_appearance import blob_renderer
+from tests.scs.test_behavior_render_consistency import blob_renderer
 
 FAST = adversarial_preset("fast")
 
 
 @pytest.fixture(scope="module")
 def model():
-    return load_checkpoint()
+    return load_traffic_model()
 
 
 def test_a_car_in_the_next_lane_is_steered_into_the_ego_plausibly(model):
@@ -119,10 +119,10 @@ def test_l_app_enters_the_loss_only_when_a_renderer_is_supplied(model):
 
     render = blob_renderer(size=24, extent_m=60.0)
     original = render(plain.world_trajectories(plain.fitted.states)).detach()
-    appearance = AppearanceTerm(render, original)
+    appearance = RenderConsistencyTerm(render, original)
     seen = []
-    wrapped = AppearanceTerm(lambda traj: seen.append(traj.poses.requires_grad) or render(traj), original)
-    with_app = BehaviorProblem(traffic, model, FAST, appearance=wrapped)
+    wrapped = RenderConsistencyTerm(lambda traj: seen.append(traj.poses.requires_grad) or render(traj), original)
+    with_app = BehaviorProblem(traffic, model, FAST, render_consistency=wrapped)
     result = optimise(with_app, 1, (0, with_app.horizon), "v", True)
     assert result.losses["L_app"] is not None and np.isfinite(result.losses["L_app"])
     assert seen and all(seen)  # the renderer received differentiable trajectories every step
@@ -161,7 +161,7 @@ def test_the_interception_search_finds_a_comfortable_path_of_a_parked_car_into_t
     assert gap < 0.0 and states[-1, 3] > 1.0  # it pulls out and its box overlaps the ego's
     lon, lat = np.diff(np.r_[0.0, states[:, 3].numpy()]) / traffic.dt, (states[:, 3] * states[:, 4]).numpy()
     cb = FAST.comfort
-    assert lon.max() <= cb.max_accel and lon.min() >= -cb.max_decel and np.abs(lat).max() <= cb.max_lateral_accel
+    assert lon.max() <= cb.max_lon_accel and lon.min() >= cb.min_lon_accel and np.abs(lat).max() <= cb.max_abs_lat_accel
 
 
 def test_box_gap_is_negative_exactly_when_the_boxes_overlap_and_finite_far_away():
@@ -225,8 +225,8 @@ def test_the_knot_fallback_keeps_a_plausible_interception_the_latent_cannot_expr
     spec = json.loads(json.dumps(variant_spec(v)))
     assert spec["source"] == "knots" and spec["losses"]["L_restore"] == 0.0
     cb = base.comfort
-    assert -cb.max_decel <= spec["adversary_accel_mps2"][0] and spec["adversary_accel_mps2"][1] <= cb.max_accel
-    assert spec["adversary_max_lateral_accel_mps2"] <= cb.max_lateral_accel
+    assert cb.min_lon_accel <= spec["adversary_accel_mps2"][0] and spec["adversary_accel_mps2"][1] <= cb.max_lon_accel
+    assert spec["adversary_max_lateral_accel_mps2"] <= cb.max_abs_lat_accel
     assert all(np.isfinite(x) for x in v.losses.values() if x is not None)
 
 

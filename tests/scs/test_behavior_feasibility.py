@@ -7,7 +7,7 @@ import torch
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.procedural import traffic_from_world
 from omniscs.scs.behavior.adversarial_config import adversarial_preset
-from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.feasibility import (FeasibilityConfig, comfort_kinematics, out_of_reach, search_reach,
                                               search_scene)
@@ -21,7 +21,7 @@ SEARCH = FeasibilityConfig(starts=64, steps=200)
 
 @pytest.fixture(scope="module")
 def model():
-    return load_checkpoint()
+    return load_traffic_model()
 
 
 def _problem(model, agents, ego_speed=8.0):
@@ -43,8 +43,8 @@ def test_a_car_in_the_next_lane_can_reach_the_ego_comfortably(model):
     assert box_iou(ego, adv).max() == pytest.approx(r.best_iou)  # the reported trajectory is the one measured
     lon, lat = accelerations(p.sample.state0[r.node].double(), torch.tensor(r.states), p.traffic.dt)
     cb = p.config.comfort
-    assert lon.max() <= cb.max_accel and lon.min() >= -cb.max_decel
-    assert lat.abs().max() <= cb.max_lateral_accel and np.abs(r.states[:, 4]).max() <= cb.max_yaw_rate
+    assert lon.max() <= cb.max_lon_accel and lon.min() >= cb.min_lon_accel
+    assert lat.abs().max() <= cb.max_abs_lat_accel and np.abs(r.states[:, 4]).max() <= cb.max_abs_yaw_rate
 
 
 def test_a_parked_car_reaches_a_standing_ego_only_when_it_faces_it(model):
@@ -77,23 +77,23 @@ def test_the_reach_ball_is_sound_for_any_comfortable_controls(model):
     raw = torch.randn(512, p.horizon, 2, generator=gen) * 3.0
     raw[:, :, 0] = raw[:, :, 0].abs() + 5.0  # flat out: the farthest any trajectory gets
     c = bound_controls(raw, lim)
-    c = torch.stack([soft_clip_accel(c[..., 0], cb.max_accel, cb.max_decel), c[..., 1]], -1)
+    c = torch.stack([soft_clip_accel(c[..., 0], cb.max_lon_accel, -cb.min_lon_accel), c[..., 1]], -1)
     states = rollout(state0.expand(512, 5), c, p.traffic.dt, lim).numpy()
     travelled = np.linalg.norm(states[..., :2] - state0[:2].numpy(), axis=-1).max(0)  # [T]
     t = np.arange(1, p.horizon + 1) * p.traffic.dt
     v0 = float(state0[3])
-    assert np.all(travelled <= v0 * t + 0.5 * cb.max_accel * t ** 2 + 1e-3)
-    assert travelled[-1] > v0 * t[-1] + 0.4 * cb.max_accel * t[-1] ** 2  # and not loose: flat out gets close
+    assert np.all(travelled <= v0 * t + 0.5 * cb.max_lon_accel * t ** 2 + 1e-3)
+    assert travelled[-1] > v0 * t[-1] + 0.4 * cb.max_lon_accel * t[-1] ** 2  # and not loose: flat out gets close
     # a plan always one metre beyond the ball (plus both half diagonals) is out of reach; 2 m inside is not
     size = tuple(float(x) for x in p.node_sizes[node])
     radius = 0.5 * (np.hypot(*size) + np.hypot(*p.ego_size))
     yaw0 = float(state0[2])
     for extra, expected in ((1.0, True), (-2.0, False)):
-        d = v0 * t + 0.5 * cb.max_accel * t ** 2 + radius + extra
+        d = v0 * t + 0.5 * cb.max_lon_accel * t ** 2 + radius + extra
         plan = np.stack([float(state0[0]) + d * np.cos(yaw0), float(state0[1]) + d * np.sin(yaw0),
                          np.full_like(t, yaw0)], -1)
         assert out_of_reach(state0.numpy().astype(np.float64), size, plan, p.ego_size, p.traffic.dt,
-                            cb.max_accel, lim.max_speed) is expected
+                            cb.max_lon_accel, lim.max_speed) is expected
 
 
 def test_the_search_is_deterministic_per_seed_and_rejects_bad_input(model):

@@ -6,7 +6,7 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.pipeline.procedural import traffic_from_world
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint, training_record
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model, save_checkpoint, training_record
 from omniscs.scs.behavior.features import build_sample, collate
 from omniscs.scs.behavior.kinematics import yaw_rate_bound
 from omniscs.scs.behavior.model import ModelConfig, TrafficModel
@@ -67,7 +67,7 @@ def test_checkpoints_round_trip_exactly(batch, tmp_path):
     torch.manual_seed(1)
     model = TrafficModel().eval()
     save_checkpoint(model, tmp_path / "ckpt", {"seed": 1, "command": "test"})
-    loaded = load_checkpoint(tmp_path / "ckpt")
+    loaded = load_traffic_model(tmp_path / "ckpt")
     with torch.no_grad():
         a = model.encode_past(batch)[0]
         b = loaded.encode_past(batch)[0]
@@ -76,7 +76,7 @@ def test_checkpoints_round_trip_exactly(batch, tmp_path):
 
 def test_a_missing_checkpoint_says_how_to_make_one(tmp_path):
     with pytest.raises(OmniscsError, match="train-behavior"):
-        load_checkpoint(tmp_path / "nothing")
+        load_traffic_model(tmp_path / "nothing")
 
 
 def test_the_shipped_checkpoint_records_how_it_was_made_and_beats_constant_velocity():

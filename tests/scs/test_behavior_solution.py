@@ -58,9 +58,9 @@ def test_the_solution_avoids_a_cut_in_that_the_plan_hits(traffic):
     assert solution.solved and solution.reason is None
     assert _max_iou(solution, variant["agents"]["1"]) == 0.0 and solution.min_gap_m > 0.0
     cb = FAST.comfort
-    assert solution.max_decel_mps2 <= cb.max_decel * FAST.comfort_tolerance
-    assert solution.max_accel_mps2 <= cb.max_accel * FAST.comfort_tolerance
-    assert solution.max_yaw_rate_radps <= cb.max_yaw_rate * FAST.comfort_tolerance
+    assert solution.max_decel_mps2 <= -cb.min_lon_accel * FAST.comfort_tolerance
+    assert solution.max_accel_mps2 <= cb.max_lon_accel * FAST.comfort_tolerance
+    assert solution.max_yaw_rate_radps <= cb.max_abs_yaw_rate * FAST.comfort_tolerance
     np.testing.assert_array_equal(solution.trajectory[:NOW + 1], np.array(variant["ego"])[:NOW + 1])
 
 

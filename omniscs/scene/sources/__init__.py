@@ -5,15 +5,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from omniscs.errors import OmniscsError
-from omniscs.scene.sources.common import (
-    ATTRIBUTES,
-    FORMATS,
-    DatasetSource,
-    SkippedFramesWarning,
-    load_attributes,
-    write_log,
-)
+from omniscs.errors import OmniscsError, ValidationError
+from omniscs.scene.sources.common import (ATTRIBUTES, FORMATS, UNEXPECTED_READ_ERRORS, BadFrame, DatasetSource,
+                                          SkippedFramesWarning, check_frame_files, fingerprint, load_attributes,
+                                          reader_failure, write_log)
 
 
 def _module(fmt: str):
@@ -37,9 +32,6 @@ def open_reader(source: DatasetSource):
     """A reader opened on the source's scene (tables parsed, frames planned; no image read yet).
 
     Data that is not in the format's layout is one ValidationError naming the file (and field where known)."""
-    from omniscs.errors import ValidationError
-    from omniscs.scene.sources.common import UNEXPECTED_READ_ERRORS, BadFrame, reader_failure
-
     module = _module(source.format)
     cls = {"nuscenes": "NuScenesReader", "kitti": "KittiReader", "waymo-v2": "WaymoV2Reader"}[source.format]
     try:
@@ -54,8 +46,6 @@ def resolve(source: DatasetSource) -> DatasetSource:
     """The source with an absolute dataroot and its scene named (the only scene when none was given), after
     checking that the scene exists and its defining files are there and readable: a source that cannot be read
     fails here, before anything is written (the pipeline resolves every source before work starts)."""
-    from omniscs.scene.sources.common import UNEXPECTED_READ_ERRORS, reader_failure
-
     if not isinstance(source, DatasetSource):
         raise OmniscsError(f"not a dataset source: {source!r}")
     module = _module(source.format)
@@ -81,8 +71,6 @@ def validate_source(source: DatasetSource) -> DatasetSource:
     """``resolve`` plus opening the reader (every table parsed, cameras and frames checked) and, unless bad frames
     are to be skipped, a stat of every per-frame file: what can be known about a source without decoding images,
     for a pipeline that checks all its sources before any work starts. Returns the resolved source."""
-    from omniscs.scene.sources.common import check_frame_files
-
     source = resolve(source)
     reader = open_reader(source)
     if not source.skip_bad_frames:
@@ -99,8 +87,6 @@ def read_dataset_scene(source: DatasetSource, out_dir: str | Path, overwrite: bo
 
 def current_fingerprint(source: DatasetSource) -> list:
     """The dataset files' sizes and times now, to compare with a stored scene's ``dataset_fingerprint``."""
-    from omniscs.scene.sources.common import fingerprint
-
     source = resolve(source)
     return fingerprint(_module(source.format).dataset_files(source), Path(source.dataroot))
 

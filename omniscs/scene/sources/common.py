@@ -28,12 +28,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError, ValidationError
-from omniscs.geometry import (
-    invert_transform,
-    make_transform,
-    rotmat_from_euler,
-    yaw_of,
-)
+from omniscs.geometry import invert_transform, is_rigid, make_transform, rotmat_from_euler, yaw_from_matrix
+from omniscs.ids import is_safe_id
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat, slerp
 from omniscs.scene.store import CameraRecord, Scene
 from omniscs.scene.writer import SceneWriter
@@ -191,7 +187,7 @@ class LogReader(Protocol):
 # ----------------------------------------------------------------------------- frames and poses
 def world_from_global_at(global_from_ego: np.ndarray) -> np.ndarray:  # [4, 4] -> [4, 4]
     """Re-origin at an ego pose keeping the global up axis: the inverse of (its translation, its yaw)."""
-    yaw = float(yaw_of(global_from_ego[:3, :3]))
+    yaw = float(yaw_from_matrix(global_from_ego[:3, :3]))
     return invert_transform(make_transform(rotmat_from_euler(yaw=yaw), global_from_ego[:3, 3]))
 
 
@@ -238,9 +234,6 @@ def read_text_file(path: Path, what: str) -> str:
 def check_camera(camera: CameraRecord, where) -> CameraRecord:
     """A camera a reader built from calibration: positive size, pinhole K, rigid finite mount; else one
     ValidationError naming ``where`` (the calibration file and record) before anything is written."""
-    from omniscs.geometry import is_rigid
-    from omniscs.ids import is_safe_id
-
     K = np.asarray(camera.K, dtype=np.float64)
     if not is_safe_id(camera.name):
         raise ValidationError(f"{where}: camera name {camera.name!r} cannot name a folder")
@@ -317,6 +310,19 @@ def fingerprint(paths: Iterable[Path], root: Path) -> list:
             st = p.stat()
             out.append([os.path.relpath(p, root), st.st_size, st.st_mtime_ns])
     return out
+
+
+def pick_scene(available: list[str], named: str | None, where, kind: str, example: str) -> str:
+    """The ``named`` scene (a nuScenes scene, a KITTI sequence, a Waymo segment: ``kind``) of the ``available`` ones
+    in ``where``, or the only one when none is named; a user mistake otherwise (``example``: a source that names one).
+    """
+    if named is None:
+        if len(available) != 1:
+            raise OmniscsError(f"{where} holds {len(available)} {kind}s; name one, e.g. {example}")
+        return available[0]
+    if named not in available:
+        raise OmniscsError(f"{where} has no {kind} {named!r}; it has {available[:20]}")
+    return named
 
 
 def select_cameras(available: list[str], wanted: tuple[str, ...] | None, where: str) -> list[str]:
@@ -486,7 +492,7 @@ def _box_row(frame_idx: int, track_id: int, box: RawBox, world_from_global: np.n
             "source_category": box.source_category,
             "cx": pose[0, 3], "cy": pose[1, 3], "cz": pose[2, 3],
             "length": float(box.size[0]), "width": float(box.size[1]), "height": float(box.size[2]),
-            "yaw": float(yaw_of(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
+            "yaw": float(yaw_from_matrix(pose[:3, :3])), "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
             "num_lidar_points": int(box.num_lidar_points), "visible_pixels": -1}
 
 

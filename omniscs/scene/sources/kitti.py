@@ -28,6 +28,7 @@ from omniscs.scene.sources.common import (
     check_camera,
     fingerprint,
     json_value,
+    pick_scene,
     read_float32_records,
     read_image_file,
     read_text_file,
@@ -192,14 +193,8 @@ class KittiReader:
         self.root = Path(source.dataroot)
         self.base = split_dir(self.root, source.version)
         seqs = list_scenes(self.root, source.version)
-        seq = source.scene
-        if seq is None:
-            if len(seqs) != 1:
-                raise OmniscsError(f"{self.base} holds {len(seqs)} sequences; name one, e.g. kitti:{self.root}:"
-                                   f"{seqs[0] if seqs else '0000'}")
-            seq = seqs[0]
-        if seq not in seqs:
-            raise OmniscsError(f"{self.base} has no sequence {seq!r}; it has {seqs[:20]}")
+        seq = pick_scene(seqs, source.scene, self.base, "sequence",
+                         f"kitti:{self.root}:{seqs[0] if seqs else '0000'}")
         self.seq = seq
         self.calib_path = self.base / "calib" / f"{seq}.txt"
         self.oxts_path = require_file(self.base / "oxts" / f"{seq}.txt", "OXTS pose file")

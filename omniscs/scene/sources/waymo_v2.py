@@ -49,6 +49,7 @@ from omniscs.scene.sources.common import (
     decode_image_bytes,
     fingerprint,
     json_value,
+    pick_scene,
     select_cameras,
 )
 from omniscs.scene.store import CameraRecord
@@ -300,14 +301,8 @@ class WaymoV2Reader:
         self.source = source
         self.root = Path(source.dataroot)
         segments = list_scenes(self.root)
-        segment = source.scene
-        if segment is None:
-            if len(segments) != 1:
-                raise OmniscsError(f"{self.root} holds {len(segments)} segments; name one, e.g. waymo-v2:{self.root}:"
-                                   f"{segments[0] if segments else 'SEGMENT'}")
-            segment = segments[0]
-        if segment not in segments:
-            raise OmniscsError(f"{self.root} has no segment {segment!r}; it has {segments[:20]}")
+        segment = pick_scene(segments, source.scene, self.root, "segment",
+                             f"waymo-v2:{self.root}:{segments[0] if segments else 'SEGMENT'}")
         self.segment = segment
         poses = read_component(self.root, "vehicle_pose", segment, [SEGMENT, TIMESTAMP, POSE])
         where = str(component_path(self.root, "vehicle_pose", segment))

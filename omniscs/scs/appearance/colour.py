@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from omniscs.errors import OmniscsError
+from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,6 @@ def scene_colour_transform(graph, scene, pool, frames=None, config: ColourFitCon
     from omniscs.agents.dual import (colour_samples, fit_colour_correction, largest_views, placed_candidate,
                                      query_crops, track_views)
     from omniscs.agents.matching import match_scores
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
 
     if pool is None:
         return ColourTransform(IDENTITY.copy(), (), (), "no model pool: colours unchanged")

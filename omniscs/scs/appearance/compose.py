@@ -12,10 +12,11 @@ from typing import Callable
 import numpy as np
 import torch
 
+from omniscs.agents.dual import colour_corrected
 from omniscs.edits import Insert, ReplaceModel, edit_to_dict, parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, with_sh_degree
-from omniscs.geometry import pose_from_xyz_yaw
+from omniscs.geometry import pose_from_xyz_yaw, rotmat_from_euler
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.edit import AgentModel, ModelResolver, apply_graph_edits
 from omniscs.nsg.graph import SceneGraph
@@ -194,7 +195,6 @@ def colour_resolver(resolve: ModelResolver, affine: np.ndarray | None) -> ModelR
     """``resolve`` with every model's colours mapped by ``affine`` ([3, 4], A | b; None: unchanged)."""
     if affine is None:
         return resolve
-    from omniscs.agents.dual import colour_corrected
 
     def mapped(asset_id: str) -> AgentModel:
         m = resolve(asset_id)
@@ -254,8 +254,6 @@ def new_track_id(scene, graph: SceneGraph, taken: set[int] | None = None) -> int
 
 def model_upright_box(model: AgentModel, roll_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:  # -> [3]
     """The box (length, width, height along the heading) a model fills once tilted by roll/pitch."""
-    from omniscs.geometry import rotmat_from_euler
-
     R = rotmat_from_euler(math.radians(roll_deg), math.radians(pitch_deg), 0.0)
     return np.abs(R) @ np.asarray(model.size, dtype=np.float64)
 

@@ -3,6 +3,7 @@ replacing a vehicle's model (the object inherits its motion) or inserting the ob
 sampler found (upright, on its side, overturned); the specs on disk (``variants.json``) and their catalog rows."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import asdict, dataclass, field
@@ -15,7 +16,8 @@ from omniscs.nsg.edit import ModelResolver
 from omniscs.progress import Progress, no_progress
 from omniscs.scs.appearance.compose import (CompositeConfig, insert_variant, model_upright_box, new_track_id,
                                             replace_variant)
-from omniscs.scs.appearance.placement import PlacementConfig
+from omniscs.scs.appearance.placement import (PlacementConfig, PlacementError, check_placement, placement_context,
+                                              sample_placements)
 from omniscs.storage import atomic_write_json
 from omniscs.taxonomy import VEHICLE_CATEGORIES
 
@@ -66,9 +68,6 @@ class AppearanceVariants:
 def replacement_check(context, node, size, config: PlacementConfig):
     """Every placement check on ``node``'s whole trajectory with a box of ``size`` in its place (the node itself left
     out of the obstacles): whether an object of that size may replace it."""
-    import dataclasses
-
-    from omniscs.scs.appearance.placement import check_placement
 
     frames = np.flatnonzero(node.present)
     T = node.world_from_agent[frames]
@@ -92,8 +91,6 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
     placement sampler finds a valid pose (no overlap with any agent, static object, the ego or another inserted
     object at any frame; on the road; in view for enough frames); a replace takes a vehicle node whose trajectory
     the object's own size keeps valid, else the variant is an insert. An impossible request is an OmniscsError."""
-    from omniscs.scs.appearance.placement import PlacementError, placement_context, sample_placements
-
     if n < 1:
         raise OmniscsError(f"ask for at least one appearance variant; got {n}")
     if not objects:

@@ -4,18 +4,19 @@ kinematic bicycle decoding) and adversarial latent optimisation with L_adv = L_b
 The traffic model first reproduces the log (posterior latents, refined by fitting them to the logged future:
 ``problem``); then, per variant, every agent's latent is optimised so that the chosen adversary reaches the
 planner's trajectory (L_beh, a log-sum-exp softmax over agents and steps: ``losses``), the rendered scene keeps its
-look (L_app, only when a differentiable renderer is supplied: ``appearance``) and the latents stay near where they
-started (L_restore). A documented plausibility penalty (comfort, collisions with others, leaving the road:
-``evaluation``) is added by default; set its weights to 0 for the paper's three terms alone. An adversary that fails
-from the log's latents (and a standing one from the outset) restarts from a warm start: a search over its control
-knots finds a comfortable path into the ego (``optimisation.intercept``) and its latent is refitted to that path.
-``generation`` schedules adversaries and time windows into N distinct variants.
+look (L_app, the render-consistency term, only when a differentiable renderer is supplied: ``render_consistency``)
+and the latents stay near where they started (L_restore). A documented plausibility penalty (comfort, collisions
+with others, leaving the road: ``evaluation``) is added by default; set its weights to 0 for the paper's three terms
+alone. An adversary that fails from the log's latents (and a standing one from the outset) restarts from a warm
+start: a search over its control knots finds a comfortable path into the ego (``optimisation.intercept``) and its
+latent is refitted to that path. ``generation`` schedules adversaries and time windows into N distinct variants.
 """
-from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, ComfortBounds, adversarial_preset
-from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNet, FeatureNetConfig,
-                                             build_feature_net, masked_psnr)
+from omniscs.comfort import ComfortBounds
+from omniscs.scs.behavior.adversarial_config import PRESETS, AdversarialConfig, adversarial_preset
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNet, FeatureNetConfig,
+                                                    RenderConsistencyTerm, build_feature_net, masked_psnr)
 from omniscs.devices import resolve_device
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model, save_checkpoint
 from omniscs.scs.behavior.evaluation import Evaluation, VariantResult, evaluate
 from omniscs.scs.behavior.generation import distinct_variants, generate_variants
 from omniscs.scs.behavior.kinematics import KinematicLimits, rollout
@@ -30,8 +31,8 @@ from omniscs.scs.behavior.variants import variant_spec, write_scene_variants
 __all__ = [
     "PRESETS", "AdversarialConfig", "BehaviorProblem", "ComfortBounds", "Evaluation", "VariantResult",
     "adversarial_preset", "behavior_loss", "distinct_variants", "evaluate", "generate_variants", "now_and_horizon",
-    "AgentTrajectories", "AppearanceTerm", "FeatureNet", "FeatureNetConfig", "build_feature_net", "masked_psnr",
-    "DEFAULT_CHECKPOINT", "load_checkpoint", "resolve_device", "save_checkpoint", "KinematicLimits", "rollout",
+    "AgentTrajectories", "RenderConsistencyTerm", "FeatureNet", "FeatureNetConfig", "build_feature_net", "masked_psnr",
+    "DEFAULT_CHECKPOINT", "load_traffic_model", "resolve_device", "save_checkpoint", "KinematicLimits", "rollout",
     "ModelConfig", "TrafficModel", "PlannerConfig", "EgoBox", "TrafficScene", "traffic_from_log",
     "traffic_from_scene", "TrainConfig", "train_model", "train_preset", "variant_spec", "write_scene_variants",
 ]

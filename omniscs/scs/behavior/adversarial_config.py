@@ -1,8 +1,9 @@
-"""Configuration of behaviour-variant synthesis: comfort bounds, AdversarialConfig and its named presets."""
+"""Configuration of behaviour-variant synthesis: AdversarialConfig and its named presets."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from omniscs.comfort import VARIANT_COMFORT, ComfortBounds
 from omniscs.errors import OmniscsError
 from omniscs.overrides import replace_checked
 from omniscs.scs.behavior.planner import PlannerConfig
@@ -13,20 +14,6 @@ COLLISION_KINDS = ("cut_in", "head_on", "rear_end", "t_bone", "none")
 NON_ADVERSARY_CATEGORIES = frozenset({"trailer"})
 #: The collision penalty watches pairs that come within this much of touching during the horizon (metres).
 NEAR_PAIR_MARGIN_M = 6.0
-
-
-@dataclass(frozen=True)
-class ComfortBounds:
-    """What a plausible trajectory stays within (the issue's comfort bounds)."""
-
-    max_lateral_accel: float = 4.9
-    """|lateral acceleration| bound, m/s²."""
-    max_accel: float = 2.4
-    """Forward acceleration bound, m/s²."""
-    max_decel: float = 4.05
-    """Braking bound (positive number), m/s²."""
-    max_yaw_rate: float = 1.0
-    """|yaw rate| bound, rad/s."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +41,7 @@ class AdversarialConfig:
     restore_weight: float = 0.005
     """Weight of L_restore = sum ||z - z_init||² over non-ego agents."""
     app_weight: float = 1.0
-    """Weight of L_app (used only when an AppearanceTerm is supplied)."""
+    """Weight of L_app (used only when an RenderConsistencyTerm is supplied)."""
     comfort_decoding: bool = True
     """Decode with accelerations and yaw rates saturated just inside the comfort bounds, so every agent's
     trajectory is comfortable by construction (the latent fit to the log uses the same decoder)."""
@@ -74,7 +61,7 @@ class AdversarialConfig:
     """Discs of different agents are pushed apart until this gap remains."""
     collision_iou: float = 0.02
     """Boxes overlap (a collision) when their footprint IoU exceeds this."""
-    comfort: ComfortBounds = field(default_factory=ComfortBounds)
+    comfort: ComfortBounds = VARIANT_COMFORT
     """The plausibility bounds."""
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     """The ego's planned trajectory: replay or rule-based."""
@@ -89,7 +76,7 @@ class AdversarialConfig:
     min_future_steps: int = 10
     """Shortest horizon after the now step that a log must offer, steps."""
     reach_accel_long: float = 2.4
-    """Reachability: extra forward acceleration an adversary may use, m/s² (braking uses comfort.max_decel)."""
+    """Reachability: extra forward acceleration an adversary may use, m/s² (braking uses comfort.min_lon_accel)."""
     moving_speed: float = 0.5
     """Candidates at least this fast (m/s) at the now step are tried as adversaries before standing ones."""
     cut_in_offset_m: float = 1.75

@@ -9,7 +9,7 @@ latent span manoeuvres. Only the future after the now step changes; the past sta
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -113,8 +113,6 @@ def augment_traffic(traffic: TrafficScene, now_step: int, future_steps: int, rng
                     config: AugmentConfig = AugmentConfig()) -> TrafficScene:
     """A copy of ``traffic`` whose moving vehicles' futures (after ``now_step``) are, with probability
     ``config.probability`` each, replaced by a valid lane change and/or speed change."""
-    from dataclasses import replace
-
     s = traffic.n_steps
     end = min(s, now_step + 1 + future_steps)
     if end - now_step < 3:

@@ -88,7 +88,7 @@ def check_model_config(d, path: Path) -> ModelConfig:
     return config
 
 
-def load_checkpoint(path: Path | str | None = None) -> TrafficModel:
+def load_traffic_model(path: Path | str | None = None) -> TrafficModel:
     """The traffic model in ``path`` (default: the shipped checkpoint), in eval mode. A missing, damaged or
     mismatched checkpoint is one OmniscsError; the shipped one is hash-checked against the registry first."""
     path = verified_folder(path if path is not None else DEFAULT_CHECKPOINT)
@@ -114,6 +114,11 @@ def load_checkpoint(path: Path | str | None = None) -> TrafficModel:
     for p in model.parameters():
         p.requires_grad_(False)
     return model
+
+
+#: Old name of ``load_traffic_model``, kept for omniscs/pipeline/ and omniscs/bench/ until they import the new one
+#: (the scene graph's reader is ``nsg.checkpoint.load_graph``).
+load_checkpoint = load_traffic_model
 
 
 def checkpoint_hash(path: Path | str | None = None) -> str:

@@ -107,10 +107,10 @@ def evaluate(problem: BehaviorProblem,
         track, on = ids[k], present[k]
         if not on.any() or problem.pinned[k]:  # pinned nodes replay the log, like tracks that are not nodes
             continue
-        checks = ((lon[k, on].max(), cb.max_accel, "longitudinal acceleration"),
-                  (-lon[k, on].min(), cb.max_decel, "braking"),
-                  (np.abs(lat[k, on]).max(), cb.max_lateral_accel, "lateral acceleration"),
-                  (np.abs(states[k, on, 4]).max(), cb.max_yaw_rate, "yaw rate"))
+        checks = ((lon[k, on].max(), cb.max_lon_accel, "longitudinal acceleration"),
+                  (-lon[k, on].min(), -cb.min_lon_accel, "braking"),
+                  (np.abs(lat[k, on]).max(), cb.max_abs_lat_accel, "lateral acceleration"),
+                  (np.abs(states[k, on, 4]).max(), cb.max_abs_yaw_rate, "yaw rate"))
         for value, bound, what in checks:
             if value > bound + 1e-6:
                 unit = "rad/s" if what == "yaw rate" else "m/s²"
@@ -176,8 +176,8 @@ def plausibility_penalty(problem: BehaviorProblem, dec: Decoded,
     node_present = problem.node_present(adversary)
     seen = torch.from_numpy(node_present[1:] & ~problem.pinned[1:, None]).to(problem.device, dec.states.dtype)
     lon, lat, w = dec.longitudinal_accel[1:], dec.lateral_accel[1:], dec.states[1:, :, 4]
-    comfort = ((relu(lon - m * cb.max_accel) ** 2 + relu(-lon - m * cb.max_decel) ** 2
-                + relu(lat.abs() - m * cb.max_lateral_accel) ** 2 + relu(w.abs() - m * cb.max_yaw_rate) ** 2)
+    comfort = ((relu(lon - m * cb.max_lon_accel) ** 2 + relu(-lon + m * cb.min_lon_accel) ** 2
+                + relu(lat.abs() - m * cb.max_abs_lat_accel) ** 2 + relu(w.abs() - m * cb.max_abs_yaw_rate) ** 2)
                * seen).sum()
     zero = comfort * 0.0
     offroad = zero

@@ -72,8 +72,8 @@ def comfort_kinematics(problem):
     """The model's physical limits tightened to the plausibility bounds (lateral acceleration and yaw rate)."""
     cb = problem.config.comfort
     lim = problem.model.config.limits
-    return replace(lim, max_lateral_accel=min(lim.max_lateral_accel, cb.max_lateral_accel),
-                   max_yaw_rate=min(lim.max_yaw_rate, cb.max_yaw_rate))
+    return replace(lim, max_lateral_accel=min(lim.max_lateral_accel, cb.max_abs_lat_accel),
+                   max_yaw_rate=min(lim.max_yaw_rate, cb.max_abs_yaw_rate))
 
 
 def out_of_reach(state0: np.ndarray,          # [5] x, y, yaw, v, yaw_rate at the now step
@@ -113,7 +113,7 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
     size = tuple(float(x) for x in problem.node_sizes_np[node])
     lim = comfort_kinematics(problem)
     threshold = cfg.collision_iou
-    if out_of_reach(state0, size, plan, problem.ego_size, problem.traffic.dt, cb.max_accel, lim.max_speed):
+    if out_of_reach(state0, size, plan, problem.ego_size, problem.traffic.dt, cb.max_lon_accel, lim.max_speed):
         return Reach(node, track, False, 0.0, float("inf"), False, 0, None)
 
     on_road = bool(config.road and problem.onroad_now[node])
@@ -131,7 +131,7 @@ def search_reach(problem, node: int, plan: np.ndarray | None = None,
 
     def roll(r: torch.Tensor) -> torch.Tensor:
         c = bound_controls(r, lim)
-        c = torch.stack([soft_clip_accel(c[..., 0], cb.max_accel, cb.max_decel), c[..., 1]], -1)
+        c = torch.stack([soft_clip_accel(c[..., 0], cb.max_lon_accel, -cb.min_lon_accel), c[..., 1]], -1)
         return rollout(state0_t.expand(r.shape[0], 5), c, problem.traffic.dt, lim, cfg.standstill_gradient)
 
     def offroad(states: torch.Tensor) -> torch.Tensor:  # [S, T] metres off the drivable area

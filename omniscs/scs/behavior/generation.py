@@ -9,7 +9,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
-from omniscs.scs.behavior.appearance import AppearanceTerm
+from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
 from omniscs.scs.behavior.checkpoint import set_threads
 from omniscs.scs.behavior.evaluation import VariantResult, outcome
 from omniscs.scs.behavior.model import TrafficModel
@@ -105,7 +105,8 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
 
 
 def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: int,
-                      config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
+                      config: AdversarialConfig = AdversarialConfig(),
+                      render_consistency: RenderConsistencyTerm | None = None,
                       progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
     """``n_variants`` behaviour variants of one scene (different adversaries, then different time windows).
 
@@ -115,7 +116,7 @@ def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: in
         raise OmniscsError(f"the number of variants must be at least 1; got {n_variants}")
     previous = set_threads(config.torch_threads)
     try:
-        problem = BehaviorProblem(traffic, model, config, appearance)
+        problem = BehaviorProblem(traffic, model, config, render_consistency)
         candidates = problem.candidates()
         if not candidates:
             log.warning("scene %s: no vehicle besides the ego at step %d; no behaviour variant", traffic.scene_id,

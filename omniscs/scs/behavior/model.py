@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field, replace
 import torch
 from torch import Tensor, nn
 
+from omniscs.comfort import ComfortBounds
 from omniscs.scs.behavior.features import (CROP_CHANNELS, FUTURE_FEATURES, HISTORY_FEATURES, POSITION_SCALE,
                                            SPEED_SCALE, STATIC_FEATURES, Batch)
 from omniscs.scs.behavior.kinematics import (KinematicLimits, accelerations, bound_controls, rollout,
@@ -131,16 +132,6 @@ class MapEncoder(nn.Module):
         return self.head(f.reshape(b * n, -1)).reshape(b, n, -1)
 
 
-@dataclass(frozen=True)
-class ComfortLimits:
-    """Bounds a comfortable trajectory keeps (decoding can enforce them by construction)."""
-
-    max_accel: float
-    max_decel: float
-    max_lateral_accel: float
-    max_yaw_rate: float
-
-
 @dataclass
 class Decoded:
     """Decoded trajectories (scene frame) and the accelerations they imply."""
@@ -214,7 +205,7 @@ class TrafficModel(nn.Module):
 
     # -- decoder ----------------------------------------------------------------------------------------
     def decode(self, context: Tensor, z: Tensor, batch: Batch, edges: Tensor, edge_mask: Tensor,
-               horizon: int | None = None, comfort: ComfortLimits | None = None,
+               horizon: int | None = None, comfort: ComfortBounds | None = None,
                standstill_gradient: float = 0.0) -> Decoded:
         """Trajectories [B, N, T, 5] for latents ``z`` [B, N, Z]; T = horizon (default future_steps).
 
@@ -238,7 +229,7 @@ class TrafficModel(nn.Module):
 
     def roll_knots(self, knots: Tensor,   # [B, N, control_knots, 2] raw, as control_knots returns
                    state0: Tensor,        # [B, N, 5] x, y, yaw, v, yaw_rate at the now step
-                   horizon: int | None = None, comfort: ComfortLimits | None = None,
+                   horizon: int | None = None, comfort: ComfortBounds | None = None,
                    standstill_gradient: float = 0.0) -> Decoded:
         """Raw knots -> interpolated, bounded controls -> bicycle rollout (see ``decode`` for the options)."""
         cfg = self.config
@@ -250,10 +241,10 @@ class TrafficModel(nn.Module):
         controls = bound_controls(raw, cfg.limits)
         limits = cfg.limits
         if comfort is not None:
-            accel = soft_clip_accel(controls[..., 0], comfort.max_accel, comfort.max_decel)
+            accel = soft_clip_accel(controls[..., 0], comfort.max_lon_accel, -comfort.min_lon_accel)
             controls = torch.stack([accel, controls[..., 1]], -1)
-            limits = replace(limits, max_lateral_accel=min(limits.max_lateral_accel, comfort.max_lateral_accel),
-                             max_yaw_rate=min(limits.max_yaw_rate, comfort.max_yaw_rate))
+            limits = replace(limits, max_lateral_accel=min(limits.max_lateral_accel, comfort.max_abs_lat_accel),
+                             max_yaw_rate=min(limits.max_yaw_rate, comfort.max_abs_yaw_rate))
         states = rollout(state0, controls, cfg.dt, limits, standstill_gradient)
         lon, lat = accelerations(state0, states, cfg.dt)
         return Decoded(states, lon, lat)

@@ -45,7 +45,8 @@ def optimise(problem: BehaviorProblem, adversary: int, window: tuple[int, int], 
         l_restore = restore_loss(z, z_init, restore_mask)
         pen = plausibility_penalty(problem, dec, plan, adversary) if cfg.uses_plausibility_penalty else {}
         l_plaus = weighted_penalty(cfg, pen) if pen else l_beh * 0.0
-        l_app = problem.appearance(problem.world_trajectories(dec.states)) if problem.appearance is not None else None
+        term = problem.render_consistency
+        l_app = term(problem.world_trajectories(dec.states)) if term is not None else None
         total = cfg.beh_weight * l_beh + cfg.restore_weight * l_restore + l_plaus
         if l_app is not None:
             total = total + cfg.app_weight * l_app
@@ -209,7 +210,8 @@ def knot_variant(problem: BehaviorProblem, node: int, window: tuple[int, int], r
         pen = plausibility_penalty(problem, Decoded(states, lon, lat), plan, node) \
             if cfg.uses_plausibility_penalty else {}
         l_plaus = float(weighted_penalty(cfg, pen)) if pen else 0.0
-        l_app = None if problem.appearance is None else float(problem.appearance(problem.world_trajectories(states)))
+        term = problem.render_consistency
+        l_app = None if term is None else float(term(problem.world_trajectories(states)))
     total = cfg.beh_weight * l_beh + l_plaus + (0.0 if l_app is None else cfg.app_weight * l_app)
     losses = {"L_adv": total, "L_beh": l_beh, "L_app": l_app, "L_restore": 0.0, "L_plaus": l_plaus}
     result = variant_result(problem, variant_id, node, window, reachable, states_np, plan_np, ev, losses, 0,

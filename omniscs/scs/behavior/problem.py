@@ -5,15 +5,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.comfort import ComfortBounds
 from omniscs.errors import OmniscsError
 from omniscs.scs.behavior.adversarial_config import NON_ADVERSARY_CATEGORIES, AdversarialConfig
-from omniscs.scs.behavior.appearance import AgentTrajectories, AppearanceTerm
+from omniscs.scs.behavior.render_consistency import AgentTrajectories, RenderConsistencyTerm
 from omniscs.devices import resolve_device
 from omniscs.scs.behavior.checkpoint import model_on
 from omniscs.scs.behavior.collision import box_iou, footprints, overlapping
 from omniscs.scs.behavior.features import SceneSample, build_sample, collate
 from omniscs.scs.behavior.losses import track_fit_loss
-from omniscs.scs.behavior.model import ComfortLimits, Decoded, TrafficModel
+from omniscs.scs.behavior.model import Decoded, TrafficModel
 from omniscs.scs.behavior.planner import check_planner, rule_based_plan
 from omniscs.scs.behavior.tracks import TrafficScene
 
@@ -42,14 +43,14 @@ class BehaviorProblem:
     of a problem (``evaluation``, ``optimisation``)."""
 
     def __init__(self, traffic: TrafficScene, model: TrafficModel, config: AdversarialConfig = AdversarialConfig(),
-                 appearance: AppearanceTerm | None = None) -> None:
+                 render_consistency: RenderConsistencyTerm | None = None) -> None:
         check_planner(config.planner.kind)
         mc = model.config
         if abs(traffic.dt - mc.dt) > 1e-3 * mc.dt:
             raise OmniscsError(f"scene {traffic.scene_id} has {traffic.dt:.3f} s steps but the model expects "
                                f"{mc.dt:.3f} s; load it with traffic_from_scene(scene, dt={mc.dt})")
         self.device = resolve_device(config.device)
-        self.traffic, self.config, self.appearance = traffic, config, appearance
+        self.traffic, self.config, self.render_consistency = traffic, config, render_consistency
         self.model = model_on(model, self.device)
         self.now, self.horizon = now_and_horizon(traffic, mc, config)
         now = self.now
@@ -98,13 +99,23 @@ class BehaviorProblem:
 
     # -- model ----------------------------------------------------------------------------------------
     @property
-    def comfort_limits(self) -> ComfortLimits | None:
+    def appearance(self) -> RenderConsistencyTerm | None:
+        """Old name of ``render_consistency`` (L_app), kept for omniscs/bench/behavior.py, which sets it; delete once
+        it sets ``render_consistency``."""
+        return self.render_consistency
+
+    @appearance.setter
+    def appearance(self, term: RenderConsistencyTerm | None) -> None:
+        self.render_consistency = term
+
+    @property
+    def comfort_limits(self) -> ComfortBounds | None:
         """Decoding limits just inside the comfort bounds (None when comfort decoding is off)."""
         cfg = self.config
         if not cfg.comfort_decoding:
             return None
         cb, m = cfg.comfort, cfg.comfort_decoding_margin
-        return ComfortLimits(m * cb.max_accel, m * cb.max_decel, m * cb.max_lateral_accel, m * cb.max_yaw_rate)
+        return cb.scaled(m)
 
     @property
     def fitted_np(self) -> np.ndarray:  # [N, T, 5] the reconstruction's states (scene frame), float64 on the CPU
@@ -223,9 +234,9 @@ class BehaviorProblem:
         travelled = np.cumsum(np.linalg.norm(np.diff(np.vstack([state0[None, :2], fitted[:, :2]]), axis=0),
                                              axis=1))
         longer = 0.5 * self.config.reach_accel_long * tau ** 2
-        shorter = np.minimum(0.5 * cb.max_decel * tau ** 2, travelled)
+        shorter = np.minimum(-0.5 * cb.min_lon_accel * tau ** 2, travelled)
         s_max = travelled + longer
-        side = np.minimum(0.5 * cb.max_lateral_accel * tau ** 2,
+        side = np.minimum(0.5 * cb.max_abs_lat_accel * tau ** 2,
                           0.5 * self.model.config.limits.max_curvature * s_max ** 2)
         c, s = np.cos(fitted[:, 2]), np.sin(fitted[:, 2])
         d = plan[:, :2] - fitted[:, :2]

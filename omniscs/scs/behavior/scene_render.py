@@ -8,7 +8,7 @@ scene's plan left in the background cannot move in the render (they are part of 
 ``make_plan(..., behavior_variants=N)`` makes every vehicle a node so that this does not happen.
 
 Cost control (every optimisation step renders): a few steps spread over the horizon, one camera, a downscaled
-image (``AppearanceRenderConfig``; the benchmark reports the time per variant it costs), and the background
+image (``RenderConsistencyConfig``; the benchmark reports the time per variant it costs), and the background
 prepared once per rendered view (``nsg.graph.static_layer``: activated, coloured and culled to what the view
 shows), so each step only places, colours and projects the agent nodes on top of it, and only those whose
 bounding sphere where they are placed may reach the image (``nsg.graph.agent_may_show``).
@@ -23,18 +23,20 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.compose import NodePose
 from omniscs.nsg.graph import SceneGraph, agent_may_show, node_radius, render_view, static_layer
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
-from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNetConfig, build_feature_net,
-                                            variant_ego_poses)
+from omniscs.scs.behavior.checkpoint import load_traffic_model as load_model
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNetConfig, RenderConsistencyTerm,
+                                                    build_feature_net, variant_ego_poses)
 from omniscs.scs.behavior.model import TrafficModel
 from omniscs.scs.behavior.problem import now_and_horizon
 from omniscs.scs.behavior.tracks import TrafficScene
 
 
 @dataclass(frozen=True)
-class AppearanceRenderConfig:
+class RenderConsistencyConfig:
     """What L_app renders at every optimisation step (its cost is linear in frames x pixels)."""
 
     camera: str | None = None
@@ -65,12 +67,12 @@ class GraphTrajectoryRenderer:
 
     def __init__(self, graph: SceneGraph, source_frames: np.ndarray | None,  # [S] scene frame of each log step
                  horizon_steps: np.ndarray,  # [T] log steps of the optimised horizon
-                 config: AppearanceRenderConfig = AppearanceRenderConfig()) -> None:
+                 config: RenderConsistencyConfig = RenderConsistencyConfig()) -> None:
         if source_frames is None:
             raise OmniscsError("L_app needs the traffic on the scene's own frames (this log was resampled to the "
                                "model's time step, so its steps have no rendered frame)")
         if config.frames < 1 or config.downscale < 1:
-            raise OmniscsError("appearance rendering needs frames >= 1 and downscale >= 1")
+            raise OmniscsError("render-consistency rendering needs frames >= 1 and downscale >= 1")
         self.graph = graph.replace(background=graph.background.detached(),
                                    agents=tuple(a.with_changes(gaussians=a.gaussians.detached(), relight=a.relight)
                                                 for a in graph.agents))
@@ -123,9 +125,9 @@ class GraphTrajectoryRenderer:
                             for v, s in zip(self.views, self.static)])
 
 
-def scene_graph_appearance(graph: SceneGraph, traffic: TrafficScene, model: TrafficModel,
+def scene_graph_render_consistency(graph: SceneGraph, traffic: TrafficScene, model: TrafficModel,
                            adversarial: AdversarialConfig = AdversarialConfig(),
-                           config: AppearanceRenderConfig = AppearanceRenderConfig()) -> AppearanceTerm:
+                           config: RenderConsistencyConfig = RenderConsistencyConfig()) -> RenderConsistencyTerm:
     """L_app of one scene: the scene graph's renders of the perturbed trajectories against its renders of
     the log (F(Re(NSG))) over the horizon the optimiser will use, compared in ``config.feature_net``'s features."""
     if graph.scene_id != traffic.scene_id or graph.n_frames != len(traffic.timestamps_us):
@@ -134,25 +136,22 @@ def scene_graph_appearance(graph: SceneGraph, traffic: TrafficScene, model: Traf
     now, horizon = now_and_horizon(traffic, model.config, adversarial)
     horizon_steps = np.arange(now + 1, now + 1 + horizon)
     renderer = GraphTrajectoryRenderer(graph, traffic.source_frames, horizon_steps, config)
-    return AppearanceTerm(renderer, renderer.logged(), build_feature_net(config.feature_net), config.weight)
+    return RenderConsistencyTerm(renderer, renderer.logged(), build_feature_net(config.feature_net), config.weight)
 
 
-def appearance_from_checkpoint(nsg_dir: str | Path, scene, traffic: TrafficScene,
+def render_consistency_from_checkpoint(nsg_dir: str | Path, scene, traffic: TrafficScene,
                                behavior_checkpoint: str | Path | None = None,
                                adversarial: AdversarialConfig = AdversarialConfig(),
-                               config: AppearanceRenderConfig = AppearanceRenderConfig()) -> AppearanceTerm:
+                               config: RenderConsistencyConfig = RenderConsistencyConfig()) -> RenderConsistencyTerm:
     """L_app from a scene-graph checkpoint folder of ``scene`` (refused when it belongs to another scene)."""
-    from omniscs.nsg.checkpoint import load_checkpoint as load_graph
-    from omniscs.scs.behavior.checkpoint import load_checkpoint as load_model
-
-    return scene_graph_appearance(load_graph(nsg_dir, scene), traffic, load_model(behavior_checkpoint),
+    return scene_graph_render_consistency(load_graph(nsg_dir, scene), traffic, load_model(behavior_checkpoint),
                                   adversarial, config)
 
 
 @torch.no_grad()
 def render_variant(graph: SceneGraph, variant: dict, camera: str, frames: list[int]) -> np.ndarray:
     """The scene graph with every agent node on a variant's trajectory (and the ego on its plan) at ``frames``:
-    [T, H, W, 3] in [0, 1], full resolution. The counterpart of ``appearance.variant_ground_truth``."""
+    [T, H, W, 3] in [0, 1], full resolution. The counterpart of ``variant_ground_truth`` of the behaviour benchmark."""
     if variant.get("source_frames") is None:
         raise OmniscsError("variant steps are not the scene's frames (the log was resampled); nothing to render")
     step_of = {int(f): k for k, f in enumerate(variant["source_frames"])}
@@ -166,3 +165,9 @@ def render_variant(graph: SceneGraph, variant: dict, camera: str, frames: list[i
         out = render_view(graph, graph.view(camera, f, world_from_ego=ego[f]), agent_poses=placed_agents(graph, f, xy_yaw))
         images.append(out.rgb.clamp(0.0, 1.0).numpy().astype(np.float64))
     return np.stack(images)
+
+
+# Old names, kept for omniscs/pipeline/stages.py and omniscs/bench/behavior.py until they import the new ones.
+AppearanceRenderConfig = RenderConsistencyConfig
+scene_graph_appearance = scene_graph_render_consistency
+appearance_from_checkpoint = render_consistency_from_checkpoint

@@ -10,9 +10,10 @@ bounds (with a small tolerance) and the road. When no start passes, the best att
 variant stays a test case."""
 from __future__ import annotations
 
+import io
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,18 +21,19 @@ import torch
 
 from omniscs.errors import OmniscsError
 from omniscs.geometry import wrap_angle
-from omniscs.scs.behavior.adversarial_config import ComfortBounds
+from omniscs.comfort import VARIANT_COMFORT, ComfortBounds
 from omniscs.scs.behavior.collision import box_iou, footprints
 from omniscs.scs.behavior.kinematics import KinematicLimits, bound_controls, rollout, soft_clip_accel
 from omniscs.scs.behavior.losses import box_gap
 from omniscs.scs.behavior.tracks import TrafficScene
+from omniscs.storage import atomic_write_bytes
 
 
 @dataclass(frozen=True)
 class SolutionConfig:
     """The ego's solution search (more starts and steps: fewer variants left unsolved, more time)."""
 
-    comfort: ComfortBounds = field(default_factory=ComfortBounds)
+    comfort: ComfortBounds = VARIANT_COMFORT
     """Bounds the solution keeps (longitudinal, lateral acceleration, yaw rate)."""
     margin_m: float = 0.5
     """Gap kept to every agent's footprint (metres); below it the collision term grows."""
@@ -177,8 +179,8 @@ def solve_ego(variant: dict, traffic: TrafficScene | None = None,
     n = len(plan)
     horizon = n - now - 1
     cb = config.comfort
-    limits = KinematicLimits(max_accel=cb.max_accel, max_decel=cb.max_decel, max_yaw_rate=cb.max_yaw_rate,
-                             max_lateral_accel=cb.max_lateral_accel)
+    limits = KinematicLimits(max_accel=cb.max_lon_accel, max_decel=-cb.min_lon_accel, max_yaw_rate=cb.max_abs_yaw_rate,
+                             max_lateral_accel=cb.max_abs_lat_accel)
     state0 = _state0(plan, now, dt)
     ids = sorted(agents)
     others = np.stack([agents[k][now + 1:] for k in ids]) if ids and horizon > 0 else np.zeros((0, max(horizon, 0), 3))
@@ -205,7 +207,7 @@ def solve_ego(variant: dict, traffic: TrafficScene | None = None,
 
     def roll(r: torch.Tensor) -> torch.Tensor:  # [B, T, 2] -> [B, T, 5]
         c = bound_controls(r, limits)
-        c = torch.stack([soft_clip_accel(c[..., 0], cb.max_accel, cb.max_decel), c[..., 1]], -1)
+        c = torch.stack([soft_clip_accel(c[..., 0], cb.max_lon_accel, -cb.min_lon_accel), c[..., 1]], -1)
         return rollout(x0.expand(r.shape[0], 5), c, dt, limits, standstill_gradient=0.1)
 
     near = _near_plan(target, ego_size, others, present, ids, sizes, config.search_radius_m)
@@ -275,8 +277,8 @@ def _check(traj, speeds, plan, now, dt, others, present, ids, sizes, ego_size, r
         min_gap = min(min_gap, float(gap.min()))
     m = _measures(traj[now:], speeds[now:], dt)
     cb, tol = config.comfort, config.comfort_tolerance
-    comfortable = (m["accel"] <= cb.max_accel * tol and m["decel"] <= cb.max_decel * tol
-                   and m["lateral"] <= cb.max_lateral_accel * tol and m["yaw_rate"] <= cb.max_yaw_rate * tol)
+    comfortable = (m["accel"] <= cb.max_lon_accel * tol and m["decel"] <= -cb.min_lon_accel * tol
+                   and m["lateral"] <= cb.max_abs_lat_accel * tol and m["yaw_rate"] <= cb.max_abs_yaw_rate * tol)
     on_road = True
     if road is not None and len(after):
         plan_ok = road.is_drivable(plan[now + 1:, :2]) | ~road.covers(plan[now + 1:, :2])
@@ -306,13 +308,10 @@ def solution_bev_picture(variant: dict, solution: EgoSolution, traffic: TrafficS
     """The variant over the map: the ego's plan (dashed black), its solution (solid green), the adversary's
     variant trajectory (red), footprints at the plan's collision step (or closest approach) for the plan, the
     solution and the adversary. Written atomically."""
-    import io
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from omniscs.storage import atomic_write_bytes
 
     plan, now, dt, agents, sizes, ego_size = _parse(variant)
     adv_key = str(variant.get("adversary"))

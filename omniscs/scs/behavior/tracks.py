@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import wrap_angle, yaw_of
+from omniscs.geometry import wrap_angle, yaw_from_matrix
 from omniscs.roadmap import RoadMap
 from omniscs.scs.behavior.maps import MapConfig, SceneMap, map_from_road_map, map_from_tracks
 from omniscs.taxonomy import VEHICLE_CATEGORIES
@@ -74,7 +74,7 @@ class TrafficScene:
 
 
 def _ego_centre(world_from_ego: np.ndarray, ego_box: EgoBox) -> tuple[np.ndarray, np.ndarray]:  # [S,4,4] -> [S,2], [S]
-    yaw = yaw_of(world_from_ego[:, :3, :3])
+    yaw = yaw_from_matrix(world_from_ego[:, :3, :3])
     xy = world_from_ego[:, :2, 3] + ego_box.centre_ahead_m * np.stack([np.cos(yaw), np.sin(yaw)], -1)
     return xy, yaw
 
@@ -130,7 +130,7 @@ def traffic_from_log(scene_id: str,
     poses = np.asarray(world_from_agent, dtype=np.float64).reshape(n, s, 4, 4)
     present = np.asarray(present, dtype=bool).reshape(n, s)
     xy = poses[..., :2, 3].copy()
-    yaw = yaw_of(poses[..., :3, :3])
+    yaw = yaw_from_matrix(poses[..., :3, :3])
     z = poses[..., 2, 3].copy()
     xy[~present] = 0.0
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)

@@ -2,6 +2,7 @@
 and the one call that makes them for a scene (used by the CLI and the flow task)."""
 from __future__ import annotations
 
+import io
 import logging
 import math
 import time
@@ -12,8 +13,9 @@ from typing import Callable
 import numpy as np
 
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
-from omniscs.scs.behavior.appearance import AppearanceTerm
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint
+from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model
+from omniscs.scs.behavior.collision import footprints
 from omniscs.scs.behavior.evaluation import VariantResult
 from omniscs.scs.behavior.generation import generate_variants
 from omniscs.scs.behavior.tracks import TrafficScene
@@ -109,7 +111,6 @@ def bev_picture(v: VariantResult, traffic: TrafficScene, out_png: Path) -> Path:
     import matplotlib.pyplot as plt
 
     from omniscs.preview import track_colour
-    from omniscs.scs.behavior.collision import footprints
 
     ego, adv = v.ego, v.agents[v.adversary]
     focus = np.vstack([ego, adv[np.isfinite(adv[:, 0])], v.original_agents[v.adversary][
@@ -174,7 +175,6 @@ def bev_picture(v: VariantResult, traffic: TrafficScene, out_png: Path) -> Path:
     fig.tight_layout()
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    import io
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
@@ -195,8 +195,9 @@ class VariantsOutput:
 
 
 def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, checkpoint: Path | str | None = None,
-                         config: AdversarialConfig = AdversarialConfig(), appearance: AppearanceTerm | None = None,
-                         pictures: bool = True, progress: Callable[[int, int], None] | None = None,
+                         config: AdversarialConfig = AdversarialConfig(),
+                         render_consistency: RenderConsistencyTerm | None = None, pictures: bool = True,
+                         progress: Callable[[int, int], None] | None = None,
                          published_dir: Path | None = None) -> VariantsOutput:
     """Generate ``n_variants`` variants of ``traffic`` and write ``out_dir/variants.json`` (+ one BEV PNG each,
     and ``catalog_rows.json``). ``published_dir``: where the folder will finally live when ``out_dir`` is a
@@ -205,11 +206,11 @@ def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, 
     out_dir = Path(out_dir)
     final_dir = Path(published_dir) if published_dir is not None else out_dir
     ckpt = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
-    model = load_checkpoint(ckpt)
+    model = load_traffic_model(ckpt)
     ckpt_hash = checkpoint_hash(ckpt)
     target = out_dir / VARIANTS_JSON
     started = time.perf_counter()
-    results = generate_variants(traffic, model, n_variants, config, appearance, progress)
+    results = generate_variants(traffic, model, n_variants, config, render_consistency, progress)
     specs = [variant_spec(v) for v in results]
     pngs = [bev_picture(v, traffic, out_dir / f"{v.variant_id}.png") for v in results] if pictures else []
     atomic_write_json(target, specs)

@@ -1,11 +1,11 @@
-"""L_app: the feature net (fixed random init or a user's local weights) and the appearance term's interface."""
+"""L_app: the feature net (fixed random init or a user's local weights) and the render-consistency term's interface."""
 import numpy as np
 import pytest
 import torch
 
 from omniscs.errors import OmniscsError
-from omniscs.scs.behavior.appearance import (AgentTrajectories, AppearanceTerm, FeatureNet, FeatureNetConfig,
-                                             build_feature_net, masked_psnr)
+from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNet, FeatureNetConfig,
+                                                    RenderConsistencyTerm, build_feature_net, masked_psnr)
 
 
 def blob_renderer(size: int = 32, extent_m: float = 40.0):
@@ -73,16 +73,16 @@ def test_any_users_cnn_plugs_in_as_an_exported_program_or_torchscript(kind, tmp_
         torch.jit.save(torch.jit.script(net), path)
     loaded = build_feature_net(FeatureNetConfig(kind=kind, weights_path=str(path)))
     render = blob_renderer()
-    term = AppearanceTerm(render, render(_trajectories()).detach(), feature_net=loaded)
+    term = RenderConsistencyTerm(render, render(_trajectories()).detach(), feature_net=loaded)
     assert term(_trajectories()).item() == pytest.approx(0.0, abs=1e-9)
     moved = _trajectories(2.0, requires_grad=True)
     term(moved).backward()
     assert moved.poses.grad.abs().sum() > 0
 
 
-def test_appearance_term_is_zero_for_the_original_grows_with_the_edit_and_reaches_the_poses():
+def test_render_consistency_term_is_zero_for_the_original_grows_with_the_edit_and_reaches_the_poses():
     render = blob_renderer()
-    term = AppearanceTerm(render, render(_trajectories()).detach())
+    term = RenderConsistencyTerm(render, render(_trajectories()).detach())
     assert term(_trajectories()).item() == pytest.approx(0.0, abs=1e-9)
     near, far = term(_trajectories(1.0)).item(), term(_trajectories(6.0)).item()
     assert 0 < near < far
@@ -91,9 +91,9 @@ def test_appearance_term_is_zero_for_the_original_grows_with_the_edit_and_reache
     assert torch.isfinite(moved.poses.grad).all() and moved.poses.grad[0, :, 0].abs().sum() > 0
 
 
-def test_appearance_term_refuses_mismatched_frames():
+def test_render_consistency_term_refuses_mismatched_frames():
     render = blob_renderer()
-    term = AppearanceTerm(render, render(_trajectories()).detach()[:2])
+    term = RenderConsistencyTerm(render, render(_trajectories()).detach()[:2])
     with pytest.raises(OmniscsError, match="returned 4 frames"):
         term(_trajectories())
 

@@ -15,7 +15,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.eval.detection import DETECTION_NAMES, Boxes, DetectionConfig, filter_boxes
 from omniscs.eval.nuscenes_io import NuScenesTables, load_ground_truth
 from omniscs.export import export_scenes
-from omniscs.scs.appearance.mining import (
+from omniscs.eval.mining import (
     MISSED_JSON,
     MISSED_MD,
     MISSED_PNG,

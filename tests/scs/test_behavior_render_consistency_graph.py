@@ -19,9 +19,9 @@ from omniscs.nsg.train import fit_scene
 from omniscs.plan import make_plan
 from omniscs.scene import load_scene
 from omniscs.scs.behavior import adversarial_preset, generate_variants, traffic_from_scene
-from omniscs.scs.behavior.checkpoint import load_checkpoint
-from omniscs.scs.behavior.scene_render import (AppearanceRenderConfig, GraphTrajectoryRenderer,
-                                                scene_graph_appearance)
+from omniscs.scs.behavior.checkpoint import load_traffic_model
+from omniscs.scs.behavior.scene_render import (RenderConsistencyConfig, GraphTrajectoryRenderer,
+                                                scene_graph_render_consistency)
 
 #: A car in the next lane ahead of the ego and an oncoming one: both can reach the ego path.
 AGENTS = ({"x": 14.0, "y": 3.3, "speed": 5.0, "asset": "sedan-0003"},
@@ -123,7 +123,7 @@ def test_agent_culling_leaves_the_image_unchanged_and_drops_agents_that_cannot_s
     assert not agent_may_show(cam, [40, 0, 10], 1.0, 0.2)             # far to the right (x/z = 4 > 1.0 with margin)
     assert agent_may_show(cam, [40, 0, 10], 30.0, 0.2)                # unless it is that large
     renderer = GraphTrajectoryRenderer(graph, np.arange(40), np.arange(10, 40),
-                                       AppearanceRenderConfig(frames=3, downscale=2))
+                                       RenderConsistencyConfig(frames=3, downscale=2))
     g = torch.Generator().manual_seed(5)
     for trial in range(6):
         poses = {}
@@ -146,9 +146,9 @@ def test_agent_culling_leaves_the_image_unchanged_and_drops_agents_that_cannot_s
 def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)
-    model = load_checkpoint()
+    model = load_traffic_model()
     config = adversarial_preset("fast")
-    term = scene_graph_appearance(graph, traffic, model, config, AppearanceRenderConfig(downscale=1, frames=3))
+    term = scene_graph_render_consistency(graph, traffic, model, config, RenderConsistencyConfig(downscale=1, frames=3))
     steps = np.arange(10, 40)
     ids = [int(t) for t in traffic.track_ids]
     poses = torch.from_numpy(np.stack([np.concatenate([traffic.xy[i, steps], traffic.yaw[i, steps, None]], -1)
@@ -156,7 +156,7 @@ def _trajectories(fitted, shift: float = 0.0, far: float = 0.0):
     poses[0, :, 1] += shift
     poses[0, :, 0] += far
     poses.requires_grad_(True)
-    from omniscs.scs.behavior.appearance import AgentTrajectories
+    from omniscs.scs.behavior.render_consistency import AgentTrajectories
     return term, AgentTrajectories(ids, poses, steps, traffic.timestamps_us[steps]), poses
 
 
@@ -183,9 +183,9 @@ def test_l_app_stays_finite_for_an_agent_ten_kilometres_away(fitted):
 def test_variants_with_l_app_record_it_and_stay_finite(fitted):
     scene, _, graph = fitted
     traffic = traffic_from_scene(scene)
-    model = load_checkpoint()
+    model = load_traffic_model()
     config = adversarial_preset("fast")
-    term = scene_graph_appearance(graph, traffic, model, config)
+    term = scene_graph_render_consistency(graph, traffic, model, config)
     (variant,) = generate_variants(traffic, model, 1, config, term)
     assert variant.losses["L_app"] is not None and math.isfinite(variant.losses["L_app"])
     assert all(math.isfinite(v) for v in variant.losses.values() if v is not None)
@@ -199,7 +199,7 @@ def test_renderer_refuses_resampled_logs_and_foreign_graphs(fitted):
     import dataclasses
     other = dataclasses.replace(traffic, scene_id="another-scene")
     with pytest.raises(OmniscsError, match="does not belong"):
-        scene_graph_appearance(graph, other, load_checkpoint())
+        scene_graph_render_consistency(graph, other, load_traffic_model())
 
 
 def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_with_l_app(prefect_harness, tmp_path,
