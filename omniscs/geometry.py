@@ -27,10 +27,6 @@ def yaw_from_matrix(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] (or the rotatio
     return np.arctan2(R[..., 1, 0], R[..., 0, 0])
 
 
-#: Old name of ``yaw_from_matrix``, kept for omniscs/pipeline/procedural.py until it imports the new name.
-yaw_of = yaw_from_matrix
-
-
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     """Angle in [-pi, pi)."""
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi

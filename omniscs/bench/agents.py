@@ -320,7 +320,7 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
 
     from omniscs.agents.pool import Pool
     from omniscs.bench.fit import evaluation_views
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.pipeline.pool import pool_asset_stage
     from omniscs.world import WorldRenderer, apply_edits
 
@@ -331,7 +331,7 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
     shutil.rmtree(workspace / "bench-agents" / "growth-pool", ignore_errors=True)
     for item in config.scenes:
         scene, plan, fitted, targets = prepare_scene(item, config, workspace, progress)
-        graph = load_checkpoint(fitted.path, scene)
+        graph = load_graph(fitted.path, scene)
         # in-pool: the benchmark pool plus the edited vehicles' own models (an upper bound on matching)
         in_pool = Pool(workspace / "bench-agents" / f"in-pool-{scene.scene_id}")
         shutil.rmtree(in_pool.root, ignore_errors=True)
@@ -407,7 +407,7 @@ def _scored_views(graph, edit, track_id: int, views, keep_middle: bool) -> tuple
     """Masked PSNR / SSIM of ``graph`` with ``edit`` applied on each evaluation view (``evaluation_views``), and
     the middle view's render (uint8) when ``keep_middle`` (the report's strip)."""
     from omniscs.nsg.edit import apply_graph_edits
-    from omniscs.nsg.metrics import psnr, ssim
+    from omniscs.quality import psnr, ssim
 
     edited = apply_graph_edits(graph, [edit])
     per_view, middle = [], None
@@ -484,7 +484,7 @@ def limit_rows(own, background, track_id: int, edit, views, key: dict) -> list[d
     """Masked PSNR of each of LIMITS for one edited vehicle and edit; ``background``: the fitted graph's, before the
     pool arm cleared the box."""
     from omniscs.nsg.edit import apply_graph_edits
-    from omniscs.nsg.metrics import psnr
+    from omniscs.quality import psnr
 
     base = apply_graph_edits(own, [edit])
     graphs = {LIMITS[0]: base, LIMITS[1]: apply_graph_edits(own.replace(background=background), [edit]),

@@ -159,7 +159,7 @@ def run_case(scene, graph, variant: dict, resolve, asset_of, colour: np.ndarray,
     """Rows (one per arm) of one case, and its picture strip."""
     from omniscs.annotate.views import Instance, ViewAnnotator
     from omniscs.edits import Remove
-    from omniscs.nsg.metrics import psnr, ssim
+    from omniscs.quality import psnr, ssim
     from omniscs.scs.appearance.compose import CompositeConfig, compose_variant
     from omniscs.world import WorldRenderer, apply_edits
     from omniscs.quaternions import quat_to_rotmat
@@ -293,7 +293,7 @@ def run_appearance_benchmark(out_dir: Path, workspace: Path | None = None,
                              config: AppearanceBenchConfig = AppearanceBenchConfig(),
                              progress: Progress = no_progress) -> dict:
     from omniscs.agents.pool import model_resolver
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import node_model_resolver
     from omniscs.pipeline.procedural import pool_asset_of
     from omniscs.scs.appearance.colour import scene_colour_transform
@@ -311,7 +311,7 @@ def run_appearance_benchmark(out_dir: Path, workspace: Path | None = None,
         started = time.perf_counter()
         rng = np.random.default_rng([config.seed, zlib.crc32(item.encode())])  # each scene's draws its own
         scene, plan, fitted = prepare_scene(item, config, ws, progress)
-        graph = load_checkpoint(fitted.path, scene)
+        graph = load_graph(fitted.path, scene)
         fits.append({"scene_id": scene.scene_id, "source": item, "heldout_psnr": fitted.info["metrics"]["heldout_psnr"],
                      "n_nodes": len(graph.agents)})
         tick = time.perf_counter()

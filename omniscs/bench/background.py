@@ -201,7 +201,7 @@ def depth_errors(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[fl
 
 
 def score_view(rgb: np.ndarray, depth: np.ndarray | None, ev: EvalView) -> dict:
-    from omniscs.nsg.metrics import psnr, ssim
+    from omniscs.quality import psnr, ssim
 
     out = torch.from_numpy(rgb.astype(np.float32) / 255.0)
     gt = torch.from_numpy(ev.gt_rgb.astype(np.float32) / 255.0)
@@ -218,7 +218,7 @@ def object_light_cost(evs: list[EvalView]) -> dict:
     that light (the world without the object, shaded as if it were there) against the world without it, and the
     share of hole pixels that light changes by more than 8 grey levels. A repair that reproduces what the other
     views observed behind the object is bounded by it."""
-    from omniscs.nsg.metrics import psnr
+    from omniscs.quality import psnr
 
     out = {}
     for kind in ("logged", "novel"):
@@ -324,12 +324,12 @@ def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpaint
     from omniscs.background.inpaint import load_inpainter
     from omniscs.background.repair import (cleaned_graph, fill_views, plane_fill, prepare_views, refit_background,
                                            removed_objects, seeded_graph)
-    from omniscs.nsg.checkpoint import load_checkpoint, read_checkpoint_meta
+    from omniscs.nsg.checkpoint import load_graph, read_checkpoint_meta
     from omniscs.nsg.config import FitConfig
     from omniscs.nsg.observations import Observations
 
     scene, plan, fitted, track = prepare_scene(item, config.preset, workspace, progress)
-    graph = load_checkpoint(fitted.path, scene)
+    graph = load_graph(fitted.path, scene)
     fit_config = FitConfig.from_dict(read_checkpoint_meta(fitted.path)["config"])
     obs = Observations(scene, plan.cameras)
     train_views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
@@ -526,7 +526,7 @@ def class_table(scenes: list[dict], kind: str = "novel") -> list[str]:
     """Markdown rows: per class of what truly lies in the hole, pooled over the scenes' ``kind`` views, its share
     of the hole pixels, each CLASS_ARMS arm's PSNR there and the share of the last arm's squared error it holds
     (classes by that share, largest first)."""
-    from omniscs.nsg.metrics import MAX_PSNR_DB
+    from omniscs.quality import psnr_from_mse
 
     pooled = {arm: pooled_class_errors([s.get("classes", {}).get(arm, {}).get(kind, {}) for s in scenes])
               for arm in CLASS_ARMS}
@@ -537,7 +537,7 @@ def class_table(scenes: list[dict], kind: str = "novel") -> list[str]:
         return []
 
     def db(n, sse):
-        return MAX_PSNR_DB if sse <= 0 else min(MAX_PSNR_DB, 10 * np.log10(n / sse))
+        return psnr_from_mse(sse / n)
 
     out = ["| what lies there | hole pixels | " + " | ".join(f"{a}: PSNR (dB)" for a in CLASS_ARMS)
            + f" | share of the {CLASS_ARMS[-1]} arm's squared error |", "|---" * (len(CLASS_ARMS) + 3) + "|"]

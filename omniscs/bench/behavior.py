@@ -15,8 +15,8 @@ from omniscs.errors import OmniscsError
 from omniscs.bench.harness import finish, load_line, machine_info, report_folder
 from omniscs.progress import Progress
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig, adversarial_preset
-from omniscs.scs.behavior.appearance import masked_psnr, variant_ego_poses
-from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_checkpoint, set_threads
+from omniscs.scs.behavior.render_consistency import masked_psnr, variant_ego_poses
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model, set_threads
 from omniscs.scs.behavior.feasibility import FeasibilityConfig, search_scene
 from omniscs.scs.behavior.generation import distinct_variants
 from omniscs.scs.behavior.planner import PlannerConfig
@@ -180,7 +180,7 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
     previous = set_threads(config.torch_threads)
     try:
         ckpt = Path(checkpoint) if checkpoint else DEFAULT_CHECKPOINT
-        model = load_checkpoint(ckpt)
+        model = load_traffic_model(ckpt)
         base = adversarial_preset(config.preset)
         configs = configurations(base, config.rule_planner, config.only_default)
         runnable = configs
@@ -300,17 +300,17 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
     """The default losses without and with L_app on rendered logs with fitted scene graphs: success,
     plausibility, time per variant, and the appearance drift (masked PSNR of the scene graph's render of each
     variant against the procedural world re-rendered with the same trajectories, adversary pixels only)."""
-    from omniscs.nsg.checkpoint import load_checkpoint as load_graph
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.pipeline.request import SceneRequest
     from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
     from omniscs.scene import SyntheticSource, load_scene
-    from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, render_variant, scene_graph_appearance
+    from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_variant, scene_graph_render_consistency
     from omniscs.scs.behavior.tracks import traffic_from_scene
     from omniscs.scs.behavior.variants import variant_spec
     from omniscs.storage import workspace_root
 
     ws = workspace_root(workspace)
-    render = AppearanceRenderConfig()
+    render = RenderConsistencyConfig()
     jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], config.seed_offset + k // len(TRAIN_TEMPLATES))
             for k in range(config.appearance_scenes)]
     setups = appearance_configs(config.app_weights)
@@ -343,9 +343,9 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
                        **scene_reachability(problem, cands, config.feasibility), "camera": camera})
         if not cands:
             continue
-        term = scene_graph_appearance(graph, traffic, model, base, render)
+        term = scene_graph_render_consistency(graph, traffic, model, base, render)
         for name, weight in setups:
-            problem.appearance = None if weight is None else term
+            problem.render_consistency = None if weight is None else term
             problem.config = base if weight is None else replace(base, app_weight=weight)
             for k, v in enumerate(distinct_variants(problem, cands, config.variants_per_scene)):
                 spec = variant_spec(v)
@@ -424,7 +424,7 @@ def rerun_appearance_study(out_dir: Path, config: BenchConfig = BenchConfig(), c
         if checkpoint_hash(ckpt)[:12] != result.get("checkpoint_hash"):
             raise OmniscsError(f"{path} was measured with checkpoint {result.get('checkpoint_hash')}; the L_app "
                                "comparison must use the same one")
-        result["appearance"] = appearance_study(load_checkpoint(ckpt), adversarial_preset(result["bench"]["preset"]),
+        result["appearance"] = appearance_study(load_traffic_model(ckpt), adversarial_preset(result["bench"]["preset"]),
                                                 config, workspace)
         result["bench"]["app_weights"] = list(config.app_weights)
     finally:

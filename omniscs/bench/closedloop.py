@@ -92,11 +92,11 @@ def _world(entry: dict):
     import json
 
     from omniscs.closedloop.scenario import log_scenario, variant_scenario
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.scene import load_scene
 
     scene = load_scene(entry["scene_path"])
-    graph = load_checkpoint(entry["checkpoint"], scene)
+    graph = load_graph(entry["checkpoint"], scene)
     log_sc = log_scenario(scene)
     variants = [variant_scenario(scene, v, log_sc) for v in json.loads(Path(entry["variants_path"]).read_text())
                 if v.get("source_frames") is not None]

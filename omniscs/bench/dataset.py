@@ -70,7 +70,7 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
                           progress: Progress = no_progress) -> dict:
     from omniscs.annotate.scene import read_rows
     from omniscs.annotate.variant import write_annotated_variant
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.scene.store import CameraRecord
     from omniscs.world import camera_rig
 
@@ -122,7 +122,7 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
                                                and r.get("logged_psnr") is not None]}
         # nuScenes size: one variant through a 6-camera 1600x900 rig, every Nth frame
         scene = load_scene(scene_rec.path)
-        graph = load_checkpoint(fitted.path, scene)
+        graph = load_graph(fitted.path, scene)
         variant = json.loads(Path(behaved.path).read_text())[0]
         n, w, h = config.big_rig
         rig = [CameraRecord(c.name, c.width, c.height, c.K, c.ego_from_camera) for c in camera_rig(n, w, h)]

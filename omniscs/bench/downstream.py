@@ -90,7 +90,7 @@ def scene_examples(template: str, seed: int, config: DownstreamBenchConfig, cach
     from omniscs.eval.scenarios import planning_examples, scenario_from_traffic, scenario_from_variant, variant_keyframes
     from omniscs.pipeline.procedural import procedural_scene_id, procedural_traffic
     from omniscs.scs.behavior import adversarial_preset
-    from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint
+    from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model
     from omniscs.scs.behavior.generation import generate_variants
     from omniscs.scs.behavior.solution import solve_ego
     from omniscs.scs.behavior.variants import variant_spec
@@ -102,7 +102,7 @@ def scene_examples(template: str, seed: int, config: DownstreamBenchConfig, cach
     if path.is_file():
         stored = json.loads(path.read_text())
     else:
-        results = generate_variants(traffic, load_checkpoint(DEFAULT_CHECKPOINT), config.variants,
+        results = generate_variants(traffic, load_traffic_model(DEFAULT_CHECKPOINT), config.variants,
                                     adversarial_preset(config.behavior_preset), None, None)
         specs = [variant_spec(v) for v in results]
         stored = [{"variant": s, "solution": solve_ego(s, traffic).to_dict()} for s in specs]

@@ -16,10 +16,10 @@ import torch
 from omniscs.bench.harness import drop_partial, finish, machine_info, save_partial, write_report
 from omniscs.edits import Edit, edit_to_dict
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
-from omniscs.nsg.checkpoint import load_checkpoint
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.config import fit_preset
 from omniscs.nsg.edit import apply_graph_edits
-from omniscs.nsg.metrics import psnr, ssim
+from omniscs.quality import psnr, ssim
 from omniscs.nsg.observations import MIN_POINT_DEPTH
 from omniscs.nsg.train import FitDiverged
 from omniscs.pipeline.request import SceneRequest
@@ -281,7 +281,7 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
         if record.info["status"] != "fitted":
             raise FitDiverged(0, record.info["error"])
         metrics = record.info["metrics"]
-        graph = load_checkpoint(record.path, scene)
+        graph = load_graph(record.path, scene)
         fits.append({"scene_id": scene.scene_id, "edited_agents": targets, "fit_s": wall,
                      "n_gaussians": metrics["n_gaussians"], "heldout_psnr": metrics["heldout_psnr"],
                      "heldout_ssim": metrics["heldout_ssim"]})
@@ -307,7 +307,7 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
                 row = {"scene_id": scene.scene_id, "track_id": tid, "edit": name, "spec": edit_to_dict(edit),
                        "n_views": len(per_view), "views": per_view}
                 for key in ("psnr", "ssim", "masked_psnr", "masked_ssim"):
-                    vals = [v[key] for v in per_view if np.isfinite(v[key])]
+                    vals = [v[key] for v in per_view if v[key] is not None]
                     row[key] = float(np.mean(vals)) if vals else None
                 rows.append(row)
     summary = []

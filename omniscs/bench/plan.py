@@ -18,10 +18,10 @@ import torch
 from omniscs.bench.fit import EDIT_PROTOCOL, edited_agents, evaluation_views
 from omniscs.bench.harness import drop_partial, finish, load_line, machine_info, save_partial, write_report
 from omniscs.edits import edit_from_dict, edit_to_dict
-from omniscs.nsg.checkpoint import load_checkpoint
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.config import fit_preset
 from omniscs.nsg.edit import apply_graph_edits
-from omniscs.nsg.metrics import psnr
+from omniscs.quality import psnr
 from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
@@ -116,14 +116,14 @@ def _run_mode(scene_path: str, request: SceneRequest, plan_config, workspace: Pa
                               model=fitted, reuse=False)
     wall = time.perf_counter() - started
     metrics = fitted.info["metrics"]
-    graph = apply_graph_edits(load_checkpoint(fitted.path), [edit])
+    graph = apply_graph_edits(load_graph(fitted.path), [edit])
     edited = []
     for f, cam, gt in views:
         with torch.no_grad():
             out = graph.render(graph.view(cam, f))
         target = torch.from_numpy(gt.rgb.astype(np.float32) / 255.0)
         edited.append(psnr(out.rgb, target, torch.from_numpy(gt.instance == edit.track_id)))
-    finite = [v for v in edited if np.isfinite(v)]
+    finite = [v for v in edited if v is not None]
     return {"mode": mode, "scene_id": planned.scene_id, "status": "fitted", "wall_s": wall,
             "fit_s": fitted.seconds, "behavior_s": variants.seconds, "n_agent_nodes": len(plan.agent_nodes),
             "n_tracks": len(plan.agent_nodes) + len(plan.background_tracks), "gaussian_budget": plan.gaussian_budget,

@@ -134,7 +134,7 @@ def render(
 
     from omniscs.cli.common import comma_list
     from omniscs.geometry import pose_from_xyz_yaw
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import apply_graph_edits
     from omniscs.storage import atomic_write_with
 
@@ -146,7 +146,7 @@ def render(
         if len(values) != 4 or not np.all(np.isfinite(values)):
             raise OmniscsError(f"--ego-pose must be four numbers x,y,z,yaw; got {ego_pose!r}")
         world_from_ego = pose_from_xyz_yaw(*values)
-    graph = load_checkpoint(checkpoint)
+    graph = load_graph(checkpoint)
     if edits:
         resolve = None
         if pool is not None:

@@ -236,10 +236,6 @@ def load_graph(ckpt_dir: str | Path, scene=None, device: torch.device | str = "c
     return graph.to(device)  # poses and sizes stay numpy on the host; only the tensors move
 
 
-#: Old name of ``load_graph``, kept for omniscs/pipeline/, omniscs/bench/ and omniscs/cli/nsg.py until they import
-#: the new one (the traffic model's reader is ``scs.behavior.checkpoint.load_traffic_model``).
-load_checkpoint = load_graph
-
 
 def check_same_scene(meta_or_graph, scene, ckpt_dir: str | Path | None = None) -> None:
     """Raise unless the checkpoint (or graph) was fitted to exactly this scene's content."""

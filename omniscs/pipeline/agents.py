@@ -87,10 +87,10 @@ def _complete(scene, plan: ScenePlan, model: StageRecord, pool, config, grow: bo
               progress: Progress) -> list[dict]:
     from omniscs.agents.dual import complete_agents, grow_pool, write_decisions
     from omniscs.agents.pool import Pool
-    from omniscs.nsg.checkpoint import load_checkpoint, load_metrics, read_checkpoint_meta, write_checkpoint_files
+    from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
 
     progress(0, 3, f"agents of {scene.scene_id}: dual strategy for {list(plan.needs_360)}")
-    graph = load_checkpoint(model.path, scene)
+    graph = load_graph(model.path, scene)
     p = Pool(pool) if pool is not None else None
     completed, decisions = complete_agents(graph, scene, plan.needs_360, plan.train_frames, p, config)
     progress(1, 3, f"agents of {scene.scene_id}: pool growth")

@@ -13,7 +13,7 @@ from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.replay import Replay
 from omniscs.annotate.scene import annotate_variants, read_rows, replay_scene
 from omniscs.locks import output_lock
-from omniscs.nsg.checkpoint import load_checkpoint
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
 from omniscs.pipeline.common import waiting
@@ -46,7 +46,7 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
     with output_lock(out, waiting(progress, out)):
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
-            graph = load_checkpoint(model.path, scene)
+            graph = load_graph(model.path, scene)
             manifest = produce(out, key, lambda tmp: replay_scene(graph, scene, tmp, progress))
             reused = False
         else:
@@ -92,7 +92,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
             if config.fidelity_every:  # the proxies compare with the unedited logged views: rendered once per graph
                 replayed = replay_stage(scene_path, model, workspace, progress=progress)
                 replay = Replay.open(replayed.path)
-            graph = load_checkpoint(model.path, scene)
+            graph = load_graph(model.path, scene)
 
             def make(tmp: Path) -> dict:
                 results = annotate_variants(

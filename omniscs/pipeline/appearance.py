@@ -85,12 +85,12 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
 
 def _draw(scene, plan, model, pool, ids, n_variants, config, progress, tmp: Path, out_dir: Path) -> dict:
     from omniscs.agents.pool import Pool, model_resolver
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import node_model_resolver
     from omniscs.scs.appearance.colour import scene_colour_transform
     from omniscs.scs.appearance.variants import make_appearance_variants, write_appearance_variants
 
-    graph = load_checkpoint(model.path, scene)
+    graph = load_graph(model.path, scene)
     p = Pool(pool)
     progress(0, n_variants + 1, f"colour transform of {scene.scene_id}")
     colour = scene_colour_transform(graph, scene, p, plan.train_frames)
@@ -196,7 +196,7 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
     import math
 
     from omniscs.agents.pool import Pool, model_resolver
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import node_model_resolver
     from omniscs.pipeline.closedloop import newest_checkpoint
     from omniscs.scs.appearance.colour import IDENTITY, scene_colour_transform
@@ -219,7 +219,7 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
         raise OmniscsError(f"--pool {pool} is not a folder (make one with omniscs pool build or import)")
     scene = load_scene(scene_path)
     ckpt = Path(checkpoint) if checkpoint is not None else newest_checkpoint(workspace_root(workspace), scene.scene_id)
-    graph = load_checkpoint(ckpt, scene)
+    graph = load_graph(ckpt, scene)
     if camera is not None:
         scene.camera(camera)  # a clear error for an unknown camera
     config = AppearanceConfig(seed=seed, placement=PlacementConfig(distance_m=(lo, hi), camera=camera),
@@ -268,7 +268,7 @@ def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: 
     track was left in the background, are listed with the reason. At most ``limit`` objects, in pick order."""
     from omniscs.agents.dual import DualConfig, cropped_to_box, mirror_completed, seen_side, track_views
     from omniscs.agents.pool import Pool
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.pipeline.closedloop import newest_checkpoint
 
     try:
@@ -303,7 +303,7 @@ def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: 
                     raise OmniscsError(f"scene {scene_id} is neither ingested in {workspace} nor in its scenes "
                                        "catalog table")
                 scene = load_scene(where)
-                graphs[scene_id] = (scene, load_checkpoint(newest_checkpoint(workspace, scene_id), scene))
+                graphs[scene_id] = (scene, load_graph(newest_checkpoint(workspace, scene_id), scene))
             except OmniscsError as exc:
                 graphs[scene_id] = (None, str(exc))
         scene, graph = graphs[scene_id]

@@ -96,11 +96,11 @@ def _model_ids(config) -> dict:
 
 def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name: str, progress: Progress) -> list[dict]:
     from omniscs.background.repair import repair_background
-    from omniscs.nsg.checkpoint import load_checkpoint, load_metrics, read_checkpoint_meta, write_checkpoint_files
+    from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
     from omniscs.nsg.config import FitConfig
     from omniscs.nsg.observations import Observations
 
-    graph = load_checkpoint(model.path, scene)
+    graph = load_graph(model.path, scene)
     meta_config = read_checkpoint_meta(model.path).get("config")
     fit_config = FitConfig.from_dict(meta_config) if meta_config else FitConfig()
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]

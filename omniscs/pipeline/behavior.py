@@ -18,7 +18,7 @@ from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
 from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash
-from omniscs.scs.behavior.scene_render import AppearanceRenderConfig, appearance_from_checkpoint
+from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_consistency_from_checkpoint
 from omniscs.scs.behavior.variants import write_scene_variants
 
 #: Bump when the code changes what the stage writes (older outputs are then not reused).
@@ -41,7 +41,7 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
     config = adversarial_preset(preset, **(adversarial_overrides or {}))
     ckpt = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
     graph = model if model is not None and model.info.get("status") == "fitted" else None
-    render = appearance_render or AppearanceRenderConfig()
+    render = appearance_render or RenderConsistencyConfig()
     key = StageKey.of("behavior", BEHAVIOR_VERSION,
                       {"scene": scene.content_hash, "plan": plan.to_dict(), "graph": graph.key if graph else None},
                       {"adversarial": result_config(dataclasses.asdict(config)), "checkpoint": checkpoint_hash(ckpt),
@@ -56,7 +56,7 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
         manifest = reusable(out_dir, key) if reuse else None
         if manifest is None:
             traffic = traffic_from_scene(scene)
-            appearance = (appearance_from_checkpoint(graph.path, scene, traffic, ckpt, config, render)
+            appearance = (render_consistency_from_checkpoint(graph.path, scene, traffic, ckpt, config, render)
                           if graph is not None else None)
 
             def make(tmp: Path) -> dict:

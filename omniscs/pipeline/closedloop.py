@@ -83,11 +83,11 @@ def resolve(workspace: str | Path, ref: str, checkpoint: str | Path | None = Non
 def load_world(ref: ScenarioRef, device: str = "cpu"):
     """(scene, graph, scenario) of a resolved reference."""
     from omniscs.closedloop.scenario import log_scenario, variant_scenario
-    from omniscs.nsg.checkpoint import load_checkpoint
+    from omniscs.nsg.checkpoint import load_graph
     from omniscs.scene import load_scene
 
     scene = load_scene(ref.scene_path)
-    graph = load_checkpoint(ref.checkpoint, scene, device=device)
+    graph = load_graph(ref.checkpoint, scene, device=device)
     dt = _scene_period(scene)
     log_sc = log_scenario(scene, dt=dt)
     if ref.variant is None:

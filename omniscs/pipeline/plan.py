@@ -15,7 +15,7 @@ from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import PlanConfig, ScenePlan, make_plan
 from omniscs.scene import load_scene
 from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
-from omniscs.scs.behavior.checkpoint import load_checkpoint
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.problem import now_and_horizon
 from omniscs.storage import atomic_write_text
 
@@ -61,7 +61,7 @@ def plan_stage(scene_path: str | Path, request: SceneRequest, workspace: str | P
 def check_behavior_request(scene, request: SceneRequest) -> None:
     """A log too short for behaviour variants fails at its plan, before any fitting (the checks the behavior
     stage would make first: the checkpoint loads, the preset exists, the log covers the model's horizon)."""
-    now_and_horizon(traffic_from_scene(scene), load_checkpoint(request.behavior_checkpoint).config,
+    now_and_horizon(traffic_from_scene(scene), load_traffic_model(request.behavior_checkpoint).config,
                     adversarial_preset(request.behavior_preset))
 
 

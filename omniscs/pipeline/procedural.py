@@ -74,11 +74,11 @@ def variant_world(world, vf):
     """The procedural ``world`` as a variant made it: every agent node the variant moved where it was placed in the
     rendered frames (logged poses elsewhere), the ego where it drove. Same frames as the world."""
     from omniscs.edits import SetTrajectory
-    from omniscs.geometry import yaw_of
+    from omniscs.geometry import yaw_from_matrix
     from omniscs.world import apply_edits
 
     def xyz_yaw(T: np.ndarray) -> tuple:
-        return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_of(T[:3, :3]))
+        return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_from_matrix(T[:3, :3]))
 
     n = world.n_frames
     moved: dict[int, list] = {}

@@ -91,9 +91,9 @@ def check_request(request: SceneRequest | dict) -> SceneRequest:
 
         pool_objects(request.pool, request.appearance_objects)
     if request.behavior_variants > 0 or request.behavior_checkpoint is not None:
-        from omniscs.scs.behavior.checkpoint import load_checkpoint
+        from omniscs.scs.behavior.checkpoint import load_traffic_model
 
-        load_checkpoint(request.behavior_checkpoint)
+        load_traffic_model(request.behavior_checkpoint)
     resolve_device(request.device)
     return request
 

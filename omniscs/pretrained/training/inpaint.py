@@ -22,6 +22,7 @@ from omniscs.pretrained.training.reldepth import FIRST_DEPTH_SEED, rendered_view
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
+from omniscs.quality import UINT8_RANGE, psnr, psnr_from_mse
 from omniscs.storage import atomic_write_with, content_hash, workspace_root
 
 log = logging.getLogger(__name__)
@@ -143,11 +144,9 @@ def export_inpaint_data(path: Path, workspace: Path | None = None, data: Inpaint
 
 
 # ----------------------------------------------------------------------------- evaluation
-def hole_psnr(filled: np.ndarray, target: np.ndarray, hole: np.ndarray) -> float:
-    """PSNR (dB, peak 255) of ``filled`` against ``target`` over the ``hole`` pixels; capped at 100 dB for an
-    exact fill, never Inf."""
-    err = np.mean((filled[hole].astype(np.float64) - target[hole].astype(np.float64)) ** 2)
-    return float(min(100.0, 10.0 * np.log10(255.0 ** 2 / max(err, 1e-10))))
+def hole_psnr(filled: np.ndarray, target: np.ndarray, hole: np.ndarray) -> float | None:
+    """PSNR (dB, 8-bit scale) of ``filled`` against ``target`` over the ``hole`` pixels (``omniscs.quality``)."""
+    return psnr(filled, target, hole, data_range=UINT8_RANGE)
 
 
 def evaluate_inpainters(inpainters: dict, pairs: dict[str, np.ndarray]) -> dict:
@@ -167,7 +166,7 @@ def evaluate_inpainters(inpainters: dict, pairs: dict[str, np.ndarray]) -> dict:
         seconds = time.perf_counter() - started
         report[name] = {"n_pairs": len(psnrs), "hole_psnr_mean": float(np.mean(psnrs)),
                         "hole_psnr_median": float(np.median(psnrs)),
-                        "hole_psnr_pooled": float(10.0 * np.log10(255.0 ** 2 / max(sq / max(n, 1), 1e-10))),
+                        "hole_psnr_pooled": psnr_from_mse(sq / max(n, 1), UINT8_RANGE),
                         "hole_abs_error_mean": float(np.mean(abs_err)),
                         "seconds_per_image": seconds / max(1, len(psnrs))}
     return report

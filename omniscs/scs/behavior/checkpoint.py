@@ -116,10 +116,6 @@ def load_traffic_model(path: Path | str | None = None) -> TrafficModel:
     return model
 
 
-#: Old name of ``load_traffic_model``, kept for omniscs/pipeline/ and omniscs/bench/ until they import the new one
-#: (the scene graph's reader is ``nsg.checkpoint.load_graph``).
-load_checkpoint = load_traffic_model
-
 
 def checkpoint_hash(path: Path | str | None = None) -> str:
     """Content hash of a checkpoint's weights and config (for idempotent reuse of results)."""

@@ -99,16 +99,6 @@ class BehaviorProblem:
 
     # -- model ----------------------------------------------------------------------------------------
     @property
-    def appearance(self) -> RenderConsistencyTerm | None:
-        """Old name of ``render_consistency`` (L_app), kept for omniscs/bench/behavior.py, which sets it; delete once
-        it sets ``render_consistency``."""
-        return self.render_consistency
-
-    @appearance.setter
-    def appearance(self, term: RenderConsistencyTerm | None) -> None:
-        self.render_consistency = term
-
-    @property
     def comfort_limits(self) -> ComfortBounds | None:
         """Decoding limits just inside the comfort bounds (None when comfort decoding is off)."""
         cfg = self.config

@@ -165,9 +165,3 @@ def render_variant(graph: SceneGraph, variant: dict, camera: str, frames: list[i
         out = render_view(graph, graph.view(camera, f, world_from_ego=ego[f]), agent_poses=placed_agents(graph, f, xy_yaw))
         images.append(out.rgb.clamp(0.0, 1.0).numpy().astype(np.float64))
     return np.stack(images)
-
-
-# Old names, kept for omniscs/pipeline/stages.py and omniscs/bench/behavior.py until they import the new ones.
-AppearanceRenderConfig = RenderConsistencyConfig
-scene_graph_appearance = scene_graph_render_consistency
-appearance_from_checkpoint = render_consistency_from_checkpoint
