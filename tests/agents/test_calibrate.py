@@ -63,6 +63,7 @@ def test_templates_fill_their_box():
         assert np.all(np.abs(t) <= size / 2 + 1e-9) and np.allclose(t.max(0) - t.min(0), size, atol=0.05)
 
 
+@pytest.mark.slow
 def test_the_heading_of_turned_vehicles_is_recovered_within_2_degrees_for_most():
     """Front/back and up/down too: template, roof-up and tail-light cues (30 vehicles of every kind, colours linear
     as the assets give them; over all 172 vehicle assets this was 95.9 %, 97.7 % with sRGB colours)."""

@@ -83,6 +83,7 @@ def test_bad_meshes_are_clear_errors():
         gaussians_from_mesh(np.zeros((3, 3)), [[0, 1, 2]], [[0.5, 0.5, 0.5]])
 
 
+@pytest.mark.slow
 def test_pool_build_over_asset_ids_and_kinds(tmp_path):
     import subprocess
     import sys

@@ -37,6 +37,7 @@ def _crops(n_models=4, views=6, seed=0):
     return np.stack(crops), np.array(labels)
 
 
+@pytest.mark.slow
 def test_the_network_gives_unit_vectors_and_training_lowers_the_loss():
     crops, labels = _crops()
     net = MSNet()

@@ -172,6 +172,7 @@ def test_bad_models_and_ids_are_clear_errors(tmp_path):
         calibrated(_model(n=5), "car")
 
 
+@pytest.mark.slow
 def test_the_pool_commands_import_list_and_export_with_the_id_alone_on_the_last_line(tmp_path):
     import json
     import subprocess

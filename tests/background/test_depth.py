@@ -245,6 +245,7 @@ save_file(state, {out!r})
 """
 
 
+@pytest.mark.slow
 def test_training_gives_the_same_weights_with_augmenting_workers(tmp_path):
     # each step's batch comes from its own seed, so handing augmentation to worker processes changes nothing. Run
     # in fresh interpreters, as the training command runs: forking worker processes out of a test process that

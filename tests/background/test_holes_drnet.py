@@ -107,6 +107,7 @@ def _smooth_scene(seed, n=6, h=40, w=60):
     return out
 
 
+@pytest.mark.slow
 def test_drnet_learns_a_scene_mapping_and_refines_a_biased_alignment():
     depths = _smooth_scene(0)
     # the relative depth is a monotone but not affine function of inverse depth (here a logarithm): the affine

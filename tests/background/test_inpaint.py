@@ -287,6 +287,7 @@ def tiny_diffusers(tmp_path_factory) -> tuple[Path, Path]:
     return root / "pipeline", root / "controlnet"
 
 
+@pytest.mark.slow
 def test_diffusers_adapter_runs_a_saved_inpainting_pipeline(tiny_diffusers):
     folder, _ = tiny_diffusers
     inpainter = load_inpainter(f"diffusers:{folder}")
@@ -300,6 +301,7 @@ def test_diffusers_adapter_runs_a_saved_inpainting_pipeline(tiny_diffusers):
     assert np.array_equal(inpainter.inpaint(rgb, mask), out)  # seeded
 
 
+@pytest.mark.slow
 def test_diffusers_adapter_resizes_sizes_that_are_not_multiples_of_8(tiny_diffusers):
     inpainter = DiffusersInpainter(tiny_diffusers[0], steps=2)
     rgb = noisy_image(45, 70)
@@ -308,6 +310,7 @@ def test_diffusers_adapter_resizes_sizes_that_are_not_multiples_of_8(tiny_diffus
     assert out.shape == rgb.shape and np.array_equal(out[~mask], rgb[~mask])
 
 
+@pytest.mark.slow
 def test_diffusers_adapter_with_an_inpainting_controlnet(tiny_diffusers):
     folder, controlnet = tiny_diffusers
     loaded = load_inpainter(f"diffusers:{folder}?controlnet={controlnet}")
@@ -331,6 +334,7 @@ class RecordingPipeline:
         return type("Output", (), {"images": images, "nsfw_content_detected": None})()
 
 
+@pytest.mark.slow
 def test_controlnet_control_image_marks_the_hole_with_minus_one(tiny_diffusers):
     folder, controlnet = tiny_diffusers
     inpainter = DiffusersInpainter(folder, controlnet=controlnet, steps=2, seed=7)
@@ -362,6 +366,7 @@ def test_diffusers_refuses_a_folder_it_cannot_load(tmp_path):
         DiffusersInpainter(tmp_path)
 
 
+@pytest.mark.slow
 def test_diffusers_refuses_a_missing_controlnet_folder(tiny_diffusers, tmp_path):
     with pytest.raises(OmniscsError, match="ControlNet folder"):
         load_inpainter(f"diffusers:{tiny_diffusers[0]}?controlnet={tmp_path / 'cn'}")

@@ -67,6 +67,7 @@ def test_the_fill_does_not_depend_on_what_the_hole_showed():
     assert np.array_equal(filler.inpaint(images[0], holes[0]), filler.inpaint(other, holes[0]))
 
 
+@pytest.mark.slow
 def test_training_learns_to_fill_held_out_stripes_better_than_it_started():
     images, holes, targets = striped_pairs(48)
     cfg = InpaintTrainConfig(steps=300, batch=8, lr=3e-3, architecture=TINY)
@@ -169,6 +170,7 @@ def held_out_pairs():
 
 
 @pytest.mark.skipif(not (SHIPPED / "inpaint.safetensors").is_file(), reason="no shipped inpainting weights")
+@pytest.mark.slow
 def test_the_shipped_network_fills_held_out_repair_holes_better_than_fsr(held_out_pairs):
     from omniscs.pretrained.training.inpaint import evaluate_inpainters
 

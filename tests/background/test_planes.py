@@ -1,6 +1,7 @@
 """Planar proxies behind a removed object: planes found among noisy points with outliers, ray hits against known
 geometry (in front of the object's front refused, outside the support refused), and textures that carry the
 colours a view saw and inpaint the rest."""
+import pytest
 import numpy as np
 
 from omniscs.background.holes import RemovedObject
@@ -364,6 +365,7 @@ def test_unobserved_rules_are_checked_and_inpaint_leaves_the_street_fill_out():
     assert pure(street) > 0.9 > pure(plain)
 
 
+@pytest.mark.slow
 def test_the_same_points_give_the_same_planes_every_time():
     # a stair of near-tied horizontal steps in clutter: open3d's threads, racing to report the best plane, gave a
     # different first plane in about 1 of 20 runs on this cloud; fit_planes runs RANSAC on one thread

@@ -68,6 +68,7 @@ def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
     assert np.mean(covered) > 0.9
 
 
+@pytest.mark.slow
 def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted):
     from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.edit import apply_graph_edits
@@ -116,6 +117,7 @@ def test_repair_keeps_the_truck_node_seeds_the_hole_and_the_counts_add_up(fitted
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
 
 
+@pytest.mark.slow
 def test_the_refit_runs_at_the_fits_learning_rates_times_refit_lr_scale(fitted, monkeypatch):
     import omniscs.background.repair as repair
     from omniscs.nsg.checkpoint import load_graph
@@ -197,6 +199,7 @@ def test_fill_views_refuses_when_no_view_knows_any_depth():
         fill_views([hv], graph, RepairConfig(), Same(), Flat())
 
 
+@pytest.mark.slow
 def test_the_background_stage_writes_a_repaired_checkpoint_its_files_and_rows_and_reuses_them(fitted):
     from omniscs.nsg.checkpoint import load_graph
 
@@ -226,6 +229,7 @@ def test_the_background_stage_skips_scenes_that_need_no_repair(fitted, tmp_path)
     assert background_stage(store, plan, None, tmp_path / "ws").skipped
 
 
+@pytest.mark.slow
 def test_omniscs_fit_repairs_the_background_of_a_removed_truck_unless_told_not_to(fitted, tmp_path):
     from typer.testing import CliRunner
 
@@ -247,6 +251,7 @@ def test_omniscs_fit_repairs_the_background_of_a_removed_truck_unless_told_not_t
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 def test_generate_runs_the_background_stage_after_the_fit_and_catalogues_it(prefect_harness, tmp_path, monkeypatch):
     from flows.generate import generate_dataset
 

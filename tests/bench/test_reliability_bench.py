@@ -20,6 +20,7 @@ def _wait_for(predicate, timeout_s: float) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_sigterm_stops_generate_records_the_run_and_leaves_no_server_or_temporaries(tmp_path):
     from omniscs.bench.reliability import children, cli_command, cli_env, running, workspace_state
 
@@ -48,6 +49,7 @@ def test_sigterm_stops_generate_records_the_run_and_leaves_no_server_or_temporar
     assert "stopped by SIGTERM" in rows[0]["error"]
 
 
+@pytest.mark.slow
 def test_sigkilled_runs_rerun_to_the_clean_result(tmp_path):
     """Fault injection, short form (one kill moment; the slow test below and `omniscs bench reliability` run 10):
     SIGKILL at a random moment, then the same command again; the rerun's catalog and files equal one clean
@@ -67,6 +69,7 @@ def test_sigkilled_runs_rerun_to_the_clean_result(tmp_path):
         assert kill["temporaries_after_rerun"] == 0, kill
 
 
+@pytest.mark.slow
 def test_four_concurrent_runs_with_overlapping_new_sources_all_succeed(tmp_path):
     from omniscs.bench.reliability import ReliabilityConfig, concurrency
 

@@ -1,6 +1,7 @@
 """Deployments: the Python registry and infra/prefect.yaml say the same; the nightly generation is a cron schedule;
 a completed generation run creates a run of the fine-tune + evaluate deployment with the run passed along (the
 trigger wiring, on the test harness's server, which runs event triggers)."""
+import pytest
 from __future__ import annotations
 
 import time
@@ -73,6 +74,7 @@ def test_a_completed_generation_run_creates_a_fine_tune_run_with_it(prefect_harn
     assert runs[0].parameters["model"] == "proxy"
 
 
+@pytest.mark.slow
 def test_a_run_whose_heartbeats_stop_is_marked_crashed_and_one_that_finishes_is_not(prefect_harness):
     """The zombie automation on the harness's server (its proactive triggers run every few seconds), with a 10 s
     window instead of 3 minutes: a Running flow run that sent one heartbeat and then nothing becomes Crashed; one

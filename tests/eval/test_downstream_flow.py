@@ -65,6 +65,7 @@ def _two_base_logs(monkeypatch, tmp_path):
     monkeypatch.setattr(d, "base_planner_logs", lambda base_path, progress=None: real(tmp_path))
 
 
+@pytest.mark.slow
 def test_finetune_evaluate_catalogues_base_and_fine_tuned_on_both_splits_and_reuses_the_model(prefect_harness,
                                                                                             workspace, monkeypatch,
                                                                                             tmp_path):
@@ -106,6 +107,7 @@ def _png_shape(path) -> tuple:
     return image.shape
 
 
+@pytest.mark.slow
 def test_datasets_are_found_from_the_generate_run_that_made_them(workspace):
     root = catalog.catalog_root(workspace)
     catalog.write_rows(root, "datasets", "gen-1", [{
@@ -125,6 +127,7 @@ def test_datasets_are_found_from_the_generate_run_that_made_them(workspace):
         d.datasets_of_flow_run(workspace, "x' OR '1'='1")
 
 
+@pytest.mark.slow
 def test_an_external_job_is_read_back_and_a_crash_is_a_failed_model(prefect_harness, workspace):
     from flows.downstream import finetune_evaluate
 
@@ -150,6 +153,7 @@ def test_an_external_job_is_read_back_and_a_crash_is_a_failed_model(prefect_harn
     assert failed[0]["run_status"] == "failed"
 
 
+@pytest.mark.slow
 def test_the_evaluate_flow_and_bad_requests(prefect_harness, workspace):
     from flows.downstream import evaluate, finetune_evaluate
 
@@ -165,6 +169,7 @@ def test_the_evaluate_flow_and_bad_requests(prefect_harness, workspace):
         finetune_evaluate(None, workspace=str(workspace), run_id="ev5")
 
 
+@pytest.mark.slow
 def test_the_finetune_command_refuses_unknown_datasets_and_options_in_one_line(workspace):
     import subprocess
 

@@ -127,6 +127,7 @@ def test_bad_planning_results_are_clear_errors(dataroot, tmp_path):
         evaluate_planning_results(dataroot, "v1.0-mini", path)
 
 
+@pytest.mark.slow
 def test_the_eval_planning_command_prints_both_conventions(dataroot, tmp_path):
     import subprocess
     import sys

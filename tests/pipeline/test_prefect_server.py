@@ -194,6 +194,7 @@ def process_worker(prefect_server, tmp_path):
         worker.stop()
 
 
+@pytest.mark.slow
 def test_a_deployment_run_by_a_process_worker_on_a_real_server_completes_and_catalogues_its_scene(
         prefect_server, process_worker):
     from prefect.deployments import run_deployment

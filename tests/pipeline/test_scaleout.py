@@ -74,6 +74,7 @@ def test_a_task_is_retried_after_a_lost_connection_but_never_after_a_user_error(
     assert calls["user"] == 1
 
 
+@pytest.mark.slow
 def test_generate_dataset_on_a_local_dask_cluster_catalogues_every_scene_once(prefect_harness, tmp_path):
     from flows.generate import generate_dataset
 
@@ -167,6 +168,7 @@ def test_two_writers_on_the_same_catalog_table_lose_nothing(tmp_path):
     assert sorted(rows) == sorted(f"w{k}-{i}" for k in range(2) for i in range(40))
 
 
+@pytest.mark.slow
 def test_generate_dataset_runs_on_an_existing_scheduler_given_by_address(prefect_harness, tmp_path):
     from distributed import LocalCluster
 

@@ -202,6 +202,7 @@ def test_renderer_refuses_resampled_logs_and_foreign_graphs(fitted):
         scene_graph_render_consistency(graph, other, load_traffic_model())
 
 
+@pytest.mark.slow
 def test_flow_feeds_the_fitted_graph_to_the_behavior_stage_and_reuses_variants_with_l_app(prefect_harness, tmp_path,
                                                                                          monkeypatch):
     from flows.generate import generate_dataset
