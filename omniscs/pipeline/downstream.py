@@ -1,7 +1,8 @@
-"""The downstream stages (Prefect-free, like ``stages.py``): fine-tune the proxy planner on generated datasets,
-evaluate a planner on datasets, run an external job (UniAD or any stack) and read its metrics back. Each returns a
-``StageRecord`` whose rows go to the ``downstream_models`` and ``evaluations`` tables; a failure of the model
-(a crash, a timeout, a dataset with nothing to learn from) is a ``failed`` row with its reason, not a lost run.
+"""The downstream stages (Prefect-free, like the per-scene stage modules beside it): fine-tune the proxy planner on
+generated datasets, evaluate a planner on datasets, run an external job (UniAD or any stack) and read its metrics
+back. Each returns a ``StageRecord`` whose rows go to the ``downstream_models`` and ``evaluations`` tables; a failure
+of the model (a crash, a timeout, a dataset with nothing to learn from) is a ``failed`` row with its reason, not a
+lost run.
 
 Folders: ``downstream/<model_id>/`` (a fine-tuned checkpoint, reused by the one reuse contract: the same datasets,
 base and config give the same model) and ``downstream/<model_id>/`` for an external job (its log and work dir)."""
@@ -66,8 +67,8 @@ def _model_row(model_id: str, kind: str, base_model_id: str, dataset_ids: list[s
 
 def base_planner_logs(base_path: str | Path, progress: Progress = no_progress) -> list:
     """Planning examples of the procedural logs a base planner was trained on, remade from the ``data`` its training
-    record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs bench
-    downstream --train-base`` trains the shipped one); [] for a base whose record names none."""
+    record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs pretrained
+    train planner`` trains the shipped one); [] for a base whose record names none."""
     from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
     from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
 
@@ -184,8 +185,8 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
     (appearance variants above all) and their source logs, every frame, exported as nuScenes dataroots for the
     training only (``downstream/<model_id>/detector/`` keeps the weights). ``rehearsal``: nuScenes dataroots the
     base was trained on, mixed into the fine-tuning so that it does not forget them (the shipped detector's are
-    made by ``python -m omniscs.bench.detector_data``; without them, a fine-tuning on a few logs costs the
-    detector much of what it knew: reports/downstream/detection.md)."""
+    made under ``<workspace>/bench-detector/`` by ``omniscs pretrained train detector``; without them, a
+    fine-tuning on a few logs costs the detector much of what it knew: reports/downstream/detection.md)."""
     import shutil
     import tempfile
 
