@@ -1,13 +1,13 @@
 """Deployments: the Python registry and infra/prefect.yaml say the same; the nightly generation is a cron schedule;
 a completed generation run creates a run of the fine-tune + evaluate deployment with the run passed along (the
 trigger wiring, on the test harness's server, which runs event triggers)."""
-import pytest
 from __future__ import annotations
 
 import time
 import uuid
 from pathlib import Path
 
+import pytest
 import yaml
 
 from flows import deployments as reg
