@@ -2,7 +2,7 @@
 the pixels around it, its training loop on repair pairs (arrays and tensors only) and its weights on disk.
 
 Training pairs are camera images of procedural worlds with a large agent, the agent's hole, and the same view of
-the world without the agent (omniscs.pretrained.training.inpaint). Half of each batch are those pairs; the other half are
+the world without the agent (omniscs.training.inpaint). Half of each batch are those pairs; the other half are
 self-supervised: a clean image (a pair's target) with another pair's hole laid over it at a random place, the way
 LaMa trains on random masks, so the network sees many more holes than pairs. The loss is the mean absolute error
 inside the hole plus ``context_weight`` times the one outside it (where the inpainter's output is discarded anyway:

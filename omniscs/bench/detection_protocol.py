@@ -81,7 +81,7 @@ class DetectionProtocolConfig:
     such: the one losing least)."""
     rehearse: bool = True
     """Fine-tune on the base detector's own training images too (the shipped detector's procedural logs,
-    ``omniscs.pretrained.training.detector``), as the paper fine-tunes on the original training set plus the SCS data: trained
+    ``omniscs.training.detector``), as the paper fine-tunes on the original training set plus the SCS data: trained
     on a few logs and their variants alone, a detector forgets what it knew."""
     map_gain_target: float = 0.05
     """Fine-tuned must gain this much mAP (0.05 = 5 points) on the appearance-SCS test set ..."""
@@ -266,7 +266,7 @@ def _data(config: DetectionProtocolConfig, ws: Path, root: Path, progress: Progr
             roots[scs_name] = _export(splits[k]["scs"], root, f"{k.replace(' ', '-')}-scs")
             roots[logs_name] = _export(splits[k]["logs"], root, f"{k.replace(' ', '-')}-logs")
     if config.rehearse:
-        from omniscs.pretrained.training.detector import ShippedDetectorConfig, procedural_dataroot
+        from omniscs.bench.detector_logs import ShippedDetectorConfig, procedural_dataroot
 
         shipped = ShippedDetectorConfig()
         progress(0, None, "the base detector's training logs (for rehearsal)")
@@ -336,7 +336,7 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
     base_record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
     tuning_set = [(roots["train logs"], VERSION), (roots["train appearance-SCS"], VERSION)]
     if config.rehearse:
-        from omniscs.pretrained.training.detector import VERSION as SHIPPED_VERSION
+        from omniscs.bench.detector_logs import VERSION as SHIPPED_VERSION
 
         tuning_set.append((roots["base training logs"], SHIPPED_VERSION))
     candidates, kept, tuned, tune_record = _choose_fine_tuning(config, root, roots, base, tuning_set, progress)

@@ -84,22 +84,22 @@ def pretrained_train(
                                     overwrite=True)
             summary = f"held-out moving ADE {record['heldout_metrics']['moving']['posterior']['ade']:.2f} m"
         elif name == "planner":
-            from omniscs.pretrained.training.planner import train_shipped_planner
+            from omniscs.training.planner import train_shipped_planner
 
             _, record = train_shipped_planner(out=out, progress=sink)
             summary = f"{record['n_examples']} examples, final loss {record['epoch_loss_m'][-1]:.3f} m"
         elif name == "detector":
-            from omniscs.pretrained.training.detector import ShippedDetectorConfig, train_shipped_detector
+            from omniscs.training.detector import ShippedDetectorConfig, train_shipped_detector
 
             _, record = train_shipped_detector(workspace, ShippedDetectorConfig(), out, progress=sink)
             summary = f"{record['n_images']} images, {record['n_boxes']} boxes"
         elif name == "msnet":
-            from omniscs.pretrained.training.msnet import train_shipped_msnet
+            from omniscs.training.msnet import train_shipped_msnet
 
             info = train_shipped_msnet(workspace, out=out, progress=sink)
             summary = f"{info['n_assets']} assets, loss {info['loss_first']:.3f} -> {info['loss_last']:.3f}"
         elif name == "reldepth":
-            from omniscs.pretrained.training import reldepth
+            from omniscs.training import reldepth
 
             if export_data:
                 facts = reldepth.export_depth_data(export_data, workspace, progress=sink)
@@ -111,7 +111,7 @@ def pretrained_train(
             summary = (f"held-out AbsRel {info['evaluation']['embedded']['images']['absrel_mean']:.3f}, in repair "
                        f"holes {info['evaluation']['embedded']['repair_hole']['absrel_mean']:.3f}")
         else:  # inpaint: trained on a GPU machine from an exported pack
-            from omniscs.pretrained.training import inpaint
+            from omniscs.training import inpaint
 
             if export_data:
                 data = inpaint.InpaintDataConfig()

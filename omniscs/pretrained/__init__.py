@@ -1,5 +1,5 @@
 """The weights shipped with the package, in one registry (``registry``), and the trainers that make them
-(``omniscs.pretrained.training``, imported on demand: they pull in the procedural world)."""
+(``omniscs.training``, imported on demand: they pull in the procedural world)."""
 from omniscs.pretrained.registry import (
     Shipped,
     ShippedFile,

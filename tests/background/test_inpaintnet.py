@@ -162,7 +162,7 @@ def test_a_pack_refuses_empty_holes_and_a_foreign_file(tmp_path):
 @pytest.fixture(scope="module")
 def held_out_pairs():
     """Repair pairs of two worlds that neither trained nor evaluated the shipped network (seeds 3950-3951)."""
-    from omniscs.pretrained.training.inpaint import InpaintDataConfig, repair_pairs
+    from omniscs.training.inpaint import InpaintDataConfig, repair_pairs
 
     cfg = dataclasses.replace(InpaintDataConfig(), frames=(10, 30))
     parts = [repair_pairs(s, cfg) for s in (3950, 3951)]
@@ -172,7 +172,7 @@ def held_out_pairs():
 @pytest.mark.skipif(not (SHIPPED / "inpaint.safetensors").is_file(), reason="no shipped inpainting weights")
 @pytest.mark.slow
 def test_the_shipped_network_fills_held_out_repair_holes_better_than_fsr(held_out_pairs):
-    from omniscs.pretrained.training.inpaint import evaluate_inpainters
+    from omniscs.training.inpaint import evaluate_inpainters
 
     assert len(held_out_pairs["images"]) >= 8
     report = evaluate_inpainters({"embedded": load_inpainter("embedded"), "fsr": OpenCVInpainter("fsr_fast")},
@@ -192,7 +192,7 @@ def test_repair_pairs_hide_the_agent_and_their_targets_differ_inside_the_hole(he
 
 
 def test_inpainting_data_refuse_benchmark_seeds_and_a_folder_without_weights(tmp_path):
-    from omniscs.pretrained.training.inpaint import InpaintDataConfig, cached_pairs, install_trained_inpaint
+    from omniscs.training.inpaint import InpaintDataConfig, cached_pairs, install_trained_inpaint
 
     with pytest.raises(OmniscsError, match=">= 3000"):
         cached_pairs([101], InpaintDataConfig(), tmp_path)

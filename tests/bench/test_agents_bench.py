@@ -90,7 +90,7 @@ def test_swapping_a_worlds_vehicles_keeps_them_on_the_same_ground():
 
 def test_msnet_learns_only_from_pool_assets_no_benchmark_uses():
     from omniscs.bench.agents import POOL_QUOTA, pool_ids
-    from omniscs.pretrained.training.msnet import unbenched_pool_assets
+    from omniscs.training.msnet import unbenched_pool_assets
     from omniscs.world.assets import asset_split, list_asset_ids
 
     quota = tuple(POOL_QUOTA.items())

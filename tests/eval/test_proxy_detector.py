@@ -378,7 +378,7 @@ def test_class_balanced_training_is_deterministic_and_records_the_draws_per_clas
 
 
 def test_the_shipped_detectors_logs_of_each_split_are_disjoint():
-    from omniscs.pretrained.training.detector import ShippedDetectorConfig
+    from omniscs.training.detector import ShippedDetectorConfig
 
     config = ShippedDetectorConfig(calibration_logs=12)
     splits = {s: {seed for _, seed in config.logs(s)} for s in ("train", "calibration", "validation", "test")}
@@ -392,7 +392,7 @@ def test_the_shipped_detectors_logs_of_each_split_are_disjoint():
 
 
 def test_shipped_detector_splits_that_share_a_log_are_a_clear_error():
-    from omniscs.pretrained.training.detector import ShippedDetectorConfig
+    from omniscs.training.detector import ShippedDetectorConfig
 
     with pytest.raises(ValidationError, match="train and calibration logs"):
         ShippedDetectorConfig(train_logs=10, calibration_logs=12, calibration_seed=610_005)

@@ -182,7 +182,7 @@ def test_the_planner_trainer_reproduces_the_shipped_planner_bit_for_bit():
     """The registry's command is honest: the moved trainer makes exactly the shipped weights (2 min on 2 cores)."""
     from safetensors.torch import load_file
 
-    from omniscs.pretrained.training.planner import train_shipped_planner
+    from omniscs.training.planner import train_shipped_planner
 
     model, record = train_shipped_planner(out=None)
     shipped = load_file(str(registry.entry("planner").folder / "planner.safetensors"))

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from omniscs.background.depthnet import working_size
-from omniscs.pretrained.training.reldepth import FIRST_DEPTH_SEED, rendered_views
+from omniscs.training.reldepth import FIRST_DEPTH_SEED, rendered_views
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
