@@ -38,7 +38,7 @@ test: setup
 	$(VENV)/bin/python -m pytest -n 2 -q
 
 test-slow: setup
-	$(VENV)/bin/python -m pytest -q -m slow
+	$(VENV)/bin/python -m pytest -n 2 -q -m slow
 
 # the documentation site into site/ (the Results pages are generated from reports/ by docs/gen_results.py)
 docs: setup

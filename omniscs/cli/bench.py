@@ -121,15 +121,11 @@ def run_behavior(o: BehaviorOptions, out: Path, bars: Bars) -> Path:
 
 
 @dataclass(frozen=True)
-class FitOptions:
-    seeds: str = "0"
-    """Comma-separated seeds of the procedural scenes."""
-    presets: str = "fast,balanced,accurate"
-    """Comma-separated presets."""
-    template: str = "straight"
-    """Road layout template of the scenes."""
+class SceneRigOptions:
+    """The procedural scenes' rig and where they go: the options every benchmark of fitted scenes shares."""
+
     frames: int = 40
-    """Frames per scene (every 4th is held out)."""
+    """Frames per scene."""
     cameras: int = 3
     """Cameras per frame."""
     width: int = 480
@@ -138,6 +134,16 @@ class FitOptions:
     """Image height (pixels)."""
     workspace: Optional[Path] = None
     """Where the benchmark scenes are rendered (and reused)."""
+
+
+@dataclass(frozen=True)
+class FitOptions(SceneRigOptions):
+    seeds: str = "0"
+    """Comma-separated seeds of the procedural scenes."""
+    presets: str = "fast,balanced,accurate"
+    """Comma-separated presets."""
+    template: str = "straight"
+    """Road layout template of the scenes."""
 
 
 def run_fit(o: FitOptions, out: Path, bars: Bars) -> Path:
@@ -154,7 +160,7 @@ def run_fit(o: FitOptions, out: Path, bars: Bars) -> Path:
 
 
 @dataclass(frozen=True)
-class EditsOptions:
+class EditsOptions(SceneRigOptions):
     seeds: str = "0"
     """Comma-separated seeds of the procedural scenes."""
     preset: str = "balanced"
@@ -165,16 +171,6 @@ class EditsOptions:
     """Evaluated views per agent and edit."""
     template: str = "straight"
     """Road layout template of the scenes."""
-    frames: int = 40
-    """Frames per scene."""
-    cameras: int = 3
-    """Cameras per frame."""
-    width: int = 480
-    """Image width (pixels)."""
-    height: int = 270
-    """Image height (pixels)."""
-    workspace: Optional[Path] = None
-    """Where the benchmark scenes are rendered (and reused)."""
 
 
 def run_edits(o: EditsOptions, out: Path, bars: Bars) -> Path:
@@ -216,25 +212,15 @@ def run_render(o: RenderOptions, out: Path, bars: Bars) -> Path:
 
 
 @dataclass(frozen=True)
-class PlanOptions:
+class PlanOptions(SceneRigOptions):
     scenes: str = "straight:31,t_junction:32,intersection:33"
     """Comma-separated TEMPLATE:SEED procedural scenes."""
     preset: str = "fast"
     """Scene-graph preset of both modes."""
     variants: int = 1
     """Behaviour variants requested per scene."""
-    frames: int = 40
-    """Frames per scene."""
-    cameras: int = 3
-    """Cameras per frame."""
-    width: int = 480
-    """Image width (pixels)."""
-    height: int = 270
-    """Image height (pixels)."""
     min_pixels: int = 200
     """Views count when the edited agent covers this many pixels."""
-    workspace: Optional[Path] = None
-    """Where the benchmark scenes are rendered (and reused)."""
 
 
 def run_plan(o: PlanOptions, out: Path, bars: Bars) -> Path:
@@ -496,14 +482,16 @@ BENCHMARKS: tuple[Benchmark, ...] = (
 
 # ----------------------------------------------------------------------------- one handler for all of them
 def field_docs(cls: type) -> dict[str, str]:
-    """The docstring under each field of a dataclass (the string literal that follows its annotation)."""
-    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    """The docstring under each field of a dataclass (the string literal that follows its annotation), its base
+    classes' fields included."""
     docs = {}
-    for node, after in zip(body, body[1:]):
-        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) \
-                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) \
-                and isinstance(after.value.value, str):
-            docs[node.target.id] = " ".join(after.value.value.split())
+    for klass in reversed([k for k in cls.__mro__ if dataclasses.is_dataclass(k)]):
+        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        for node, after in zip(body, body[1:]):
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) \
+                    and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant) \
+                    and isinstance(after.value.value, str):
+                docs[node.target.id] = " ".join(after.value.value.split())
     return docs
 
 
