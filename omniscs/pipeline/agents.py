@@ -5,16 +5,21 @@ agents-<key>/``: the checkpoint, ``decisions.json``) with one ``agent_models`` c
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 
+from omniscs.agents.dual import DualConfig, complete_agents, grow_pool, write_decisions
+from omniscs.agents.pool import Pool
 from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
 from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.storage import atomic_write_json
 
 #: Bumped when the agents stage changes what it writes (2: relit pool models, the size rule; 3: matching compares a
 #: crop seen small with keyframes as small, ``matching.GALLERY_SCALES``).
@@ -31,7 +36,6 @@ def _pool_state(pool: str | Path | None, scene_id: str) -> dict | None:
     (so that the pool growing from the scene does not make the scene's own output stale)."""
     if pool is None:
         return None
-    from omniscs.agents.pool import Pool
 
     table = Pool(pool).table()
     return {"path": str(Path(pool).resolve()), "models": sorted(table.model_id[~table.source.str.startswith(
@@ -45,8 +49,6 @@ def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | N
     """The fitted graph (``model``, the fit stage's record) completed by the dual strategy; without ``pool`` every
     track that needs a 360-degree model gets the online one. A skipped stage (no fit, or nothing needs a model)
     hands the fit's record on unchanged."""
-    from omniscs.agents.dual import DualConfig
-
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if model is None or model.info.get("status") != "fitted":
@@ -68,12 +70,10 @@ def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | N
     if manifest is None:
         def make(tmp: Path) -> dict:
             rows = _complete(scene, plan, model, pool, config, grow, tmp, name, progress)
-            from omniscs.storage import atomic_write_json
             atomic_write_json(tmp / "catalog_rows.json", rows)
             return {"checkpoint": ".", "decisions": DECISIONS, "catalog_rows": "catalog_rows.json"}
 
         produce(out_dir, key, make)
-    import json
 
     rows = json.loads((out_dir / "catalog_rows.json").read_text())
     return StageRecord("agents", scene.scene_id, str(out_dir), reused=manifest is not None,
@@ -85,10 +85,6 @@ def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | N
 
 def _complete(scene, plan: ScenePlan, model: StageRecord, pool, config, grow: bool, out: Path, name: str,
               progress: Progress) -> list[dict]:
-    from omniscs.agents.dual import complete_agents, grow_pool, write_decisions
-    from omniscs.agents.pool import Pool
-    from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
-
     progress(0, 3, f"agents of {scene.scene_id}: dual strategy for {list(plan.needs_360)}")
     graph = load_graph(model.path, scene)
     p = Pool(pool) if pool is not None else None

@@ -6,17 +6,45 @@ appearance-level SCS variants: pool objects replacing a vehicle's model or inser
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
+import numpy as np
+
+from omniscs.agents.dual import DualConfig, cropped_to_box, mirror_completed, seen_side, track_views
+from omniscs.agents.pool import Pool, model_resolver
+from omniscs.annotate.dataset import PREVIEW_PNG, SCENES, write_preview
+from omniscs.annotate.scene import annotate_variants
 from omniscs.errors import OmniscsError
 from omniscs.locks import output_lock
+from omniscs.nsg.checkpoint import load_graph
+from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
+from omniscs.pipeline.closedloop import newest_checkpoint
+from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.scs.appearance.colour import IDENTITY, scene_colour_transform
+from omniscs.scs.appearance.compose import (
+    CompositeConfig,
+    compose_variant,
+    insert_variant,
+    model_upright_box,
+    new_track_id,
+    replace_variant,
+)
+from omniscs.scs.appearance.placement import PlacementConfig, check_placement, placement_context
+from omniscs.scs.appearance.variants import (
+    AppearanceConfig,
+    make_appearance_variants,
+    replacement_check,
+    write_appearance_variants,
+)
+from omniscs.storage import atomic_directory, atomic_write_json, workspace_root
 
 #: Bumped when the appearance stage changes what it writes.
 APPEARANCE_VERSION = 1
@@ -25,8 +53,6 @@ APPEARANCE_VERSION = 1
 def pool_objects(pool, objects=(), categories=None) -> list[str]:
     """The model ids to composite: ``objects`` checked against the pool, or every model of the pool (of
     ``categories`` when given), by id."""
-    from omniscs.agents.pool import Pool
-
     table = Pool(pool).table()
     if table.empty:
         raise OmniscsError(f"model pool {pool} is empty; build it first (omniscs pool build --assets pool --out {pool})")
@@ -51,8 +77,6 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
                      reuse: bool = True) -> StageRecord:
     """``n_variants`` appearance variants of the scene drawn on its complete graph (``model``: the latest graph
     stage's record) with objects from ``pool`` (``objects``: model ids; empty: the whole pool)."""
-    from omniscs.scs.appearance.variants import AppearanceConfig
-
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if n_variants < 1 or not plan.stages.get("appearance_variants"):
@@ -84,12 +108,6 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
 
 
 def _draw(scene, plan, model, pool, ids, n_variants, config, progress, tmp: Path, out_dir: Path) -> dict:
-    from omniscs.agents.pool import Pool, model_resolver
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.nsg.edit import node_model_resolver
-    from omniscs.scs.appearance.colour import scene_colour_transform
-    from omniscs.scs.appearance.variants import make_appearance_variants, write_appearance_variants
-
     graph = load_graph(model.path, scene)
     p = Pool(pool)
     progress(0, n_variants + 1, f"colour transform of {scene.scene_id}")
@@ -106,8 +124,6 @@ def _draw(scene, plan, model, pool, ids, n_variants, config, progress, tmp: Path
 # ----------------------------------------------------------------------------- one scene, by hand (omniscs scs appearance)
 def parse_pose(text: str) -> tuple[float, float, float, float, float]:
     """``x,y,yaw[,roll,pitch]`` (metres, degrees) -> (x, y, yaw rad, roll deg, pitch deg)."""
-    import math
-
     try:
         values = [float(v) for v in str(text).split(",")]
     except ValueError:
@@ -125,12 +141,6 @@ def user_variants(scene, graph, resolve, insert: str | None = None, pose: str | 
     """One appearance variant from a user's request: ``insert`` (model id) at ``pose`` or ``replace`` (track id)
     ``with_model``; the placement checks run on it and a failure is one OmniscsError saying which and why (never a
     silent overlap)."""
-    import numpy as np
-
-    from omniscs.scs.appearance.compose import insert_variant, model_upright_box, new_track_id, replace_variant
-    from omniscs.scs.appearance.placement import check_placement, placement_context
-    from omniscs.scs.appearance.variants import AppearanceConfig, replacement_check
-
     config = config or AppearanceConfig()
     if (insert is None) == (replace is None):
         raise OmniscsError("give one of --insert MODEL --pose x,y,yaw[,roll,pitch], --replace TRACK --with MODEL, "
@@ -164,14 +174,6 @@ def render_appearance_set(scene, graph, variants: list[dict], out: Path, pool=No
     """Render and annotate appearance ``variants`` of ``scene`` through ``graph`` into ``out`` (``variants.json``,
     one scene store per variant under ``scenes/``, ``rows.json``, ``preview.png``); procedural scenes are compared
     with the world's exact images. Returns the variants' summaries."""
-    from omniscs.agents.pool import Pool, model_resolver
-    from omniscs.annotate.dataset import PREVIEW_PNG, SCENES, write_preview
-    from omniscs.annotate.scene import annotate_variants
-    from omniscs.nsg.edit import node_model_resolver
-    from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description
-    from omniscs.scs.appearance.compose import CompositeConfig, compose_variant
-    from omniscs.storage import atomic_write_json
-
     composite = composite or CompositeConfig()
     resolve = model_resolver(pool, node_model_resolver(graph)) if pool is not None else node_model_resolver(graph)
     reference = appearance_reference(scene, pool_asset_of(Pool(pool) if pool is not None else None))
@@ -193,18 +195,6 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
     """What ``omniscs scs appearance`` does: the scene and its graph, the variants asked for (one by hand or ``sample``
     drawn), the scene's colour transform, then ``render_appearance_set`` into ``out`` (a temporary folder that
     becomes ``out`` only when everything is written)."""
-    import math
-
-    from omniscs.agents.pool import Pool, model_resolver
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.nsg.edit import node_model_resolver
-    from omniscs.pipeline.closedloop import newest_checkpoint
-    from omniscs.scs.appearance.colour import IDENTITY, scene_colour_transform
-    from omniscs.scs.appearance.compose import CompositeConfig
-    from omniscs.scs.appearance.placement import PlacementConfig
-    from omniscs.scs.appearance.variants import AppearanceConfig, make_appearance_variants
-    from omniscs.storage import atomic_directory, workspace_root
-
     try:
         lo, hi = (float(v) for v in str(distance).split(","))
     except ValueError:
@@ -240,7 +230,6 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
             v["pool"] = str(Path(pool).resolve())
     with atomic_directory(Path(out), overwrite=True) as tmp:
         result = render_appearance_set(scene, graph, specs, tmp, pool, config.composite, progress)
-        from omniscs.storage import atomic_write_json
 
         atomic_write_json(tmp / "colour.json", None if transform is None else transform.to_dict())
     return {"specs": specs, **result}
@@ -266,11 +255,6 @@ def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: 
     completed by mirror symmetry when one side was never seen (the pool's construction from a track's views), added
     to ``pool`` (provenance scene_track; the same model twice is one entry). Objects that cannot be traced, or whose
     track was left in the background, are listed with the reason. At most ``limit`` objects, in pick order."""
-    from omniscs.agents.dual import DualConfig, cropped_to_box, mirror_completed, seen_side, track_views
-    from omniscs.agents.pool import Pool
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.pipeline.closedloop import newest_checkpoint
-
     try:
         payload = json.loads(Path(missed_json).read_text())
     except (OSError, ValueError) as exc:

@@ -7,19 +7,29 @@ objects' nodes still in it, so whichever edit moves or removes them shows the re
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from omniscs.background.depth import SHIPPED, load_depth_model
+from omniscs.background.depthnet import WEIGHTS_FILE
+from omniscs.background.inpaint import load_inpainter
+from omniscs.background.inpaintnet import SHIPPED as INPAINT_SHIPPED, WEIGHTS_FILE as INPAINT_WEIGHTS
+from omniscs.background.repair import RepairConfig, repair_background
 from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
+from omniscs.nsg.config import FitConfig
+from omniscs.nsg.observations import Observations
 from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.storage import atomic_write_json
 
 #: Bumped when the background stage changes what it writes.
 BACKGROUND_VERSION = 1
@@ -37,8 +47,6 @@ def background_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
     """The graph of ``model`` (the fit's or the agents stage's record) with the background behind the plan's
     ``background_repair`` objects repaired. Skipped (the record is handed on unchanged by the callers) when there
     is no fitted graph or nothing to repair."""
-    from omniscs.background.repair import RepairConfig
-
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if model is None or model.info.get("status") != "fitted":
@@ -60,7 +68,6 @@ def background_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
     if manifest is None:
         def make(tmp: Path) -> dict:
             rows = _repair(scene, plan, model, config, tmp, name, progress)
-            from omniscs.storage import atomic_write_json
             atomic_write_json(tmp / CATALOG_ROWS, rows)
             return {"checkpoint": ".", "repair": REPAIR_DIR, "catalog_rows": CATALOG_ROWS}
 
@@ -74,32 +81,19 @@ def background_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
 
 def _model_ids(config) -> dict:
     """Which inpainter and depth model the repair uses (their weights decide its output)."""
-    from omniscs.background.depth import load_depth_model
-    from omniscs.background.inpaint import load_inpainter
-
     depth = load_depth_model(config.depth_model)
     weights = None
     if depth.name == "embedded":  # retrained shipped weights change the repair
-        import hashlib
 
-        from omniscs.background.depth import SHIPPED
-        from omniscs.background.depthnet import WEIGHTS_FILE
         weights = hashlib.sha256((SHIPPED / WEIGHTS_FILE).read_bytes()).hexdigest()
     ids = {"inpainter": load_inpainter(config.inpainter).name, "depth_model": depth.name, "depth_weights": weights}
     if ids["inpainter"] == "embedded":  # so do retrained inpainting weights
-        import hashlib
 
-        from omniscs.background.inpaintnet import SHIPPED as INPAINT_SHIPPED, WEIGHTS_FILE as INPAINT_WEIGHTS
         ids["inpaint_weights"] = hashlib.sha256((INPAINT_SHIPPED / INPAINT_WEIGHTS).read_bytes()).hexdigest()
     return ids
 
 
 def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name: str, progress: Progress) -> list[dict]:
-    from omniscs.background.repair import repair_background
-    from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
-    from omniscs.nsg.config import FitConfig
-    from omniscs.nsg.observations import Observations
-
     graph = load_graph(model.path, scene)
     meta_config = read_checkpoint_meta(model.path).get("config")
     fit_config = FitConfig.from_dict(meta_config) if meta_config else FitConfig()
@@ -126,8 +120,6 @@ def write_repair_files(result, folder: Path, config) -> None:
     """Per hole view: ``<camera>-<frame>-mask.png``, ``-filled.png``, ``-depth.png`` (16-bit, centimetres from the
     camera centre, 0 = unknown); ``preview.png`` (logged | filled | depth of a few views); ``repair.json``."""
     from PIL import Image
-
-    from omniscs.storage import atomic_write_json
 
     folder.mkdir(parents=True, exist_ok=True)
     views = []

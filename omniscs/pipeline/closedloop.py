@@ -13,11 +13,20 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
+from omniscs.closedloop.policies import make_policy
+from omniscs.closedloop.run import run_episode
+from omniscs.closedloop.scenario import log_scenario, variant_scenario
+from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.eval.downstream import content_id
 from omniscs.ids import check_id
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.progress import Progress, no_progress
+from omniscs.scene import load_scene
 
 log = logging.getLogger(__name__)
 
@@ -82,10 +91,6 @@ def resolve(workspace: str | Path, ref: str, checkpoint: str | Path | None = Non
 
 def load_world(ref: ScenarioRef, device: str = "cpu"):
     """(scene, graph, scenario) of a resolved reference."""
-    from omniscs.closedloop.scenario import log_scenario, variant_scenario
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.scene import load_scene
-
     scene = load_scene(ref.scene_path)
     graph = load_graph(ref.checkpoint, scene, device=device)
     dt = _scene_period(scene)
@@ -96,15 +101,11 @@ def load_world(ref: ScenarioRef, device: str = "cpu"):
 
 
 def _scene_period(scene) -> float:
-    import numpy as np
-
     ts = scene.frames["timestamp_us"].to_numpy(np.int64)
     return round(float(np.median(np.diff(ts))) / 1e6, 6) if len(ts) > 1 else 0.1
 
 
 def eval_id_of(policy: str, scenarios: list[str], settings: dict) -> str:
-    from omniscs.eval.downstream import content_id
-
     return content_id("cl", {"policy": policy, "scenarios": sorted(scenarios), "settings": settings})
 
 
@@ -119,10 +120,6 @@ def closed_loop_stage(workspace: str | Path, ref: str, policy: str, eval_id: str
     folder goes under ``out_dir`` when given, else under the workspace's ``closedloop/<eval_id>/``. A user error in
     this scenario (missing scene, graph or variant; a policy that fails) is recorded as a failed row and does not
     stop the evaluation's other scenarios."""
-    from omniscs.closedloop.policies import make_policy
-    from omniscs.closedloop.run import run_episode
-    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
-
     started = time.perf_counter()
     config = config or ClosedLoopConfig()
     row = {"eval_id": eval_id, "scenario_id": str(ref), "scene_id": str(ref).split("/")[0], "kind": "log",

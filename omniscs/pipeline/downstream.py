@@ -9,14 +9,54 @@ base and config give the same model) and ``downstream/<model_id>/`` for an exter
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
+from omniscs import catalog
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.eval.comparison import write_comparison
+from omniscs.eval.detector import (
+    DEFAULT_DETECTOR,
+    DetectorTrainConfig,
+    evaluate_detector,
+    load_detector,
+    save_detector,
+    score_detections,
+    train_detector,
+)
+from omniscs.eval.downstream import (
+    CAMERA_VIEW,
+    CARD_JSON,
+    content_id,
+    dataset_card,
+    detection_rows,
+    external_rows,
+    failed_row,
+    log_examples,
+    planner_rows,
+    variant_examples,
+)
+from omniscs.eval.external import job_argv, parse_uniad_output, run_job
+from omniscs.eval.planner import (
+    DEFAULT_PLANNER,
+    TrainConfig,
+    load_planner,
+    mixed_examples,
+    plan,
+    save_planner,
+    train_planner,
+)
+from omniscs.eval.planning import evaluate_planning
+from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
+from omniscs.export import export_scenes
 from omniscs.locks import output_lock
 from omniscs.pipeline import layout
+from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.progress import Progress, no_progress
@@ -32,8 +72,6 @@ BASE_MODEL_ID = "proxy-planner-base"
 
 def dataset_paths(workspace: str | Path, dataset_ids: list[str]) -> list[Path]:
     """The folders of ``dataset_ids`` in the workspace; a clear error for an unknown one."""
-    from omniscs.eval.downstream import CARD_JSON
-
     if not dataset_ids:
         raise ValidationError("no dataset ids given")
     out = []
@@ -46,16 +84,12 @@ def dataset_paths(workspace: str | Path, dataset_ids: list[str]) -> list[Path]:
 
 
 def _source_scenes(workspace: str | Path, datasets: list[Path]) -> list[Path]:
-    from omniscs.eval.downstream import dataset_card
-
     ids = sorted({v["scene_id"] for d in datasets for v in dataset_card(d).get("variants", [])})
     paths = [layout.scene_store(workspace, sid) for sid in ids]  # ingested, or used in place
     return [p for p in paths if p is not None]
 
 
 def _planner(model: StageRecord | None):
-    from omniscs.eval.planner import load_planner
-
     return load_planner(None if model is None else model.path)
 
 
@@ -69,9 +103,6 @@ def base_planner_logs(base_path: str | Path, progress: Progress = no_progress) -
     """Planning examples of the procedural logs a base planner was trained on, remade from the ``data`` its training
     record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs pretrained
     train planner`` trains the shipped one); [] for a base whose record names none."""
-    from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
-    from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
-
     path = Path(base_path) / "training.json"
     data = (json.loads(path.read_text()).get("data") or {}) if path.is_file() else {}
     seeds, templates, n_frames = data.get("train_seeds"), data.get("templates"), data.get("n_frames")
@@ -93,10 +124,6 @@ def finetune_stage(dataset_ids: list[str], workspace: str | Path, config=None, b
     (``base_planner_logs``), as the planning protocol fine-tunes (reports/downstream/report.md: no log base has not
     seen, so it keeps what it knew); otherwise, or for a base whose record names no logs, the datasets' source
     logs."""
-    from omniscs.eval.downstream import content_id, dataset_card, log_examples, variant_examples
-    from omniscs.eval.planner import (DEFAULT_PLANNER, TrainConfig, load_planner, mixed_examples, save_planner,
-                                      train_planner)
-
     started = time.perf_counter()
     config = config or TrainConfig(epochs=15, lr=1e-3, seed=1)  # the setting the planning protocol kept (its bench)
     datasets = dataset_paths(workspace, dataset_ids)
@@ -172,8 +199,6 @@ def dataroot_version(root: str | Path) -> tuple[str, str]:
 
 def export_dataroot(stores: list[str], out: Path, keyframe_every: int | None) -> Path:
     """Scene stores as one nuScenes dataroot (DETECTOR_VERSION) at ``out``, replacing what is there."""
-    from omniscs.export import export_scenes
-
     return export_scenes(stores, "nuscenes", out, overwrite=True, version=DETECTOR_VERSION,
                          keyframe_every=keyframe_every)
 
@@ -187,13 +212,6 @@ def finetune_detector_stage(dataset_ids: list[str], workspace: str | Path, confi
     base was trained on, mixed into the fine-tuning so that it does not forget them (the shipped detector's are
     made under ``<workspace>/bench-detector/`` by ``omniscs pretrained train detector``; without them, a
     fine-tuning on a few logs costs the detector much of what it knew: reports/downstream/detection.md)."""
-    import shutil
-    import tempfile
-
-    from omniscs.eval.detector import DEFAULT_DETECTOR, DetectorTrainConfig, load_detector, save_detector, \
-        train_detector
-    from omniscs.eval.downstream import content_id, dataset_card
-
     started = time.perf_counter()
     config = config or DetectorTrainConfig(**DETECTOR_FINETUNE)
     datasets = dataset_paths(workspace, dataset_ids)
@@ -247,12 +265,6 @@ def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], w
     stores and on its source logs ("original"), 2 Hz keyframes, by nuScenes mAP / NDS / AP per class over the classes
     each set holds, scored all round (nuScenes' protocol) and in the cameras' view (convention ``camera_view``);
     rows for ``evaluations``."""
-    import shutil
-    import tempfile
-
-    from omniscs.eval.detector import evaluate_detector, load_detector, score_detections
-    from omniscs.eval.downstream import CAMERA_VIEW, content_id, detection_rows, failed_row
-
     started = time.perf_counter()
     model_id = DETECTOR_BASE_ID if model is None else model.info["model_id"]
     eval_id = eval_id or content_id("eval", {"model": model_id, "datasets": sorted(dataset_ids), "task": "detection"})
@@ -288,8 +300,6 @@ def evaluate_detector_stage(model: StageRecord | None, dataset_ids: list[str], w
 
 
 def _folder_hash(path: Path) -> str:
-    import hashlib
-
     h = hashlib.sha256()
     for f in sorted(p for p in Path(path).glob("*") if p.is_file()):
         h.update(f.name.encode())
@@ -301,10 +311,6 @@ def evaluate_stage(model: StageRecord | None, dataset_ids: list[str], workspace:
                    eval_id: str | None = None) -> StageRecord:
     """A planner (``model``: a fine-tune stage's record; None: the shipped base) on each dataset's behaviour-SCS
     examples and on its source logs ("original"), by UniAD's planning metrics; rows for ``evaluations``."""
-    from omniscs.eval.downstream import content_id, failed_row, log_examples, planner_rows, variant_examples
-    from omniscs.eval.planner import plan
-    from omniscs.eval.planning import evaluate_planning
-
     started = time.perf_counter()
     model_id = BASE_MODEL_ID if model is None else model.info["model_id"]
     eval_id = eval_id or content_id("eval", {"model": model_id, "datasets": sorted(dataset_ids)})
@@ -334,10 +340,6 @@ def external_stage(template: str, dataset_ids: list[str], workspace: str | Path,
     the template filled (``{dataset_root}``, ``{info_train}``, ``{info_val}``, ``{work_dir}`` and ``values``), run
     to its end or its timeout, its printed metrics read back. Without export, ``{dataset_root}`` is the dataset's
     own folder (one dataset only). A crash or timeout is a failed model row."""
-    from omniscs.eval.downstream import content_id, external_rows, failed_row
-    from omniscs.eval.external import job_argv, run_job
-    from omniscs.export import export_scenes
-
     started = time.perf_counter()
     datasets = dataset_paths(workspace, dataset_ids)
     model_id = content_id("external", {"template": template, "datasets": sorted(dataset_ids), "values": values,
@@ -367,7 +369,6 @@ def external_stage(template: str, dataset_ids: list[str], workspace: str | Path,
                                  "evaluations": [failed_row(eval_id, model_id, None, "external", "external",
                                                             result.reason)]},
                            info={"status": "failed", "model_id": model_id, "error": result.reason})
-    from omniscs.eval.external import parse_uniad_output
 
     rows = external_rows(eval_id, model_id, None, parse_uniad_output(Path(result.log_path).read_text()))
     if not rows:
@@ -381,8 +382,6 @@ def external_stage(template: str, dataset_ids: list[str], workspace: str | Path,
 def datasets_of_flow_run(workspace: str | Path, flow_run_id: str) -> list[str]:
     """The datasets a ``generate_dataset`` run made, found by the orchestrator's flow run id (what a
     ``prefect.flow-run.Completed`` event names: ``prefect.flow-run.<id>`` or the bare id)."""
-    from omniscs import catalog
-
     fid = str(flow_run_id).removeprefix("prefect.flow-run.")
     if not fid or "'" in fid:
         raise ValidationError(f"not a flow run id: {flow_run_id!r}")
@@ -398,8 +397,6 @@ def datasets_of_flow_run(workspace: str | Path, flow_run_id: str) -> list[str]:
 def comparison_plot_stage(run_id: str, workspace: str | Path, records: list[StageRecord]) -> str | None:
     """The run's comparison plot (``omniscs.eval.comparison``) of the evaluation rows of ``records``, written to
     ``<workspace>/evaluations/<run_id>/comparison.png``; None when no row can be drawn (every evaluation failed)."""
-    from omniscs.eval.comparison import write_comparison
-
     rows = [row for r in records for row in r.rows.get("evaluations", [])]
     if not any(row["status"] == "ok" for row in rows):
         return None
@@ -412,8 +409,6 @@ def comparison_plot_stage(run_id: str, workspace: str | Path, records: list[Stag
 
 def catalog_records_stage(run_id: str, workspace: str | Path, records: list[StageRecord], writer: str) -> list[str]:
     """One Parquet file per table for the rows of ``records`` (downstream models, evaluations)."""
-    from omniscs import catalog
-
     tables: dict[str, list[dict]] = {}
     for r in records:
         for table, rows in r.rows.items():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from omniscs import catalog
 from omniscs.catalog import catalog_root
 from omniscs.ids import check_id
 
@@ -56,8 +57,6 @@ def closedloop_folder(workspace: str | Path, eval_id: str) -> Path:
 def scene_store(workspace: str | Path, scene_id: str) -> Path | None:
     """Where a scene of the workspace is: ingested under ``scenes/``, or a scene store used in place (as the
     ``scenes`` catalog table recorded it); None when neither knows it."""
-    from omniscs import catalog
-
     here = scene_folder(workspace, "ingest", scene_id)
     if (here / "manifest.json").is_file():
         return here

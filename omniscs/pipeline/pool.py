@@ -5,16 +5,18 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from omniscs.agents.mesh import model_from_mesh
+from omniscs.agents.pool import Pool, model_id_of
 from omniscs.errors import ValidationError
 from omniscs.pipeline.records import StageRecord
+from omniscs.taxonomy import VEHICLE_CATEGORIES
+from omniscs.world.assets import ASSET_KINDS, SPLITS, asset_category, build_asset, list_asset_ids
+from omniscs.world.render import F0, SHININESS
 
 
 def asset_ids(items: list[str]) -> list[str]:
     """Asset ids of ``items``: ids of the asset library, kinds (``sedan``: the kind's world split), a split's
     vehicles (``pool``, ``world``) or a split of one kind (``pool:sedan``)."""
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world.assets import ASSET_KINDS, SPLITS, asset_category, list_asset_ids
-
     ids: list[str] = []
     for item in (i.strip() for i in items):
         split, _, kind = item.rpartition(":")
@@ -39,11 +41,6 @@ def pool_asset_stage(asset_id: str, pool: str | Path, gaussians: int = 20_000, r
     the same entry, ``new`` false). A pool keeps the model it holds of an asset even when the mesh build has changed
     since (its ``model.json`` "build" says which made it; none: version 1), so the datasets made from a pool stay
     reproducible; build into a new pool to get the current build's models."""
-    from omniscs.agents.mesh import model_from_mesh
-    from omniscs.agents.pool import Pool, model_id_of
-    from omniscs.world.assets import build_asset
-    from omniscs.world.render import F0, SHININESS
-
     started = time.perf_counter()
     p = Pool(pool)
     table = p.table()

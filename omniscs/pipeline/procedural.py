@@ -7,11 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
+from omniscs.edits import Insert, ReplaceModel, SetTrajectory, parse_edits
 from omniscs.errors import OmniscsError
+from omniscs.geometry import yaw_from_matrix
+from omniscs.scene import load_scene
 from omniscs.scene.ingest import Source, StoreSource, check_synthetic
 from omniscs.scene.synthetic import SyntheticSource
 from omniscs.scs.behavior.maps import MapConfig
 from omniscs.scs.behavior.tracks import EgoBox, TrafficScene, traffic_from_log, traffic_from_scene
+from omniscs.world import WorldRenderer, apply_edits, generate_world, road_map_for
+from omniscs.world.assets import asset_split
 
 #: Sensor rig of procedural logs made only for their traffic: nothing is rendered, so the smallest one.
 TRAFFIC_ONLY_RIG = dict(n_cameras=1, width=64, height=36)
@@ -20,8 +25,6 @@ TRAFFIC_ONLY_RIG = dict(n_cameras=1, width=64, height=36)
 def traffic_from_world(world, scene_id: str | None = None, ego_box: EgoBox = EgoBox(),
                        map_config: MapConfig = MapConfig()) -> TrafficScene:
     """The traffic of a procedural ``omniscs.world.World`` (no rendering), with its layout's road map."""
-    from omniscs.world import road_map_for
-
     agents = world.agents
     n, s = len(agents), world.n_frames
     return traffic_from_log(
@@ -37,8 +40,6 @@ def traffic_from_world(world, scene_id: str | None = None, ego_box: EgoBox = Ego
 def procedural_traffic(template: str, seed: int, n_frames: int, scene_id: str | None = None) -> TrafficScene:
     """The traffic of the procedural log (template, seed) with ``n_frames`` frames; raises OmniscsError for a seed
     that cannot be built. This is the ``ProceduralLogs`` source that ``train_model`` takes."""
-    from omniscs.world import generate_world
-
     world = generate_world(template, int(seed), n_frames=int(n_frames), **TRAFFIC_ONLY_RIG)
     return traffic_from_world(world, scene_id=scene_id)
 
@@ -62,8 +63,6 @@ def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
         return procedural_traffic(source.template, source.seed, source.n_frames,
                                   scene_id=f"syn-{source.template}-s{source.seed}")
     if isinstance(source, StoreSource):
-        from omniscs.scene import load_scene
-
         return traffic_from_scene(load_scene(Path(source.path)), dt=dt)
     raise OmniscsError(f"{source.format}:{source.dataroot} is a dataset, not a scene store; ingest it first "
                        "(`omniscs ingest`) and pass the scene store it writes")
@@ -73,10 +72,6 @@ def traffic_for_source(source: Source, dt: float = 0.1) -> TrafficScene:
 def variant_world(world, vf):
     """The procedural ``world`` as a variant made it: every agent node the variant moved where it was placed in the
     rendered frames (logged poses elsewhere), the ego where it drove. Same frames as the world."""
-    from omniscs.edits import SetTrajectory
-    from omniscs.geometry import yaw_from_matrix
-    from omniscs.world import apply_edits
-
     def xyz_yaw(T: np.ndarray) -> tuple:
         return float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), float(yaw_from_matrix(T[:3, :3]))
 
@@ -105,7 +100,6 @@ def world_reference(scene):
     world = scene.world
     if world is None:
         return None
-    from omniscs.world import WorldRenderer
 
     held: list = []
 
@@ -140,9 +134,6 @@ def world_description(scene):
 def appearance_world(world, variant: dict, asset_of):
     """The procedural ``world`` with an appearance variant's edits, each object model replaced by the library asset it
     was built from (``asset_of(model id) -> asset id`` or None); None when an object has no asset of the library."""
-    from omniscs.edits import Insert, ReplaceModel, parse_edits
-    from omniscs.world import apply_edits
-
     edits = []
     for e in parse_edits(variant["edits"]):
         if isinstance(e, (Insert, ReplaceModel)):
@@ -160,7 +151,6 @@ def appearance_reference(scene, asset_of):
     world = scene.world
     if world is None:
         return None
-    from omniscs.world import WorldRenderer
 
     def for_variant(variant: dict):
         edited = appearance_world(world, variant, asset_of)
@@ -178,8 +168,6 @@ def appearance_reference(scene, asset_of):
 
 def pool_asset_of(pool):
     """``model id -> asset id`` of the library asset a pool model was built from (provenance mesh), else None."""
-    from omniscs.world.assets import asset_split
-
     table = pool.table() if pool is not None else None
 
     def asset_of(model_id: str):

@@ -16,6 +16,7 @@ from typing import Any, Literal
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from omniscs.edits import edit_from_dict
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
 
@@ -132,8 +133,6 @@ class SceneRequest(BaseModel):
 
     def parsed_edits(self) -> list:
         """The edits as the project's edit types (a malformed one is an OmniscsError)."""
-        from omniscs.edits import edit_from_dict
-
         return [edit_from_dict(e) for e in self.edits]
 
     def scene_request(self) -> "SceneRequest":

@@ -10,9 +10,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlparse
 
+from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.ids import check_id
+from omniscs.pipeline.appearance import pool_objects
 from omniscs.pipeline.request import MAX_WORKERS, RunRequest, SceneRequest
+from omniscs.scene import DatasetSource, StoreSource, SyntheticSource, check_synthetic, parse_source
+from omniscs.scene.sources import resolve
+from omniscs.scs.behavior.checkpoint import load_traffic_model
 
 #: Task runners a run can use (flows/runners.py builds them).
 TASK_RUNNERS = ("threads", "dask")
@@ -35,8 +40,6 @@ def check_source(text: str, n_frames: int = 40, n_cameras: int = 3, width: int =
                  height: int = 270) -> CheckedSource:
     """One source, parsed and checked as far as it can be without rendering or reading it: a synthetic
     source's template, seed and lighting; a recorded dataset's root and scene; a scene store's manifest."""
-    from omniscs.scene import DatasetSource, StoreSource, SyntheticSource, check_synthetic, parse_source
-
     if not isinstance(text, str) or not text.strip():
         raise OmniscsError(f"empty source {text!r}; give syn:TEMPLATE:SEED[:LIGHTING], FORMAT:DATAROOT[:SCENE] or "
                            "a scene-store path")
@@ -47,8 +50,6 @@ def check_source(text: str, n_frames: int = 40, n_cameras: int = 3, width: int =
         check_synthetic(src)
         scene_id = src.scene_id()
     elif isinstance(src, DatasetSource):
-        from omniscs.scene.sources import resolve
-
         src = resolve(src)  # the dataset's scene exists and its defining files are readable
         scene_id = src.scene_id()
     elif isinstance(src, StoreSource):
@@ -80,19 +81,14 @@ def check_sources(sources, n_frames: int = 40, n_cameras: int = 3, width: int = 
 def check_request(request: SceneRequest | dict) -> SceneRequest:
     """The request's outside-world parts: its edits parse, its pool is a folder holding the appearance objects,
     its traffic-model checkpoint loads and its device exists here (its fields were checked when it was made)."""
-    from omniscs.devices import resolve_device
-
     request = SceneRequest.parse(request) if isinstance(request, dict) else request
     request.parsed_edits()
     if request.pool is not None and not Path(request.pool).is_dir():
         raise ValidationError(f"pool {request.pool} is not a folder (make one with omniscs pool build or import)")
     if request.appearance_variants > 0:  # the objects must be in the pool before any scene starts
-        from omniscs.pipeline.appearance import pool_objects
 
         pool_objects(request.pool, request.appearance_objects)
     if request.behavior_variants > 0 or request.behavior_checkpoint is not None:
-        from omniscs.scs.behavior.checkpoint import load_traffic_model
-
         load_traffic_model(request.behavior_checkpoint)
     resolve_device(request.device)
     return request
