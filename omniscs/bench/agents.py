@@ -14,7 +14,10 @@ Three parts, one report (reports/agents/):
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+import shutil
 import statistics
 import time
 from dataclasses import asdict, dataclass, replace
@@ -23,11 +26,41 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omniscs.agents.msnet import SHIPPED as MSNET_CHECKPOINT
+from omniscs.agents.degradation import Degradation, degrade
+from omniscs.agents.dual import DualConfig, boxes_cleared, complete_agents, grow_pool
+from omniscs.agents.matching import (
+    GALLERY_SCALES,
+    HOG,
+    ColourHistogram,
+    RawPixels,
+    best_at_scales,
+    crop_scale,
+    crop_square,
+    default_embedder,
+    pool_gallery,
+)
+from omniscs.agents.mesh import MESH_BUILD_VERSION
+from omniscs.agents.msnet import SHIPPED as MSNET_CHECKPOINT, MSNet, MSNetEmbedder, load_msnet
+from omniscs.agents.pool import Pool
+from omniscs.bench.fit import edited_agents, evaluation_views
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.edits import edit_from_dict, edit_to_dict
+from omniscs.gaussians import GaussianParams
+from omniscs.nsg.checkpoint import load_graph
+from omniscs.nsg.edit import apply_graph_edits
+from omniscs.nsg.graph import render_view
+from omniscs.pipeline.agents import GROWTH_MIN_PSNR
+from omniscs.pipeline.pool import pool_asset_stage
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
+from omniscs.plan import make_plan
 from omniscs.progress import Progress, no_progress
+from omniscs.quality import psnr, ssim
+from omniscs.scene import SyntheticSource, load_scene
 from omniscs.storage import workspace_root
+from omniscs.taxonomy import VEHICLE_CATEGORIES
+from omniscs.world import WorldRenderer, apply_edits, build_asset, generate_world
+from omniscs.world.assets import list_asset_ids
 
 log = logging.getLogger(__name__)
 
@@ -97,23 +130,16 @@ def quick_config() -> AgentsBenchConfig:
 
 
 def _source(item: str):
-    from omniscs.scene import SyntheticSource
-
     template, _, seed = item.partition(":")
     return SyntheticSource(template, int(seed), "day", 40, 3, 480, 270)
 
 
 def pool_ids(quota) -> list[str]:
-    from omniscs.world.assets import list_asset_ids
-
     return [a for kind, n in quota for a in list_asset_ids(kind, "pool")[:n]]
 
 
 def build_pool(pool: Path, ids: list[str], progress: Progress = no_progress) -> list[dict]:
     """The pool stage over ``ids``; assets the pool already holds a mesh model of are not looked at again."""
-    from omniscs.agents.pool import Pool
-    from omniscs.pipeline.pool import pool_asset_stage
-
     table = Pool(pool).table()
     have = set(table.source[table.provenance == "mesh"]) if len(table) else set()
     rows = []
@@ -127,19 +153,12 @@ def build_pool(pool: Path, ids: list[str], progress: Progress = no_progress) -> 
 
 def table4_request(targets: list[int], preset: str):
     """The request whose plan makes the edited agents nodes that need 360-degree models."""
-    from omniscs.pipeline.request import SceneRequest
-
     edits = [{**spec, "track_id": int(t)} for t in targets for _, spec in TABLE4_EDITS]
     return SceneRequest(fit_preset=preset, edits=tuple(edits), previews=False)
 
 
 def prepare_scene(item: str, config: AgentsBenchConfig, workspace: Path, progress: Progress = no_progress):
     """Ingest, pick the edited agents (vehicles, most visible), plan and fit (reused when fitted before)."""
-    from omniscs.bench.fit import edited_agents
-    from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
-    from omniscs.scene import load_scene
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-
     ingested = ingest_stage(_source(item), workspace)
     scene = load_scene(ingested.path)
     vehicles = set(scene.boxes[scene.boxes.category.isin(VEHICLE_CATEGORIES)].track_id)
@@ -157,11 +176,6 @@ def swap_vehicles(world, options: dict[str, list[str]]):
     """``world`` with its vehicles replaced by assets popped from the end of ``options`` (category -> asset ids),
     each with its own box size, standing on the road where the world's vehicle stood; vehicles whose category has
     no asset left stay. Returns the new world and {track id: asset id} of the replaced ones."""
-    import dataclasses
-
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import build_asset
-
     tracks, swapped = [], {}
     for track in world.agents:
         choices = options.get(track.category)
@@ -184,9 +198,6 @@ def matching_queries(config: AgentsBenchConfig, pool_table, progress: Progress =
     pixels black, as in the keyframes). The first crop is the view that shows most of it; the others are its next
     largest views, up to ``DualConfig.match_views`` in all, as the dual strategy's matching takes a track's largest
     views."""
-    from omniscs.agents.dual import DualConfig
-    from omniscs.world import generate_world
-
     by_category: dict[str, list[str]] = {}
     model_of = {}
     for row in pool_table.sort_values("model_id").itertuples():
@@ -220,9 +231,6 @@ def whole_views(world, track_ids, frame_step: int, min_pixels: int):
     ``frame_step``-th frame of ``world`` in which one of ``track_ids`` shows whole (not cut by the image border)
     over at least ``min_pixels``, cropped by its ground-truth mask (other pixels black, as in the pool's
     keyframes)."""
-    from omniscs.agents.matching import crop_scale, crop_square
-    from omniscs.world import WorldRenderer
-
     renderer = WorldRenderer(world)
     for f in range(0, world.n_frames, frame_step):
         for cam in world.cameras:
@@ -245,9 +253,6 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
     downsampling, as the dual strategy does; one row per embedder compares with full-resolution keyframes instead.
     Where queries carry more views (a fifth item, ``matching_queries``), also as the dual strategy scores a track:
     the mean over its views, each degraded on its own, of the best keyframe similarity, with the box-shape term."""
-    from omniscs.agents.degradation import Degradation, degrade
-    from omniscs.agents.matching import GALLERY_SCALES, best_at_scales, pool_gallery
-
     rows = []
     crops = np.stack([q[0] for q in queries])
     cats = np.array([q[1] for q in queries])
@@ -305,8 +310,6 @@ def run_matching(queries, pool, embedders, size_weight: float = 1.0, size_noise:
 # ----------------------------------------------------------------------------- Table 4
 def _arm_graphs(graph, scene, plan, targets, pool, in_pool, progress: Progress):
     """The naive graph and the graph each arm makes (with its decisions)."""
-    from omniscs.agents.dual import complete_agents
-
     arms = {"naive": (graph, [])}
     for arm, force, p in (("online", "online", None), ("pool", "pool", pool), ("dual", None, pool),
                           ("pool in-pool", "pool", in_pool)):
@@ -316,17 +319,6 @@ def _arm_graphs(graph, scene, plan, targets, pool, in_pool, progress: Progress):
 
 
 def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progress = no_progress):
-    import shutil
-
-    from omniscs.agents.pool import Pool
-    from omniscs.bench.fit import evaluation_views
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.pipeline.pool import pool_asset_stage
-    from omniscs.world import WorldRenderer, apply_edits
-
-    from omniscs.agents.dual import grow_pool
-    from omniscs.pipeline.agents import GROWTH_MIN_PSNR
-
     rows, strips, decisions, fits, pool_growth, limits = [], [], [], [], [], []
     shutil.rmtree(workspace / "bench-agents" / "growth-pool", ignore_errors=True)
     for item in config.scenes:
@@ -398,17 +390,12 @@ def run_table4(config: AgentsBenchConfig, workspace: Path, pool, progress: Progr
 def dual_needs_360(scene, edit) -> bool:
     """Whether the plan of a request with ``edit`` alone gives its track a 360-degree model (the agents stage runs
     for it); where it does not, the product renders the edit with the fitted node, and so does the dual arm."""
-    from omniscs.plan import make_plan
-
     return int(edit.track_id) in make_plan(scene, [edit]).needs_360
 
 
 def _scored_views(graph, edit, track_id: int, views, keep_middle: bool) -> tuple[list[dict], np.ndarray | None]:
     """Masked PSNR / SSIM of ``graph`` with ``edit`` applied on each evaluation view (``evaluation_views``), and
     the middle view's render (uint8) when ``keep_middle`` (the report's strip)."""
-    from omniscs.nsg.edit import apply_graph_edits
-    from omniscs.quality import psnr, ssim
-
     edited = apply_graph_edits(graph, [edit])
     per_view, middle = [], None
     for i, (f, cam, gt) in enumerate(views):
@@ -426,11 +413,6 @@ def own_model_graph(graph, scene, train_frames, source, models: dict[int, str], 
     """The pool arm with each edited vehicle given its own model (``models``: track -> model id of the pool
     ``source``), from a pool of that one model per track, so matching cannot pick another: the graph and {track:
     model id}."""
-    import shutil
-
-    from omniscs.agents.dual import DualConfig, boxes_cleared, complete_agents
-    from omniscs.agents.pool import Pool
-
     config = DualConfig()
     out, nodes, pooled, ids = None, {}, [], {}
     for t, model_id in models.items():
@@ -454,9 +436,6 @@ def own_model_graph(graph, scene, train_frames, source, models: dict[int, str], 
 
 def truth_fitted(edited, track_id: int, views, steps: int = ORACLE_STEPS):
     """``edited`` with the track's colours (SH, every band) fitted to the ground truth of ``views`` (an oracle)."""
-    from omniscs.gaussians import GaussianParams
-    from omniscs.nsg.graph import render_view
-
     node = edited.agent(track_id)
     p = node.gaussians
     dc = p.sh_dc.detach().clone().requires_grad_(True)
@@ -483,9 +462,6 @@ def truth_fitted(edited, track_id: int, views, steps: int = ORACLE_STEPS):
 def limit_rows(own, background, track_id: int, edit, views, key: dict) -> list[dict]:
     """Masked PSNR of each of LIMITS for one edited vehicle and edit; ``background``: the fitted graph's, before the
     pool arm cleared the box."""
-    from omniscs.nsg.edit import apply_graph_edits
-    from omniscs.quality import psnr
-
     base = apply_graph_edits(own, [edit])
     graphs = {LIMITS[0]: base, LIMITS[1]: apply_graph_edits(own.replace(background=background), [edit]),
               LIMITS[2]: truth_fitted(base, track_id, views)}
@@ -532,11 +508,6 @@ def table4_summary(rows: list[dict]) -> list[dict]:
 # ----------------------------------------------------------------------------- the run
 def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: AgentsBenchConfig = AgentsBenchConfig(),
                          progress: Progress = no_progress) -> dict:
-    import shutil
-
-    from omniscs.agents.mesh import MESH_BUILD_VERSION
-    from omniscs.agents.pool import Pool
-
     machine = machine_info()
     ws = workspace_root(workspace)
     root = ws / "bench-agents"
@@ -574,9 +545,6 @@ def run_agents_benchmark(out_dir: Path, workspace: Path | None = None, config: A
 
 def _embedders() -> list:
     """The baselines, the untrained network and the shipped MSNet (when the package holds its weights)."""
-    from omniscs.agents.matching import HOG, ColourHistogram, RawPixels
-    from omniscs.agents.msnet import MSNet, MSNetEmbedder, load_msnet
-
     torch.manual_seed(0)
     embedders = [ColourHistogram(), HOG(), RawPixels(), _Named(MSNetEmbedder(MSNet()), "MSNet (untrained)")]
     if (MSNET_CHECKPOINT / "msnet.safetensors").is_file():
@@ -588,11 +556,6 @@ def run_matching_benchmark(out_dir: Path, workspace: Path | None = None,
                            config: AgentsBenchConfig = AgentsBenchConfig(), progress: Progress = no_progress) -> dict:
     """Matching alone (``agents/matching.json/.md``): the benchmark pool, its queries and every embedder, as in the
     whole benchmark, in minutes where Table 4's fits take hours; for a new MSNet."""
-    import json
-
-    from omniscs.agents.mesh import MESH_BUILD_VERSION
-    from omniscs.agents.pool import Pool
-
     machine = machine_info()
     pool = Pool(workspace_root(workspace) / "bench-agents" / f"pool-mesh-v{MESH_BUILD_VERSION}")
     build_pool(pool.root, pool_ids(config.quota), progress)
@@ -620,8 +583,6 @@ def matching_markdown(report: dict) -> str:
 
 
 def _default_name() -> str:
-    from omniscs.agents.matching import default_embedder
-
     return default_embedder().name
 
 

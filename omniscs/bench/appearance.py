@@ -23,9 +23,37 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omniscs.agents.pool import Pool, model_resolver
+from omniscs.annotate.views import Instance, ViewAnnotator
+from omniscs.bench.agents import build_pool
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.edits import Remove
+from omniscs.gaussians import empty_params
+from omniscs.geometry import invert_transform, make_transform, transform_points
+from omniscs.nsg.checkpoint import load_graph
+from omniscs.nsg.edit import node_model_resolver
+from omniscs.pipeline.procedural import appearance_world, pool_asset_of
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
+from omniscs.quality import psnr, ssim
+from omniscs.quaternions import quat_to_rotmat
+from omniscs.scene import SyntheticSource, load_scene
+from omniscs.scs.appearance.colour import scene_colour_transform
+from omniscs.scs.appearance.compose import (
+    CompositeConfig,
+    compose_variant,
+    insert_variant,
+    model_upright_box,
+    new_track_id,
+    replace_variant,
+)
+from omniscs.scs.appearance.placement import PlacementConfig, placement_context, sample_placements
+from omniscs.scs.appearance.variants import POSES, _replaceable
+from omniscs.scs.behavior.tracks import EgoBox
 from omniscs.storage import workspace_root
+from omniscs.world import WorldRenderer, apply_edits, road_map_for
+from omniscs.world.assets import list_asset_ids
 
 log = logging.getLogger(__name__)
 
@@ -68,18 +96,12 @@ def quick_config() -> AppearanceBenchConfig:
 
 
 def _source(item: str):
-    from omniscs.scene import SyntheticSource
-
     template, _, seed = item.partition(":")
     return SyntheticSource(template, int(seed), "day", 40, 3, 480, 270)
 
 
 def prepare_scene(item: str, config: AppearanceBenchConfig, workspace: Path, progress: Progress = no_progress):
     """Ingest, plan (every vehicle a node, as appearance variants ask) and fit; reused when fitted before."""
-    from omniscs.pipeline.request import SceneRequest
-    from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
-    from omniscs.scene import load_scene
-
     ingested = ingest_stage(_source(item), workspace)
     request = SceneRequest(fit_preset=config.preset, previews=False)
     plan = load_plan(plan_stage(ingested.path, request, workspace))
@@ -90,10 +112,6 @@ def prepare_scene(item: str, config: AppearanceBenchConfig, workspace: Path, pro
 
 
 def bench_pool(root: Path, per_kind: int, progress: Progress = no_progress):
-    from omniscs.agents.pool import Pool
-    from omniscs.bench.agents import build_pool
-    from omniscs.world.assets import list_asset_ids
-
     ids = [a for kind in OBJECT_KINDS for a in list_asset_ids(kind, "pool")[:per_kind]]
     build_pool(root, ids, progress)
     return Pool(root)
@@ -101,9 +119,6 @@ def bench_pool(root: Path, per_kind: int, progress: Progress = no_progress):
 
 # ----------------------------------------------------------------------------- one case
 def _gt_renderer(world, variant: dict, asset_of):
-    from omniscs.pipeline.procedural import appearance_world
-    from omniscs.world import WorldRenderer
-
     return WorldRenderer(appearance_world(world, variant, asset_of))
 
 
@@ -142,8 +157,6 @@ def box_iou(a, b) -> float | None:
 def _isolated(composite_graph, track_id: int, view, background: np.ndarray) -> np.ndarray:  # -> [H, W, 3] 0..1
     """The object's node alone (the pool model as composited: same colours, same camera exposure), laid over the
     exact image without the object: A c_premultiplied + alpha b + (1 - alpha) background."""
-    from omniscs.gaussians import empty_params
-
     g = composite_graph
     alone = g.replace(background=empty_params(g.sh_degree).to(g.device), agents=(g.agent(track_id),))
     empty = g.replace(background=empty_params(g.sh_degree).to(g.device), agents=())
@@ -157,14 +170,6 @@ def _isolated(composite_graph, track_id: int, view, background: np.ndarray) -> n
 def run_case(scene, graph, variant: dict, resolve, asset_of, colour: np.ndarray, config: AppearanceBenchConfig,
              progress: Progress = no_progress) -> tuple[list[dict], tuple | None]:
     """Rows (one per arm) of one case, and its picture strip."""
-    from omniscs.annotate.views import Instance, ViewAnnotator
-    from omniscs.edits import Remove
-    from omniscs.quality import psnr, ssim
-    from omniscs.scs.appearance.compose import CompositeConfig, compose_variant
-    from omniscs.world import WorldRenderer, apply_edits
-    from omniscs.quaternions import quat_to_rotmat
-    from omniscs.geometry import make_transform
-
     tid = int(variant["track_id"])
     renderer = _gt_renderer(scene.world, variant, asset_of)
     views = evaluation_views(renderer, scene, tid, config)
@@ -252,10 +257,6 @@ def verify_placement(world, variant: dict, asset_of, config: AppearanceBenchConf
     """An accepted insert checked against the world, independently of the sampler's own checks: the footprint on
     the world's exact road polygons, a grid of points of the object's box against every agent's and the ego's box
     at every frame, and the ground-truth render for visibility."""
-    from omniscs.geometry import invert_transform, transform_points
-    from omniscs.scs.behavior.tracks import EgoBox
-    from omniscs.world import road_map_for
-
     renderer = _gt_renderer(world, variant, asset_of)
     edited = renderer.world
     tid = int(variant["track_id"])
@@ -292,15 +293,6 @@ def verify_placement(world, variant: dict, asset_of, config: AppearanceBenchConf
 def run_appearance_benchmark(out_dir: Path, workspace: Path | None = None,
                              config: AppearanceBenchConfig = AppearanceBenchConfig(),
                              progress: Progress = no_progress) -> dict:
-    from omniscs.agents.pool import model_resolver
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.nsg.edit import node_model_resolver
-    from omniscs.pipeline.procedural import pool_asset_of
-    from omniscs.scs.appearance.colour import scene_colour_transform
-    from omniscs.scs.appearance.compose import insert_variant, model_upright_box, new_track_id, replace_variant
-    from omniscs.scs.appearance.placement import PlacementConfig, placement_context, sample_placements
-    from omniscs.scs.appearance.variants import POSES, _replaceable
-
     machine = machine_info()
     ws = workspace_root(workspace)
     pool = bench_pool(ws / "bench-appearance" / "pool", config.pool_per_kind, progress)

@@ -12,6 +12,7 @@ between views.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import statistics
@@ -22,10 +23,34 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omniscs.background.repair import RepairConfig
+from omniscs.background.depth import load_depth_model
+from omniscs.background.holes import hole_mask, ray_norms
+from omniscs.background.inpaint import load_inpainter
+from omniscs.background.repair import (
+    RepairConfig,
+    cleaned_graph,
+    fill_views,
+    plane_fill,
+    prepare_views,
+    refit_background,
+    removed_objects,
+    seeded_graph,
+)
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph, read_checkpoint_meta
+from omniscs.nsg.config import FitConfig
+from omniscs.nsg.observations import Observations
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
+from omniscs.quality import psnr, psnr_from_mse, ssim
+from omniscs.scene import SyntheticSource, load_scene
+from omniscs.scene.summary import agent_rows
 from omniscs.storage import workspace_root
+from omniscs.taxonomy import SEMANTIC_CLASSES
+from omniscs.world import WorldRenderer, apply_edits
+from omniscs.world.model import CameraSpec
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +112,6 @@ class BackgroundBenchConfig:
     """With ``full_comparison``, only these of EXTRA_ARMS (None: all of them)."""
 
     def __post_init__(self) -> None:
-        from omniscs.errors import OmniscsError
-
         unknown = sorted(set(self.ablations or ()) - set(EXTRA_ARMS))
         if unknown:
             raise OmniscsError(f"unknown ablation(s) {unknown}; choose from {list(EXTRA_ARMS)}")
@@ -108,17 +131,12 @@ def quick_config() -> BackgroundBenchConfig:
 
 
 def _source(item: str):
-    from omniscs.scene import SyntheticSource
-
     template, _, seed = item.partition(":")
     return SyntheticSource(template, int(seed), "day", 40, 3, 480, 270)
 
 
 def large_static_object(scene) -> int:
     """The track id of the scene's largest static truck, trailer, bus or construction vehicle."""
-    from omniscs.errors import OmniscsError
-    from omniscs.scene.summary import agent_rows
-
     rows = [a for a in agent_rows(scene)
             if not a["moving"] and a["category"] in ("truck", "trailer", "bus", "construction_vehicle")]
     if not rows:
@@ -128,10 +146,6 @@ def large_static_object(scene) -> int:
 
 def prepare_scene(item: str, preset: str, workspace: Path, progress: Progress = no_progress):
     """Ingest, plan the object's removal (so it becomes a node) and fit (reused when fitted before)."""
-    from omniscs.pipeline.request import SceneRequest
-    from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
-    from omniscs.scene import load_scene
-
     ingested = ingest_stage(_source(item), workspace)
     scene = load_scene(ingested.path)
     track = large_static_object(scene)
@@ -165,8 +179,6 @@ def _shifted(world, offset_m: float):
 
 def evaluation_views(scene, frames, track: int, config: BackgroundBenchConfig) -> list[EvalView]:
     """Held-out logged views and novel views that show the object most (ground truth from the world)."""
-    from omniscs.world import WorldRenderer, apply_edits
-
     out = []
     for offset in (0.0,) + tuple(config.offsets_m):
         world = scene.world if offset == 0 else _shifted(scene.world, offset)
@@ -201,8 +213,6 @@ def depth_errors(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[fl
 
 
 def score_view(rgb: np.ndarray, depth: np.ndarray | None, ev: EvalView) -> dict:
-    from omniscs.quality import psnr, ssim
-
     out = torch.from_numpy(rgb.astype(np.float32) / 255.0)
     gt = torch.from_numpy(ev.gt_rgb.astype(np.float32) / 255.0)
     hole = torch.from_numpy(ev.hole)
@@ -218,8 +228,6 @@ def object_light_cost(evs: list[EvalView]) -> dict:
     that light (the world without the object, shaded as if it were there) against the world without it, and the
     share of hole pixels that light changes by more than 8 grey levels. A repair that reproduces what the other
     views observed behind the object is bounded by it."""
-    from omniscs.quality import psnr
-
     out = {}
     for kind in ("logged", "novel"):
         sel = [ev for ev in evs if ev.kind.startswith(kind) and ev.lit_rgb is not None]
@@ -239,8 +247,6 @@ CLASS_ARMS = ("naive", "hidden Gaussians removed", PLANES_ARM)
 def class_errors(rgb: np.ndarray, ev: EvalView) -> dict[str, list[float]]:
     """Per semantic class of the world without the object (omniscs.taxonomy), over the hole: [pixels, summed
     squared error] (per pixel the mean over channels of the error in 0..1), to pool over views and scenes."""
-    from omniscs.taxonomy import SEMANTIC_CLASSES
-
     if ev.gt_semantic is None or not ev.hole.any():
         return {}
     err = ((rgb.astype(np.float64) - ev.gt_rgb.astype(np.float64)) / 255.0) ** 2
@@ -272,8 +278,6 @@ def render_eval(graph, ev: EvalView) -> tuple[np.ndarray, np.ndarray]:
 
 def inpaint_render(graph, obj, inpainter, ev: EvalView) -> np.ndarray:
     """The 2D-only arm: the naive render with the object's projected box (dilated) inpainted in the image."""
-    from omniscs.background.holes import hole_mask
-
     rgb, _ = render_eval(graph, ev)
     mask = hole_mask(graph.view(ev.camera, ev.frame, ev.world_from_ego), [obj])
     if mask.all():
@@ -288,9 +292,6 @@ def _mean(values) -> float | None:
 
 def map_errors(hole_views, scene, track: int, factor: int) -> dict:
     """DRNet / least-squares depth maps against the world without the object at the training views' holes."""
-    from omniscs.world import WorldRenderer, apply_edits
-    from omniscs.world.model import CameraSpec
-
     world = apply_edits(scene.world, [{"op": "remove", "track_id": track}])
     cams = []
     for c in world.cameras:
@@ -298,7 +299,6 @@ def map_errors(hole_views, scene, track: int, factor: int) -> dict:
         K[:2] /= factor
         cams.append(CameraSpec(c.name, c.width // factor, c.height // factor, K, c.ego_from_camera))
     renderer = WorldRenderer(world.replace(cameras=tuple(cams)))
-    from omniscs.background.holes import ray_norms
 
     errs, deltas, n = [], [], 0
     for hv in hole_views:
@@ -319,15 +319,6 @@ def map_errors(hole_views, scene, track: int, factor: int) -> dict:
 
 def run_scene(item: str, config: BackgroundBenchConfig, workspace: Path, inpainter, depth_model,
               progress: Progress = no_progress) -> dict:
-    import copy
-
-    from omniscs.background.inpaint import load_inpainter
-    from omniscs.background.repair import (cleaned_graph, fill_views, plane_fill, prepare_views, refit_background,
-                                           removed_objects, seeded_graph)
-    from omniscs.nsg.checkpoint import load_graph, read_checkpoint_meta
-    from omniscs.nsg.config import FitConfig
-    from omniscs.nsg.observations import Observations
-
     scene, plan, fitted, track = prepare_scene(item, config.preset, workspace, progress)
     graph = load_graph(fitted.path, scene)
     fit_config = FitConfig.from_dict(read_checkpoint_meta(fitted.path)["config"])
@@ -467,9 +458,6 @@ def summary(rows: list[dict]) -> list[dict]:
 def run_background_benchmark(out_dir: Path, workspace: Path | None = None,
                              config: BackgroundBenchConfig = BackgroundBenchConfig(),
                              progress: Progress = no_progress) -> dict:
-    from omniscs.background.depth import load_depth_model
-    from omniscs.background.inpaint import load_inpainter
-
     workspace = Path(workspace) if workspace else workspace_root()
     machine = machine_info()
     inpainter = load_inpainter(config.repair.inpainter)
@@ -526,8 +514,6 @@ def class_table(scenes: list[dict], kind: str = "novel") -> list[str]:
     """Markdown rows: per class of what truly lies in the hole, pooled over the scenes' ``kind`` views, its share
     of the hole pixels, each CLASS_ARMS arm's PSNR there and the share of the last arm's squared error it holds
     (classes by that share, largest first)."""
-    from omniscs.quality import psnr_from_mse
-
     pooled = {arm: pooled_class_errors([s.get("classes", {}).get(arm, {}).get(kind, {}) for s in scenes])
               for arm in CLASS_ARMS}
     last = pooled[CLASS_ARMS[-1]]

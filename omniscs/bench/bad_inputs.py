@@ -15,15 +15,25 @@ import os
 import re
 import shutil
 import signal
+import subprocess
 import sys
 import tempfile
 import traceback
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Iterator
 
+import pyarrow as pa
+import pyarrow.parquet as pq
+
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.export.common import export_scenes
+from omniscs.pipeline.stages import catalog_run_stage
 from omniscs.progress import Progress, no_progress
+from omniscs.scene import SyntheticSource
+from omniscs.scene.synthetic import write_synthetic_scene
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT
 
 OUTCOMES = ("one clear line", "traceback", "silently wrong", "left files", "other")
 
@@ -275,13 +285,9 @@ class Fixtures:
     """The files the cases point at, made once per table run in ``root`` and copied into each case's folder."""
 
     def __init__(self, root: Path) -> None:
-        from omniscs.scene import SyntheticSource
-        from omniscs.scene.synthetic import write_synthetic_scene
-
         self.root = root
         self.store = write_synthetic_scene(SyntheticSource("straight", 3, n_frames=3, n_cameras=1, width=32,
                                                            height=18), root / "store")
-        from omniscs.export.common import export_scenes
 
         self.nus = Path(export_scenes([self.store], "nuscenes", root / "nus"))
 
@@ -308,9 +314,6 @@ class Fixtures:
             elif name == "mgarbage":
                 manifest.write_text("{not json")
             elif name == "wrongcol":
-                import pyarrow as pa
-                import pyarrow.parquet as pq
-
                 table = pq.read_table(path / "frames.parquet")
                 i = table.column_names.index("timestamp_us")
                 table = table.set_column(i, "timestamp_us", pa.array([str(v) for v in table.column(i).to_pylist()]))
@@ -330,14 +333,10 @@ class Fixtures:
             path.mkdir()
             (path / "notes.txt").write_text("not a checkpoint\n")
         elif name == "bckpt_trunc":
-            from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT
-
             shutil.copytree(DEFAULT_CHECKPOINT, path)
             biggest = max((p for p in path.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
             biggest.write_bytes(biggest.read_bytes()[: biggest.stat().st_size // 3])
         elif name == "ws":
-            from omniscs.pipeline.stages import catalog_run_stage
-
             catalog_run_stage("fixture-run", path, "generate_dataset", "completed", 0, 1, 0, {})
             (path / "outside.txt").write_text("secret beside the catalog\n")
         else:
@@ -403,8 +402,6 @@ def console_main():
     """The function the installed ``omniscs`` console script calls (the project's entry point, found through the
     package metadata: the bench exercises what a user runs, and the CLI that offers the bench is not imported
     back)."""
-    from importlib.metadata import entry_points
-
     found = entry_points(group="console_scripts", name="omniscs")
     if not found:
         raise RuntimeError("the omniscs console script is not installed in this environment; install the project "
@@ -457,8 +454,6 @@ class CaseRanTooLong(Exception):
 
 def invoke_subprocess(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[int | None, str, str, bool]:
     """The same through a new ``omniscs`` process (slower: the import alone takes seconds)."""
-    import subprocess
-
     try:
         proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *argv], cwd=cwd,
                               env={**os.environ, **env}, capture_output=True, text=True,

@@ -2,6 +2,7 @@
 set of procedural scenes, for the loss configurations side by side, plus the traffic model's ADE/FDE."""
 from __future__ import annotations
 
+import io
 import json
 import logging
 import textwrap
@@ -11,9 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from omniscs.edits import SetTrajectory
 from omniscs.errors import OmniscsError
 from omniscs.bench.harness import finish, load_line, machine_info, report_folder
+from omniscs.nsg.checkpoint import load_graph
+from omniscs.pipeline.procedural import procedural_traffic
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress
+from omniscs.scene import SyntheticSource, load_scene
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig, adversarial_preset
 from omniscs.scs.behavior.render_consistency import masked_psnr, variant_ego_poses
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model, set_threads
@@ -21,9 +28,12 @@ from omniscs.scs.behavior.feasibility import FeasibilityConfig, search_scene
 from omniscs.scs.behavior.generation import distinct_variants
 from omniscs.scs.behavior.planner import PlannerConfig
 from omniscs.scs.behavior.problem import BehaviorProblem
+from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_variant, scene_graph_render_consistency
+from omniscs.scs.behavior.tracks import traffic_from_scene
 from omniscs.scs.behavior.train import TRAIN_TEMPLATES
-from omniscs.scs.behavior.variants import bev_picture
-from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text
+from omniscs.scs.behavior.variants import bev_picture, variant_spec
+from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text, workspace_root
+from omniscs.world import WorldRenderer, apply_edits
 
 log = logging.getLogger(__name__)
 
@@ -174,8 +184,6 @@ def run_behavior_benchmark(out_dir: Path, config: BenchConfig = BenchConfig(), c
                            progress: Progress | None = None, workspace: Path | None = None) -> dict:
     """Run every configuration on every benchmark scene, then the L_app comparison on rendered scenes (their
     scene stores and scene graphs go to ``workspace`` and are reused); write reports/behavior/report.{json,md,png} and example.png."""
-    from omniscs.pipeline.procedural import procedural_traffic
-
     machine = machine_info()
     previous = set_threads(config.torch_threads)
     try:
@@ -256,9 +264,6 @@ def variant_ground_truth(world, variant: dict, camera: str, frames: list[int]
                          ) -> tuple[np.ndarray, np.ndarray]:  # rgb [T, H, W, 3] in [0, 1], adversary mask [T, H, W]
     """Ground truth for a variant of a procedural log: the world with every agent on its variant trajectory
     (SetTrajectory edits; heights kept from the log), re-rendered, and the adversary's instance mask."""
-    from omniscs.edits import SetTrajectory
-    from omniscs.world import WorldRenderer, apply_edits
-
     if variant.get("source_frames") is None:
         raise OmniscsError("variant steps are not the scene's frames (the log was resampled); no ground truth")
     n = world.n_frames
@@ -300,15 +305,6 @@ def appearance_study(model, base: AdversarialConfig, config: BenchConfig, worksp
     """The default losses without and with L_app on rendered logs with fitted scene graphs: success,
     plausibility, time per variant, and the appearance drift (masked PSNR of the scene graph's render of each
     variant against the procedural world re-rendered with the same trajectories, adversary pixels only)."""
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.pipeline.request import SceneRequest
-    from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_stage
-    from omniscs.scene import SyntheticSource, load_scene
-    from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_variant, scene_graph_render_consistency
-    from omniscs.scs.behavior.tracks import traffic_from_scene
-    from omniscs.scs.behavior.variants import variant_spec
-    from omniscs.storage import workspace_root
-
     ws = workspace_root(workspace)
     render = RenderConsistencyConfig()
     jobs = [(TRAIN_TEMPLATES[k % len(TRAIN_TEMPLATES)], config.seed_offset + k // len(TRAIN_TEMPLATES))
@@ -551,8 +547,6 @@ def markdown(result: dict) -> str:
 
 
 def _plot(result: dict, out_png: Path) -> Path:
-    import io
-
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

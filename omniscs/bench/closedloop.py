@@ -11,6 +11,7 @@ Scenes are procedural logs on held-out seeds (no other benchmark or test uses th
 (reused from the workspace when present: the fit is not what this measures)."""
 from __future__ import annotations
 
+import json
 import logging
 import os
 import statistics
@@ -22,11 +23,19 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.bench.harness import finish, load_line, machine_info, status_bytes, write_report
+from omniscs.closedloop.policies import make_policy
+from omniscs.closedloop.run import run_episode
+from omniscs.closedloop.scenario import log_scenario, variant_scenario
+from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
+from omniscs.errors import OmniscsError
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage
 from omniscs.progress import Progress, no_progress
-from omniscs.scene import SyntheticSource
+from omniscs.scene import SyntheticSource, load_scene
+from omniscs.scene.store import CameraRecord
 from omniscs.storage import workspace_root
+from omniscs.world import camera_rig
 
 log = logging.getLogger(__name__)
 
@@ -89,12 +98,6 @@ def _prepare(config: ClosedLoopBenchConfig, ws: Path, progress: Progress) -> lis
 
 
 def _world(entry: dict):
-    import json
-
-    from omniscs.closedloop.scenario import log_scenario, variant_scenario
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.scene import load_scene
-
     scene = load_scene(entry["scene_path"])
     graph = load_graph(entry["checkpoint"], scene)
     log_sc = log_scenario(scene)
@@ -106,12 +109,6 @@ def _world(entry: dict):
 def measure_speed(scene, graph, scenario, config: ClosedLoopBenchConfig, progress: Progress = no_progress
                   ) -> list[dict]:
     """Steps per second and their split, per rig and output set, driving ``scenario`` with the rule policy."""
-    from omniscs.closedloop.policies import make_policy
-    from omniscs.closedloop.run import run_episode
-    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
-    from omniscs.scene.store import CameraRecord
-    from omniscs.world import camera_rig
-
     rows = []
     for n, w, h in config.speed_rigs:
         for outputs in (("rgb", "depth"), ("rgb", "depth", "instance", "semantic")):
@@ -138,10 +135,6 @@ def measure_speed(scene, graph, scenario, config: ClosedLoopBenchConfig, progres
 
 def score_policies(scene, graph, log_sc, variants, config: ClosedLoopBenchConfig, progress: Progress = no_progress
                    ) -> list[dict]:
-    from omniscs.closedloop.policies import make_policy
-    from omniscs.closedloop.run import run_episode
-    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
-
     sim = Simulator(graph, scene, ClosedLoopConfig(outputs=("rgb",)))
     rows = []
     for sc in [log_sc, *variants]:
@@ -174,7 +167,6 @@ def load_test(scene, graph, scenarios: dict, config: ClosedLoopBenchConfig, prog
     # the published client retries a failed step 3 times, 5 s apart: one try each, so errors are counted, not hidden
     once = HugsimClient._execute_action.retry_with(stop=tenacity.stop_after_attempt(1), reraise=True)
 
-    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
     from omniscs.server.hugsim import ServerConfig, create_app, start_in_thread
 
     cfg = ClosedLoopConfig(cameras=(graph.cameras[0].name,), width=config.load_size[0], height=config.load_size[1],
@@ -243,8 +235,6 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
     ws = workspace_root(workspace)
     entries = _prepare(config, ws, progress)
     if not entries:
-        from omniscs.errors import OmniscsError
-
         raise OmniscsError("no scene could be fitted; nothing to measure")
     scores, speed, load = [], [], None
     for k, entry in enumerate(entries):

@@ -17,15 +17,21 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from omniscs.annotate import AnnotateConfig
+from omniscs.annotate.scene import read_rows
+from omniscs.annotate.variant import write_annotated_variant
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.nsg.checkpoint import load_graph
 from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import (annotate_stage, behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage,
                                      replay_stage)
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource, load_scene
+from omniscs.scene.store import CameraRecord
 from omniscs.storage import workspace_root
+from omniscs.world import camera_rig
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +74,6 @@ def _per_image(summary: dict) -> dict:
 def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
                           config: DatasetBenchConfig = DatasetBenchConfig(),
                           progress: Progress = no_progress) -> dict:
-    from omniscs.annotate.scene import read_rows
-    from omniscs.annotate.variant import write_annotated_variant
-    from omniscs.nsg.checkpoint import load_graph
-    from omniscs.scene.store import CameraRecord
-    from omniscs.world import camera_rig
-
     machine = machine_info()
     ws = workspace_root(workspace)
     request = SceneRequest(fit_preset=config.fit_preset, behavior_variants=config.variants,
@@ -141,8 +141,6 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
 def summarise(scenes: list[dict], config: DatasetBenchConfig) -> dict:
     def med(label: str, key: str) -> float:
         return float(statistics.median(s[label][key] for s in scenes))
-
-    import pandas as pd
 
     pairs = np.array([p for sc in scenes for p in sc["with fidelity"]["psnr_drift_pairs"]], np.float64).reshape(-1, 3)
 

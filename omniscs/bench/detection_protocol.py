@@ -18,20 +18,41 @@ with base's own training logs (``rehearse``). Both are
 evaluated on both test sets with nuScenes' mAP and NDS over the classes each test set holds."""
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from omniscs.annotate.dataset import CARD_JSON
+from omniscs.bench.detector_logs import VERSION as SHIPPED_VERSION, ShippedDetectorConfig, procedural_dataroot
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.errors import ValidationError
-from omniscs.eval.detector import DetectorTrainConfig
-from omniscs.pipeline.downstream import DETECTOR_VERSION
+from omniscs.eval.detection import DetectionConfig, bootstrap_map_difference, filter_boxes
+from omniscs.eval.detector import (
+    DEFAULT_DETECTOR,
+    WEIGHTS,
+    DetectorTrainConfig,
+    evaluate_detector,
+    load_detector,
+    save_detector,
+    score_detections,
+    train_detector,
+    training_set,
+)
+from omniscs.eval.nuscenes_io import NuScenesTables, evaluated_classes, evaluated_ground_truth, load_results
+from omniscs.pipeline import layout
+from omniscs.pipeline.downstream import DETECTOR_VERSION, export_dataroot
+from omniscs.pipeline.pool import pool_asset_stage
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import dataset_stage, run_scene
 from omniscs.progress import Progress, no_progress
+from omniscs.scene import SyntheticSource
 from omniscs.storage import workspace_root
+from omniscs.world.assets import list_asset_ids
 
 log = logging.getLogger(__name__)
 
@@ -125,9 +146,6 @@ def _spans(spans) -> tuple[tuple[int, int], ...]:
 
 def _pool(workspace: Path, name: str, kinds, spans) -> tuple[Path, list[str]]:
     """The pool ``pool-<name>`` of the library's pool-split assets of ``kinds`` at the index ranges ``spans``."""
-    from omniscs.pipeline.pool import pool_asset_stage
-    from omniscs.world.assets import list_asset_ids
-
     root = workspace / "bench-downstream" / f"pool-{name}"
     ids = [a for k in kinds for start, stop in _spans(spans) for a in list_asset_ids(k, "pool")[start:stop]]
     return root, [pool_asset_stage(a, root).info["model_id"] for a in ids]
@@ -137,8 +155,6 @@ def split_dataset_id(split: str, scenes, n_variants: int) -> str:
     """The appearance-SCS dataset of a split, named by the split, its size and a digest of its logs
     (``det-scs-test-6x4-<digest>``): a split with other logs is another dataset, and never replaces one that
     results were made from."""
-    import hashlib
-
     digest = hashlib.sha1(json.dumps(list(scenes)).encode()).hexdigest()[:8]
     return f"det-scs-{split}-{len(scenes)}x{n_variants}-{digest}"
 
@@ -147,9 +163,6 @@ def check_dataset_free(workspace: Path, dataset_id: str, scene_ids: set[str]) ->
     """A clear error when the workspace's dataset ``dataset_id`` holds other scenes than ``scene_ids`` (the ids
     name the logs, so only a changed scene id of the same log gets here): replacing that dataset would leave every
     result made from it unreproducible."""
-    from omniscs.annotate.dataset import CARD_JSON
-    from omniscs.pipeline import layout
-
     card = layout.dataset_folder(workspace, dataset_id) / CARD_JSON
     if not card.is_file():
         return
@@ -163,10 +176,6 @@ def check_dataset_free(workspace: Path, dataset_id: str, scene_ids: set[str]) ->
 def build_split(split: str, scenes, pool: Path, objects: list[str], config: DetectionProtocolConfig, workspace: Path,
                 progress: Progress = no_progress) -> dict:
     """The split's logs (scene store paths) and its appearance-SCS dataset (the factory's stages; reused)."""
-    from omniscs.pipeline.request import SceneRequest
-    from omniscs.pipeline.stages import dataset_stage, run_scene
-    from omniscs.scene import SyntheticSource
-
     n_variants = config.appearance_variants if split == "train" else config.test_variants
     request = SceneRequest(fit_preset=config.preset, previews=False, appearance_variants=n_variants,
                            pool=str(pool), appearance_objects=tuple(objects), annotate=True)
@@ -189,10 +198,6 @@ def _export(stores: list[str], root: Path, name: str, keyframe_every: int | None
     """The stores as one nuScenes dataroot ``root/name-<digest of the stores>`` (``keyframe_every`` None: the 2 Hz
     keyframes the protocol evaluates; training sets take every frame, as the shipped detector's training did); made
     once, reused by later runs."""
-    import hashlib
-
-    from omniscs.pipeline.downstream import export_dataroot
-
     digest = hashlib.sha1(json.dumps([sorted(stores), keyframe_every]).encode()).hexdigest()[:10]
     out = root / f"{name}-{digest}"
     if not (out / VERSION / "sample.json").is_file():
@@ -203,10 +208,6 @@ def _export(stores: list[str], root: Path, name: str, keyframe_every: int | None
 def _fine_tuned(root: Path, tuning_set: list, train_config, base, images, progress: Progress):
     """``base`` fine-tuned on ``tuning_set`` with ``train_config`` (``images``: a callable giving the read images),
     kept under ``root/tuned-<digest>`` and loaded from there by a later run with the same data, settings and base."""
-    import hashlib
-
-    from omniscs.eval.detector import DEFAULT_DETECTOR, WEIGHTS, load_detector, save_detector, train_detector
-
     key = json.dumps([[str(r), v] for r, v in tuning_set] + [asdict(train_config)], sort_keys=True)
     key += hashlib.sha1((DEFAULT_DETECTOR / WEIGHTS).read_bytes()).hexdigest()
     folder = root / f"tuned-{hashlib.sha1(key.encode()).hexdigest()[:12]}"
@@ -234,9 +235,6 @@ def gain_interval(dataroot: Path, base_results: Path, tuned_results: Path, n: in
     """The mAP gain of fine-tuned over base on one test set with its 95 % interval from resampling the set's scenes
     (``omniscs.eval.detection.bootstrap_map_difference``), over the classes the set holds (``camera_view``: only the
     boxes a camera sees, as ``score_detections``); None for a set of one scene."""
-    from omniscs.eval.detection import DetectionConfig, bootstrap_map_difference, filter_boxes
-    from omniscs.eval.nuscenes_io import NuScenesTables, evaluated_classes, evaluated_ground_truth, load_results
-
     tables = NuScenesTables.load(dataroot, VERSION)
     if len(tables["scene"]) < 2:
         return None
@@ -266,8 +264,6 @@ def _data(config: DetectionProtocolConfig, ws: Path, root: Path, progress: Progr
             roots[scs_name] = _export(splits[k]["scs"], root, f"{k.replace(' ', '-')}-scs")
             roots[logs_name] = _export(splits[k]["logs"], root, f"{k.replace(' ', '-')}-logs")
     if config.rehearse:
-        from omniscs.bench.detector_logs import ShippedDetectorConfig, procedural_dataroot
-
         shipped = ShippedDetectorConfig()
         progress(0, None, "the base detector's training logs (for rehearsal)")
         roots["base training logs"] = procedural_dataroot(ws, "train", shipped, shipped.train_keyframe_every, progress)
@@ -283,10 +279,6 @@ def _choose_fine_tuning(config: DetectionProtocolConfig, root: Path, roots: dict
     """(candidates' validation rows, the kept one's index, its model, its training record): each candidate of
     ``config.candidates`` fine-tuned from ``base`` (or reused) and scored on the validation sets; without validation
     sets the first candidate is kept."""
-    from dataclasses import replace
-
-    from omniscs.eval.detector import evaluate_detector, training_set
-
     read: dict[tuple, object] = {}  # the fine-tuning images, read once per annotation filter the candidates use
 
     def images_for(train_config) -> object:
@@ -324,8 +316,6 @@ def _choose_fine_tuning(config: DetectionProtocolConfig, root: Path, roots: dict
 def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = None,
                            config: DetectionProtocolConfig = DetectionProtocolConfig(),
                            progress: Progress = no_progress) -> dict:
-    from omniscs.eval.detector import DEFAULT_DETECTOR, evaluate_detector, load_detector, score_detections
-
     machine = machine_info()
     ws = workspace_root(workspace)
     root = ws / "bench-downstream" / "detection"
@@ -336,8 +326,6 @@ def run_detection_protocol(out_dir: str | Path, workspace: str | Path | None = N
     base_record = json.loads((DEFAULT_DETECTOR / "training.json").read_text())
     tuning_set = [(roots["train logs"], VERSION), (roots["train appearance-SCS"], VERSION)]
     if config.rehearse:
-        from omniscs.bench.detector_logs import VERSION as SHIPPED_VERSION
-
         tuning_set.append((roots["base training logs"], SHIPPED_VERSION))
     candidates, kept, tuned, tune_record = _choose_fine_tuning(config, root, roots, base, tuning_set, progress)
     rows, intervals, all_round, all_round_intervals = {}, {}, {}, {}

@@ -31,9 +31,25 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
-from omniscs.errors import ValidationError
-from omniscs.eval.planner import TrainConfig
+from omniscs.errors import OmniscsError, ValidationError
+from omniscs.eval.planner import (
+    DEFAULT_PLANNER,
+    TrainConfig,
+    features,
+    load_planner,
+    mixed_examples,
+    plan,
+    train_planner,
+)
+from omniscs.eval.planning import HORIZONS, aggregate_planning, bootstrap_planning, per_sample_planning
+from omniscs.eval.scenarios import planning_examples, scenario_from_traffic, scenario_from_variant, variant_keyframes
+from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
 from omniscs.progress import Progress, no_progress
+from omniscs.scs.behavior import adversarial_preset
+from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model
+from omniscs.scs.behavior.generation import generate_variants
+from omniscs.scs.behavior.solution import solve_ego
+from omniscs.scs.behavior.variants import variant_spec
 from omniscs.storage import atomic_write_json, workspace_root
 from omniscs.world.layouts import TEMPLATES
 
@@ -80,21 +96,12 @@ class DownstreamBenchConfig:
     def scenes(self, split: str) -> list[tuple[str, int]]:
         n, first = {"train": (self.train_scenes, self.train_seed), "val": (self.val_scenes, self.val_seed),
                     "test": (self.test_scenes, self.test_seed)}[split]
-        from omniscs.pipeline.procedural import procedural_scenes
 
         return procedural_scenes(TEMPLATES, first, n)
 
 
 def scene_examples(template: str, seed: int, config: DownstreamBenchConfig, cache: Path) -> dict:
     """Log and behaviour-SCS planning examples of one procedural scene (variants and solutions cached)."""
-    from omniscs.eval.scenarios import planning_examples, scenario_from_traffic, scenario_from_variant, variant_keyframes
-    from omniscs.pipeline.procedural import procedural_scene_id, procedural_traffic
-    from omniscs.scs.behavior import adversarial_preset
-    from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, load_traffic_model
-    from omniscs.scs.behavior.generation import generate_variants
-    from omniscs.scs.behavior.solution import solve_ego
-    from omniscs.scs.behavior.variants import variant_spec
-
     traffic = procedural_traffic(template, seed, config.n_frames, scene_id=procedural_scene_id(template, seed))
     logs = planning_examples(scenario_from_traffic(traffic))
     folder = cache / f"{template}-s{seed}-{config.n_frames}f-{config.variants}v-{config.behavior_preset}"
@@ -128,8 +135,6 @@ def _gather(split: str, config: DownstreamBenchConfig, cache: Path, progress: Pr
         try:
             got = scene_examples(template, seed, config, cache)
         except Exception as exc:  # a seed whose world or variants cannot be built: counted, not fatal
-            from omniscs.errors import OmniscsError
-
             if not isinstance(exc, OmniscsError):
                 raise
             out["skipped"].append(f"{template}:{seed}: {exc}")
@@ -159,8 +164,6 @@ def _base_logs(logs: list, base_record: dict) -> list:
 def _finetune(base, train: dict, config: DownstreamBenchConfig, progress: Progress):
     """Base fine-tuned on the train scenes' behaviour-SCS examples and their log examples, the kind that is short
     repeated so that about ``scs_share`` of the mix is behaviour-SCS (``planner.mixed_examples``)."""
-    from omniscs.eval.planner import mixed_examples, train_planner
-
     examples, mix = mixed_examples(train["scs"], train["logs"], config.scs_share)
     tuned, record = train_planner(examples, config.finetune, init=base, progress=progress)
     record.update(mix)
@@ -170,8 +173,6 @@ def _finetune(base, train: dict, config: DownstreamBenchConfig, progress: Progre
 def _val_scores(model, val: dict) -> dict:
     """A planner's headline numbers on the validation scenes: collision rate on their behaviour-SCS examples, L2 at
     3 s on their logs."""
-    from omniscs.eval.planner import plan
-
     return {"collision": _collision(_metrics(val["scs"], plan(model, val["scs"]))) if val["scs"] else 0.0,
             "l2": _metrics(val["logs"], plan(model, val["logs"]))["L2"]["3s"]}
 
@@ -193,22 +194,16 @@ def _collision(m: dict) -> float:
 
 
 def _metrics(examples, plans) -> dict:
-    from omniscs.eval.planning import per_sample_planning
-
     return _summary(per_sample_planning([e.sample for e in examples], plans))
 
 
 def _summary(per: dict) -> dict:
-    from omniscs.eval.planning import aggregate_planning
-
     return _summary_from(aggregate_planning(per))
 
 
 def _summary_from(out: dict) -> dict:
     """The bench's numbers from ``aggregate_planning``'s: L2 and collision rate at each horizon over the keyframes
     whose truth is known there, UniAD's own (over every keyframe) beside them."""
-    from omniscs.eval.planning import HORIZONS
-
     known = {h: out["known_per_step"][i] for h, i in HORIZONS.items()}
     l2 = {h: out["per_step"]["L2"][i] * out["n_samples"] / max(known[h], 1) for h, i in HORIZONS.items()}
     return {"n": out["n_samples"], "known": known, "L2": l2, "L2_all": out["uniad"]["L2"],
@@ -219,8 +214,6 @@ def _summary_from(out: dict) -> dict:
 def _intervals(groups: list[str], per_a: dict, per_b: dict, n: int = 200) -> dict | None:
     """95 % intervals of the collision reduction and the L2 (3 s) change, b (fine-tuned) against a (base), from
     resampling the test scenes (``groups``: each example's scene; ``bootstrap_planning``)."""
-    from omniscs.eval.planning import bootstrap_planning
-
     if len(set(groups)) < 2:
         return None  # one scene: nothing to resample
     col_a, col_b = bootstrap_planning(per_a, per_b, groups, lambda o: _collision(_summary_from(o)), n)
@@ -235,9 +228,6 @@ def _intervals(groups: list[str], per_a: dict, per_b: dict, n: int = 200) -> dic
 def run_downstream_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
                              config: DownstreamBenchConfig = DownstreamBenchConfig(),
                              progress: Progress = no_progress) -> dict:
-    from omniscs.eval.planner import DEFAULT_PLANNER, features, load_planner, plan, train_planner
-    from omniscs.eval.planning import per_sample_planning
-
     machine = machine_info()
     cache = workspace_root(workspace) / "bench-downstream"
     started = time.perf_counter()

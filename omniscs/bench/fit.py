@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from omniscs.bench.harness import drop_partial, finish, machine_info, save_partial, write_report
-from omniscs.edits import Edit, edit_to_dict
+from omniscs.edits import Edit, edit_from_dict, edit_to_dict
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.config import fit_preset
@@ -28,6 +28,7 @@ from omniscs.pipeline.stages import fit_stage, ingest_stage, load_plan, plan_sta
 from omniscs.scene import SyntheticSource, load_scene
 from omniscs.scene.summary import agent_rows
 from omniscs.storage import workspace_root
+from omniscs.world import WorldRenderer, apply_edits
 
 log = logging.getLogger(__name__)
 
@@ -215,7 +216,6 @@ def edited_agents(scene, plan_frames: tuple[int, ...], count: int, min_pixels: i
 
 
 def protocol_edits(track_id: int) -> list[tuple[str, Edit]]:
-    from omniscs.edits import edit_from_dict
     return [(name, edit_from_dict({**spec, "track_id": track_id})) for name, spec in EDIT_PROTOCOL]
 
 
@@ -262,8 +262,6 @@ def run_edit_benchmark(out_dir: Path, scenes: BenchScenes, preset: str = "balanc
                        overrides: dict | None = None, progress: Progress | None = None) -> dict:
     """Fit each scene once (the edited agents as nodes), apply each protocol edit to the graph and to the
     ground-truth world, and compare renders over the full image and over the agent's ground-truth mask."""
-    from omniscs.world import WorldRenderer, apply_edits
-
     machine = machine_info()
     ws = workspace_root(workspace)
     rows, strips = [], []

@@ -10,6 +10,8 @@ import platform
 from pathlib import Path
 from typing import BinaryIO, Callable
 
+import torch
+
 from omniscs.storage import atomic_write_text, atomic_write_with
 
 
@@ -21,7 +23,6 @@ def machine_info() -> dict:
     starts numba's threading layer before the rasterizer's kernels do, which can pick another layer and change
     the kernels' summation order (a fast fit then ends 0.03 dB away from the same fit without the call)."""
     import numba
-    import torch
 
     return {"cpus": os.cpu_count(), "platform": platform.platform(), "machine": platform.machine(),
             "python": platform.python_version(), "torch": torch.__version__,

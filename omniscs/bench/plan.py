@@ -27,6 +27,7 @@ from omniscs.pipeline.stages import behavior_stage, fit_stage, ingest_stage, loa
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource, load_scene
 from omniscs.storage import workspace_root
+from omniscs.world import WorldRenderer, apply_edits
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +66,6 @@ class PlanBenchConfig:
 def run_plan_benchmark(out_dir: Path, config: PlanBenchConfig = PlanBenchConfig(), workspace: Path | None = None,
                        progress: Progress = no_progress) -> dict:
     """Both modes on every scene; returns (and writes as reports/plan/report.*) rows and medians."""
-    from omniscs.world import WorldRenderer, apply_edits
-
     machine = machine_info()
     ws = workspace_root(workspace)
     spec = dict(EDIT_PROTOCOL)[config.edit]

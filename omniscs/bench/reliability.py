@@ -23,6 +23,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from omniscs import catalog
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.progress import Progress, no_progress
 
@@ -148,8 +149,6 @@ def workspace_state(workspace: Path) -> dict:
 def catalog_state(workspace: Path, view_suffix: str = "") -> dict[str, list[tuple]]:
     """Every data table's rows as the catalog's views show them, without the columns that say when or by which
     run a row was made (``*_seconds``, ``run_id``, ``reused``), with the workspace path written as ``<ws>``."""
-    from omniscs import catalog
-
     root = catalog.catalog_root(workspace)
     out = {}
     for table in DATA_TABLES:
@@ -210,8 +209,6 @@ def fault_injection(config: ReliabilityConfig, workdir: Path, progress: Progress
 def concurrency(config: ReliabilityConfig, workdir: Path, progress: Progress = no_progress) -> dict:
     """``config.processes`` generate processes at once on one new workspace, sources overlapping: each gets a
     rotating pair of the sources, and the last one all of them."""
-    from omniscs import catalog
-
     ws, prefect_home = workdir / "shared", workdir / "prefect-concurrent"
     n = len(config.sources)
     assignments = [[config.sources[i % n], config.sources[(i + 1) % n]] for i in range(config.processes - 1)]

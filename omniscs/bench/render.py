@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numba
+import numpy as np
 import torch
 
 from omniscs.render.api import rasterize
@@ -319,7 +320,6 @@ SAMPLE_DEPTH_RANGE_M = 80.0
 
 def save_sample_render(path: Path, width: int = 640, height: int = 360, count: int = 100_000) -> Path:
     """Render the street scene with the cpu backend and save colour above expected depth as one PNG."""
-    import numpy as np
     from PIL import Image
 
     scene = street_scene(count, width, height)

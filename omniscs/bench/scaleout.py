@@ -21,6 +21,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.pipeline.request import RunRequest
 from omniscs.progress import Progress, no_progress
@@ -189,7 +191,6 @@ def _plot(result: dict, f) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), dpi=90)
     runs = result["runs"] + [dict(result["resume"], label="2, one killed")]

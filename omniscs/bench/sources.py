@@ -10,8 +10,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from omniscs.export import export_scenes
+from omniscs.scene.sources import DatasetSource, read_dataset_scene
 from omniscs.scene.store import load_scene
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene
 
 #: Readers measured: (label, export format, export options, source options).
 CASES = (
@@ -25,10 +28,6 @@ CASES = (
 def run_sources_benchmark(out_dir: Path, n_frames: int = 10, n_cameras: int = 6, width: int = 480, height: int = 270,
                           repeats: int = 3, seed: int = 1) -> dict:
     """Render one synthetic log, write it in every format, and time reading each back into a scene store."""
-    from omniscs.export import export_scenes
-    from omniscs.scene.sources import DatasetSource, read_dataset_scene
-    from omniscs.scene.synthetic import SyntheticSource, write_synthetic_scene
-
     machine = machine_info()
     repeats = max(2, repeats)  # one cold read and at least one warm one
     rows = []
