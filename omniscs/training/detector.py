@@ -16,27 +16,30 @@ import argparse
 import json
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
+import torch
+
+from omniscs.bench.detector_logs import VERSION, ShippedDetectorConfig, procedural_dataroot
 from omniscs.eval.detector import (
     DEFAULT_DETECTOR,
     DetectConfig,
     ProxyDetector,
     detect,
+    load_detector,
     save_detector,
     train_detector,
     training_set,
     write_results,
 )
-from omniscs.bench.detector_logs import VERSION, ShippedDetectorConfig, procedural_dataroot
-from omniscs.progress import Progress, no_progress
+from omniscs.eval.nuscenes_io import evaluate_detection_results
+from omniscs.progress import Progress, Throttled, no_progress
 from omniscs.storage import workspace_root
+
 
 def evaluate_on(model: ProxyDetector, dataroot: Path, detect_config: DetectConfig = DetectConfig()) -> dict:
     """mAP, NDS and the per-class numbers of ``model`` on every scene of a dataroot."""
-    from omniscs.eval.nuscenes_io import evaluate_detection_results
-
     with tempfile.TemporaryDirectory() as tmp:
         path = write_results(detect(model, dataroot, VERSION, config=detect_config), Path(tmp) / "results.json")
         metrics, info = evaluate_detection_results(dataroot, VERSION, path)
@@ -59,10 +62,6 @@ def evaluate_heldout(model: ProxyDetector, workspace: str | Path,
     """The model and an untrained one of the same network (seed 0) on the held-out logs, at 2 Hz (the protocol's
     keyframes) and at 10 Hz (every frame: more samples); and the model placing its boxes by the regressed depth
     alone, without the ground contact (what the fusion of ``omniscs.eval.detector.fused_centres`` adds)."""
-    from dataclasses import replace
-
-    import torch
-
     torch.manual_seed(0)
     untrained = ProxyDetector(model.config).eval()
     out = {"logs": [list(x) for x in config.logs("test")]}
@@ -172,10 +171,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=None, help="training steps (default: the shipped run's)")
     parser.add_argument("--evaluate-only", action="store_true", help="evaluate the checkpoint at --out, write nothing")
     args = parser.parse_args(argv)
-    from dataclasses import replace
-
-    from omniscs.eval.detector import load_detector
-    from omniscs.progress import Throttled
 
     config = ShippedDetectorConfig()
     if args.steps is not None:

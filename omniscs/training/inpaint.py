@@ -16,8 +16,20 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from safetensors.torch import load_file
 
 from omniscs.background.depthnet import working_size
+from omniscs.background.inpaint import OpenCVInpainter
+from omniscs.background.inpaint_pack import write_pack
+from omniscs.background.inpaintnet import (
+    INFO_FILE,
+    SHIPPED,
+    WEIGHTS_FILE,
+    InpaintNet,
+    InpaintNetConfig,
+    NetInpainter,
+    save_inpaint_net,
+)
 from omniscs.training.reldepth import FIRST_DEPTH_SEED, rendered_views
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
@@ -134,8 +146,6 @@ def export_inpaint_data(path: Path, workspace: Path | None = None, data: Inpaint
                         progress: Progress = no_progress) -> dict:
     """Render (or reuse) the training pairs and write them as a pack to ``path``, to train the network on a
     machine without the procedural world. Returns the pack's facts."""
-    from omniscs.background.inpaint_pack import write_pack
-
     _check_seeds(data)
     pairs = cached_pairs(data.train_seeds, data, workspace, progress)
     size = write_pack(path, pairs["images"], pairs["holes"], pairs["targets"])
@@ -176,9 +186,6 @@ def shipping_info(state: dict, history: dict, data: InpaintDataConfig = InpaintD
                   workspace: Path | None = None) -> dict:
     """training.json's content for weights ``state``: the history and the held-out evaluation of the network
     against OpenCV's FSR (the repair's classical default) and Telea."""
-    from omniscs.background.inpaint import OpenCVInpainter
-    from omniscs.background.inpaintnet import InpaintNet, InpaintNetConfig, NetInpainter
-
     _check_seeds(data)
     started = time.perf_counter()
     net = InpaintNet(InpaintNetConfig.from_dict(history["config"]["architecture"]))
@@ -199,10 +206,6 @@ def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataC
                             workspace: Path | None = None) -> dict:
     """Evaluate the weights infra/inpaint_gpu/train.py saved into ``folder`` on the held-out worlds and write them
     with that evaluation to ``out`` (the shipped weights by default)."""
-    from safetensors.torch import load_file
-
-    from omniscs.background.inpaintnet import INFO_FILE, SHIPPED, WEIGHTS_FILE, InpaintNetConfig, save_inpaint_net
-
     folder = Path(folder)
     try:
         state = load_file(str(folder / WEIGHTS_FILE))

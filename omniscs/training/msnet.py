@@ -2,16 +2,25 @@
 benchmark world or of a benchmark pool's vehicle (see ``MSNetDataConfig``)."""
 from __future__ import annotations
 
+import hashlib
+import io
+import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from omniscs.agents.msnet import SHIPPED as MSNET_CHECKPOINT
+from omniscs.agents.degradation import Degradation
+from omniscs.agents.matching import crop_square
+from omniscs.agents.msnet import SHIPPED as MSNET_CHECKPOINT, MSNetTrainConfig, save_msnet, train_msnet
+from omniscs.agents.pool import Pool
 from omniscs.bench.agents import MATCH_LEVELS, POOL_QUOTA, build_pool, swap_vehicles, whole_views
 from omniscs.bench.harness import finish, machine_info
 from omniscs.progress import Progress, no_progress
-from omniscs.storage import workspace_root
+from omniscs.storage import atomic_write_bytes, workspace_root
+from omniscs.taxonomy import VEHICLE_CATEGORIES
+from omniscs.world import asset_category, generate_world
+from omniscs.world.assets import list_asset_ids
 
 
 #: Logs for ``MSNetDataConfig.extra_worlds`` (seeds far from every benchmark's).
@@ -61,9 +70,6 @@ def _spread_views(world, asset_of: dict[int, str], frame_step: int, min_pixels: 
 def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progress: Progress = no_progress):
     """crops uint8 [N, CROP, CROP, 3] and asset ids [N] of the vehicles of procedural worlds, up to ``per_track``
     views each (spread over the log), whole in the image, cropped by their ground-truth masks."""
-    from omniscs.taxonomy import VEHICLE_CATEGORIES
-    from omniscs.world import generate_world
-
     crops, labels = [], []
     for k, item in enumerate(items):
         progress(k, len(items), f"MSNet data: {item}")
@@ -79,8 +85,6 @@ def world_crops(items, frame_step: int, min_pixels: int, per_track: int, progres
 def unbenched_pool_assets(quota) -> list[str]:
     """The pool split's vehicles beyond the benchmark pool's ``quota``: in no benchmark world and no benchmark pool,
     so MSNet may learn from them."""
-    from omniscs.world.assets import list_asset_ids
-
     return [a for kind, n in quota for a in list_asset_ids(kind, "pool")[n:]]
 
 
@@ -89,8 +93,6 @@ def swapped_world_crops(items, assets: list[str], frame_step: int, min_pixels: i
     """Like ``world_crops``, with the worlds' vehicles swapped (``swap_vehicles``) for ``assets`` (shuffled with
     ``seed``, each category's list dealt again when it runs short, as a world holds dozens of vehicles and shows
     a few of them whole): crops uint8 [N, CROP, CROP, 3] and asset ids [N]."""
-    from omniscs.world import asset_category, generate_world
-
     rng = np.random.default_rng(seed)
     by_category: dict[str, list[str]] = {}
     for a in assets:
@@ -112,12 +114,6 @@ def swapped_world_crops(items, assets: list[str], frame_step: int, min_pixels: i
 
 def _cached_crops(ws: Path, key: dict, make) -> tuple[np.ndarray, np.ndarray]:
     """Crops and labels made once per ``key`` (rendering them is most of the data's cost), under the workspace."""
-    import hashlib
-    import io
-    import json
-
-    from omniscs.storage import atomic_write_bytes
-
     digest = hashlib.sha256(json.dumps(key).encode()).hexdigest()[:12]
     cache = ws / "bench-agents" / f"msnet-data-{digest}.npz"
     if cache.is_file():
@@ -132,8 +128,6 @@ def _cached_crops(ws: Path, key: dict, make) -> tuple[np.ndarray, np.ndarray]:
 
 def _keyframe_crops(pool, assets: list[str], progress: Progress) -> tuple[np.ndarray, np.ndarray]:
     """The keyframes of ``assets``' mesh models in ``pool`` (built where missing) as crops, labelled by asset."""
-    from omniscs.agents.matching import crop_square
-
     build_pool(pool.root, assets, progress)
     table = pool.table().set_index("source")
     crops, labels = [], []
@@ -148,10 +142,6 @@ def train_shipped_msnet(workspace: Path | None = None, config: MSNetDataConfig =
                         out: Path = MSNET_CHECKPOINT, progress: Progress = no_progress) -> dict:
     """Train MSNet on ``config``'s data (``MSNetDataConfig``; positives across keyframes and camera crops) and write
     its weights to ``out`` (the shipped ones by default)."""
-    from omniscs.agents.degradation import Degradation
-    from omniscs.agents.msnet import MSNetTrainConfig, save_msnet, train_msnet
-    from omniscs.agents.pool import Pool
-
     ws = workspace_root(workspace)
     camera, camera_labels = _cached_crops(
         ws, {k: getattr(config, k) for k in ("worlds", "frame_step", "min_pixels", "per_track")},

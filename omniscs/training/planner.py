@@ -14,6 +14,8 @@ from pathlib import Path
 
 from omniscs.errors import OmniscsError
 from omniscs.eval.planner import DEFAULT_PLANNER, ProxyPlanner, TrainConfig, save_planner, train_planner
+from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
+from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
 from omniscs.progress import Progress, no_progress
 from omniscs.world.layouts import TEMPLATES
 
@@ -38,9 +40,6 @@ class ShippedPlannerConfig:
 def planner_logs(config: ShippedPlannerConfig, progress: Progress = no_progress) -> list:
     """The planning examples of the train logs, scene after scene (a log whose world cannot be built is skipped, as
     the planning protocol skips it)."""
-    from omniscs.eval.scenarios import planning_examples, scenario_from_traffic
-    from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, procedural_traffic
-
     scenes = procedural_scenes(TEMPLATES, config.train_seed, config.train_scenes)
     examples = []
     for i, (template, seed) in enumerate(scenes):

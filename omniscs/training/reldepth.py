@@ -16,14 +16,18 @@ from typing import Callable, Iterator
 
 import cv2
 import numpy as np
+from safetensors.torch import load_file
+from scipy.stats import rankdata
 
 from omniscs.background.depth import SHIPPED, TRAIN_COMMAND
+from omniscs.background.depth_pack import write_pack
 from omniscs.background.depthnet import (INFO_FILE, WEIGHTS_FILE, DepthNet, DepthTrainConfig, predict_inverse_depth,
                                          save_depth_net, scale_shift_align, train_depth_net, working_size)
 from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_write_with, content_hash, workspace_root
+from omniscs.world import WorldRenderer, generate_world
 
 log = logging.getLogger(__name__)
 
@@ -107,8 +111,6 @@ def rendered_views(seed: int, config: DepthDataConfig) -> Iterator[dict]:
     [H, W] (m, 0 = sky), ``lighting``; and where one agent covers enough of the view, ``removed_depth`` and
     ``removed_rgb`` (the same view of the world without that agent) and ``agent`` [H, W] bool (its pixels).
     ``config`` is a DepthDataConfig or anything with its world fields (templates ... removal_min_fraction)."""
-    from omniscs.world import WorldRenderer, generate_world
-
     if seed < FIRST_DEPTH_SEED:
         raise OmniscsError(f"depth data use seeds >= {FIRST_DEPTH_SEED} (the benchmarks use the lower ones); "
                            f"got {seed}")
@@ -178,8 +180,6 @@ def make_eval_data(config: DepthDataConfig) -> list[dict]:
 
 # ----------------------------------------------------------------------------- evaluation
 def _spearman(a: np.ndarray, b: np.ndarray) -> float:
-    from scipy.stats import rankdata
-
     ra, rb = rankdata(a), rankdata(b)
     if ra.std() == 0 or rb.std() == 0:
         return 0.0  # a constant map ranks nothing
@@ -283,8 +283,6 @@ def export_depth_data(path: Path, workspace: Path | None = None, data: DepthData
     """Render (or reuse) the training arrays and write them as a depth pack (omniscs.background.depth_pack) to
     ``path``, to train the network on a machine without the procedural world (``install_trained_depth`` then
     evaluates and installs what it made). Returns the pack's facts."""
-    from omniscs.background.depth_pack import write_pack
-
     _check_data_config(data, DepthTrainConfig())
     arrays = _cached_training_data(data, workspace_root(workspace), progress)
     size = write_pack(path, arrays["images"], arrays["inv_depths"], arrays["repair"])
@@ -341,8 +339,6 @@ def shipping_info(state: dict, history: dict, data: DepthDataConfig = DepthDataC
 def install_trained_depth(folder: Path, data: DepthDataConfig = DepthDataConfig(), out: Path = SHIPPED) -> dict:
     """Evaluate the weights infra/depth_gpu/train.py saved into ``folder`` (``save_depth_net``'s files, its
     training history as the info) on the held-out worlds and write them with that evaluation to ``out``."""
-    from safetensors.torch import load_file
-
     folder = Path(folder)
     try:
         state = load_file(str(folder / WEIGHTS_FILE))
