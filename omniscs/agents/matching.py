@@ -7,11 +7,16 @@ A pool model is represented by its 30 keyframes; a query's similarity to a model
 over that model's keyframes."""
 from __future__ import annotations
 
+import hashlib
+import io
 from typing import TYPE_CHECKING, Callable, Protocol
 
 import cv2
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
+from omniscs.agents.degradation import Degradation, degrade
+from omniscs.agents.msnet import shipped_embedder
 from omniscs.errors import ValidationError
 from omniscs.storage import atomic_write_bytes
 
@@ -136,8 +141,6 @@ def top_k_accuracy(scores: np.ndarray, models: np.ndarray, truth: np.ndarray, ks
 def assign(scores: np.ndarray, query_categories: list[str], model_categories: list[str]) -> list[int | None]:
     """One pool model per query (index into the models), each model used at most once, only within a category
     (Hungarian on 1 - similarity); None where no model of the query's category is left."""
-    from scipy.optimize import linear_sum_assignment
-
     if scores.shape != (len(query_categories), len(model_categories)):
         raise ValidationError("scores must be [queries, models] and match the category lists")
     big = 1e6
@@ -156,10 +159,6 @@ def pool_gallery(pool: Pool, embedder: Embedder, scale: float = 1.0) -> tuple[np
     """The pool's keyframe embeddings [G, D], the model id of each [G] and the pool table; computed once per pool
     content, embedder and ``scale`` (one of GALLERY_SCALES: the keyframes seen that many times smaller), cached
     under ``<pool>/embeddings/``."""
-    import hashlib
-
-    from omniscs.agents.degradation import Degradation, degrade
-
     if scale not in GALLERY_SCALES:
         raise ValidationError(f"gallery scale must be one of {GALLERY_SCALES}, not {scale!r}")
 
@@ -183,7 +182,6 @@ def pool_gallery(pool: Pool, embedder: Embedder, scale: float = 1.0) -> tuple[np
         embs.append(embedder.embed(crops))
         owners += [mid] * len(crops)
     emb, model = np.concatenate(embs).astype(np.float32), np.array(owners)
-    import io
     buf = io.BytesIO()
     np.savez(buf, emb=emb, model=model.astype(str))
     atomic_write_bytes(cache, buf.getvalue())
@@ -192,8 +190,6 @@ def pool_gallery(pool: Pool, embedder: Embedder, scale: float = 1.0) -> tuple[np
 
 def default_embedder() -> Embedder:
     """The shipped MSNet (``omniscs.agents.msnet.SHIPPED``), else the colour histogram."""
-    from omniscs.agents.msnet import shipped_embedder
-
     return shipped_embedder() or ColourHistogram()
 
 

@@ -20,6 +20,7 @@ by the world's camera first for 18 % of clean queries and 20 % at 4x + 40 % occl
 (27.5 % with the box shape; colour histogram: 2 % and 6 %): far from the issue's 95 %."""
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -27,11 +28,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from torch import nn
 
+from omniscs.agents.degradation import degrade
 from omniscs.errors import ValidationError
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_directory
 
 
 class _Light3x3(nn.Module):  # depthwise-separable 3x3: 1x1 then depthwise 3x3, BN, ReLU
@@ -126,8 +130,6 @@ def train_msnet(crops: np.ndarray, labels: np.ndarray, degradations, config: MSN
     models with ``views_per_model`` crops each, every crop degraded by one of ``degradations`` at random. With
     ``domains`` [N] (e.g. 0 = the pool's keyframes, 1 = camera images), a model's crops in a batch are drawn from
     each of its domains in turn, so that positives cross the domains a query and the gallery come from."""
-    from omniscs.agents.degradation import degrade
-
     labels = np.unique(np.asarray(labels), return_inverse=True)[1].reshape(-1)  # any label type -> 0..M-1
     models = np.unique(labels)
     if len(models) < 2 or len(crops) != len(labels):
@@ -183,8 +185,6 @@ class MSNetEmbedder:
     name = "MSNet"
 
     def __init__(self, net: MSNet) -> None:
-        import hashlib
-
         self.net = net.eval()
         h = hashlib.sha256()
         for k, v in sorted(net.state_dict().items()):
@@ -211,10 +211,6 @@ def shipped_embedder():
 
 def save_msnet(net: MSNet, folder, info: dict) -> None:
     """Weights (safetensors), the architecture and how they were made (``training.json``), written whole."""
-    from safetensors.torch import save_file
-
-    from omniscs.storage import atomic_directory
-
     with atomic_directory(Path(folder), overwrite=True) as tmp:
         save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(tmp / "msnet.safetensors"))
         (tmp / "training.json").write_text(json.dumps({"architecture": asdict(net.config), **info}, indent=1,
@@ -223,8 +219,6 @@ def save_msnet(net: MSNet, folder, info: dict) -> None:
 
 def load_msnet(folder) -> MSNet:
     """An MSNet saved by ``save_msnet`` (a user's own weights of this architecture load the same way)."""
-    from safetensors.torch import load_file
-
     folder = verified_folder(folder)
     try:
         arch = json.loads((folder / "training.json").read_text())["architecture"]

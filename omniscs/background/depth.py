@@ -13,6 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from omniscs.background.depthnet import WEIGHTS_FILE, load_depth_net, predict_inverse_depth
 from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
 from omniscs.pretrained.registry import folder as shipped_folder
@@ -65,8 +66,6 @@ class EmbeddedDepth:
     name = "embedded"
 
     def __init__(self, folder: str | Path = SHIPPED, device: str = "cpu") -> None:
-        from omniscs.background.depthnet import WEIGHTS_FILE, load_depth_net
-
         folder = Path(folder)
         if not (folder / WEIGHTS_FILE).is_file():
             raise OmniscsError(f"the embedded relative-depth weights are missing ({folder / WEIGHTS_FILE}); make "
@@ -76,7 +75,6 @@ class EmbeddedDepth:
         self.net = load_depth_net(folder).to(self.device)
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:  # [H, W, 3] uint8 -> [H, W] float32
-        from omniscs.background.depthnet import predict_inverse_depth
 
         check_rgb(rgb)
         return predict_inverse_depth(self.net, rgb)

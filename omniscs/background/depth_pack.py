@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.storage import atomic_write_with
 
 PACK_VERSION = 1
 
@@ -22,8 +23,6 @@ IMAGE_QUALITY = 95
 
 def write_pack(path: str | Path, images: np.ndarray, inv_depths: np.ndarray, repair: np.ndarray) -> int:
     """Write the arrays (``make_training_data``'s) to ``path`` (a zip); returns its size in bytes."""
-    from omniscs.storage import atomic_write_with
-
     if images.dtype != np.uint8 or images.ndim != 4 or inv_depths.shape != images.shape[:3] or len(repair) != len(images):
         raise OmniscsError("a depth pack needs images uint8 [N, H, W, 3], inverse depths [N, H, W] and repair [N]")
     if not np.isfinite(inv_depths).all():

@@ -23,11 +23,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pretrained.registry import verified_folder
 from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_directory
 
 #: RGB normalisation of the network's input (after scaling to 0..1): mean and spread of road scenes, roughly.
 RGB_MEAN = 0.45
@@ -428,10 +430,6 @@ def save_depth_net(state_dict: dict[str, Tensor], architecture: DepthNetConfig, 
                    info: dict) -> None:
     """Weights (safetensors, float32) and how they were made (``training.json``, with the architecture), written
     whole into ``folder`` (replacing an earlier one written by omniscs)."""
-    from safetensors.torch import save_file
-
-    from omniscs.storage import atomic_directory
-
     with atomic_directory(Path(folder), overwrite=True) as tmp:
         save_file({k: v.detach().float().contiguous() if v.is_floating_point() else v.contiguous()
                    for k, v in state_dict.items()}, str(tmp / WEIGHTS_FILE))
@@ -441,8 +439,6 @@ def save_depth_net(state_dict: dict[str, Tensor], architecture: DepthNetConfig, 
 
 def load_depth_net(folder: str | Path) -> DepthNet:
     """The DepthNet saved in ``folder`` by ``save_depth_net``, in eval mode."""
-    from safetensors.torch import load_file
-
     folder = verified_folder(folder)
     try:
         arch = json.loads((folder / INFO_FILE).read_text())["architecture"]

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from omniscs.background.inpaint_base import HoleFiller, unit_float_to_uint8
+from omniscs.background.inpaintnet import SHIPPED, NetInpainter, load_inpaint_net
 from omniscs.devices import resolve_device
 from omniscs.errors import OmniscsError
 
@@ -312,8 +313,6 @@ def load_inpainter(spec: str | None = None, *, device: str = "cpu") -> Inpainter
 
 def _network_inpainter(folder: str | None, device: str) -> Inpainter:
     """The embedded inpainting network from the shipped weights (folder None) or another folder of them."""
-    from omniscs.background.inpaintnet import SHIPPED, NetInpainter, load_inpaint_net
-
     return NetInpainter(load_inpaint_net(SHIPPED if folder is None else folder),
                         "embedded" if folder is None else f"net:{folder}", resolve_device(device))
 

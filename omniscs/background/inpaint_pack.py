@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from omniscs.errors import OmniscsError, ValidationError
+from omniscs.storage import atomic_write_with
 
 PACK_VERSION = 1
 
@@ -35,8 +36,6 @@ def _webp(image: np.ndarray, what: str) -> bytes:
 def write_pack(path: str | Path, images: np.ndarray, holes: np.ndarray, targets: np.ndarray) -> int:
     """Write pairs to ``path`` (a zip): each image whole, its hole as PNG, and the target only over the hole's
     bounding box (outside it the target is the image: the training loss looks at the hole). Returns the bytes."""
-    from omniscs.storage import atomic_write_with
-
     if (images.dtype != np.uint8 or images.ndim != 4 or holes.shape != images.shape[:3]
             or targets.shape != images.shape or targets.dtype != np.uint8):
         raise OmniscsError("an inpainting pack needs images and targets uint8 [N, H, W, 3] and holes bool [N, H, W]")

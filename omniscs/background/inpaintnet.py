@@ -20,12 +20,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from omniscs.background.inpaint_base import HoleFiller, unit_float_to_uint8
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
+from omniscs.storage import atomic_directory
 
 #: The shipped weights (registry entry ``inpaint``; ``omniscs pretrained train inpaint --install`` writes them).
 SHIPPED = shipped_folder("inpaint")
@@ -320,10 +322,6 @@ def save_inpaint_net(state_dict: dict[str, Tensor], architecture: InpaintNetConf
                      info: dict) -> None:
     """Weights (safetensors; floating tensors stored as float16, which halves the file and changes fills by less
     than a grey level) and ``training.json``, written whole into ``folder``."""
-    from safetensors.torch import save_file
-
-    from omniscs.storage import atomic_directory
-
     with atomic_directory(Path(folder), overwrite=True) as tmp:
         save_file({k: v.detach().half().contiguous() if v.is_floating_point() else v.contiguous()
                    for k, v in state_dict.items()}, str(tmp / WEIGHTS_FILE))
@@ -333,8 +331,6 @@ def save_inpaint_net(state_dict: dict[str, Tensor], architecture: InpaintNetConf
 
 def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
     """The InpaintNet saved in ``folder`` by ``save_inpaint_net`` (float32, eval mode)."""
-    from safetensors.torch import load_file
-
     folder = verified_folder(folder)
     try:
         arch = InpaintNetConfig.from_dict(json.loads((folder / INFO_FILE).read_text())["architecture"])

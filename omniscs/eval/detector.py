@@ -34,12 +34,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from safetensors.torch import load_file, save_file
+
 from omniscs.errors import ValidationError
+from omniscs.eval.detection import DetectionConfig, filter_boxes
 from omniscs.eval.detector_config import DetectConfig, DetectorConfig, DetectorTrainConfig, config_dict
 from omniscs.eval.detector_decoding import detect, write_results
 from omniscs.eval.detector_network import ProxyDetector
 from omniscs.eval.detector_training import train_detector, training_set
-from omniscs.eval.nuscenes_io import NuScenesTables
+from omniscs.eval.nuscenes_io import (
+    NuScenesTables,
+    evaluate_detection_results,
+    evaluated_classes,
+    evaluated_ground_truth,
+)
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.storage import atomic_directory, atomic_write_json, atomic_write_text
 
@@ -62,8 +70,6 @@ __all__ = ["CONFIG", "DEFAULT_DETECTOR", "README", "TRAINING", "WEIGHTS", "Detec
 def save_detector(model: ProxyDetector, out_dir: str | Path, training: dict, overwrite: bool = False,
                   readme: str | None = None) -> Path:
     """Weights (safetensors), network config, training record (and a README when given), written atomically."""
-    from safetensors.torch import save_file
-
     with atomic_directory(Path(out_dir), overwrite=overwrite) as tmp:
         save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(tmp / WEIGHTS))
         atomic_write_json(tmp / CONFIG, config_dict(model.config))
@@ -75,8 +81,6 @@ def save_detector(model: ProxyDetector, out_dir: str | Path, training: dict, ove
 
 def load_detector(path: str | Path | None = None) -> ProxyDetector:
     """A saved detector (default: the shipped one); a clear error when the folder is not one."""
-    from safetensors.torch import load_file
-
     path = verified_folder(path if path is not None else DEFAULT_DETECTOR)
     try:
         raw = json.loads((path / CONFIG).read_text())
@@ -107,9 +111,6 @@ def score_detections(dataroot: str | Path, version: str, results_path: str | Pat
     class absent from a set would only add a zero): mAP, NDS, AP per class (the mean over the distance thresholds,
     and at each), evaluated boxes per class, samples. ``camera_view``: only the boxes a camera sees count
     (``nuscenes_io.in_camera_view``)."""
-    from omniscs.eval.detection import DetectionConfig, filter_boxes
-    from omniscs.eval.nuscenes_io import evaluate_detection_results, evaluated_classes, evaluated_ground_truth
-
     tables = NuScenesTables.load(dataroot, version)
     gt, racks = evaluated_ground_truth(tables, tables.scene_samples(), camera_view)
     names = filter_boxes(gt, DetectionConfig(), racks).name

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from torch import nn
 
 from omniscs.errors import ValidationError
@@ -284,8 +285,6 @@ def plan(model: ProxyPlanner, examples: list[PlanningExample], batch_size: int =
 
 def save_planner(model: ProxyPlanner, out_dir: str | Path, training: dict, overwrite: bool = False) -> Path:
     """Weights (safetensors), network config and training record, written atomically."""
-    from safetensors.torch import save_file
-
     with atomic_directory(Path(out_dir), overwrite=overwrite) as tmp:
         save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(tmp / WEIGHTS))
         atomic_write_json(tmp / CONFIG, asdict(model.config))
@@ -295,8 +294,6 @@ def save_planner(model: ProxyPlanner, out_dir: str | Path, training: dict, overw
 
 def load_planner(path: str | Path | None = None) -> ProxyPlanner:
     """A saved planner (default: the shipped one); a clear error when the folder is not one."""
-    from safetensors.torch import load_file
-
     path = verified_folder(path if path is not None else DEFAULT_PLANNER)
     try:
         config = PlannerConfig(**json.loads((path / CONFIG).read_text()))
