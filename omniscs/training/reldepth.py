@@ -2,7 +2,7 @@
 exact depth, pairs that imitate background repair (a large agent's pixels inpainted, the target the depth of the
 world without it), the held-out evaluation against that ground truth, and ``train_shipped_depth``.
 
-Seeds: training worlds 3000-3199 (a subset by default), held-out worlds 3900-3909; never below 3000 (the
+Seeds: training worlds 3000-3127 (the default; more may be asked for), held-out worlds 3900-3909; never below 3000 (the
 benchmarks' worlds).
 """
 from __future__ import annotations
