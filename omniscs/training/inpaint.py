@@ -3,8 +3,8 @@ with a large agent in it, the agent's hole, and the same view of the world witho
 it, exactly), packs to train on another machine, the held-out evaluation against the classical inpainters, and
 installing the weights.
 
-Seeds: training worlds 3000-3255 (the default; the shipped pack was cut to fewer, see training.json), held-out worlds 3900-3919; never below 3000 (the
-benchmarks' worlds).
+Seeds: training worlds 3000-3255 (the default; the shipped pack was cut to fewer, see training.json), held-out
+worlds 3900-3919; never below 3000 (the benchmarks' worlds).
 """
 from __future__ import annotations
 
