@@ -347,6 +347,7 @@ def test_normals_point_out_of_the_model_and_the_mesh_builds_light_comes_off():
     assert torch.allclose(plain.albedo, srgb_decode(colour), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_light_fit_recovers_a_known_light_from_the_views(scene, graph, pool):
     """Images of a pool model (its own material) lit by a known sun and sky: fitted from the neutral light, the
     renders match them far better than the neutral light does."""

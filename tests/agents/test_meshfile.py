@@ -108,6 +108,7 @@ def test_unreadable_or_empty_files_are_clear_errors(tmp_path):
         read_mesh_file(tmp_path / "junk.glb")
 
 
+@pytest.mark.slow
 def test_an_imported_gltf_keeps_its_colours_and_materials_in_the_pool(tmp_path):
     """Before the materials were read, a glTF with a PBR material came in grey and matte."""
     from omniscs.agents.pool import Pool

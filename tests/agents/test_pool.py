@@ -97,6 +97,7 @@ def _add_in_process(root: str, seeds: list[int]) -> list[str]:
     return [pool.add(_model(s), "car", "mesh", f"seed-{s}") for s in seeds]
 
 
+@pytest.mark.slow
 def test_two_writers_at_once_lose_nothing_and_write_nothing_twice(tmp_path):
     root = str(tmp_path / "pool")
     with mp.get_context("spawn").Pool(2) as workers:
@@ -127,6 +128,7 @@ def test_a_removed_model_leaves_the_table_and_its_files_and_can_be_added_again(t
     assert sorted(pool.table().model_id) == sorted([keep, gone]) and len(pool.get(gone).params) == 300
 
 
+@pytest.mark.slow
 def test_removing_while_another_process_adds_the_same_model_leaves_a_whole_entry_or_none(tmp_path):
     """Adding and removing the same model at once (one lock per model): whatever order they take, the pool ends
     either holding the model whole (row, parameters, keyframes) or not at all, never a row without its model."""
@@ -202,6 +204,7 @@ def test_the_pool_commands_import_list_and_export_with_the_id_alone_on_the_last_
 
 
 @pytest.mark.parametrize("suffix", [".glb", ".obj", ".ply"])
+@pytest.mark.slow
 def test_a_user_mesh_is_made_into_a_calibrated_pool_model(tmp_path, suffix):
     """A library vehicle written as a coloured mesh, turned and moved at random, comes back box-centred, +x
     heading, at its size; a file with no triangles is one clear error."""

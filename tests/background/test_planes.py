@@ -251,6 +251,7 @@ def _striped_ground(street):
     return ground, rgb, uv0, texel
 
 
+@pytest.mark.slow
 def test_texels_no_view_saw_continue_the_lines_that_run_along_the_street():
     from omniscs.background.planes import street_fill
 
@@ -311,6 +312,7 @@ def _facade(period_m=3.0, noise=8):
     return facade, rgb.astype(np.uint8), uv0, texel, x
 
 
+@pytest.mark.slow
 def test_texels_no_view_saw_repeat_the_facade_whole_periods_along_the_street():
     from omniscs.background.planes import _street_along, periodic_fill, street_fill, street_period
 

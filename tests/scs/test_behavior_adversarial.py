@@ -209,6 +209,7 @@ def test_agents_whose_reconstruction_collides_replay_their_log_and_are_never_adv
     assert torch.isfinite(fit.states).all()
 
 
+@pytest.mark.slow
 def test_the_knot_fallback_keeps_a_plausible_interception_the_latent_cannot_express(model):
     # A left turn across this procedural intersection into the ego: the interception search over the decoder's
     # control knots finds it, comfortably and on the road; the latent refitted to it and optimised does not.

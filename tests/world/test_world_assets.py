@@ -41,6 +41,7 @@ def test_every_asset_has_distinct_parameters_and_a_distinct_mesh():
     assert len({_mesh_digest(i) for i in ids}) == len(ids)
 
 
+@pytest.mark.slow
 def test_same_id_builds_the_identical_mesh_in_a_fresh_process():
     ids = ["sedan-0007", "bus-0003", "debris-0011", "excavator-0002"]
     code = ("import sys; sys.path.insert(0, 'tests/world'); from test_world_assets import _mesh_digest; "
