@@ -48,7 +48,7 @@ from omniscs.eval.nuscenes_io import (
     evaluated_classes,
     evaluated_ground_truth,
 )
-from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
+from omniscs.pretrained.registry import folder as shipped_folder, network_with_weights, verified_folder
 from omniscs.storage import atomic_directory, atomic_write_json, atomic_write_text
 
 WEIGHTS = "detector.safetensors"
@@ -89,13 +89,7 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
     except (OSError, ValueError, TypeError, KeyError) as e:
         raise ValidationError(f"{path} is not a proxy detector checkpoint ({e}); train one with "
                               "`omniscs pretrained train detector` or name its folder") from e
-    model = ProxyDetector(config)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ValidationError(f"{path}: the weights do not fit the network of {CONFIG} ({e})") from e
-    model.eval()
-    return model
+    return network_with_weights(ProxyDetector(config), state, path, CONFIG)
 
 
 def evaluate_detector(model: ProxyDetector, dataroot: str | Path, version: str, results_path: str | Path,

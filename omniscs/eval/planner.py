@@ -26,7 +26,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from omniscs.errors import ValidationError
-from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
+from omniscs.pretrained.registry import folder as shipped_folder, network_with_weights, verified_folder
 from omniscs.eval.planning import EGO_LENGTH, EGO_SHIFT, EGO_WIDTH, STEP_S, STEPS, footprints_on_grid
 from omniscs.eval.scenarios import COMMANDS, PlanningExample, PlanningInput
 from omniscs.progress import Progress, no_progress
@@ -301,10 +301,4 @@ def load_planner(path: str | Path | None = None) -> ProxyPlanner:
     except (OSError, ValueError, TypeError) as e:
         raise ValidationError(f"{path} is not a proxy planner checkpoint ({e}); train one with "
                               "`omniscs pretrained train planner` or name its folder") from e
-    model = ProxyPlanner(config)
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ValidationError(f"{path}: the weights do not fit the network of {CONFIG} ({e})") from e
-    model.eval()
-    return model
+    return network_with_weights(ProxyPlanner(config), state, path, CONFIG)

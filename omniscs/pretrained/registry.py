@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from omniscs.errors import OmniscsError
+from omniscs.errors import OmniscsError, ValidationError
 
 #: Where the shipped weights live: one folder per entry, named by the entry.
 WEIGHTS_ROOT = Path(__file__).resolve().parent / "weights"
@@ -202,3 +202,13 @@ def load(name: str):
     model = entry(name)
     module, _, function = model.loader.rpartition(".")
     return getattr(importlib.import_module(module), function)(verify(name))
+
+
+def network_with_weights(network, state: dict, folder: Path, config_name: str):
+    """``network`` (a torch module) holding ``state``, in eval mode; weights that do not fit it are one clear error
+    naming the folder and the config file that describes the network."""
+    try:
+        network.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValidationError(f"{folder}: the weights do not fit the network of {config_name} ({e})") from e
+    return network.eval()

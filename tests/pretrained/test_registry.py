@@ -191,3 +191,18 @@ def test_the_planner_trainer_reproduces_the_shipped_planner_bit_for_bit():
     assert all(state[k].equal(shipped[k]) for k in shipped)
     original = json.loads((registry.entry("planner").folder / "training.json").read_text())
     assert record["epoch_loss_m"] == original["epoch_loss_m"] and record["data"] == original["data"]
+
+
+def test_weights_that_do_not_fit_the_network_of_their_config_are_one_clear_error(tmp_path):
+    import json
+    import shutil
+
+    from omniscs.errors import ValidationError
+    from omniscs.eval.planner import DEFAULT_PLANNER, load_planner
+
+    folder = tmp_path / "planner"
+    shutil.copytree(DEFAULT_PLANNER, folder)
+    config = json.loads((folder / "planner_config.json").read_text())
+    (folder / "planner_config.json").write_text(json.dumps({**config, "hidden": 2 * config["hidden"]}))
+    with pytest.raises(ValidationError, match="the weights do not fit the network of planner_config.json"):
+        load_planner(folder)
