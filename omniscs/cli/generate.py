@@ -42,7 +42,7 @@ def run_generate(request) -> dict:
     request = RunRequest.parse(request)
     if request.run_id is None:  # named now, so that a stop can record the run as cancelled
         request = request.model_copy(update={"run_id": new_run_id()})
-    checked = check_run(request)
+    checked = check_run(request, hand_on=True)  # the flow below takes this check, not a second one
     usable_workspace(request.workspace)  # not a file, nor under one
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api

@@ -104,24 +104,26 @@ class CheckedRun:
     repeats: tuple[str, ...]
 
 
-#: Runs checked in this process, by their request's JSON: the CLI checks a run before Prefect starts and the flow,
-#: in the same process, finds it checked (a deployment's run is checked once, by its flow).
+#: Runs the CLI checked before starting the flow in this process, by their request's JSON: the flow takes its
+#: check from here once (a deployment's run, or a direct call, is checked by the flow itself).
 _CHECKED: dict[str, CheckedRun] = {}
 
 
-def check_run(request: RunRequest | dict) -> CheckedRun:
+def check_run(request: RunRequest | dict, hand_on: bool = False) -> CheckedRun:
     """Every input of a run, checked once per run: the request's fields, its outside-world parts, the sources with
-    the synthetic rig, and the task runner (a Dask scheduler must answer now)."""
+    the synthetic rig, and the task runner (a Dask scheduler must answer now). ``hand_on``: the caller starts the
+    flow next in this process (the CLI), which then takes this check instead of making it again."""
     request = RunRequest.parse(request)
     key = json.dumps(request.to_dict(), sort_keys=True)
-    if key in _CHECKED:
-        return _CHECKED[key]
+    if not hand_on and key in _CHECKED:
+        return _CHECKED.pop(key)
     check_request(request.scene_request())
     scenes, repeats = check_sources(request.sources, request.n_frames, request.n_cameras, request.width,
                                     request.height)
     check_runner(request.task_runner, request.workers, request.dask_address)
     checked = CheckedRun(request, tuple(scenes), tuple(repeats))
-    _CHECKED[key] = checked
+    if hand_on:
+        _CHECKED[key] = checked
     return checked
 
 

@@ -162,3 +162,18 @@ def test_dataset_build_asks_the_flow_for_an_annotated_run(monkeypatch):
     (request,) = seen
     assert (request.sources, request.annotate, request.fit_preset, request.behavior_variants, request.n_frames,
             request.dataset_id, request.previews) == (["syn:straight:3"], True, "fast", 2, 8, "ds-mine", False)
+
+
+def test_a_run_is_checked_once_when_the_cli_hands_its_check_to_the_flow_and_afresh_otherwise(monkeypatch):
+    from omniscs.pipeline import validate
+
+    checked = []
+    monkeypatch.setattr(validate, "check_sources", lambda sources, *rig: checked.append(list(sources)) or ([], []))
+    monkeypatch.setattr(validate, "check_request", lambda request: request)
+    request = RunRequest(sources=["syn:straight:5"], run_id="once")
+    validate.check_run(request, hand_on=True)  # the CLI, before Prefect starts
+    validate.check_run(request)  # the flow in the same process takes that check
+    assert checked == [["syn:straight:5"]]
+    validate.check_run(request)  # a later run of the same request (a served flow, a deployment) checks again
+    validate.check_run(request)
+    assert len(checked) == 3
