@@ -6,7 +6,7 @@ import json
 from docs_helpers import REPO, load_generator
 
 REPORTS = REPO / "reports"
-PICTURE_LIMIT_BYTES = 600 * 1024
+PICTURE_LIMIT_BYTES = 600_000
 GEN = load_generator()
 
 
