@@ -89,7 +89,8 @@ def generate_dataset(request: RunRequest) -> dict:
         if request.annotate and done:
             annotated = [StageRecord.from_dict(r["stages"]["annotate"]) for r in done if "annotate" in r["stages"]]
             dataset = t.dataset(annotated, ws, request.dataset_id, {"sources": [c.text for c in scenes],
-                                                                    "config": request.product_fields()})
+                                                                    "config": request.product_fields()},
+                                keep_failed=request.keep_failed)
             t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"
@@ -98,14 +99,17 @@ def generate_dataset(request: RunRequest) -> dict:
         raise
     failed = [r for r in results if "error" in r]
     error = "; ".join(f"{r['label']}: {r['error']}" for r in failed) or None
-    run_summary_artifact(run_id, results, None if dataset is None else dataset.info["dataset_id"])
+    run_summary_artifact(run_id, results, None if dataset is None else dataset.info["dataset_id"],
+                         [] if dataset is None else dataset.info.get("warnings", []))
     t.catalog_run(run_id, ws, "generate_dataset", "failed" if failed else "completed", started, _now_us(),
                   len(scenes), config, error=error)
     if failed:
         raise OmniscsError(f"{len(failed)} of {len(scenes)} scene(s) failed in run {run_id}: {error}")
     return {"run_id": run_id, "workspace": ws, "scenes": done, "failed": failed, "repeats": list(checked.repeats),
             "dataset_id": None if dataset is None else dataset.info["dataset_id"],
-            "dataset_path": None if dataset is None else dataset.path}
+            "dataset_path": None if dataset is None else dataset.path,
+            "dataset_gates": None if dataset is None else dataset.info.get("gates"),
+            "dataset_warnings": [] if dataset is None else dataset.info.get("warnings", [])}
 
 
 def one_line(exc: BaseException) -> str:

@@ -127,6 +127,8 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("object_category", pa.string()),
         pa.field("pose", pa.string()),                            # appearance: upright | on_side | overturned | replace
         pa.field("edits_json", pa.string()),                      # appearance: the variant's edit specs (JSON)
+        pa.field("passed_gates", pa.bool_()),     # the quality gates' verdict (omniscs.gates); null: not judged
+        pa.field("gate_reasons", pa.list_(pa.string())),          # why it failed (empty when it passed)
     ]),
     "plans": pa.schema([                                          # what each scene needs modelled (plan stage)
         pa.field("scene_id", pa.string(), nullable=False),
@@ -185,6 +187,10 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("card_path", pa.string(), nullable=False),
         pa.field("preview_path", pa.string(), nullable=False),
         pa.field("config_json", pa.string(), nullable=False),
+        pa.field("n_requested", pa.int32()),      # variants the request asked for (every scene, both levels)
+        pa.field("n_rejected", pa.int32()),       # variants that failed the quality gates (in the dataset or not)
+        pa.field("n_failed_kept", pa.int32()),    # of those, put into the dataset (keep_failed), marked
+        pa.field("warnings", pa.list_(pa.string())),              # the card's warnings, in plain words
     ]),
     "samples": pa.schema([                                        # one rendered image: frame x camera of a variant
         pa.field("dataset_id", pa.string(), nullable=False),

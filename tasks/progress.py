@@ -14,18 +14,24 @@ def artifact_progress(description: str) -> Progress:
         artifact, percent(done, total), description=f"{description}: {note}" if note else None))
 
 
-def run_summary_artifact(run_id: str, results: list[dict], dataset_id: str | None) -> str:
-    """One table row per scene of a ``generate_dataset`` run: its stages (made, reused or skipped), variants, the
-    dataset and why it failed; shown in the Prefect UI under the flow run (key ``run-summary``)."""
+def run_summary_artifact(run_id: str, results: list[dict], dataset_id: str | None,
+                         warnings: list[str] | tuple[str, ...] = ()) -> str:
+    """One table row per scene of a ``generate_dataset`` run: its stages (made, reused or skipped), variants and
+    how many passed the quality gates, the dataset and why it failed; the dataset card's warnings in the
+    description. Shown in the Prefect UI under the flow run (key ``run-summary``)."""
     rows = []
     for r in results:
         stages = r.get("stages", {})
         made = [s for s, rec in stages.items() if not rec["skipped"] and not rec["reused"]]
         reused = [s for s, rec in stages.items() if rec["reused"]]
         variants = stages.get("behavior", {}).get("info", {}).get("n_variants")
+        verdicts = stages.get("annotate", {}).get("info", {}).get("verdicts") or {}
         rows.append({"scene": r.get("scene_id") or r.get("label"), "status": "failed" if "error" in r else "done",
                      "made": ", ".join(made), "reused": ", ".join(reused),
-                     "variants": "" if variants is None else int(variants), "dataset": dataset_id or "",
+                     "variants": "" if variants is None else int(variants),
+                     "passed gates": f"{sum(bool(v['passed']) for v in verdicts.values())} of {len(verdicts)}"
+                     if verdicts else "", "dataset": dataset_id or "",
                      "error": r.get("error", "")})
+    warned = "; warnings: " + "; ".join(warnings) if warnings else ""
     return str(create_table_artifact(rows, key="run-summary", description=f"generate_dataset run {run_id}: "
-                                                                           f"{len(rows)} scene(s)"))
+                                                                           f"{len(rows)} scene(s){warned}"))

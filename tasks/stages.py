@@ -27,8 +27,9 @@ def run_stage(row: Stage, state: SceneState) -> StageRecord:
 
 
 @task(name="dataset", **STAGE_TASK_OPTIONS)
-def dataset(annotated: list[StageRecord], workspace: str, dataset_id: str | None, facts: dict) -> StageRecord:
-    return stages.dataset_stage(annotated, workspace, dataset_id, facts)
+def dataset(annotated: list[StageRecord], workspace: str, dataset_id: str | None, facts: dict,
+            keep_failed: bool = False) -> StageRecord:
+    return stages.dataset_stage(annotated, workspace, dataset_id, facts, keep_failed=keep_failed)
 
 
 @task(name="catalog-dataset", task_run_name="catalog-{record.scene_id}", **STAGE_TASK_OPTIONS)

@@ -47,15 +47,21 @@ def link_tree(src: Path, dst: Path) -> None:
 
 
 def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path, dataset_id: str,
-                     card_facts: dict) -> dict:
+                     card_facts: dict, keep_failed: bool = False) -> dict:
     """Gather the annotate stages' outputs ``annotated`` into ``out_dir`` (a temporary folder that becomes
-    ``final_dir``): variant stores, BEV pictures, preview and card. Returns the card with the rows to catalogue
-    (``samples``, ``annotations``, ``variants``: paths already pointing into ``final_dir``)."""
-    samples, annotations, variants = [], [], []
+    ``final_dir``): variant stores, BEV pictures, preview and card. Variants that failed the quality gates
+    (``omniscs.gates``) stay out unless ``keep_failed`` (then the card marks them); a run none of whose variants
+    passed is an OmniscsError. Returns the card with the rows to catalogue (``samples``, ``annotations``,
+    ``variants``: paths already pointing into ``final_dir``)."""
+    samples, annotations, variants, judged = [], [], [], []
     for folder in annotated:
         folder = Path(folder)
         rows = read_rows(folder)
+        judged.append(gate_record(rows))
+        kept = {v["store_id"] for v in rows["variants"] if keep_failed or (v.get("gate") or {}).get("passed", True)}
         for v in rows["variants"]:
+            if v["store_id"] not in kept:
+                continue
             link_tree(folder / v["store_id"], out_dir / SCENES / v["store_id"])
             bev = folder / f"{v['store_id']}-bev.png"
             if bev.is_file():
@@ -63,18 +69,77 @@ def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path
                 link_tree_file(bev, out_dir / BEV / f"{v['store_id']}.png")
             variants.append(dict(v, path=str(final_dir / SCENES / v["store_id"])))
         for s in rows["samples"]:
+            if s["store_id"] not in kept:
+                continue
             store = final_dir / SCENES / s["store_id"]
             samples.append(dict(s, dataset_id=dataset_id, image_path=str(store / s["image_path"]),
                                 gt_path=str(store / s["gt_path"])))
-        annotations.extend(dict(a, dataset_id=dataset_id) for a in rows["annotations"])
+        annotations.extend(dict(a, dataset_id=dataset_id) for a in rows["annotations"] if a["store_id"] in kept)
+    gates = gate_summary(judged, keep_failed)
     if not variants:
+        if gates["rejected_total"]:
+            raise OmniscsError(f"no variant passed the quality gates ({gates['rejected_total']} rejected: "
+                               f"{first_reasons(gates)}); nothing is written. Raise --variant-budget to try more "
+                               "candidates, relax the gates, or give --keep-failed to build the dataset from them")
         raise OmniscsError("no annotated variant to put in a dataset; ask for behaviour variants of at least one "
                            "scene with a vehicle besides the ego, or for appearance variants")
-    card = dataset_card(dataset_id, variants, samples, annotations, card_facts)
+    card = dataset_card(dataset_id, variants, samples, annotations, card_facts, gates)
     atomic_write_json(out_dir / CARD_JSON, card)
     atomic_write_text(out_dir / CARD_MD, card_markdown(card))
     write_preview(out_dir, samples, annotations, out_dir / PREVIEW_PNG)
     return {"card": card, "samples": samples, "annotations": annotations, "variants": variants}
+
+
+#: The variant levels a card counts, in order.
+LEVELS = ("behaviour", "appearance")
+
+
+def gate_record(rows: dict) -> dict:
+    """One annotate stage's verdicts (its ``rows.json``): per variant its scene, level, whether it passed and why
+    not, whether it was rendered; and what each level was asked for (``wanted``; None without gates)."""
+    out = []
+    for v in rows["variants"]:
+        gate = v.get("gate") or {"passed": True, "reasons": []}
+        out.append({"scene_id": v["scene_id"], "variant_id": str(v["variant_id"]), "level": v.get("level"),
+                    "passed": bool(gate["passed"]), "reasons": list(gate["reasons"]), "rendered": True})
+    scene = rows["variants"][0]["scene_id"] if rows["variants"] else None
+    for r in rows.get("rejected") or []:
+        out.append({"scene_id": r.get("scene_id", scene), "variant_id": str(r["variant_id"]), "level": r["level"],
+                    "passed": False, "reasons": list(r["reasons"]), "rendered": False})
+    return {"variants": out, "wanted": rows.get("wanted"), "spare": len(rows.get("spare") or [])}
+
+
+def gate_summary(records: list[dict], keep_failed: bool) -> dict:
+    """Requested, produced (passed) and rejected variants per level over a run's annotate stages, with every
+    rejected variant's reasons."""
+    requested = {level: 0 for level in LEVELS}
+    produced = {level: 0 for level in LEVELS}
+    rejected = {level: 0 for level in LEVELS}
+    tried = {level: 0 for level in LEVELS}
+    reasons = []
+    for record in records:
+        wanted = record["wanted"]
+        for level in LEVELS:
+            judged = [v for v in record["variants"] if v["level"] == level]
+            requested[level] += len([v for v in judged if v["passed"]]) if wanted is None else int(wanted.get(level, 0))
+        for v in record["variants"]:
+            tried[v["level"]] += 1
+            if v["passed"]:
+                produced[v["level"]] += 1
+            else:
+                rejected[v["level"]] += 1
+                reasons.append({k: v[k] for k in ("scene_id", "variant_id", "level", "reasons", "rendered")}
+                               | {"in_dataset": bool(keep_failed and v["rendered"])})
+    return {"requested": requested, "produced": produced, "rejected": rejected, "tried": tried,
+            "rejected_total": sum(rejected.values()), "failed_kept": sum(r["in_dataset"] for r in reasons),
+            "keep_failed": bool(keep_failed), "rejections": reasons}
+
+
+def first_reasons(gates: dict, n: int = 3) -> str:
+    """The first ``n`` rejections as one line."""
+    shown = [f"{r['variant_id']}: {'; '.join(r['reasons'])}" for r in gates["rejections"][:n]]
+    more = len(gates["rejections"]) - n
+    return " | ".join(shown) + (f" | and {more} more" if more > 0 else "")
 
 
 def link_tree_file(src: Path, dst: Path) -> None:
@@ -92,9 +157,57 @@ def _stats(values: list[float]) -> dict | None:
             "max": float(np.max(v)), "n": len(v)}
 
 
+#: Boxes nearer than this to the ego (metres) are the ones the LiDAR share is reported for (nuScenes evaluates
+#: detection up to 50 m).
+LIDAR_RANGE_M = 50.0
+#: Below this share of boxes with LiDAR points (within LIDAR_RANGE_M) the card warns.
+LIDAR_SHARE_WARNING = 0.9
+
+
+def lidar_coverage(annotations: list[dict], max_range_m: float = LIDAR_RANGE_M) -> dict:
+    """Boxes (one per variant, frame and track, as the cameras annotated them) with and without LiDAR points, all
+    and within ``max_range_m`` of the ego; a count of -1 (not measured) is left out."""
+    boxes: dict[tuple, tuple[int, float]] = {}
+    for a in annotations:
+        n = int(a.get("num_lidar_points", -1))
+        if n >= 0:
+            boxes[(a["store_id"], int(a["frame_idx"]), int(a["track_id"]))] = (
+                n, float(np.hypot(float(a["ego_x"]), float(a["ego_y"]))))
+    near = [n for n, d in boxes.values() if d <= max_range_m]
+    return {"boxes": len(boxes), "with_points": sum(n > 0 for n, _ in boxes.values()),
+            "within_m": max_range_m, "boxes_within": len(near), "with_points_within": sum(n > 0 for n in near),
+            "share_within": (sum(n > 0 for n in near) / len(near)) if near else None}
+
+
+def card_warnings(counts: dict, gates: dict, lidar: dict) -> list[str]:
+    """What a user must know before training on the dataset, in plain words."""
+    out = []
+    for level in LEVELS:
+        asked, made, tried = gates["requested"][level], gates["produced"][level], gates["tried"][level]
+        if asked and made < asked:
+            out.append(f"{made} of {asked} requested {level} variant(s) passed the quality gates ({tried} tried)")
+    behaviour = [r for r in gates["rejections"] if r["level"] == "behaviour"]
+    if gates["requested"]["behaviour"] and gates["produced"]["behaviour"] == 0 and behaviour:
+        collided = sum(not any(t.startswith(("no collision", "neither a collision")) for t in r["reasons"])
+                       for r in behaviour)
+        out.append(f"{collided} of {len(behaviour)} behaviour variant(s) reached a collision")
+    if gates["failed_kept"]:
+        out.append(f"{gates['failed_kept']} variant(s) in this dataset failed the quality gates (kept on request; "
+                   "passed_gates false in the card and the variants table)")
+    if lidar["share_within"] is not None and lidar["share_within"] < LIDAR_SHARE_WARNING:
+        out.append(f"only {lidar['with_points_within']} of {lidar['boxes_within']} boxes within "
+                   f"{lidar['within_m']:g} m have LiDAR points; nuScenes' evaluation and UniAD's valid_flag drop "
+                   "the others")
+    if counts["dropped_frames"]:
+        out.append(f"{counts['dropped_frames']} frame(s) were not rendered: the ego left the fitted area")
+    return out
+
+
 def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], annotations: list[dict],
-                 facts: dict) -> dict:
-    """The dataset card: what went in, what came out, how faithful the renders are."""
+                 facts: dict, gates: dict | None = None) -> dict:
+    """The dataset card: what was asked for, what went in and what was rejected (with reasons), how faithful the
+    renders are, how many boxes the LiDAR sees, and warnings in plain words."""
+    gates = gates or gate_summary([], False)
     categories: dict[str, int] = {}
     levels = {1: 0, 2: 0, 3: 0, 4: 0}
     for a in annotations:
@@ -103,64 +216,94 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
     commands: dict[str, int] = {}
     for s in samples:
         commands[s["command"]] = commands.get(s["command"], 0) + 1
+    counts = {"scenes": len({v["scene_id"] for v in variants}), "variants": len(variants),
+              "frames": int(sum(v["n_frames"] for v in variants)), "images": len(samples),
+              "annotations": len(annotations),
+              "ego_solved": sum(bool(v.get("ego_solved")) for v in variants),
+              "variants_by_level": {level: sum(v.get("level", "behaviour") == level for v in variants)
+                                    for level in LEVELS},
+              "dropped_frames": int(sum(v["dropped_frames"] for v in variants)),
+              "annotations_by_category": dict(sorted(categories.items())),
+              "annotations_by_visibility": {f"level {k}": n for k, n in levels.items()},
+              "samples_by_command": dict(sorted(commands.items()))}
+    lidar = lidar_coverage(annotations)
     return {
         "dataset_id": dataset_id, **facts,
-        "counts": {"scenes": len({v["scene_id"] for v in variants}), "variants": len(variants),
-                   "frames": int(sum(v["n_frames"] for v in variants)), "images": len(samples),
-                   "annotations": len(annotations),
-                   "ego_solved": sum(bool(v.get("ego_solved")) for v in variants),
-                   "variants_by_level": {level: sum(v.get("level", "behaviour") == level for v in variants)
-                                         for level in ("behaviour", "appearance")},
-                   "dropped_frames": int(sum(v["dropped_frames"] for v in variants)),
-                   "annotations_by_category": dict(sorted(categories.items())),
-                   "annotations_by_visibility": {f"level {k}": n for k, n in levels.items()},
-                   "samples_by_command": dict(sorted(commands.items()))},
+        "counts": counts,
+        "gates": gates,
+        "lidar": lidar,
+        "warnings": card_warnings(counts, gates, lidar),
         "fidelity": {"variant_psnr": _stats([v.get("fidelity_psnr") for v in variants]),
                      "variant_ssim": _stats([v.get("fidelity_ssim") for v in variants]),
                      "variant_masked_psnr": _stats([v.get("fidelity_masked_psnr") for v in variants]),
                      "variant_feature_drift": _stats([v.get("feature_drift") for v in variants]),
                      "variant_logged_psnr": _stats([v.get("logged_psnr") for v in variants]),
                      "max_viewpoint_offset_m": _stats([v.get("max_viewpoint_offset_m") for v in variants])},
-        "variants": [{k: v.get(k) for k in ("scene_id", "variant_id", "store_id", "n_frames", "n_images",
-                                            "n_annotations", "dropped_frames", "ego_solved", "fidelity_psnr",
-                                            "fidelity_ssim", "fidelity_masked_psnr", "feature_drift",
-                                            "max_viewpoint_offset_m")}
+        "variants": [{**{k: v.get(k) for k in ("scene_id", "variant_id", "store_id", "level", "n_frames", "n_images",
+                                               "n_annotations", "dropped_frames", "ego_solved", "fidelity_psnr",
+                                               "fidelity_ssim", "fidelity_masked_psnr", "feature_drift",
+                                               "max_viewpoint_offset_m")},
+                      "passed_gates": (v.get("gate") or {}).get("passed", True)}
                      for v in variants],
     }
 
 
 def card_markdown(card: dict) -> str:
     c, fid = card["counts"], card["fidelity"]
+    gates = card.get("gates") or gate_summary([], False)
+    lidar = card.get("lidar")
 
     def stat(s: dict | None, unit: str = "") -> str:
         return "not measured" if s is None else f"mean {s['mean']:.2f}{unit}, median {s['median']:.2f}{unit}, " \
-                                                f"min {s['min']:.2f}{unit} over {s['n']} variant(s)"
+                                                f"min {s['min']:.2f}{unit}, max {s['max']:.2f}{unit} over {s['n']} " \
+                                                "variant(s)"
 
-    lines = [f"# Dataset {card['dataset_id']}", "",
-             f"{c['variants']} SCS variant(s) of {c['scenes']} scene(s) ({c['variants_by_level']['behaviour']} "
-             f"behaviour-level, {c['variants_by_level']['appearance']} appearance-level): {c['frames']} frames, "
-             f"{c['images']} annotated images, {c['annotations']} box annotations (one per box and camera).", "",
-             f"- Sources: {', '.join(card.get('sources') or []) or 'n/a'}",
-             f"- The ego drives its avoiding solution in {c['ego_solved']} of {c['variants_by_level']['behaviour']} "
-             "behaviour variant(s); the others keep the plan that collides (test cases). Appearance variants keep the "
-             "logged ego.",
-             f"- Frames not rendered because the ego left the fitted area: {c['dropped_frames']}",
-             f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
-             f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
-             f"- Distance of the rendered ego from the logged path: {stat(fid['max_viewpoint_offset_m'], ' m')}",
-             "- Feature drift against the unedited render of the logged view, edited agents left out (0 = same "
-             f"structure; the proxy for recorded logs): {stat(fid.get('variant_feature_drift'))}; the unedited render "
-             f"against the logged images: PSNR {stat(fid.get('variant_logged_psnr'), ' dB')}",
-             f"- Annotations by category: {c['annotations_by_category']}",
-             f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
-             f"- Samples by driving command: {c['samples_by_command']}", "",
-             "## Config", "", "```json", json.dumps(card.get("config"), indent=2, sort_keys=True), "```", "",
-             "## Variants", "", "| scene | variant | frames | images | boxes | ego solved | PSNR dB | masked PSNR dB "
-             "| drift |", "|---|---|---:|---:|---:|---|---:|---:|---:|"]
+    lines = [f"# Dataset {card['dataset_id']}", ""]
+    if card.get("warnings"):
+        lines += ["**Warnings**", ""] + [f"- {w}" for w in card["warnings"]] + [""]
+    lines += [f"{c['variants']} SCS variant(s) of {c['scenes']} scene(s) ({c['variants_by_level']['behaviour']} "
+              f"behaviour-level, {c['variants_by_level']['appearance']} appearance-level): {c['frames']} frames, "
+              f"{c['images']} annotated images, {c['annotations']} box annotations (one per box and camera).", "",
+              f"- Sources: {', '.join(card.get('sources') or []) or 'n/a'}",
+              f"- The ego drives its avoiding solution in {c['ego_solved']} of "
+              f"{c['variants_by_level']['behaviour']} behaviour variant(s) in the dataset. Appearance variants keep "
+              "the logged ego.",
+              f"- Frames not rendered because the ego left the fitted area: {c['dropped_frames']}",
+              f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
+              f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
+              f"- Distance of the rendered ego from the logged path: {stat(fid['max_viewpoint_offset_m'], ' m')}",
+              "- Feature drift against the unedited render of the logged view, edited agents left out (0 = same "
+              f"structure; the proxy for recorded logs): {stat(fid.get('variant_feature_drift'))}; the unedited "
+              f"render against the logged images: PSNR {stat(fid.get('variant_logged_psnr'), ' dB')}"]
+    if lidar is not None:
+        share = "n/a" if lidar["share_within"] is None else f"{100 * lidar['share_within']:.0f} %"
+        lines.append(f"- Boxes with LiDAR points: {lidar['with_points']} of {lidar['boxes']}; within "
+                     f"{lidar['within_m']:g} m of the ego {lidar['with_points_within']} of {lidar['boxes_within']} "
+                     f"({share})")
+    lines += [f"- Annotations by category: {c['annotations_by_category']}",
+              f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
+              f"- Samples by driving command: {c['samples_by_command']}", "",
+              "## Quality gates", "",
+              "| level | requested | passed | rejected | tried |", "|---|---:|---:|---:|---:|"]
+    for level in LEVELS:
+        lines.append(f"| {level} | {gates['requested'][level]} | {gates['produced'][level]} | "
+                     f"{gates['rejected'][level]} | {gates['tried'][level]} |")
+    lines.append("")
+    if gates["rejections"]:
+        where = "in the dataset, marked" if gates["keep_failed"] else "kept in the workspace and the catalog only"
+        lines += [f"Rejected variants ({where}):", ""]
+        lines += [f"- {r['scene_id']} {r['variant_id']} ({r['level']}{'' if r['rendered'] else ', not rendered'}"
+                  f"{', in the dataset' if r['in_dataset'] else ''}): {'; '.join(r['reasons'])}"
+                  for r in gates["rejections"]]
+        lines.append("")
+    lines += ["## Config", "", "```json", json.dumps(card.get("config"), indent=2, sort_keys=True), "```", "",
+              "## Variants", "", "| scene | variant | level | passed gates | frames | images | boxes | ego solved "
+              "| PSNR dB | masked PSNR dB | drift |", "|---|---|---|---|---:|---:|---:|---|---:|---:|---:|"]
     for v in card["variants"]:
         def num(x, digits=2):
             return "" if x is None else f"{x:.{digits}f}"
-        lines.append(f"| {v['scene_id']} | {v['variant_id']} | {v['n_frames']} | {v['n_images']} | "
+        lines.append(f"| {v['scene_id']} | {v['variant_id']} | {v.get('level') or ''} | "
+                     f"{v.get('passed_gates', True)} | {v['n_frames']} | {v['n_images']} | "
                      f"{v['n_annotations']} | {v['ego_solved']} | {num(v['fidelity_psnr'])} | "
                      f"{num(v['fidelity_masked_psnr'])} | {num(v.get('feature_drift'), 3)} |")
     return "\n".join(lines) + "\n"

@@ -14,6 +14,7 @@ from omniscs.annotate.replay import Replay, write_replay
 from omniscs.annotate.variant import AnnotatedVariant, Reference, background_tracks, write_annotated_variant
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
+from omniscs.gates import GateConfig, Verdict, edited_visible_frames, rendered_verdict
 from omniscs.ids import check_id
 from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
@@ -38,7 +39,9 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                       config: AnnotateConfig = AnnotateConfig(), picture: Callable | None = None,
                       describe: Callable | None = None, progress: Progress = no_progress,
                       replay: Replay | None = None, compose: Callable[[dict], object] | None = None,
-                      reference_for: Callable[[dict], Reference | None] | None = None) -> list[AnnotatedVariant]:
+                      reference_for: Callable[[dict], Reference | None] | None = None,
+                      gates: GateConfig | None = None, wanted: dict[str, int] | None = None,
+                      keep_failed: bool = False) -> list[AnnotatedVariant]:
     """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
 
     ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
@@ -48,12 +51,28 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
     graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies.
     Appearance variants (``kind`` appearance) keep the logged ego over every frame and are drawn by the graph
     ``compose(variant)`` returns (``omniscs.scs.appearance.compose.Composite``: the edited graph and the boxes of
-    the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given. Writes ``rows.json`` (samples, annotations, summaries) last."""
+    the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given.
+
+    With ``gates`` (``omniscs.gates``) every rendered variant's summary gets its verdict (``gate``): what its
+    behaviour stage found, the ego's solution, the edited object's visibility and the fidelity floors. A variant
+    already failed before rendering (no collision, no ego solution) is not rendered unless ``keep_failed``; once
+    ``wanted[level]`` variants of a level passed, its later (spare) candidates are not rendered. Those not rendered
+    are listed in ``rows.json`` under ``rejected`` and ``spare``. Writes ``rows.json`` (samples, annotations,
+    summaries) last."""
     out_dir = Path(out_dir)
     annotator = ViewAnnotator(graph, config, replay)
     members = background_members(graph, background_tracks(scene, graph))
-    results, pictures = [], []
+    results, pictures, rejected, spare = [], [], [], []
+    passed = {"behaviour": 0, "appearance": 0}
     for i, variant in enumerate(variants):
+        level = APPEARANCE if variant.get("kind") == APPEARANCE else "behaviour"
+        if gates is not None and wanted is not None and passed[level] >= wanted.get(level, len(variants)):
+            spare.append({"variant_id": str(variant.get("variant_id")), "level": level})
+            continue
+        before = Verdict.from_dict(variant.get("gate")) if gates is not None else Verdict(True)
+        if not before.passed and not keep_failed:
+            rejected.append({"variant_id": str(variant.get("variant_id")), "level": level, **before.to_dict()})
+            continue
         if variant.get("scene_id") not in (None, scene.scene_id):
             raise OmniscsError(f"variant {variant.get('variant_id')} belongs to scene {variant.get('scene_id')}, "
                                f"not {scene.scene_id}")
@@ -70,14 +89,24 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                                    "(a model pool or the graph's own nodes)")
             composite = compose(variant)
             framed = dict(variant, source_frames=list(range(scene.n_frames)), ego=None)
-            results.append(write_annotated_variant(
+            result = write_annotated_variant(
                 composite.graph, scene, framed, out_dir / store_id, store_id,
                 reference=reference_for(variant) if reference_for is not None else None, config=config,
                 progress=step, annotator=ViewAnnotator(composite.graph, config, replay), members=members,
-                describe=describe, edited=composite.boxes))
+                describe=describe, edited=composite.boxes)
+            if gates is not None:
+                result.summary["edited_visible_frames"] = edited_visible_frames(
+                    result.annotations, int(variant["track_id"]), gates)
+                passed[level] += _judge(result, before, gates)
+            results.append(result)
             continue
         solution = solve(variant) if solve is not None else None
         solved = solution is not None and bool(solution.solved)
+        if gates is not None and gates.require_ego_solution and solution is not None and not solved \
+                and not keep_failed:
+            rejected.append({"variant_id": vid, "level": level, **(before & rendered_verdict(
+                {"level": level, "ego_solved": False}, gates)).to_dict()})
+            continue
         ego = np.asarray(solution.trajectory) if solved else None
         if solution is not None and not solved:
             log.warning("variant %s of %s: no comfortable collision-free ego trajectory (%s); kept as a test case "
@@ -88,13 +117,26 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                                          members=members, describe=describe)
         if picture is not None and solution is not None:
             pictures.append(Path(picture(variant, solution, out_dir / f"{store_id}-bev.png")).name)
+        if gates is not None:
+            passed[level] += _judge(result, before, gates)
         results.append(result)
     atomic_write_json(out_dir / ROWS_JSON, {
         "samples": [r for v in results for r in v.samples],
         "annotations": [r for v in results for r in v.annotations],
         "variants": [dict(v.summary, store_id=v.store.name, scene_id=scene.scene_id) for v in results],
-        "bev": pictures})
+        "bev": pictures, "rejected": rejected, "spare": spare, "wanted": wanted})
     return results
+
+
+def _judge(result: AnnotatedVariant, before: Verdict, gates: GateConfig) -> bool:
+    """Record a rendered variant's verdict in its summary (what was known before rendering and what the render
+    shows); whether it passed."""
+    verdict = before & rendered_verdict(result.summary, gates)
+    result.summary["gate"] = verdict.to_dict()
+    if not verdict.passed:
+        log.warning("variant %s fails the quality gates: %s", result.summary.get("variant_id"),
+                    "; ".join(verdict.reasons))
+    return verdict.passed
 
 
 def read_rows(out_dir: str | Path) -> dict:

@@ -171,6 +171,19 @@ def show_dataset(path: Path) -> None:
                   f"{c['annotations']} box annotations; ego solved in {c['ego_solved']}; "
                   + (f"fidelity PSNR mean {fid['mean']:.2f} dB" if fid else "no exact reference")
                   + (f"; feature drift mean {drift['mean']:.3f}" if drift else ""))
+    gates, lidar = card.get("gates"), card.get("lidar")
+    if gates is not None:
+        console.print("quality gates: " + "; ".join(
+            f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed, "
+            f"{gates['rejected'][level]} rejected, {gates['tried'][level]} tried" for level in gates["requested"]))
+        for r in gates["rejections"]:
+            console.print(f"  rejected {r['scene_id']} {r['variant_id']} ({r['level']}"
+                          f"{', in the dataset' if r['in_dataset'] else ''}): {'; '.join(r['reasons'])}")
+    if lidar is not None and lidar.get("boxes_within"):
+        console.print(f"LiDAR: {lidar['with_points_within']} of {lidar['boxes_within']} boxes within "
+                      f"{lidar['within_m']:g} m have points ({lidar['with_points']} of {lidar['boxes']} in all)")
+    for warning in card.get("warnings") or []:
+        print_error(warning, label="warning", style="yellow")
     console.print(f"folder:  {path}")
     console.print(f"card:    {path / 'README.md'}")
     console.print(f"preview: {path / 'preview.png'}  (BEVs with the ego's solution: {path / 'bev'})")

@@ -134,6 +134,8 @@ def _request_parameters() -> list[inspect.Parameter]:
             annotation = bool
         elif base is int:
             annotation = Optional[int] if default is None else int
+        elif base is float:
+            annotation = Optional[float] if default is None else float
         else:  # text, a path, or one of a few words (Literal)
             annotation = Optional[str] if default is None else str
         if name in CLI_VALUES:
@@ -171,8 +173,14 @@ def generate(**fields) -> None:
     print_table(rows, title=f"run {result['run_id']}")
     console.print(f"run {result['run_id']}: {len(result['scenes'])} scene(s) in {result['workspace']}")
     if result.get("dataset_path"):
+        gates = result.get("dataset_gates") or {}
+        counts = ", ".join(f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed "
+                           f"({gates['rejected'][level]} rejected, {gates['tried'][level]} tried)"
+                           for level in ("behaviour", "appearance") if gates.get("requested", {}).get(level))
         console.print(f"dataset {result['dataset_id']}: {result['dataset_path']}  (omniscs dataset info "
-                      f"{result['dataset_id']})")
+                      f"{result['dataset_id']})" + (f"\n  variants: {counts}" if counts else ""))
+        for warning in result.get("dataset_warnings") or []:
+            print_error(warning, label="warning", style="yellow")
 
 
 generate.__signature__ = inspect.Signature(_request_parameters())

@@ -12,6 +12,7 @@ from omniscs.agents.pool import Pool, model_resolver
 from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.replay import Replay
 from omniscs.annotate.scene import annotate_variants, read_rows, replay_scene
+from omniscs.gates import GateConfig
 from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
@@ -58,13 +59,16 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
 
 def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
                    workspace: str | Path, config=None, progress: Progress = no_progress,
-                   reuse: bool = True, appearance: StageRecord | None = None) -> StageRecord:
+                   reuse: bool = True, appearance: StageRecord | None = None, gates: GateConfig | None = None,
+                   keep_failed: bool = False) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
     ``config.exact_fidelity`` is off). ``appearance`` (the appearance stage's record) adds its variants, composed
     from their pool's models; with procedural scenes their exact reference inserts the library asset each pool
-    model was built from."""
+    model was built from. With ``gates`` each variant gets its quality verdict; those failed before rendering are
+    rendered only with ``keep_failed``, and spare candidates only until each level has as many passing variants
+    as its stage was asked for (``omniscs.annotate.scene.annotate_variants``)."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if not plan.stages.get("render_annotate"):
@@ -78,8 +82,11 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     inputs = {"scene": scene.content_hash, "graph": model.key, "variants": None if behavior is None else behavior.key}
     if appearance is not None:
         inputs["appearance"] = appearance.key
+    wanted = {level: int(r.info.get("n_requested", r.info.get("n_variants", 0)))
+              for level, r in (("behaviour", behavior), ("appearance", appearance)) if r is not None}
+    gated = {"gates": gates.to_dict(), "keep_failed": bool(keep_failed), "wanted": wanted} if gates else {}
     key = StageKey.of("annotate", ANNOTATE_VERSION, inputs,
-                      {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config)})
+                      {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config), **gated})
     out = layout.stage_folder(workspace, "annotate", scene.scene_id, f"annotate-{key.short}")
     with output_lock(out, waiting(progress, out)):
         manifest = reusable(out, key) if reuse else None
@@ -102,7 +109,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     progress=progress, replay=replay,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
                     compose=appearance_composer(graph), reference_for=appearance_references(scene, variants)
-                    if config.exact_fidelity else None)
+                    if config.exact_fidelity else None, gates=gates, wanted=wanted if gates else None,
+                    keep_failed=keep_failed)
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 
             produce(out, key, make)
@@ -112,7 +120,17 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                        seconds=time.perf_counter() - started, key=key.digest,
                        info={"n_variants": len(summaries), "n_images": len(rows["samples"]),
                              "n_annotations": len(rows["annotations"]),
-                             "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries)})
+                             "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries),
+                             "verdicts": variant_verdicts(rows)})
+
+
+def variant_verdicts(rows: dict) -> dict[str, dict]:
+    """{variant id: its quality verdict} of an annotate stage's ``rows.json``: rendered variants and those rejected
+    before rendering (spare candidates that were not needed have none)."""
+    out = {str(v["variant_id"]): v["gate"] for v in rows["variants"] if v.get("gate") is not None}
+    out.update({str(r["variant_id"]): {"passed": r["passed"], "reasons": r["reasons"]}
+                for r in rows.get("rejected") or []})
+    return out
 
 
 def appearance_composer(graph):

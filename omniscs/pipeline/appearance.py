@@ -74,9 +74,11 @@ def pool_objects(pool, objects=(), categories=None) -> list[str]:
 def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, n_variants: int,
                      pool: str | Path | None, workspace: str | Path | None = None, objects=(), config=None,
                      progress: Progress = no_progress, out_dir: str | Path | None = None,
-                     reuse: bool = True) -> StageRecord:
+                     reuse: bool = True, budget: int = 1) -> StageRecord:
     """``n_variants`` appearance variants of the scene drawn on its complete graph (``model``: the latest graph
-    stage's record) with objects from ``pool`` (``objects``: model ids; empty: the whole pool)."""
+    stage's record) with objects from ``pool`` (``objects``: model ids; empty: the whole pool), followed by spare
+    candidates up to ``budget`` per requested variant: the annotate stage renders them in order until
+    ``n_variants`` pass the quality gates."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if n_variants < 1 or not plan.stages.get("appearance_variants"):
@@ -90,7 +92,8 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
     key = StageKey.of("appearance", APPEARANCE_VERSION,
                       {"scene": scene.content_hash, "graph": model.key, "pool": str(Path(pool).resolve()),
                        "objects": ids},
-                      {"appearance": config.to_dict(), "n_variants": int(n_variants)})
+                      {"appearance": config.to_dict(), "n_variants": int(n_variants),
+                       **({"budget": int(budget)} if budget > 1 else {})})
     if out_dir is None:
         if workspace is None:
             raise OmniscsError("appearance_stage needs a workspace or an out_dir")
@@ -99,22 +102,25 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
     with output_lock(out_dir):
         manifest = reusable(out_dir, key) if reuse else None
         if manifest is None:
+            spare = int(n_variants) * (max(1, int(budget)) - 1)
             produce(out_dir, key, lambda tmp: _draw(scene, plan, model, pool, ids, n_variants, config, progress,
-                                                    tmp, out_dir))
+                                                    tmp, out_dir, spare))
     rows = json.loads((out_dir / "catalog_rows.json").read_text())
     return StageRecord("appearance", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},
-                       info={"n_variants": len(rows), "placements": {r["variant_id"]: r["placement"] for r in rows}})
+                       info={"n_variants": len(rows), "n_requested": int(n_variants),
+                             "placements": {r["variant_id"]: r["placement"] for r in rows}})
 
 
-def _draw(scene, plan, model, pool, ids, n_variants, config, progress, tmp: Path, out_dir: Path) -> dict:
+def _draw(scene, plan, model, pool, ids, n_variants, config, progress, tmp: Path, out_dir: Path,
+          spare: int = 0) -> dict:
     graph = load_graph(model.path, scene)
     p = Pool(pool)
     progress(0, n_variants + 1, f"colour transform of {scene.scene_id}")
     colour = scene_colour_transform(graph, scene, p, plan.train_frames)
     resolve = model_resolver(pool, node_model_resolver(graph))
     drawn = make_appearance_variants(graph, scene, resolve, ids, n_variants, config, colour.to_dict(),
-                                     progress)
+                                     progress, spare)
     for v in drawn.variants:
         v["colour"] = colour.to_dict()["affine"]
         v["pool"] = str(Path(pool).resolve())

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from omniscs.errors import OmniscsError
+from omniscs.gates import GateConfig
 from omniscs.locks import output_lock
 from omniscs.pipeline import layout
 from omniscs.pipeline.common import result_config, waiting
@@ -29,11 +30,13 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
                    preset: str = "balanced", checkpoint: str | Path | None = None, model: StageRecord | None = None,
                    progress: Progress = no_progress, out_dir: str | Path | None = None,
                    adversarial_overrides: dict | None = None, appearance_render=None,
-                   reuse: bool = True) -> StageRecord:
+                   reuse: bool = True, gates: GateConfig | None = None, budget: int = 1) -> StageRecord:
     """``n_variants`` behaviour-level SCS variants of the scene (variants.json, one BEV PNG each, ``variants``
     rows) in ``out_dir`` (default ``variants/<scene_id>/behavior-<key>/``). With the scene's fitted graph
     (``model``, the fit stage's record) the optimisation adds L_app rendered by it; that graph's key is part
-    of this stage's key, so variants with L_app are reused like any other (unless ``reuse`` is False)."""
+    of this stage's key, so variants with L_app are reused like any other (unless ``reuse`` is False).
+    With ``gates`` (``omniscs.gates``) further adversaries and time windows are tried, up to ``budget`` candidates
+    per requested variant, until ``n_variants`` reach their scenario; every candidate is kept with its verdict."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if not plan.stages.get("behavior_variants") or n_variants < 1:
@@ -46,7 +49,8 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
                       {"scene": scene.content_hash, "plan": plan.to_dict(), "graph": graph.key if graph else None},
                       {"adversarial": result_config(dataclasses.asdict(config)), "checkpoint": checkpoint_hash(ckpt),
                        "n_variants": int(n_variants),
-                       "appearance": dataclasses.asdict(render) if graph else None})
+                       "appearance": dataclasses.asdict(render) if graph else None,
+                       **({"gates": gates.to_dict(), "budget": int(budget)} if gates is not None else {})})
     if out_dir is None:
         if workspace is None:
             raise OmniscsError("behavior_stage needs a workspace or an out_dir")
@@ -61,7 +65,8 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
 
             def make(tmp: Path) -> dict:
                 result = write_scene_variants(traffic, tmp, n_variants, ckpt, config, appearance,
-                                              progress=progress, published_dir=out_dir)
+                                              progress=progress, published_dir=out_dir, gates=gates,
+                                              budget=int(n_variants) * max(1, int(budget)))
                 if not result.rows:
                     raise OmniscsError(f"scene {scene.scene_id} has no vehicle besides the ego at the now step; "
                                        "no behaviour variant can be made")
@@ -73,6 +78,8 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
     return StageRecord("behavior", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},
                        info={"n_variants": len(rows), "n_success": sum(bool(r["success"]) for r in rows),
+                             "n_requested": int(n_variants),
+                             "n_passed": sum(r.get("passed_gates") is not False for r in rows),
                              "appearance_term": graph is not None})
 
 

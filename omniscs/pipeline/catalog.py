@@ -30,6 +30,12 @@ def catalog_scene_stage(run_id: str, workspace: str | Path, records: list[StageR
     for r in records:
         for table, rows in r.rows.items():
             tables.setdefault(table, []).extend(rows)
+    annotated = by_stage.get("annotate")
+    verdicts = annotated.info.get("verdicts") or {} if annotated is not None and not annotated.skipped else {}
+    for row in tables.get("variants", []):  # the render's verdict is the final one
+        verdict = verdicts.get(str(row["variant_id"]))
+        if verdict is not None:
+            row.update(passed_gates=bool(verdict["passed"]), gate_reasons=list(verdict["reasons"]))
     written = [catalog.write_rows(root, table, run_id, rows, writer=writer) for table, rows in tables.items()]
     return [str(p) for p in written if p is not None]
 

@@ -21,25 +21,27 @@ DATASET_VERSION = 1
 
 
 def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_id: str | None = None,
-                  facts: dict | None = None, reuse: bool = True) -> StageRecord:
+                  facts: dict | None = None, reuse: bool = True, keep_failed: bool = False) -> StageRecord:
     """Gather the annotate stages' outputs of a run into ``datasets/<dataset_id>/`` (variant stores, BEVs,
     preview, card; ``omniscs.annotate.dataset``) with its ``datasets``, ``samples`` and ``annotations`` rows.
-    ``dataset_id`` defaults to ``ds-<key>``: the same annotated inputs give the same dataset, reused."""
+    Variants that failed the quality gates stay out unless ``keep_failed``. ``dataset_id`` defaults to
+    ``ds-<key>``: the same annotated inputs give the same dataset, reused."""
     started = time.perf_counter()
     done = [r for r in annotated if r is not None and not r.skipped and r.path]
     if not done:
         raise OmniscsError("no scene of this run has annotated variants; a dataset needs at least one")
     facts = dict(facts or {})
-    key = StageKey.of("dataset", DATASET_VERSION, sorted(r.key for r in done), facts)
+    key = StageKey.of("dataset", DATASET_VERSION, sorted(r.key for r in done),
+                      {**facts, **({"keep_failed": True} if keep_failed else {})})
     dataset_id = check_id("dataset id", dataset_id or f"ds-{key.short}")
     out = layout.dataset_folder(workspace, dataset_id)
     with output_lock(out):
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
-            produce(out, key, lambda tmp: _assemble(tmp, out, done, dataset_id, facts))
+            produce(out, key, lambda tmp: _assemble(tmp, out, done, dataset_id, facts, keep_failed))
     rows = json.loads((out / "rows.json").read_text())
     card = json.loads((out / CARD_JSON).read_text())
-    c, fid = card["counts"], card["fidelity"]
+    c, fid, gates = card["counts"], card["fidelity"], card["gates"]
 
     def mean(stat):
         return None if stat is None else stat["mean"]
@@ -52,16 +54,20 @@ def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_i
                    "fidelity_masked_psnr": mean(fid["variant_masked_psnr"]),
                    "feature_drift": mean(fid.get("variant_feature_drift")), "card_path": str(out / CARD_JSON),
                    "preview_path": str(out / PREVIEW_PNG),
-                   "config_json": json.dumps(facts.get("config"), sort_keys=True, default=str)}
+                   "config_json": json.dumps(facts.get("config"), sort_keys=True, default=str),
+                   "n_requested": sum(gates["requested"].values()), "n_rejected": gates["rejected_total"],
+                   "n_failed_kept": gates["failed_kept"], "warnings": list(card["warnings"])}
     return StageRecord("dataset", dataset_id, str(out), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest,
                        rows={"datasets": [dataset_row], "samples": rows["samples"],
                              "annotations": rows["annotations"]},
-                       info={"dataset_id": dataset_id, "counts": c})
+                       info={"dataset_id": dataset_id, "counts": c, "warnings": list(card["warnings"]),
+                             "gates": {k: gates[k] for k in ("requested", "produced", "rejected", "tried")}})
 
 
-def _assemble(tmp: Path, final: Path, annotated: list[StageRecord], dataset_id: str, facts: dict) -> dict:
-    made = assemble_dataset([r.path for r in annotated], tmp, final, dataset_id, facts)
+def _assemble(tmp: Path, final: Path, annotated: list[StageRecord], dataset_id: str, facts: dict,
+              keep_failed: bool) -> dict:
+    made = assemble_dataset([r.path for r in annotated], tmp, final, dataset_id, facts, keep_failed)
     atomic_write_json(tmp / "rows.json", {"samples": made["samples"], "annotations": made["annotations"]})
     return {"card": CARD_JSON, "readme": CARD_MD, "preview": PREVIEW_PNG, "rows": "rows.json"}
 

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from omniscs.edits import edit_from_dict
 from omniscs.errors import OmniscsError
+from omniscs.gates import GateConfig
 from omniscs.ids import check_id
 
 #: Named quality presets of the scene-graph fit and the behaviour optimisation.
@@ -25,6 +26,8 @@ PRESET_NAMES = ("fast", "balanced", "accurate")
 Preset = Literal["fast", "balanced", "accurate"]
 #: Most variants of one kind one scene may ask for.
 MAX_VARIANTS = 1000
+#: Most candidates tried per requested variant.
+MAX_BUDGET = 20
 #: Bounds of the synthetic sensor rig (frames at 10 Hz, cameras in nuScenes placement, image side in pixels).
 FRAMES = (1, 10_000)
 CAMERAS = (1, 6)
@@ -83,6 +86,21 @@ class SceneRequest(BaseModel):
     appearance_objects: list[str] = Field(default_factory=list)
     """Pool model ids the appearance variants use (e.g. what ``omniscs scs mine`` found missed); empty: the whole
     pool."""
+    keep_failed: bool = False
+    """Put variants that fail the quality gates into the dataset too, marked (passed_gates false); by default they
+    stay in the workspace and the catalog only, with their reasons."""
+    variant_budget: int = Field(3, ge=1, le=MAX_BUDGET)
+    """Candidates tried per requested variant (other adversaries and time windows; other objects and placements)
+    until as many as requested pass the quality gates."""
+    near_miss_m: float = Field(0.0, ge=0.0, le=50.0, allow_inf_nan=False)
+    """Gate: a behaviour variant without contact passes when the ego's and the adversary's centres come this close
+    (metres; 0: a collision is required)."""
+    min_visible_frames: int = Field(3, ge=0, le=FRAMES[1])
+    """Gate: frames in which an appearance variant's object must be visible (100 mask pixels in a camera, a
+    quarter of it unoccluded)."""
+    min_fidelity_psnr: float = Field(20.0, ge=0.0, le=100.0, allow_inf_nan=False)
+    """Gate: the lowest mean PSNR (dB) a variant's render may have against the exact render (procedural scenes;
+    recorded logs are judged by the logged-view PSNR and the feature drift)."""
 
     def __init__(self, **fields) -> None:
         """A bad field is one OmniscsError line naming it (not pydantic's multi-line report)."""
@@ -130,6 +148,11 @@ class SceneRequest(BaseModel):
             return cls.model_validate(value)
         except pydantic.ValidationError as exc:
             raise OmniscsError(request_error(exc)) from None
+
+    def gates(self):
+        """The quality gates every variant of the run must pass (``omniscs.gates``)."""
+        return GateConfig(near_miss_m=self.near_miss_m, min_visible_frames=self.min_visible_frames,
+                          min_psnr_db=self.min_fidelity_psnr)
 
     def parsed_edits(self) -> list:
         """The edits as the project's edit types (a malformed one is an OmniscsError)."""

@@ -141,18 +141,20 @@ def _background(s: SceneState, progress: Progress) -> StageRecord:
 def _behavior(s: SceneState, progress: Progress) -> StageRecord:
     return behavior_stage(s.scene_path, s.plan, s.request.behavior_variants, s.workspace, s.request.behavior_preset,
                           s.request.behavior_checkpoint, s.model, progress=progress,
-                          adversarial_overrides=device_overrides(s.request), **_options(s, "behavior"))
+                          adversarial_overrides=device_overrides(s.request), gates=s.request.gates(),
+                          budget=s.request.variant_budget, **_options(s, "behavior"))
 
 
 def _appearance(s: SceneState, progress: Progress) -> StageRecord:
     return appearance_stage(s.scene_path, s.plan, s.model, s.request.appearance_variants, s.request.pool,
                             s.workspace, s.request.appearance_objects, progress=progress,
-                            **_options(s, "appearance"))
+                            budget=s.request.variant_budget, **_options(s, "appearance"))
 
 
 def _annotate(s: SceneState, progress: Progress) -> StageRecord:
     return annotate_stage(s.scene_path, s.plan, s.model, s.ran("behavior"), s.workspace, progress=progress,
-                          appearance=s.ran("appearance"), **_options(s, "annotate"))
+                          appearance=s.ran("appearance"), gates=s.request.gates(),
+                          keep_failed=s.request.keep_failed, **_options(s, "annotate"))
 
 
 def _always(s: SceneState) -> bool:

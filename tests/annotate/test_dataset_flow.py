@@ -27,8 +27,9 @@ def built(prefect_harness, tmp_path_factory):
     mp = pytest.MonkeyPatch()
     mp.setitem(PRESETS, "fast", tiny_fit_config(40))
     try:
+        # The tiny world's adversary does not reach the ego: its one variant fails the gates and is kept on request.
         kwargs = dict(workspace=str(root / "ws"), previews=False, fit_preset="fast", behavior_variants=1,
-                      behavior_preset="fast", annotate=True)
+                      behavior_preset="fast", annotate=True, keep_failed=True, variant_budget=1)
         first = generate_dataset(RunRequest(sources=[str(store)], run_id="ds1", **kwargs))
         second = generate_dataset(RunRequest(sources=[str(store)], run_id="ds2", **kwargs))
     finally:
@@ -50,6 +51,41 @@ def test_the_flow_builds_a_catalogued_dataset_of_every_variant(built):
     a = catalog.query(root, "SELECT count(*) AS n FROM annotations WHERE dataset_id = "
                             f"'{first['dataset_id']}'").to_pylist()[0]["n"]
     assert a == d[0]["n_annotations"] > 0
+
+
+def test_a_variant_that_fails_the_gates_is_catalogued_with_its_reasons_and_marked_in_the_card(built):
+    ws, first, _ = built
+    root = catalog.catalog_root(ws)
+    (row,) = catalog.query(root, "SELECT passed_gates, gate_reasons FROM variants").to_pylist()
+    assert row["passed_gates"] is False and row["gate_reasons"][0].startswith("no collision")
+    (d,) = catalog.query(root, "SELECT n_requested, n_rejected, n_failed_kept, warnings FROM datasets").to_pylist()
+    assert (d["n_requested"], d["n_rejected"], d["n_failed_kept"]) == (1, 1, 1)
+    assert "0 of 1 requested behaviour variant(s) passed the quality gates (1 tried)" in d["warnings"]
+    card = (Path(first["dataset_path"]) / "README.md").read_text()
+    assert "**Warnings**" in card and "no collision within the horizon" in card
+    info = CliRunner().invoke(app, ["dataset", "info", first["dataset_id"], "--workspace", str(ws)])
+    assert "behaviour 0 of 1 requested passed, 1 rejected, 1 tried" in " ".join(info.output.split())
+
+
+def test_a_run_none_of_whose_variants_passes_writes_no_dataset_and_says_why(built):
+    from flows.generate import generate_dataset
+
+    ws, first, _ = built
+    before = sorted(p.name for p in (ws / "datasets").iterdir())
+    mp = pytest.MonkeyPatch()
+    mp.setitem(PRESETS, "fast", tiny_fit_config(40))
+    try:
+        with pytest.raises(OmniscsError, match=r"no variant passed the quality gates \(1 rejected: .*no collision"):
+            generate_dataset(RunRequest(sources=[first["scenes"][0]["stages"]["ingest"]["path"]], run_id="ds3",
+                                        workspace=str(ws), previews=False,
+                                        fit_preset="fast", behavior_variants=1, behavior_preset="fast",
+                                        annotate=True, variant_budget=1))
+    finally:
+        mp.undo()
+    assert sorted(p.name for p in (ws / "datasets").iterdir()) == before
+    (run,) = catalog.query(catalog.catalog_root(ws), "SELECT status, error FROM runs_by_run WHERE run_id = 'ds3'"
+                           ).to_pylist()
+    assert run["status"] == "failed" and "quality gates" in run["error"]
 
 
 def test_a_rerun_reuses_every_stage_and_gives_the_same_dataset(built):

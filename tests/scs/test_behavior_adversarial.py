@@ -254,3 +254,32 @@ def test_a_variant_made_on_cuda_steers_the_car_into_the_ego_as_on_the_cpu(model)
     assert v.adversary == cpu.adversary and v.kind == cpu.kind
     assert all(np.isfinite(x) for x in v.losses.values() if x is not None)
     assert next(model.parameters()).device.type == "cpu"  # the caller's model stays where it was
+
+
+def test_with_gates_further_candidates_are_tried_until_enough_pass_or_the_budget_is_spent(monkeypatch):
+    # The schedule and its bookkeeping, with the optimisation replaced by outcomes given in order.
+    from types import SimpleNamespace
+
+    from omniscs.scs.behavior import generation
+
+    def run(outcomes, n, accept, budget):
+        it = iter(outcomes)
+
+        def fake(problem, candidates, node, window, reachable, index, used):
+            used.add((node, tuple(window)))
+            return SimpleNamespace(success=next(it), node=node, window=window)
+        monkeypatch.setattr(generation, "optimise_with_fallback", fake)
+        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 0.5), (0.5, 1.0))), horizon=20,
+                                  traffic=SimpleNamespace(scene_id="s"))
+        candidates = [(1, True, 3.0), (2, True, 5.0), (3, False, 9.0)]
+        return generation.distinct_variants(problem, candidates, n, accept=accept, budget=budget)
+
+    def passes(v):
+        return v.success
+
+    tried = run([False, False, True, True], 2, passes, 6)
+    assert [v.success for v in tried] == [False, False, True, True]
+    assert [(v.node, v.window) for v in tried] == [(1, (0, 10)), (2, (0, 10)), (1, (10, 20)), (2, (10, 20))]
+    assert len(run([False] * 9, 2, passes, 3)) == 3  # the budget ends it
+    assert len(run([False] * 9, 1, passes, 9)) == 4  # so do the distinct (adversary, window) pairs: 2 x 2
+    assert len(run([False] * 9, 2, None, 6)) == 2  # without gates: n variants, as before

@@ -85,12 +85,14 @@ def _replaceable(graph, model, context, config: PlacementConfig) -> list[int]:
 
 def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list[str], n: int,
                              config: AppearanceConfig = AppearanceConfig(), colour: dict | None = None,
-                             progress: Progress = no_progress) -> AppearanceVariants:
+                             progress: Progress = no_progress, spare: int = 0) -> AppearanceVariants:
     """``n`` appearance variants of ``scene`` (ids ``a000``, ``a001``, ...) composing ``objects`` (model ids that
     ``resolve`` knows, used in a seeded order): placements and poses in turn (``config``). Inserts go where the
     placement sampler finds a valid pose (no overlap with any agent, static object, the ego or another inserted
     object at any frame; on the road; in view for enough frames); a replace takes a vehicle node whose trajectory
-    the object's own size keeps valid, else the variant is an insert. An impossible request is an OmniscsError."""
+    the object's own size keeps valid, else the variant is an insert. An impossible request is an OmniscsError.
+    ``spare`` more candidates follow the ``n`` (for the quality gates to fall back on; the render decides which
+    pass); a spare that cannot be placed ends the list instead of failing it."""
     if n < 1:
         raise OmniscsError(f"ask for at least one appearance variant; got {n}")
     if not objects:
@@ -99,52 +101,67 @@ def make_appearance_variants(graph, scene, resolve: ModelResolver, objects: list
     order = [objects[i] for i in rng.permutation(len(objects))]
     context = placement_context(scene)
     variants, records, taken = [], [], set()
-    for i in range(n):
-        progress(i, n, f"appearance variant {i + 1} of {n}")
-        model_id = order[i % len(order)]
-        model = resolve(model_id)
-        vid = f"a{i:03d}"
-        placement = config.placements[i % len(config.placements)]
-        if placement == "replace":
-            used = {v["track_id"] for v in variants if v["placement"] == "replace"}
-            options = [t for t in _replaceable(graph, model, context, config.placement) if t not in used]
-            if options:
-                track = int(options[int(rng.integers(len(options)))])
-                variants.append(replace_variant(scene.scene_id, vid, track, model, model_id))
-                records.append({"variant_id": vid, "placement": "replace", "track_id": track,
-                                "replaceable": len(options)})
-                continue
-            log.warning("variant %s of %s: no vehicle keeps a valid trajectory with %s (%.1f x %.1f x %.1f m) in its "
-                        "place; the object is inserted instead", vid, scene.scene_id, model_id, *model.size)
-        pose_name = config.poses[sum(v["placement"] == "insert" for v in variants) % len(config.poses)]
-        roll, pitch = POSES[pose_name]
-        failed = []
-        for attempt in range(len(order)):  # an object that fits nowhere (longer than the road is wide) gives way
-            if attempt:
-                model_id = order[(i + attempt) % len(order)]
-                model = resolve(model_id)
-            box = model_upright_box(model, roll, pitch)
+    total = n + max(0, int(spare))
+    for i in range(total):
+        progress(i, total, f"appearance variant {i + 1} of {total}")
+        if i >= n:
             try:
-                result = sample_placements(context, box, 1, config.placement, int(rng.integers(2**31)))
+                _draw_one(i, graph, scene, resolve, order, config, context, rng, variants, records, taken)
+            except OmniscsError as exc:
+                log.info("scene %s: %d spare appearance candidate(s) drawn; the next cannot be placed (%s)",
+                         scene.scene_id, i - n, exc)
                 break
-            except PlacementError as exc:
-                failed.append({"object_id": model_id, "error": str(exc), **exc.result.to_dict()})
-        else:
-            raise OmniscsError(f"variant {vid} of {scene.scene_id}: none of the {len(order)} object(s) can be placed "
-                               f"{pose_name.replace('_', ' ')}; the first: {failed[0]['error']}")
-        if failed:
-            log.warning("variant %s of %s: %d object(s) fit nowhere %s (e.g. %s); %s is placed instead", vid,
-                        scene.scene_id, len(failed), pose_name, failed[0]["object_id"], model_id)
-        x, y, z, yaw = (float(v) for v in result.placements[0])
-        z -= 0.5 * float(box[2])  # the sampler gives the box centre; the variant stands on the road there
-        track = new_track_id(scene, graph, taken)
-        taken.add(track)
-        variants.append(insert_variant(scene.scene_id, vid, track, model, model_id, x, y, z, yaw, roll, pitch))
-        variants[-1]["pose"]["name"] = pose_name
-        records.append({"variant_id": vid, "placement": "insert", "track_id": track, "pose_name": pose_name,
-                        "objects_that_fit_nowhere": failed, **result.to_dict()})
-    progress(n, n, "appearance variants drawn")
+            continue
+        _draw_one(i, graph, scene, resolve, order, config, context, rng, variants, records, taken)
+    progress(total, total, "appearance variants drawn")
     return AppearanceVariants(variants, records, colour)
+
+
+def _draw_one(i: int, graph, scene, resolve: ModelResolver, order: list[str], config: AppearanceConfig, context,
+              rng: np.random.Generator, variants: list[dict], records: list[dict], taken: set) -> None:
+    """Appearance variant ``i`` (appended to ``variants``, the sampler's record to ``records``)."""
+    model_id = order[i % len(order)]
+    model = resolve(model_id)
+    vid = f"a{i:03d}"
+    placement = config.placements[i % len(config.placements)]
+    if placement == "replace":
+        used = {v["track_id"] for v in variants if v["placement"] == "replace"}
+        options = [t for t in _replaceable(graph, model, context, config.placement) if t not in used]
+        if options:
+            track = int(options[int(rng.integers(len(options)))])
+            variants.append(replace_variant(scene.scene_id, vid, track, model, model_id))
+            records.append({"variant_id": vid, "placement": "replace", "track_id": track,
+                            "replaceable": len(options)})
+            return
+        log.warning("variant %s of %s: no vehicle keeps a valid trajectory with %s (%.1f x %.1f x %.1f m) in its "
+                    "place; the object is inserted instead", vid, scene.scene_id, model_id, *model.size)
+    pose_name = config.poses[sum(v["placement"] == "insert" for v in variants) % len(config.poses)]
+    roll, pitch = POSES[pose_name]
+    failed = []
+    for attempt in range(len(order)):  # an object that fits nowhere (longer than the road is wide) gives way
+        if attempt:
+            model_id = order[(i + attempt) % len(order)]
+            model = resolve(model_id)
+        box = model_upright_box(model, roll, pitch)
+        try:
+            result = sample_placements(context, box, 1, config.placement, int(rng.integers(2**31)))
+            break
+        except PlacementError as exc:
+            failed.append({"object_id": model_id, "error": str(exc), **exc.result.to_dict()})
+    else:
+        raise OmniscsError(f"variant {vid} of {scene.scene_id}: none of the {len(order)} object(s) can be placed "
+                           f"{pose_name.replace('_', ' ')}; the first: {failed[0]['error']}")
+    if failed:
+        log.warning("variant %s of %s: %d object(s) fit nowhere %s (e.g. %s); %s is placed instead", vid,
+                    scene.scene_id, len(failed), pose_name, failed[0]["object_id"], model_id)
+    x, y, z, yaw = (float(v) for v in result.placements[0])
+    z -= 0.5 * float(box[2])  # the sampler gives the box centre; the variant stands on the road there
+    track = new_track_id(scene, graph, taken)
+    taken.add(track)
+    variants.append(insert_variant(scene.scene_id, vid, track, model, model_id, x, y, z, yaw, roll, pitch))
+    variants[-1]["pose"]["name"] = pose_name
+    records.append({"variant_id": vid, "placement": "insert", "track_id": track, "pose_name": pose_name,
+                    "objects_that_fit_nowhere": failed, **result.to_dict()})
 
 
 def catalog_row(variant: dict, variants_json: Path) -> dict:

@@ -82,16 +82,21 @@ def optimise_with_fallback(problem: BehaviorProblem, candidates: list[Candidate]
 
 
 def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_variants: int,
-                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
+                      progress: Callable[[int, int], None] | None = None,
+                      accept: Callable[[VariantResult], bool] | None = None,
+                      budget: int | None = None) -> list[VariantResult]:
     """Up to ``n_variants`` variants, no two with the same (adversary, time window): the schedule's pairs in
     order, skipping pairs an earlier variant (or its fallback) already used. Fewer come back when the scene
-    has fewer distinct pairs."""
+    has fewer distinct pairs. With ``accept(variant)`` (the quality gates), variants are made until
+    ``n_variants`` are accepted or ``budget`` variants were tried, and every variant tried comes back."""
     pool = [c for c in candidates if c[1]] or candidates
     windows = problem.config.time_windows
     queue = variant_schedule(candidates, len(pool) * len(windows), problem.horizon, windows)
+    budget = n_variants if accept is None or budget is None else max(int(budget), n_variants)
     results: list[VariantResult] = []
+    accepted = 0
     used: set[tuple[int, tuple[int, int]]] = set()
-    while len(results) < n_variants:
+    while accepted < n_variants and len(results) < budget:
         queue = [q for q in queue if (q[0], tuple(q[1])) not in used]
         if not queue:
             log.warning("scene %s: only %d distinct (adversary, window) variants", problem.traffic.scene_id,
@@ -99,16 +104,21 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
             break
         node, window, reachable = queue.pop(0)
         results.append(optimise_with_fallback(problem, candidates, node, window, reachable, len(results), used))
+        accepted += 1 if accept is None or accept(results[-1]) else 0
         if progress:
-            progress(len(results), n_variants)
+            progress(accepted if accept is not None else len(results), n_variants)
     return results
 
 
 def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: int,
                       config: AdversarialConfig = AdversarialConfig(),
                       render_consistency: RenderConsistencyTerm | None = None,
-                      progress: Callable[[int, int], None] | None = None) -> list[VariantResult]:
-    """``n_variants`` behaviour variants of one scene (different adversaries, then different time windows).
+                      progress: Callable[[int, int], None] | None = None,
+                      accept: Callable[[VariantResult], bool] | None = None,
+                      budget: int | None = None) -> list[VariantResult]:
+    """``n_variants`` behaviour variants of one scene (different adversaries, then different time windows); with
+    ``accept``, variants are tried until ``n_variants`` are accepted or ``budget`` were tried
+    (``distinct_variants``).
 
     Returns an empty list when no vehicle other than the ego is present at the now step.
     """
@@ -124,6 +134,6 @@ def generate_variants(traffic: TrafficScene, model: TrafficModel, n_variants: in
             return []
         log.info("scene %s: %d candidate adversaries (%d reachable); latent fit ADE %.2f m", traffic.scene_id,
                  len(candidates), sum(c[1] for c in candidates), problem.fit_ade)
-        return distinct_variants(problem, candidates, n_variants, progress)
+        return distinct_variants(problem, candidates, n_variants, progress, accept, budget)
     finally:
         set_threads(previous)

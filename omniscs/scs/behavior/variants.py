@@ -12,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+from omniscs.gates import GateConfig, behaviour_verdict
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
 from omniscs.scs.behavior.render_consistency import RenderConsistencyTerm
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash, load_traffic_model
@@ -198,11 +199,14 @@ def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, 
                          config: AdversarialConfig = AdversarialConfig(),
                          render_consistency: RenderConsistencyTerm | None = None, pictures: bool = True,
                          progress: Callable[[int, int], None] | None = None,
-                         published_dir: Path | None = None) -> VariantsOutput:
+                         published_dir: Path | None = None, gates: GateConfig | None = None,
+                         budget: int | None = None) -> VariantsOutput:
     """Generate ``n_variants`` variants of ``traffic`` and write ``out_dir/variants.json`` (+ one BEV PNG each,
     and ``catalog_rows.json``). ``published_dir``: where the folder will finally live when ``out_dir`` is a
-    temporary one (the catalog rows name files there). Whether to reuse earlier variants is the caller's
-    decision (the behavior stage's key)."""
+    temporary one (the catalog rows name files there). With ``gates``, each variant gets its verdict (``gate`` in
+    its spec, ``passed_gates`` and ``gate_reasons`` in its row) and further candidates are tried, up to ``budget``
+    variants in all, until ``n_variants`` pass; every variant tried is written. Whether to reuse earlier variants
+    is the caller's decision (the behavior stage's key)."""
     out_dir = Path(out_dir)
     final_dir = Path(published_dir) if published_dir is not None else out_dir
     ckpt = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
@@ -210,12 +214,19 @@ def write_scene_variants(traffic: TrafficScene, out_dir: Path, n_variants: int, 
     ckpt_hash = checkpoint_hash(ckpt)
     target = out_dir / VARIANTS_JSON
     started = time.perf_counter()
-    results = generate_variants(traffic, model, n_variants, config, render_consistency, progress)
+    accept = None if gates is None else (lambda v: behaviour_verdict(variant_spec(v), gates).passed)
+    results = generate_variants(traffic, model, n_variants, config, render_consistency, progress, accept, budget)
     specs = [variant_spec(v) for v in results]
+    if gates is not None:
+        for spec in specs:
+            spec["gate"] = behaviour_verdict(spec, gates).to_dict()
     pngs = [bev_picture(v, traffic, out_dir / f"{v.variant_id}.png") for v in results] if pictures else []
     atomic_write_json(target, specs)
     rows = [catalog_row(v, final_dir / VARIANTS_JSON, final_dir / pngs[i].name if pngs else None, ckpt_hash[:12])
             for i, v in enumerate(results)]
+    for row, spec in zip(rows, specs):
+        if "gate" in spec:
+            row.update(passed_gates=spec["gate"]["passed"], gate_reasons=spec["gate"]["reasons"])
     atomic_write_json(out_dir / "catalog_rows.json", rows)
     log.info("%d variant(s) of %s in %.1f s -> %s", len(results), traffic.scene_id, time.perf_counter() - started,
              target)

@@ -1,0 +1,128 @@
+"""Quality gates: each variant's verdict with its reasons, the card's requested / produced / rejected counts and
+its warnings, and the generator that tries further candidates until enough pass."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from omniscs.annotate.dataset import card_warnings, gate_record, gate_summary, lidar_coverage
+from omniscs.errors import OmniscsError
+from omniscs.gates import GateConfig, Verdict, behaviour_verdict, edited_visible_frames, rendered_verdict
+from omniscs.pipeline.request import SceneRequest
+
+
+def test_a_behaviour_variant_without_contact_fails_and_says_how_close_it_came():
+    v = behaviour_verdict({"success": False, "min_distance_m": 6.62, "plausible": True}, GateConfig())
+    assert not v.passed and v.reasons == ("no collision within the horizon (closest approach 6.6 m between centres)",)
+
+
+def test_a_near_miss_passes_only_when_the_request_allows_one():
+    spec = {"success": False, "min_distance_m": 1.2, "plausible": True}
+    assert not behaviour_verdict(spec, GateConfig()).passed
+    assert behaviour_verdict(spec, GateConfig(near_miss_m=1.5)).passed
+    farther = behaviour_verdict(dict(spec, min_distance_m=2.0), GateConfig(near_miss_m=1.5))
+    assert not farther.passed and "near-miss (<= 1.5 m)" in farther.reasons[0]
+
+
+def test_an_implausible_collision_fails_with_its_violations():
+    v = behaviour_verdict({"success": True, "min_distance_m": 0.0, "plausible": False,
+                           "violations": ["off_road", "accel"]}, GateConfig())
+    assert v.reasons == ("implausible adversary (off_road, accel)",)
+    assert behaviour_verdict({"success": True, "plausible": False}, GateConfig(require_plausible=False)).passed
+
+
+def _ann(frame, track, pixels, fraction, camera="CAM_FRONT"):
+    return {"frame_idx": frame, "track_id": track, "mask_pixels": pixels, "visible_fraction": fraction,
+            "camera": camera}
+
+
+def test_an_object_counts_as_visible_only_in_frames_with_enough_pixels_and_unoccluded_share():
+    gates = GateConfig(min_mask_pixels=100, min_visible_fraction=0.25)
+    rows = [_ann(0, 7, 500, 0.9), _ann(0, 7, 500, 0.9, "CAM_FRONT_LEFT"),  # one frame, two cameras: one frame
+            _ann(1, 7, 99, 1.0), _ann(2, 7, 800, 0.2), _ann(3, 7, 100, 0.25), _ann(4, 8, 900, 1.0)]
+    assert edited_visible_frames(rows, 7, gates) == 2
+
+
+def test_a_hidden_appearance_object_fails_and_a_visible_one_passes():
+    gates = GateConfig(min_visible_frames=3)
+    hidden = rendered_verdict({"level": "appearance", "edited_visible_frames": 0, "fidelity_psnr": 25.0}, gates)
+    assert not hidden.passed and "visible in 0 frame(s), fewer than 3" in hidden.reasons[0]
+    assert rendered_verdict({"level": "appearance", "edited_visible_frames": 3, "fidelity_psnr": 25.0}, gates).passed
+
+
+def test_fidelity_is_judged_exactly_where_a_reference_exists_and_by_the_proxies_elsewhere():
+    gates = GateConfig(min_psnr_db=20.0, min_logged_psnr_db=16.0, max_feature_drift=0.1)
+    assert "below 20 dB" in rendered_verdict({"level": "behaviour", "fidelity_psnr": 19.9}, gates).reasons[0]
+    recorded = rendered_verdict({"level": "behaviour", "fidelity_psnr": None, "logged_psnr": 15.0,
+                                 "feature_drift": 0.2}, gates)
+    assert len(recorded.reasons) == 2
+    assert rendered_verdict({"level": "behaviour", "fidelity_psnr": None, "logged_psnr": 17.0,
+                             "feature_drift": 0.05}, gates).passed
+
+
+def test_a_behaviour_variant_without_an_ego_solution_fails_unless_the_gate_is_off():
+    assert not rendered_verdict({"level": "behaviour", "ego_solved": False}, GateConfig()).passed
+    assert rendered_verdict({"level": "behaviour", "ego_solved": False}, GateConfig(require_ego_solution=False)).passed
+
+
+def test_verdicts_combine_their_reasons():
+    both = Verdict.of(["a"]) & Verdict.of(["b"])
+    assert not both.passed and both.reasons == ("a", "b")
+    assert (Verdict(True) & Verdict(True)).passed
+    assert Verdict.from_dict(both.to_dict()) == both
+
+
+@pytest.mark.parametrize("field, value", [("near_miss_m", -1.0), ("near_miss_m", math.inf),
+                                          ("min_psnr_db", math.nan), ("min_visible_fraction", 1.5),
+                                          ("min_visible_frames", -1)])
+def test_a_bad_gate_is_one_clear_error(field, value):
+    with pytest.raises(OmniscsError, match=field):
+        GateConfig(**{field: value})
+
+
+def test_the_request_carries_its_gates_and_refuses_non_finite_floors():
+    gates = SceneRequest(near_miss_m=2.0, min_visible_frames=5, min_fidelity_psnr=18.0).gates()
+    assert (gates.near_miss_m, gates.min_visible_frames, gates.min_psnr_db) == (2.0, 5, 18.0)
+    with pytest.raises(OmniscsError, match="near_miss_m"):
+        SceneRequest(near_miss_m=math.inf)
+    with pytest.raises(OmniscsError, match="variant_budget"):
+        SceneRequest(variant_budget=0)
+
+
+def _rows(scene, variants, rejected=(), wanted=None):
+    return {"variants": [dict(v, scene_id=scene) for v in variants], "rejected": list(rejected), "wanted": wanted,
+            "spare": []}
+
+
+def test_the_card_counts_requested_produced_and_rejected_per_level_and_warns_in_plain_words():
+    a = gate_record(_rows("s1", [{"variant_id": "v00", "level": "behaviour",
+                                  "gate": {"passed": False, "reasons": ["no collision within the horizon"]}},
+                                 {"variant_id": "a000", "level": "appearance", "gate": {"passed": True, "reasons": []}}],
+                          rejected=[{"variant_id": "v01", "level": "behaviour", "passed": False,
+                                     "reasons": ["no collision within the horizon"]}],
+                          wanted={"behaviour": 2, "appearance": 1}))
+    gates = gate_summary([a], keep_failed=True)
+    assert gates["requested"] == {"behaviour": 2, "appearance": 1}
+    assert gates["produced"] == {"behaviour": 0, "appearance": 1}
+    assert gates["rejected"] == {"behaviour": 2, "appearance": 0} and gates["tried"]["behaviour"] == 2
+    assert gates["failed_kept"] == 1  # only the rendered one can be in the dataset
+    lidar = lidar_coverage([])
+    warnings = card_warnings({"dropped_frames": 0}, gates, lidar)
+    assert "0 of 2 requested behaviour variant(s) passed the quality gates (2 tried)" in warnings
+    assert "0 of 2 behaviour variant(s) reached a collision" in warnings
+    assert any(w.startswith("1 variant(s) in this dataset failed") for w in warnings)
+
+
+def test_lidar_coverage_counts_each_box_once_and_only_within_range():
+    def ann(store, frame, track, n, x):
+        return {"store_id": store, "frame_idx": frame, "track_id": track, "num_lidar_points": n, "ego_x": x,
+                "ego_y": 0.0}
+    rows = [ann("s", 0, 1, 5, 10.0), ann("s", 0, 1, 5, 10.0),  # the same box in two cameras
+            ann("s", 0, 2, 0, 20.0), ann("s", 0, 3, 0, 80.0), ann("s", 1, 1, -1, 10.0)]  # -1: not measured
+    c = lidar_coverage(rows)
+    assert (c["boxes"], c["with_points"], c["boxes_within"], c["with_points_within"]) == (3, 1, 2, 1)
+    assert c["share_within"] == 0.5
+    warnings = card_warnings({"dropped_frames": 0}, gate_summary([], False), c)
+    assert warnings == ["only 1 of 2 boxes within 50 m have LiDAR points; nuScenes' evaluation and UniAD's "
+                        "valid_flag drop the others"]
