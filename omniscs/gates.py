@@ -87,14 +87,27 @@ def behaviour_verdict(spec: dict, gates: GateConfig) -> Verdict:
     if not spec.get("success") and not near:
         closest = "" if distance is None else f" (closest approach {float(distance):.1f} m between centres)"
         if gates.near_miss_m > 0:
-            reasons.append(f"neither a collision nor a near-miss (<= {gates.near_miss_m:g} m) within the "
-                           f"horizon{closest}")
+            reason = f"neither a collision nor a near-miss (<= {gates.near_miss_m:g} m) within the horizon{closest}"
         else:
-            reasons.append(f"no collision within the horizon{closest}")
+            reason = f"no collision within the horizon{closest}"
+        if spec.get("reachable") is False:
+            horizon = _horizon_s(spec)
+            reason += (f"; no vehicle could reach the ego's path within the {horizon:.1f} s horizon" if horizon
+                       else "; no vehicle could reach the ego's path within the horizon") + \
+                " (a longer log gives a longer one)"
+        reasons.append(reason)
     if gates.require_plausible and not spec.get("plausible", True):
         shown = ", ".join(list(spec.get("violations") or [])[:3]) or "unspecified"
         reasons.append(f"implausible adversary ({shown})")
     return Verdict.of(reasons)
+
+
+def _horizon_s(spec: dict) -> float | None:
+    """Seconds from a behaviour variant's now step to its last step (None when the spec does not say)."""
+    try:
+        return (len(spec["timestamps_us"]) - 1 - int(spec["now_step"])) * float(spec["dt"])
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 def edited_visible_frames(annotations: list[dict], track_id: int, gates: GateConfig) -> int:

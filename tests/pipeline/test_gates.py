@@ -17,6 +17,14 @@ def test_a_behaviour_variant_without_contact_fails_and_says_how_close_it_came():
     assert not v.passed and v.reasons == ("no collision within the horizon (closest approach 6.6 m between centres)",)
 
 
+def test_an_unreachable_adversary_is_named_as_the_reason_with_the_horizon():
+    spec = {"success": False, "min_distance_m": 43.0, "plausible": True, "reachable": False, "now_step": 9,
+            "dt": 0.1, "timestamps_us": list(range(20))}
+    (reason,) = behaviour_verdict(spec, GateConfig()).reasons
+    assert reason == ("no collision within the horizon (closest approach 43.0 m between centres); no vehicle could "
+                      "reach the ego's path within the 1.0 s horizon (a longer log gives a longer one)")
+
+
 def test_a_near_miss_passes_only_when_the_request_allows_one():
     spec = {"success": False, "min_distance_m": 1.2, "plausible": True}
     assert not behaviour_verdict(spec, GateConfig()).passed

@@ -283,3 +283,12 @@ def test_with_gates_further_candidates_are_tried_until_enough_pass_or_the_budget
     assert len(run([False] * 9, 2, passes, 3)) == 3  # the budget ends it
     assert len(run([False] * 9, 1, passes, 9)) == 4  # so do the distinct (adversary, window) pairs: 2 x 2
     assert len(run([False] * 9, 2, None, 6)) == 2  # without gates: n variants, as before
+
+    def unreachable(outcomes, n, budget):
+        it = iter(outcomes)
+        monkeypatch.setattr(generation, "optimise_with_fallback", lambda *a: SimpleNamespace(success=next(it)))
+        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 1.0),)), horizon=20,
+                                  traffic=SimpleNamespace(scene_id="s"))
+        return generation.distinct_variants(problem, [(1, False, 40.0), (2, False, 50.0)], n, accept=passes,
+                                            budget=budget)
+    assert len(unreachable([False] * 9, 1, 6)) == 1  # no vehicle can reach the ego: the budget is not spent

@@ -93,6 +93,10 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
     windows = problem.config.time_windows
     queue = variant_schedule(candidates, len(pool) * len(windows), problem.horizon, windows)
     budget = n_variants if accept is None or budget is None else max(int(budget), n_variants)
+    if accept is not None and budget > n_variants and not any(c[1] for c in candidates):
+        log.warning("scene %s: no vehicle can reach the ego's path within the horizon; %d variant(s) are tried, "
+                    "not the budget of %d", problem.traffic.scene_id, n_variants, budget)
+        budget = n_variants
     results: list[VariantResult] = []
     accepted = 0
     used: set[tuple[int, tuple[int, int]]] = set()
