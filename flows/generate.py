@@ -88,9 +88,11 @@ def generate_dataset(request: RunRequest) -> dict:
         done = [r for r in results if "error" not in r]
         if request.annotate and done:
             annotated = [StageRecord.from_dict(r["stages"]["annotate"]) for r in done if "annotate" in r["stages"]]
-            dataset = t.dataset(annotated, ws, request.dataset_id, {"sources": [c.text for c in scenes],
-                                                                    "config": request.product_fields()},
-                                keep_failed=request.keep_failed)
+            facts = {"sources": [c.text for c in scenes], "config": request.product_fields()}
+            failed_scenes = [{"scene": r["label"], "error": r["error"]} for r in results if "error" in r]
+            if failed_scenes:  # the card says which scenes are missing and why
+                facts["failed_scenes"] = failed_scenes
+            dataset = t.dataset(annotated, ws, request.dataset_id, facts, keep_failed=request.keep_failed)
             t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"

@@ -179,9 +179,9 @@ def lidar_coverage(annotations: list[dict], max_range_m: float = LIDAR_RANGE_M) 
             "share_within": (sum(n > 0 for n in near) / len(near)) if near else None}
 
 
-def card_warnings(counts: dict, gates: dict, lidar: dict) -> list[str]:
+def card_warnings(counts: dict, gates: dict, lidar: dict, failed_scenes: list[dict] = ()) -> list[str]:
     """What a user must know before training on the dataset, in plain words."""
-    out = []
+    out = [f"scene {f['scene']} failed and is not in the dataset: {f['error']}" for f in failed_scenes]
     for level in LEVELS:
         asked, made, tried = gates["requested"][level], gates["produced"][level], gates["tried"][level]
         if asked and made < asked:
@@ -232,7 +232,7 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
         "counts": counts,
         "gates": gates,
         "lidar": lidar,
-        "warnings": card_warnings(counts, gates, lidar),
+        "warnings": card_warnings(counts, gates, lidar, facts.get("failed_scenes") or []),
         "fidelity": {"variant_psnr": _stats([v.get("fidelity_psnr") for v in variants]),
                      "variant_ssim": _stats([v.get("fidelity_ssim") for v in variants]),
                      "variant_masked_psnr": _stats([v.get("fidelity_masked_psnr") for v in variants]),

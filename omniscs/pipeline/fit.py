@@ -1,7 +1,9 @@
 """The fit stage: the Gaussian scene graph the plan asks for, fitted with a preset (or reused), with its
-``models`` row; a fit that diverges is a row with status 'diverged', so the rest of a run goes on."""
+``models`` row; a fit that diverges is a record and a row with status 'diverged' and its reason (the pipeline then
+fails the scene with that reason; benchmarks report it as a row)."""
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -17,6 +19,7 @@ from omniscs.pipeline.reuse import StageKey, mark_done, reusable
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.storage import atomic_write_json
 
 #: Bump when the code changes what the stage writes (older outputs are then not reused).
 FIT_VERSION = 1
@@ -27,7 +30,9 @@ def fit_stage(scene_path: str | Path, plan: ScenePlan, preset: str, workspace: s
               replace: bool = True, **overrides) -> StageRecord:
     """Fit (or reuse) the scene graph the plan asks for with a preset (``overrides`` replace preset fields);
     checkpoint in ``out_dir`` (default ``models/<scene_id>/nsg-<preset>-<key>/``) and one ``models`` row. A
-    diverged fit is a row with status 'diverged' and nothing on disk, so the rest of a run goes on.
+    diverged fit is a record and a row with status 'diverged', no checkpoint, and a note beside ``out_dir``
+    (``<name>.diverged.json``): a run that waited for the same fit meanwhile takes that outcome instead of
+    fitting again; a later run fits again.
     ``reuse=False`` fits again even when an identical fit exists (benchmarks time the fit itself);
     ``replace=False`` refuses an ``out_dir`` that holds something else (a user's folder)."""
     started = time.perf_counter()
@@ -46,8 +51,14 @@ def fit_stage(scene_path: str | Path, plan: ScenePlan, preset: str, workspace: s
     row = {"scene_id": scene.scene_id, "model_id": name, "kind": "nsg", "preset": preset,
            "n_agent_nodes": len(plan.agent_nodes), "agent_nodes": list(plan.agent_nodes),
            "iterations": config.iterations}
+    asked_at = time.time()
     with output_lock(out_dir, waiting(progress, out_dir)):
         found = reusable(out_dir, key)
+        failed = _diverged_meanwhile(out_dir, key, asked_at)
+        if failed is not None and found is None:
+            row.update(status="diverged", checkpoint_path=None, reused=True, error=failed)
+            return StageRecord("fit", scene.scene_id, None, reused=True, seconds=time.perf_counter() - started,
+                               key=key.digest, rows={"models": [row]}, info={"status": "diverged", "error": failed})
         if out_dir.exists() and not replace and (found is None or not reuse):
             raise OmniscsError(f"{out_dir} already exists and holds another fit; choose another folder or "
                                "overwrite it")
@@ -60,6 +71,7 @@ def fit_stage(scene_path: str | Path, plan: ScenePlan, preset: str, workspace: s
         try:
             result = fit_scene(scene, config, plan, progress=progress, checkpoint_dir=out_dir, overwrite=True)
         except FitDiverged as exc:
+            atomic_write_json(_diverged_note(out_dir), {"key": key.digest, "error": str(exc), "at": time.time()})
             row.update(status="diverged", checkpoint_path=None, reused=False, error=str(exc))
             return StageRecord("fit", scene.scene_id, None, seconds=time.perf_counter() - started, key=key.digest,
                                rows={"models": [row]}, info={"status": "diverged", "error": str(exc)})
@@ -67,6 +79,24 @@ def fit_stage(scene_path: str | Path, plan: ScenePlan, preset: str, workspace: s
     row.update(_metric_fields(result.metrics), status="fitted", checkpoint_path=str(out_dir), reused=False)
     return StageRecord("fit", scene.scene_id, str(out_dir), seconds=time.perf_counter() - started, key=key.digest,
                        rows={"models": [row]}, info={"status": "fitted", "metrics": result.metrics})
+
+
+def _diverged_note(out_dir: Path) -> Path:
+    return out_dir.with_name(out_dir.name + ".diverged.json")
+
+
+def _diverged_meanwhile(out_dir: Path, key: StageKey, since: float) -> str | None:
+    """The reason of a fit of the same key that diverged after ``since`` (while this caller waited for the
+    lock), else None."""
+    note = _diverged_note(out_dir)
+    try:
+        d = json.loads(note.read_text())
+    except (OSError, ValueError):
+        return None
+    if isinstance(d, dict) and d.get("key") == key.digest and isinstance(d.get("at"), (int, float)) \
+            and d["at"] >= since and isinstance(d.get("error"), str):
+        return d["error"]
+    return None
 
 
 def _metric_fields(metrics: dict) -> dict:

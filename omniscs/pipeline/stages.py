@@ -124,8 +124,11 @@ def _preview(s: SceneState, progress: Progress) -> StageRecord:
 
 
 def _fit(s: SceneState, progress: Progress) -> StageRecord:
-    return fit_stage(s.scene_path, s.plan, s.request.fit_preset, s.workspace, progress=progress,
-                     **{**device_overrides(s.request), **_options(s, "fit")})
+    record = fit_stage(s.scene_path, s.plan, s.request.fit_preset, s.workspace, progress=progress,
+                       **{**device_overrides(s.request), **_options(s, "fit")})
+    if record.info.get("status") == "diverged":  # nothing after it can use the scene: the scene fails, saying why
+        raise OmniscsError(f"scene {record.scene_id}: {record.info['error']}")
+    return record
 
 
 def _agents(s: SceneState, progress: Progress) -> StageRecord:

@@ -72,3 +72,51 @@ def test_a_diverged_fit_is_catalogued_as_such_and_leaves_no_checkpoint(store, tm
     assert row["status"] == "diverged" and row["checkpoint_path"] is None and "diverged" in row["error"]
     catalog.validated_table("models", [row])
     assert not any((tmp_path / "models").rglob("graph.json"))
+
+
+def test_runs_that_waited_for_a_fit_that_diverged_take_its_outcome_and_a_later_run_fits_again(store, tmp_path,
+                                                                                               monkeypatch):
+    import threading
+
+    from omniscs.nsg.train import FitDiverged
+    from omniscs.pipeline import fit as fit_module
+
+    monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(20))
+    plan = make_plan(load_scene(store), config=PRESETS["fast"].plan)
+    calls, started, release = [], threading.Event(), threading.Event()
+
+    def diverging(*args, **kwargs):
+        calls.append(1)
+        started.set()
+        release.wait(30)
+        raise FitDiverged(604, "smoothed loss exploded")
+    monkeypatch.setattr(fit_module, "fit_scene", diverging)
+    results = {}
+    first = threading.Thread(target=lambda: results.setdefault("first", fit_stage(store, plan, "fast", tmp_path)))
+    first.start()
+    started.wait(30)
+    blocked = threading.Event()  # the waiter reports waiting for the lock the first fit holds
+    waiter = threading.Thread(target=lambda: results.setdefault("waiter", fit_stage(
+        store, plan, "fast", tmp_path, progress=lambda *a: blocked.set())))
+    waiter.start()
+    assert blocked.wait(30)
+    release.set()
+    first.join(60)
+    waiter.join(60)
+    assert len(calls) == 1  # one fit for both
+    for name in ("first", "waiter"):
+        assert results[name].info["status"] == "diverged" and "iteration 604" in results[name].info["error"]
+    assert results["waiter"].reused
+    later = fit_stage(store, plan, "fast", tmp_path)
+    assert len(calls) == 2 and not later.reused
+
+
+def test_a_diverged_fit_fails_its_scene_with_the_reason_instead_of_a_completed_run(store, tmp_path, monkeypatch):
+    from omniscs.errors import OmniscsError
+    from omniscs.pipeline.request import SceneRequest
+    from omniscs.pipeline.stages import run_directly, start_scene, walk_scene
+
+    monkeypatch.setitem(PRESETS, "fast", tiny_fit_config(20, lr=LearningRates(sh_dc=1e30), divergence_warmup=5))
+    state = start_scene(str(store), SceneRequest(fit_preset="fast", previews=False), tmp_path)
+    with pytest.raises(OmniscsError, match=r"scene nsg-test: scene-graph fit diverged at iteration \d+"):
+        walk_scene(state, run_directly())

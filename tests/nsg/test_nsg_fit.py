@@ -124,6 +124,26 @@ def test_divergence_monitor_flags_non_finite_and_exploding_losses():
     assert all(m.update(v) is None for v in (3.0, 2.5, 2.0, 1.5))
 
 
+def test_a_finer_resolution_step_restarts_the_divergence_test_but_a_real_blow_up_still_stops_the_fit():
+    # The loss of a fit at 1/4 size is far lower than at 1/2: the step between them is not a divergence (the
+    # 3-frame 160x90 fast fit was declared diverged at iteration 604, just after it).
+    from types import SimpleNamespace
+
+    from omniscs.nsg.train import train_loop
+
+    def run(losses_at):
+        config = SimpleNamespace(iterations=300, seed=0, max_loss_ratio=5.0, divergence_warmup=10,
+                                 strategy=DensifyStrategy(reset_every=0))
+        trainer = SimpleNamespace(config=config, n_gaussians=1, finite=lambda: True)
+        trainer.step = lambda step, view, target, factor, depth: (losses_at(step), 30.0)
+        return train_loop(trainer, 3, lambda index, step: (None, None, 4 if step < 150 else 2, None), "fit", None)
+
+    history, loss, _ = run(lambda step: 0.008 if step < 150 else 0.045)
+    assert loss == pytest.approx(0.045) and history[-1]["factor"] == 2
+    with pytest.raises(FitDiverged, match="exceeds 5 x its best"):
+        run(lambda step: 0.008 if step < 150 else (0.045 if step < 220 else 5.0))
+
+
 def test_a_diverging_fit_raises_and_saves_nothing(scene, tmp_path):
     out = tmp_path / "ckpt"
     config = tiny_fit_config(40, lr=LearningRates(sh_dc=1e30), divergence_warmup=5)  # colours explode
