@@ -32,7 +32,9 @@ _PR_SET_PDEATHSIG = 1
 _server: subprocess.Popen | None = None
 
 
-def _die_with_parent(parent: int):
+def die_with_parent(parent: int):
+    """A ``preexec_fn`` for ``subprocess.Popen``: the child gets SIGTERM when process ``parent`` dies, however it
+    dies (also SIGKILL), so a server started for a run or a test never outlives it."""
     def preexec() -> None:  # runs in the child between fork and exec
         try:
             ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
@@ -62,7 +64,7 @@ def _start_server() -> tuple[subprocess.Popen, str]:
             [sys.executable, "-m", "uvicorn", "--app-dir", str(prefect.__module_path__.parent), "--factory",
              "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(port), "--log-level",
              "error", "--lifespan", "on"],
-            env=env, preexec_fn=_die_with_parent(os.getpid()), stdin=subprocess.DEVNULL)
+            env=env, preexec_fn=die_with_parent(os.getpid()), stdin=subprocess.DEVNULL)
         url = f"http://127.0.0.1:{port}/api"
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         with httpx.Client() as client:

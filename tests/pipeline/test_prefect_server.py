@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from omniscs import catalog
+from omniscs.cli.prefect_api import die_with_parent
 
 ROOT = Path(__file__).resolve().parents[2]
 K8S_TEMPLATE = ROOT / "infra" / "k8s-base-job-template.json"
@@ -60,13 +61,15 @@ def _tail(log: Path, n_chars: int = 3_000) -> str:
 class _Child:
     """A long-running child process in a process group of its own. Stopping it stops the group and every process
     it started, also those that left the group (Prefect runs each flow run in a session of its own), so that
-    nothing is left behind."""
+    nothing is left behind; if the test run itself is killed, the child gets SIGTERM from the kernel."""
 
     def __init__(self, args: list[str], env: dict[str, str], log: Path, cwd: Path = ROOT):
         self.log = log
         self._out = log.open("wb")
+        # stop() runs from the fixtures' finalisers; the parent-death signal covers a test run killed outright
         self.proc = subprocess.Popen(args, env=env, cwd=cwd, stdout=self._out, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True)
+                                     stdin=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=die_with_parent(os.getpid()))
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -307,3 +310,20 @@ def test_compose_runs_the_server_on_postgres_and_workers_of_the_deployments_pool
         assert client["environment"]["PREFECT_API_URL"] == "http://prefect-server:4200/api"
     assert worker["environment"]["OMNISCS_HOME"] == "/data"
     assert [v.split(":")[1] for v in worker["volumes"]] == ["/data"]
+
+
+def test_a_server_child_dies_with_a_test_run_that_is_killed_outright():
+    # What _Child relies on when no finaliser runs: the kernel's parent-death signal reaches the child.
+    code = ("import os, subprocess, sys, time; from omniscs.cli.prefect_api import die_with_parent; "
+            "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'], "
+            "preexec_fn=die_with_parent(os.getpid())); print(p.pid, flush=True); time.sleep(60)")
+    parent = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    child = int(parent.stdout.readline())
+    assert _start_time(child) is not None
+    parent.kill()
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _start_time(child) is not None:
+        time.sleep(0.1)
+    assert _start_time(child) is None
+
