@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omniscs.errors import ValidationError
+from omniscs.errors import OmniscsError, ValidationError
 from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig, evaluate, filter_boxes
 from omniscs.eval.planning import STEP_S, STEPS, PlanningSample, evaluate_planning, frames_for_planning
 from omniscs.geometry import make_transform
@@ -32,7 +32,12 @@ def resolve_version(dataroot: str | Path, version: str | None) -> str:
     ``version`` is None; anything else (no such dataroot, another version than asked, several to choose from) is one
     error naming the versions the dataroot holds. The factory's exports write ``DEFAULT_VERSION``
     (``omniscs.export.nuscenes``); the real dataset comes as v1.0-mini or v1.0-trainval."""
-    return find_version(Path(dataroot), version)
+    try:
+        return find_version(Path(dataroot), version)
+    except ValidationError:
+        raise
+    except OmniscsError as exc:  # the evaluation's readers raise ValidationError for what is on disk
+        raise ValidationError(str(exc)) from None
 
 
 @dataclass
