@@ -86,10 +86,15 @@ class DrivableArea:
 
 def scene_drivable_areas(tables: NuScenesTables) -> dict[str, DrivableArea | None]:
     """{scene token: the drivable area of its log's location, or None when the dataroot has no map expansion of it}."""
+    log_path = tables.root / tables.version / "log.json"  # not among the tables the evaluation loads
+    try:
+        logs = {r["token"]: r for r in json.loads(log_path.read_text())} if log_path.is_file() else {}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValidationError(f"{log_path} is not a nuScenes log table ({type(e).__name__}: {e})") from e
     by_location: dict[str, DrivableArea | None] = {}
     out = {}
     for token, scene in tables["scene"].items():
-        location = tables.tables.get("log", {}).get(scene.get("log_token"), {}).get("location")
+        location = logs.get(scene.get("log_token"), {}).get("location")
         if location is None:
             out[token] = None
             continue

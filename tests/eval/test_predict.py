@@ -202,3 +202,39 @@ def test_a_dataset_run_with_too_few_frames_for_planning_is_warned_before_it_star
     said = planning_frames_warning(request(20))
     assert "--frames 20 is too few for planning evaluation" in said and "at least 31 frames" in said
     assert planning_frames_warning(request(31)) is None and planning_frames_warning(request(20, False)) is None
+
+
+@pytest.fixture(scope="module")
+def world_export(tmp_path_factory):
+    """A 36-frame procedural log (it has roads: the export writes their map expansion) and its nuScenes export."""
+    from omniscs.export import export_scenes
+    from omniscs.scene import SyntheticSource, write_synthetic_scene
+
+    root = tmp_path_factory.mktemp("predictworld")
+    store = write_synthetic_scene(SyntheticSource(template="straight", seed=4, n_frames=36, n_cameras=1, width=64,
+                                                  height=36), root / "store")
+    return store, export_scenes([store], "nuscenes", root / "nuscenes")
+
+
+@pytest.mark.slow  # a procedural log is made and exported (about 15 s)
+def test_a_keyframe_of_an_export_looks_to_the_planner_as_its_log_did(world_export):
+    """The planner's input at a keyframe read from the dataroot (boxes, history, speed, command, the map expansion's
+    drivable area) is the one the planner was trained on for that instant of the log."""
+    from omniscs.eval.downstream import log_examples
+    from omniscs.eval.nuscenes_io import NuScenesTables
+    from omniscs.eval.planner import features, features_of
+    from omniscs.eval.predict import dataroot_planning_inputs
+
+    store, root = world_export
+    examples = log_examples([store])
+    tables = NuScenesTables.load(root, None)
+    inputs = dataroot_planning_inputs(tables, tables.scene_samples())
+    assert examples and all(drivable is not None for _, _, drivable in inputs)
+    for example in examples:
+        raster, state, base = features(example)
+        _, seen, drivable = inputs[example.step // 5]  # keyframes every 5 frames
+        raster_read, state_read, base_read = features_of(seen, drivable)
+        assert np.allclose(state_read, state, atol=1e-3) and np.allclose(base_read, base, atol=1e-3)
+        for channel in range(len(raster)):  # box edges move by the offset between the LiDAR and the waypoint
+            assert np.abs(raster_read[channel] - raster[channel]).sum() <= 0.1 * raster[channel].sum() + 4
+        assert raster[3].sum() > 0
