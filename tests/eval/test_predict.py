@@ -238,3 +238,30 @@ def test_a_keyframe_of_an_export_looks_to_the_planner_as_its_log_did(world_expor
         for channel in range(len(raster)):  # box edges move by the offset between the LiDAR and the waypoint
             assert np.abs(raster_read[channel] - raster[channel]).sum() <= 0.1 * raster[channel].sum() + 4
         assert raster[3].sum() > 0
+
+
+@pytest.mark.slow  # three exports and two evaluations in process (about 6 s)
+def test_a_dataset_is_predicted_and_evaluated_under_the_tokens_of_its_export(tmp_path):
+    """--dataset exports the dataset's variant stores for the run as `dataset export` does: the results made on it
+    score against that export and against --dataset alike."""
+    from typer.testing import CliRunner
+
+    from omniscs.annotate.dataset import CARD_JSON, SCENES
+    from omniscs.cli import app
+    from omniscs.export import export_scenes
+
+    dataset = tmp_path / "ds-tiny"
+    write_tiny_scene(dataset / SCENES / "drive36", n_frames=36, n_tracks=2, scene_id="drive36")
+    (dataset / CARD_JSON).write_text("{}")
+    plan = tmp_path / "plan.json"
+    runner = CliRunner()
+    made = runner.invoke(app, ["predict", "planning", "--dataset", str(dataset), "--out", str(plan)])
+    assert made.exit_code == 0, made.output
+    for where in (["--dataset", str(dataset)],
+                  ["--dataroot", str(export_scenes([dataset / SCENES / "drive36"], "nuscenes", tmp_path / "nus"))]):
+        scored = runner.invoke(app, ["eval", "planning", *where, "--results", str(plan), "--json"])
+        assert scored.exit_code == 0, scored.output
+        assert json.loads(scored.stdout.strip().splitlines()[-1])["n_samples"] == 2
+    bad = runner.invoke(app, ["eval", "planning", "--dataset", str(dataset), "--version", "v1.0-mini", "--results",
+                              str(plan)])
+    assert isinstance(bad.exception, OmniscsError) and "--version applies to --dataroot" in str(bad.exception)
