@@ -26,6 +26,7 @@ import numpy as np
 
 from omniscs.errors import ValidationError
 from omniscs.eval.nuscenes_io import (
+    EGO_FROM_PLANNING,
     REFERENCE_CHANNEL,
     STEP_TOLERANCE_S,
     NuScenesTables,
@@ -131,11 +132,10 @@ def _lidar_frames(tables: NuScenesTables) -> dict[str, list[tuple[float, np.ndar
         scene = tables["sample"][sd["sample_token"]]["scene_token"]
         world_from_ego = _record_transform(tables["ego_pose"][sd["ego_pose_token"]])
         ego_from_lidar = _record_transform(tables["calibrated_sensor"][sd["calibrated_sensor_token"]])
-        frame = np.eye(3)
-        heading = math.atan2(world_from_ego[1, 0], world_from_ego[0, 0])
-        frame[:2, :2] = [[math.sin(heading), math.cos(heading)], [-math.cos(heading), math.sin(heading)]]
-        frame[:2, 2] = (world_from_ego @ ego_from_lidar)[:2, 3]
-        out.setdefault(scene, []).append((sd["timestamp"] * 1e-6, frame))
+        planning = np.eye(4)  # as nuscenes_io.world_from_planning places it, for sweeps too
+        planning[:3, :3] = world_from_ego[:3, :3] @ EGO_FROM_PLANNING
+        planning[:3, 3] = (world_from_ego @ ego_from_lidar)[:3, 3]
+        out.setdefault(scene, []).append((sd["timestamp"] * 1e-6, _frame_2d(planning)))
     for poses in out.values():
         poses.sort(key=lambda p: p[0])
     return out
