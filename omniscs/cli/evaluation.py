@@ -40,7 +40,11 @@ def evaluated_dataroot(dataroot: Optional[Path], dataset: Optional[str], version
             raise OmniscsError("--version applies to --dataroot (a dataset is exported as v1.0-trainval)")
         source = dataset_path(dataset, workspace)
         with progress_bars() as bars, dataset_dataroot(source, progress=bars.sink(f"export {source.name}")) as found:
-            yield found
+            try:
+                yield found
+            except OmniscsError as exc:  # name the dataset, not the temporary export that is gone with the run
+                raise type(exc)(str(exc).replace(str(found[0] / found[1]), f"dataset {source.name}")
+                                .replace(str(found[0]), f"dataset {source.name}")) from None
         return
     detected = resolve_version(dataroot, version)
     if version is None:
@@ -109,9 +113,10 @@ def planning(
     if convention is not None and convention not in CONVENTIONS:
         raise typer.BadParameter(f"one of {', '.join(CONVENTIONS)}", param_hint="--convention")
 
-    def coverage(n_full: int, n_keyframes: int) -> None:  # said before the metrics are computed
-        print_error(f"{n_full} of {n_keyframes} keyframes have the {STEPS * STEP_S:g} s of future the planning "
-                    "metrics need; the others are left out", label="note", style="cyan")
+    def coverage(n_full: int, n_keyframes: int) -> None:  # said before the metrics are computed (none: an error)
+        if n_full:
+            print_error(f"{n_full} of {n_keyframes} keyframes have the {STEPS * STEP_S:g} s of future the planning "
+                        "metrics need; the others are left out", label="note", style="cyan")
 
     with evaluated_dataroot(dataroot, dataset, version, workspace) as (root, ver):
         out = evaluate_planning_results(root, ver, results, scenes=scene or None, on_coverage=coverage)

@@ -265,3 +265,22 @@ def test_a_dataset_is_predicted_and_evaluated_under_the_tokens_of_its_export(tmp
     bad = runner.invoke(app, ["eval", "planning", "--dataset", str(dataset), "--version", "v1.0-mini", "--results",
                               str(plan)])
     assert isinstance(bad.exception, OmniscsError) and "--version applies to --dataroot" in str(bad.exception)
+
+
+@pytest.mark.slow  # an export and the CLI in process (about 5 s on a busy machine)
+def test_eval_planning_of_a_dataset_too_short_for_it_names_the_dataset_not_its_temporary_export(tmp_path):
+    from typer.testing import CliRunner
+
+    from omniscs.annotate.dataset import CARD_JSON, SCENES
+    from omniscs.cli import app
+
+    dataset = tmp_path / "ds-short"
+    write_tiny_scene(dataset / SCENES / "drive20", n_frames=20, scene_id="drive20")
+    (dataset / CARD_JSON).write_text("{}")
+    (tmp_path / "plan.json").write_text(json.dumps({"results": {}}))
+    result = CliRunner().invoke(app, ["eval", "planning", "--dataset", str(dataset), "--results",
+                                      str(tmp_path / "plan.json")])
+    message = str(result.exception)
+    assert isinstance(result.exception, ValidationError), result.output
+    assert message.startswith("no keyframe of dataset ds-short has the 3 s of future") and "omniscs-predict" not in message
+    assert "31 frames at 10 Hz" in message and "--frames 40" in message
