@@ -112,8 +112,8 @@ class UniADConfig:
     anchor_min_samples: int = 24
     """A group with fewer complete futures than this also uses futures extended from partial ones (module
     docstring); with fewer than ``anchor_modes`` distinct futures in all it gets fallback straight-line anchors."""
-    anchor_min_known: int = 4
-    """Known future steps (2 s at 2 Hz) a partial future needs to be extended to ``anchor_steps`` for the anchors."""
+    anchor_min_known: int = 2
+    """Known future steps (1 s at 2 Hz) a partial future needs to be extended to ``anchor_steps`` for the anchors."""
     anchor_seed: int = 0
     """Seed of the k-means initialisation."""
 
@@ -399,9 +399,10 @@ def motion_anchors(infos: list[dict], config: UniADConfig = UniADConfig()) -> di
                 zip(ANCHOR_GROUPS, counts, extended_counts, fell_back) if f]
     if straight:
         log.warning("UniAD motion anchors: %s have fewer than %d distinct %.0f s futures (complete, or known for "
-                    "%.0f s and extended), so their anchors are straight lines at the group's median speed, not "
-                    "learnt from the data; longer logs (e.g. --frames 80 at 10 Hz) give anchors from the data",
-                    ", ".join(straight), config.anchor_modes, steps * STEP_S, config.anchor_min_known * STEP_S)
+                    "%g s and extended), so their anchors are straight lines at the group's median speed, not "
+                    "learnt from the data; longer logs with more agents give anchors from the data (a whole %g s "
+                    "future needs %d frames at 10 Hz)", ", ".join(straight), config.anchor_modes, steps * STEP_S,
+                    config.anchor_min_known * STEP_S, steps * STEP_S, int(round(steps * STEP_S * 10)) + 1)
     return {"anchors_all": anchors, "groups": [g for g, _ in ANCHOR_GROUPS],
             "group_classes": [list(c) for _, c in ANCHOR_GROUPS], "sample_counts": counts,
             "extended_counts": extended_counts, "fallback": fell_back, "median_speed_mps": speeds, "step_s": STEP_S,

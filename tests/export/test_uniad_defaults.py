@@ -70,7 +70,7 @@ def test_an_export_of_a_short_log_warns_that_its_anchors_are_straight_lines(tmp_
     anchors = _load(out / "others" / ANCHOR_FILE)
     assert anchors["fallback"] == [True] * 4
     said = [r.getMessage() for r in caplog.records if "motion anchors" in r.getMessage()]
-    assert len(said) == 1 and "straight lines" in said[0] and "--frames" in said[0]
+    assert len(said) == 1 and "straight lines" in said[0] and "61 frames at 10 Hz" in said[0]
 
 
 @pytest.mark.parametrize("value", [0, -1, 1.5])
