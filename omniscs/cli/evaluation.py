@@ -9,7 +9,7 @@ from typing import Iterator, Optional
 
 import typer
 
-from omniscs.cli.common import console, print_error, progress_bars, workspace_option
+from omniscs.cli.common import Bars, console, print_error, progress_bars, workspace_option
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Evaluate driving-model outputs on a nuScenes dataroot: detection (mAP, NDS) and planning "
@@ -25,9 +25,10 @@ SCENES = typer.Option([], "--scene", help="Evaluate these scenes only (names or 
 
 @contextlib.contextmanager
 def evaluated_dataroot(dataroot: Optional[Path], dataset: Optional[str], version: Optional[str],
-                       workspace: Optional[Path]) -> Iterator[tuple[Path, str]]:
-    """(dataroot, version) to evaluate on: --dataroot with its version (the only one there when not named; said on
-    stderr), or --dataset exported for the block (``pipeline.predict.dataset_dataroot``)."""
+                       workspace: Optional[Path], bars: Bars, fmt: str = "nuscenes") -> Iterator[tuple[Path, str]]:
+    """(dataroot, version) to evaluate (or predict) on: --dataroot with its version (the only one there when not
+    named; said on stderr), or --dataset exported for the block as ``fmt`` (``pipeline.predict.dataset_dataroot``;
+    its progress on ``bars``, the command's one set of bars)."""
     from omniscs.eval.nuscenes_io import resolve_version
 
     if (dataroot is None) == (dataset is None):
@@ -39,7 +40,7 @@ def evaluated_dataroot(dataroot: Optional[Path], dataset: Optional[str], version
         if version is not None:
             raise OmniscsError("--version applies to --dataroot (a dataset is exported as v1.0-trainval)")
         source = dataset_path(dataset, workspace)
-        with progress_bars() as bars, dataset_dataroot(source, progress=bars.sink(f"export {source.name}")) as found:
+        with dataset_dataroot(source, fmt, progress=bars.sink(f"export {source.name}")) as found:
             try:
                 yield found
             except OmniscsError as exc:  # name the dataset, not the temporary export that is gone with the run
@@ -72,7 +73,7 @@ def detection(
     from omniscs.eval.nuscenes_io import evaluate_detection_results
 
     config = DetectionConfig(class_names=tuple(classes) or DETECTION_NAMES)
-    with evaluated_dataroot(dataroot, dataset, version, workspace) as (root, ver):
+    with progress_bars() as bars, evaluated_dataroot(dataroot, dataset, version, workspace, bars) as (root, ver):
         metrics, info = evaluate_detection_results(root, ver, results, scenes=scene or None, config=config,
                                                    camera_view=camera_view)
     out = {**metrics.to_dict(), "n_samples": info["n_samples"], "camera_view": camera_view}
@@ -118,7 +119,7 @@ def planning(
             print_error(f"{n_full} of {n_keyframes} keyframes have the {STEPS * STEP_S:g} s of future the planning "
                         "metrics need; the others are left out", label="note", style="cyan")
 
-    with evaluated_dataroot(dataroot, dataset, version, workspace) as (root, ver):
+    with progress_bars() as bars, evaluated_dataroot(dataroot, dataset, version, workspace, bars) as (root, ver):
         out = evaluate_planning_results(root, ver, results, scenes=scene or None, on_coverage=coverage)
     if as_json:
         print(json.dumps(out))

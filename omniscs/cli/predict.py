@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from omniscs.cli.common import check_out, console, print_error, progress_bars, workspace_option
+from omniscs.cli.common import check_out, console, progress_bars, workspace_option
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Run a model on a nuScenes dataroot or a generated dataset and write results that "
@@ -37,10 +37,9 @@ OVERWRITE = typer.Option(False, help="Replace an existing --out.")
 def _predict(task: str, dataroot: Optional[Path], dataset: Optional[str], version: Optional[str], out: Path,
              scene: list[str], weights: Optional[Path], model: str, external_template: Optional[str], gpu_ids: str,
              timeout_s: float, overwrite: bool, workspace: Optional[Path]) -> None:
-    from omniscs.eval.nuscenes_io import resolve_version
-    from omniscs.pipeline.predict import dataset_dataroot, predict_external, predict_proxy
+    from omniscs.pipeline.predict import predict_external, predict_proxy
 
-    if (dataroot is None) == (dataset is None):
+    if (dataroot is None) == (dataset is None):  # before any other check: the first thing a user gets wrong
         raise OmniscsError("name exactly one of --dataroot (a nuScenes dataroot) and --dataset (a generated dataset)")
     if model not in ("proxy", "external"):
         raise OmniscsError(f"--model is proxy or external; got {model!r}")
@@ -56,33 +55,18 @@ def _predict(task: str, dataroot: Optional[Path], dataset: Optional[str], versio
         from omniscs.eval.planner import load_planner
 
         (load_detector if task == "detection" else load_planner)(weights)
-    with progress_bars() as bars:
-        if dataset is not None:
-            from omniscs.cli.dataset import dataset_path
+    from omniscs.cli.evaluation import evaluated_dataroot
 
-            if version is not None:
-                raise OmniscsError("--version applies to --dataroot (a dataset is exported as v1.0-trainval)")
-            source = dataset_path(dataset, workspace)
-            fmt = "uniad" if model == "external" else "nuscenes"
-            context = dataset_dataroot(source, fmt, progress=bars.sink(f"export {source.name}"))
+    fmt = "uniad" if model == "external" else "nuscenes"  # an external stack may want UniAD's infos of a dataset
+    with progress_bars() as bars, evaluated_dataroot(dataroot, dataset, version, workspace, bars, fmt) as (root, ver):
+        if model == "proxy":
+            summary = predict_proxy(task, root, ver, out, scenes=scene or None, weights=weights,
+                                    progress=bars.sink(f"predict {task}"))
         else:
-            import contextlib
-
-            detected = resolve_version(dataroot, version)
-            if version is None:
-                print_error(f"version {detected} (the only one in {dataroot})", label="note", style="cyan")
-            context = contextlib.nullcontext((dataroot, detected))
-        with context as (root, ver):
-            if model == "proxy":
-                summary = predict_proxy(task, root, ver, out, scenes=scene or None, weights=weights,
-                                        progress=bars.sink(f"predict {task}"))
-            else:
-                info_val = None
-                if dataset is not None:
-                    info_val = root.parent / "infos" / "nuscenes_infos_temporal_val.pkl"
-                summary = predict_external(task, external_template, root, ver, out, scenes=scene or None,
-                                           values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
-                                           timeout_s=timeout_s, info_val=info_val)
+            info_val = root.parent / "infos" / "nuscenes_infos_temporal_val.pkl" if dataset is not None else None
+            summary = predict_external(task, external_template, root, ver, out, scenes=scene or None,
+                                       values={"gpu_ids": gpu_ids, "n_gpus": len(gpu_ids.split(","))},
+                                       timeout_s=timeout_s, info_val=info_val)
     what = (f"{summary['boxes']} boxes" if "boxes" in summary else
             f"{summary['trajectories']} trajectories ({summary['keyframes_with_map']} keyframes with a map)"
             if "trajectories" in summary else "results checked")
