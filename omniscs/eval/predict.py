@@ -35,6 +35,7 @@ from omniscs.eval.nuscenes_io import (
     load_results,
     world_from_planning,
 )
+from omniscs.eval.detector_views import transform_of
 from omniscs.eval.planning import STEP_S, STEPS
 from omniscs.eval.scenarios import HISTORY_S, PlanningInput, boxes_in_frame, command_of, to_frame
 from omniscs.progress import Progress, no_progress
@@ -130,8 +131,8 @@ def _lidar_frames(tables: NuScenesTables) -> dict[str, list[tuple[float, np.ndar
         if channel.get(sd["calibrated_sensor_token"]) != REFERENCE_CHANNEL:
             continue
         scene = tables["sample"][sd["sample_token"]]["scene_token"]
-        world_from_ego = _record_transform(tables["ego_pose"][sd["ego_pose_token"]])
-        ego_from_lidar = _record_transform(tables["calibrated_sensor"][sd["calibrated_sensor_token"]])
+        world_from_ego = transform_of(tables["ego_pose"][sd["ego_pose_token"]])
+        ego_from_lidar = transform_of(tables["calibrated_sensor"][sd["calibrated_sensor_token"]])
         planning = np.eye(4)  # as nuscenes_io.world_from_planning places it, for sweeps too
         planning[:3, :3] = world_from_ego[:3, :3] @ EGO_FROM_PLANNING
         planning[:3, 3] = (world_from_ego @ ego_from_lidar)[:3, 3]
@@ -139,13 +140,6 @@ def _lidar_frames(tables: NuScenesTables) -> dict[str, list[tuple[float, np.ndar
     for poses in out.values():
         poses.sort(key=lambda p: p[0])
     return out
-
-
-def _record_transform(record: dict) -> np.ndarray:  # a record's translation + rotation -> [4, 4]
-    T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(np.asarray(record["rotation"], np.float64))
-    T[:3, 3] = record["translation"]
-    return T
 
 
 def ego_motion_at(poses: list[tuple[float, np.ndarray]], t: float) -> tuple[float, float]:
