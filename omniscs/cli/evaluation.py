@@ -2,26 +2,62 @@
 against a nuScenes dataroot (an export of a generated dataset, or the real dataset)."""
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import typer
 
-from omniscs.cli.common import console
+from omniscs.cli.common import Bars, console, print_error, progress_bars, workspace_option
+from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Evaluate driving-model outputs on a nuScenes dataroot: detection (mAP, NDS) and planning "
                        "(L2, collision rate).", no_args_is_help=True)
 
-DATAROOT = typer.Option(..., help="nuScenes dataroot (holds VERSION/ with the tables).")
-VERSION = typer.Option("v1.0-mini", help="Table version folder under the dataroot.")
+DATAROOT = typer.Option(None, help="nuScenes dataroot (holds VERSION/ with the tables); or --dataset.")
+DATASET = typer.Option(None, help="A generated dataset (its id in the workspace, or its folder), exported for the "
+                                  "run as `omniscs dataset export --format nuscenes` exports it; or --dataroot.")
+VERSION = typer.Option(None, help="Table version folder under the dataroot (default: the only one there; the "
+                                  "factory's exports write v1.0-trainval).")
 SCENES = typer.Option([], "--scene", help="Evaluate these scenes only (names or tokens; repeat; default all).")
+
+
+@contextlib.contextmanager
+def evaluated_dataroot(dataroot: Optional[Path], dataset: Optional[str], version: Optional[str],
+                       workspace: Optional[Path], bars: Bars, fmt: str = "nuscenes") -> Iterator[tuple[Path, str]]:
+    """(dataroot, version) to evaluate (or predict) on: --dataroot with its version (the only one there when not
+    named; said on stderr), or --dataset exported for the block as ``fmt`` (``pipeline.predict.dataset_dataroot``;
+    its progress on ``bars``, the command's one set of bars)."""
+    from omniscs.eval.nuscenes_io import resolve_version
+
+    if (dataroot is None) == (dataset is None):
+        raise OmniscsError("name exactly one of --dataroot (a nuScenes dataroot) and --dataset (a generated dataset)")
+    if dataset is not None:
+        from omniscs.cli.dataset import dataset_path
+        from omniscs.pipeline.predict import dataset_dataroot
+
+        if version is not None:
+            raise OmniscsError("--version applies to --dataroot (a dataset is exported as v1.0-trainval)")
+        source = dataset_path(dataset, workspace)
+        with dataset_dataroot(source, fmt, progress=bars.sink(f"export {source.name}")) as found:
+            try:
+                yield found
+            except OmniscsError as exc:  # name the dataset, not the temporary export that is gone with the run
+                raise type(exc)(str(exc).replace(str(found[0] / found[1]), f"dataset {source.name}")
+                                .replace(str(found[0]), f"dataset {source.name}")) from None
+        return
+    detected = resolve_version(dataroot, version)
+    if version is None:
+        print_error(f"version {detected} (the only one in {dataroot})", label="note", style="cyan")
+    yield dataroot, detected
 
 
 @app.command("detection")
 def detection(
-    dataroot: Path = DATAROOT,
-    version: str = VERSION,
+    dataroot: Optional[Path] = DATAROOT,
+    dataset: Optional[str] = DATASET,
+    version: Optional[str] = VERSION,
     results: Path = typer.Option(..., help="Results in the nuScenes detection results format (JSON)."),
     scene: list[str] = SCENES,
     classes: list[str] = typer.Option([], "--class", help="Average mAP and NDS over these classes only (repeat; "
@@ -30,14 +66,16 @@ def detection(
                                      "predictions) a camera of the sample sees: for rigs whose cameras do not look all "
                                      "round, such as the factory's three front cameras."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as one JSON object."),
+    workspace: Optional[Path] = workspace_option(),
 ) -> None:
     """mAP, the true-positive errors and NDS by the nuScenes protocol (centre distance 0.5/1/2/4 m)."""
     from omniscs.eval.detection import DETECTION_NAMES, DetectionConfig
     from omniscs.eval.nuscenes_io import evaluate_detection_results
 
     config = DetectionConfig(class_names=tuple(classes) or DETECTION_NAMES)
-    metrics, info = evaluate_detection_results(dataroot, version, results, scenes=scene or None, config=config,
-                                               camera_view=camera_view)
+    with progress_bars() as bars, evaluated_dataroot(dataroot, dataset, version, workspace, bars) as (root, ver):
+        metrics, info = evaluate_detection_results(root, ver, results, scenes=scene or None, config=config,
+                                                   camera_view=camera_view)
     out = {**metrics.to_dict(), "n_samples": info["n_samples"], "camera_view": camera_view}
     if as_json:
         print(json.dumps(out))
@@ -58,22 +96,31 @@ def detection(
 
 @app.command("planning")
 def planning(
-    dataroot: Path = DATAROOT,
-    version: str = VERSION,
+    dataroot: Optional[Path] = DATAROOT,
+    dataset: Optional[str] = DATASET,
+    version: Optional[str] = VERSION,
     results: Path = typer.Option(..., help="Planned trajectories: {'results': {sample_token: {'trajectory': "
                                            "[[x, y] x 6]}}} in UniAD's frame (x right, y forward, at the LiDAR)."),
     scene: list[str] = SCENES,
     convention: Optional[str] = typer.Option(None, help="Print only this horizon convention: uniad (the value at "
                                                         "1/2/3 s) or stp3 (the mean up to it); default both."),
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as one JSON object."),
+    workspace: Optional[Path] = workspace_option(),
 ) -> None:
     """L2 and collision rate (obj_box_col) at 1/2/3 s, as UniAD computes them."""
     from omniscs.eval.nuscenes_io import evaluate_planning_results
-    from omniscs.eval.planning import CONVENTIONS, HORIZONS
+    from omniscs.eval.planning import CONVENTIONS, HORIZONS, STEP_S, STEPS
 
     if convention is not None and convention not in CONVENTIONS:
         raise typer.BadParameter(f"one of {', '.join(CONVENTIONS)}", param_hint="--convention")
-    out = evaluate_planning_results(dataroot, version, results, scenes=scene or None)
+
+    def coverage(n_full: int, n_keyframes: int) -> None:  # said before the metrics are computed (none: an error)
+        if n_full:
+            print_error(f"{n_full} of {n_keyframes} keyframes have the {STEPS * STEP_S:g} s of future the planning "
+                        "metrics need; the others are left out", label="note", style="cyan")
+
+    with progress_bars() as bars, evaluated_dataroot(dataroot, dataset, version, workspace, bars) as (root, ver):
+        out = evaluate_planning_results(root, ver, results, scenes=scene or None, on_coverage=coverage)
     if as_json:
         print(json.dumps(out))
         return

@@ -44,12 +44,34 @@ def run_generate(request) -> dict:
         request = request.model_copy(update={"run_id": new_run_id()})
     checked = check_run(request, hand_on=True)  # the flow below takes this check, not a second one
     usable_workspace(request.workspace)  # not a file, nor under one
+    short = planning_frames_warning(request)
+    if short is not None:
+        print_error(short, label="warning", style="yellow")
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api
 
     with stops_cleanly(request.run_id, workspace_path(request.workspace), request.to_dict(), len(checked.scenes)), \
             prefect_api():
         return generate_dataset(request)
+
+
+def planning_frames_warning(request) -> str | None:
+    """What to say before a dataset run whose synthetic logs are too short for ``omniscs eval planning`` (a keyframe
+    needs 3 s of future at 2 Hz); None when they are long enough, or when the run makes no dataset. A warning, not an
+    error: the variants and detection evaluation do not need the future."""
+    from omniscs.eval.planning import STEP_S, STEPS, frames_for_planning
+    from omniscs.world.model import FRAME_PERIOD_US
+
+    if not request.annotate or not any(str(s).startswith("syn:") for s in request.sources):
+        return None
+    rate_hz = 1e6 / FRAME_PERIOD_US
+    needed = frames_for_planning(rate_hz)
+    if request.n_frames >= needed:
+        return None
+    return (f"--frames {request.n_frames} is too few for planning evaluation (omniscs eval planning): a keyframe "
+            f"needs {STEPS * STEP_S:g} s of future, so a synthetic log needs at least {needed} frames at "
+            f"{rate_hz:g} Hz for one evaluated keyframe (and {round(STEP_S * rate_hz)} more for each further one); "
+            "use e.g. --frames 40")
 
 
 @contextlib.contextmanager

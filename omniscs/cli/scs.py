@@ -175,7 +175,8 @@ def scs_appearance(
 def scs_mine(
     results: Path = typer.Option(..., help="Detection results in the nuScenes results format (JSON)."),
     dataset: Path = typer.Option(..., help="A nuScenes dataroot (e.g. an OmniSCS export: omniscs dataset export)."),
-    version: str = typer.Option("v1.0-trainval", help="The dataroot's version folder (v1.0-mini, ...)."),
+    version: Optional[str] = typer.Option(None, help="The dataroot's version folder (default: the only one there; "
+                                                     "the factory's exports write v1.0-trainval)."),
     out: Path = typer.Option(..., help="Folder for missed.json, missed.md and missed.png."),
     match_distance: float = typer.Option(2.0, help="Centre distance (m) under which a detection matches."),
     min_score: float = typer.Option(0.0, help="Detections below this score are ignored."),

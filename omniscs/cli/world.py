@@ -84,7 +84,8 @@ def world_export(
     scenes: list[Path] = typer.Argument(..., help="Scene stores to export (one dataset holds them all)."),
     fmt: str = typer.Option(..., "--format", help="nuscenes, kitti, waymo-v2 or uniad (nuScenes + UniAD infos)."),
     out: Path = typer.Option(..., help="Dataset root to write (must not exist)."),
-    version: str = typer.Option("v1.0-trainval", help="nuScenes: table version folder."),
+    version: str = typer.Option("v1.0-trainval", help="nuScenes: table version folder (the one every export writes "
+                                                      "unless told; eval and predict read a dataroot's only one)."),
     keyframe_every: Optional[int] = typer.Option(None, help="nuScenes: frames per keyframe (default: 2 Hz)."),
     camera: str = typer.Option("CAM_FRONT", help="KITTI: the camera written as image_02."),
     overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),

@@ -30,9 +30,10 @@ from typing import Callable
 
 from omniscs.errors import ValidationError
 
-#: Placeholders a job template may use.
+#: Placeholders a job template may use (``version``, ``task`` and ``results``: the table version of the dataroot,
+#: detection or planning, and the file an ``omniscs predict`` job writes its results to).
 JOB_PLACEHOLDERS = ("dataset_root", "info_train", "info_val", "work_dir", "gpu_ids", "n_gpus", "config",
-                    "checkpoint", "dataset_id", "python")
+                    "checkpoint", "dataset_id", "python", "version", "task", "results")
 #: Seconds between SIGTERM and SIGKILL when a job is stopped.
 KILL_GRACE_S = 10.0
 #: Lines of the log kept in memory for the result (the whole log is on disk).

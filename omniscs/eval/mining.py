@@ -334,17 +334,18 @@ class MissedReport:
         return atomic_write_bytes(path, self.png_bytes())
 
 
-def build_report(dataroot: str | Path, version: str, results_path: str | Path,
+def build_report(dataroot: str | Path, version: str | None, results_path: str | Path,
                  config: MiningConfig = MiningConfig()) -> MissedReport:
     """Match a results file against the evaluated ground truth of ``config.scenes`` of a dataroot and describe each
-    ground-truth box (see ``MissedReport``). Refuses (``ValidationError``, one line) a missing dataroot, results the
-    protocol refuses (unknown or missing sample tokens, non-finite scores, ...) and a dataroot with nothing to
-    evaluate."""
+    ground-truth box (see ``MissedReport``). ``version`` None: the dataroot's only one. Refuses (``ValidationError``,
+    one line) a missing dataroot, results the protocol refuses (unknown or missing sample tokens, non-finite scores,
+    ...) and a dataroot with nothing to evaluate."""
     root = Path(dataroot)
     if not root.is_dir():
-        raise ValidationError(f"dataroot {root} does not exist; pass the folder that holds {version}/ (e.g. what "
-                              "'omniscs export --format nuscenes' wrote)")
+        raise ValidationError(f"dataroot {root} does not exist; pass the folder that holds {version or 'v1.0-*'}/ "
+                              "(e.g. what 'omniscs dataset export --format nuscenes' wrote)")
     tables = NuScenesTables.load(root, version)
+    version = tables.version
     samples = tables.scene_samples(list(config.scenes) or None)
     if not samples:
         raise ValidationError(f"{root / version} has no samples; mine a dataroot with annotated keyframes")
@@ -511,7 +512,7 @@ def _track_list(boxes: pd.DataFrame, most: int = MARKDOWN_TRACKS) -> str:
 
 
 # ----------------------------------------------------------------------------- the stage
-def mine(dataroot: str | Path, version: str, results_path: str | Path, out_dir: str | Path,
+def mine(dataroot: str | Path, version: str | None, results_path: str | Path, out_dir: str | Path,
          config: MiningConfig = MiningConfig(), overwrite: bool = False) -> MissedReport:
     """``build_report``, ``pick_scs_objects`` (``config.pick_top``, ``config.pick_min_count``), then the folder
     ``out_dir`` with ``missed.json`` (the report's dict, the picks and every missed box), ``missed.md`` and

@@ -11,11 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
-from omniscs.errors import ValidationError
+from omniscs.errors import OmniscsError, ValidationError
 from omniscs.eval.detection import CLASS_ATTRIBUTES, DETECTION_NAMES, Boxes, DetectionConfig, evaluate, filter_boxes
-from omniscs.eval.planning import STEP_S, STEPS, PlanningSample, evaluate_planning
+from omniscs.eval.planning import STEP_S, STEPS, PlanningSample, evaluate_planning, frames_for_planning
 from omniscs.geometry import make_transform
 from omniscs.quaternions import quat_to_rotmat
+from omniscs.scene.sources.nuscenes import find_version
 from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
 
 #: nuScenes category -> detection class (the devkit's ``category_to_detection_name``).
@@ -24,6 +25,19 @@ BIKE_RACK = "static_object.bicycle_rack"
 #: Largest time between an annotation and its neighbour for a velocity (s; doubled across both neighbours).
 MAX_VELOCITY_DT_S = 1.5
 REFERENCE_CHANNEL = "LIDAR_TOP"
+
+
+def resolve_version(dataroot: str | Path, version: str | None) -> str:
+    """The table version to read: ``version`` when the dataroot holds it, or its only ``v1.0-*`` folder when
+    ``version`` is None; anything else (no such dataroot, another version than asked, several to choose from) is one
+    error naming the versions the dataroot holds. The factory's exports write ``DEFAULT_VERSION``
+    (``omniscs.export.nuscenes``); the real dataset comes as v1.0-mini or v1.0-trainval."""
+    try:
+        return find_version(Path(dataroot), version)
+    except ValidationError:
+        raise
+    except OmniscsError as exc:  # the evaluation's readers raise ValidationError for what is on disk
+        raise ValidationError(str(exc)) from None
 
 
 @dataclass
@@ -35,10 +49,11 @@ class NuScenesTables:
     tables: dict[str, dict[str, dict]]
 
     @classmethod
-    def load(cls, dataroot: str | Path, version: str) -> "NuScenesTables":
+    def load(cls, dataroot: str | Path, version: str | None) -> "NuScenesTables":
+        """The tables of ``version`` (None: the dataroot's only ``v1.0-*`` folder, ``resolve_version``); a version
+        the dataroot does not hold is one error naming those it holds."""
+        version = resolve_version(dataroot, version)
         folder = Path(dataroot) / version
-        if not folder.is_dir():
-            raise ValidationError(f"no nuScenes tables at {folder} (dataroot {dataroot}, version {version})")
         tables = {}
         for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation",
                      "instance", "category", "attribute"):
@@ -388,14 +403,22 @@ def load_planning_results(path: str | Path, samples: list[str], steps: int | Non
     return out
 
 
-def evaluate_planning_results(dataroot: str | Path, version: str, results: str | Path,
-                              scenes: list[str] | None = None) -> dict:
-    """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future."""
+def evaluate_planning_results(dataroot: str | Path, version: str | None, results: str | Path,
+                              scenes: list[str] | None = None, on_coverage=None) -> dict:
+    """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future.
+    ``on_coverage(n_with_future, n_keyframes)`` hears how many there are before the results are read; none is an
+    error saying how long a scene must be."""
     tables = NuScenesTables.load(dataroot, version)
     keyframes = tables.scene_samples(scenes)
     samples, short = load_planning_samples(tables, keyframes)
+    if on_coverage is not None:
+        on_coverage(len(samples), len(keyframes))
     if not samples:
-        raise ValidationError(f"no keyframe of {Path(dataroot) / version} has the full future the metrics need")
+        longest = max((s["nbr_samples"] for s in tables["scene"].values()), default=0)
+        raise ValidationError(f"no keyframe of {Path(dataroot) / tables.version} has the {STEPS * STEP_S:g} s of "
+                              f"future the planning metrics need: a scene needs at least {STEPS + 1} keyframes at "
+                              f"2 Hz ({frames_for_planning(10.0)} frames at 10 Hz) and the longest here has "
+                              f"{longest}; make the logs longer (e.g. --frames 40)")
     predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes)
     out = evaluate_planning(samples, predictions)
     out["n_short_future"] = short

@@ -283,6 +283,21 @@ def plan(model: ProxyPlanner, examples: list[PlanningExample], batch_size: int =
     return out
 
 
+@torch.no_grad()
+def plan_inputs(model: ProxyPlanner, inputs: list[tuple[PlanningInput, object]], batch_size: int = 256,
+                progress: Progress = no_progress) -> np.ndarray:  # -> [N, STEPS, 2] planning frame
+    """Planned waypoints for what the planner sees at each of ``inputs`` ((input, drivable map or None) pairs: a
+    keyframe of a dataroot rather than of a scenario, ``omniscs.eval.predict``)."""
+    model.eval()
+    out = []
+    for i in range(0, len(inputs), batch_size):
+        chunk = [features_of(inp, drivable) for inp, drivable in inputs[i:i + batch_size]]
+        raster, state, base = (torch.from_numpy(np.stack(a)) for a in zip(*chunk))
+        out.append(model(raster, state, base).numpy().astype(np.float64))
+        progress(min(i + batch_size, len(inputs)), len(inputs), "planning")
+    return np.concatenate(out) if out else np.zeros((0, STEPS, 2))
+
+
 def save_planner(model: ProxyPlanner, out_dir: str | Path, training: dict, overwrite: bool = False) -> Path:
     """Weights (safetensors), network config and training record, written atomically."""
     with atomic_directory(Path(out_dir), overwrite=overwrite) as tmp:

@@ -39,6 +39,15 @@ HORIZONS = {"1s": 1, "2s": 3, "3s": 5}
 CONVENTIONS = ("uniad", "stp3")
 
 
+def frames_for_planning(frame_rate_hz: float) -> int:
+    """Frames a log recorded at ``frame_rate_hz`` needs for one keyframe with the whole future the metrics read
+    (``STEPS`` waypoints ``STEP_S`` apart after it): 31 at 10 Hz. Each further evaluated keyframe needs ``STEP_S``
+    more."""
+    if not (frame_rate_hz > 0):
+        raise ValidationError(f"frame rate must be positive; got {frame_rate_hz}")
+    return int(round(STEPS * STEP_S * frame_rate_hz)) + 1
+
+
 def _index(p: np.ndarray) -> np.ndarray:
     """Continuous grid index of a coordinate: cell k has its centre at GRID_MIN + (k + 0.5) CELL."""
     return (p - (GRID_MIN + 0.5 * CELL)) / CELL

@@ -32,8 +32,11 @@ for UniAD's class groups in its order (vehicle: car, truck, construction_vehicle
 bicycle; pedestrian; others: barrier, traffic_cone), each the k-means centres (scikit-learn, fixed seed) of the
 12-step (6 s) futures of that group's agents in their own frame (the PredictHelper agent frame: +y along the
 heading, +x to the right), over agents whose 12 future steps are all known. A group with fewer than
-``anchor_min_samples`` such futures gets straight lines at the group's median speed (``FALLBACK_SPEED_MPS`` when it
-has no agents), fanned over ``FALLBACK_FAN_RAD``. Counts, speeds and which groups fell back are recorded beside.
+``anchor_min_samples`` such futures (short logs: a 4 s log has no 6 s future) adds the futures known for at least
+``anchor_min_known`` steps, continued to 12 steps at their last step's velocity, and is clustered when that gives
+at least ``anchor_modes`` distinct futures; a group with fewer still gets straight lines at the group's median speed
+(``FALLBACK_SPEED_MPS`` when it has no agents), fanned over ``FALLBACK_FAN_RAD``, and a warning says so. Counts
+(complete and extended futures), speeds and which groups fell back are recorded beside.
 
 Pickles hold only builtins and arrays reduced to ``numpy.ndarray(shape, dtype, buffer)``, so the numpy 1.x that
 UniAD runs on loads what numpy 2 wrote here.
@@ -41,6 +44,7 @@ UniAD runs on loads what numpy 2 wrote here.
 from __future__ import annotations
 
 import json
+import logging
 import pickle
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -55,6 +59,8 @@ from omniscs.geometry import invert_transform, make_transform
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
 from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
+
+log = logging.getLogger(__name__)
 
 #: The camera channels UniAD reads, in its order (a scene without one of them simply leaves it out).
 UNIAD_CAMERAS: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
@@ -104,7 +110,10 @@ class UniADConfig:
     anchor_steps: int = 12
     """Steps per anchor (UniAD's ``predict_steps``: 6 s at 2 Hz)."""
     anchor_min_samples: int = 24
-    """A group with fewer complete futures than this gets fallback straight-line anchors."""
+    """A group with fewer complete futures than this also uses futures extended from partial ones (module
+    docstring); with fewer than ``anchor_modes`` distinct futures in all it gets fallback straight-line anchors."""
+    anchor_min_known: int = 2
+    """Known future steps (1 s at 2 Hz) a partial future needs to be extended to ``anchor_steps`` for the anchors."""
     anchor_seed: int = 0
     """Seed of the k-means initialisation."""
 
@@ -119,7 +128,8 @@ class UniADConfig:
         if isinstance(self.val_scenes, str) or not all(isinstance(s, str) for s in self.val_scenes):
             raise OmniscsError(f"val_scenes must be a list of scene ids or names; got {self.val_scenes!r}")
         object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
-        for name in ("max_sweeps", "future_steps", "anchor_modes", "anchor_steps", "anchor_min_samples", "anchor_seed"):
+        for name in ("max_sweeps", "future_steps", "anchor_modes", "anchor_steps", "anchor_min_samples",
+                     "anchor_min_known", "anchor_seed"):
             value = getattr(self, name)
             least = 0 if name in ("max_sweeps", "anchor_seed") else 1
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
@@ -154,6 +164,12 @@ def write_uniad(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSION,
         path.write_text(json.dumps(MapExpansion(unused).to_json()))
     val_tokens = _val_scene_tokens(nusc, scenes, config.val_scenes)
     infos = uniad_infos(nusc, config)
+    if not infos:
+        raise OmniscsError("the UniAD export has no keyframe for either pickle (the scenes have no frames)")
+    if not val_tokens:
+        log.warning("UniAD export: the val pickle is empty and all %d scene(s) went to train; name the scenes to "
+                    "validate on with --val-scene (repeat; one of %s)", len(scenes),
+                    ", ".join(sorted(scene.scene_id for scene in scenes)[:4]) + (", ..." if len(scenes) > 4 else ""))
     metadata = {"version": version}
     (root / INFOS_DIR).mkdir(parents=True, exist_ok=True)
     for split, keep in (("train", lambda i: i["scene_token"] not in val_tokens),
@@ -345,19 +361,27 @@ def ego_motion(global_from_ego: np.ndarray,  # [F, 4, 4]
 def motion_anchors(infos: list[dict], config: UniADConfig = UniADConfig()) -> dict:
     """UniAD's motion anchors from the infos' futures (module docstring): ``anchors_all`` [groups][modes, steps, 2]."""
     steps = config.anchor_steps
-    anchors, counts, fell_back, speeds = [], [], [], []
+    anchors, counts, extended_counts, fell_back, speeds = [], [], [], [], []
     for group, classes in ANCHOR_GROUPS:
-        futures, group_speeds = [], []
+        futures, partial, group_speeds = [], [], []
         for info in infos:
             in_group = np.isin(info["gt_names"], classes)
-            complete = in_group & info["fut_traj_valid_mask"][:, :steps].all(axis=(1, 2))
+            known = info["fut_traj_valid_mask"][:, :steps].all(axis=2)  # [N, steps]
+            complete = in_group & known.all(axis=1)
             futures.append(info["fut_traj"][complete, :steps])
+            partial.append(extended_futures(info["fut_traj"][in_group & ~complete, :steps],
+                                            known[in_group & ~complete], config.anchor_min_known))
             group_speeds.append(np.linalg.norm(info["gt_velocity"][in_group], axis=1))
         futures = np.concatenate(futures).reshape(-1, steps, 2) if futures else np.zeros((0, steps, 2))
         group_speeds = np.concatenate(group_speeds) if group_speeds else np.zeros(0)
         speed = float(np.median(group_speeds)) if len(group_speeds) else FALLBACK_SPEED_MPS[group]
+        n_extended = 0
+        if len(futures) < config.anchor_min_samples:  # short logs: complete the set with extended partial futures
+            extended = np.concatenate(partial).reshape(-1, steps, 2) if partial else np.zeros((0, steps, 2))
+            n_extended = len(extended)
+            futures = np.concatenate([futures, extended])
         distinct = len(np.unique(futures.reshape(len(futures), -1).round(6), axis=0)) if len(futures) else 0
-        fallback = len(futures) < config.anchor_min_samples or distinct < config.anchor_modes
+        fallback = distinct < config.anchor_modes
         if fallback:
             centres = straight_anchors(speed, config.anchor_modes, steps)
         else:
@@ -367,12 +391,39 @@ def motion_anchors(infos: list[dict], config: UniADConfig = UniADConfig()) -> di
             km.fit(futures.reshape(len(futures), -1))
             centres = km.cluster_centers_.reshape(config.anchor_modes, steps, 2)
         anchors.append(np.asarray(centres, np.float32))
-        counts.append(len(futures))
+        counts.append(len(futures) - n_extended)
+        extended_counts.append(n_extended)
         fell_back.append(bool(fallback))
         speeds.append(speed)
+    straight = [f"{g} ({c} complete, {e} extended)" for (g, _), c, e, f in
+                zip(ANCHOR_GROUPS, counts, extended_counts, fell_back) if f]
+    if straight:
+        log.warning("UniAD motion anchors: %s have fewer than %d distinct %.0f s futures (complete, or known for "
+                    "%g s and extended), so their anchors are straight lines at the group's median speed, not "
+                    "learnt from the data; longer logs with more agents give anchors from the data (a whole %g s "
+                    "future needs %d frames at 10 Hz)", ", ".join(straight), config.anchor_modes, steps * STEP_S,
+                    config.anchor_min_known * STEP_S, steps * STEP_S, int(round(steps * STEP_S * 10)) + 1)
     return {"anchors_all": anchors, "groups": [g for g, _ in ANCHOR_GROUPS],
-            "group_classes": [list(c) for _, c in ANCHOR_GROUPS], "sample_counts": counts, "fallback": fell_back,
-            "median_speed_mps": speeds, "step_s": STEP_S, "frame": "agent: +y heading, +x right"}
+            "group_classes": [list(c) for _, c in ANCHOR_GROUPS], "sample_counts": counts,
+            "extended_counts": extended_counts, "fallback": fell_back, "median_speed_mps": speeds, "step_s": STEP_S,
+            "frame": "agent: +y heading, +x right"}
+
+
+def extended_futures(futures: np.ndarray,  # [N, S, 2] agent frame, valid where ``known``
+                     known: np.ndarray,    # [N, S] bool
+                     min_known: int) -> np.ndarray:  # -> [M, S, 2]
+    """The futures whose first ``min_known`` steps or more are known, continued past their last known step at that
+    step's velocity (constant velocity; the first step's from the agent's origin)."""
+    out = []
+    for future, mask in zip(futures, known):
+        k = int(np.argmin(mask)) if not mask.all() else len(mask)  # leading known steps
+        if k < min_known or k == 0:
+            continue
+        last = future[k - 1]
+        velocity = last - (future[k - 2] if k >= 2 else np.zeros(2))
+        ahead = np.arange(1, len(mask) - k + 1)[:, None]
+        out.append(np.concatenate([future[:k], last + ahead * velocity]))
+    return np.asarray(out, np.float64).reshape(-1, futures.shape[1] if futures.ndim == 3 else 0, 2)
 
 
 def straight_anchors(speed: float, modes: int, steps: int) -> np.ndarray:  # -> [modes, steps, 2] agent frame

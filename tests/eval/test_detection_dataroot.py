@@ -164,7 +164,7 @@ def test_unknown_scene_or_missing_tables_are_clear_errors(dataroot, tmp_path):
     _noisy_results(dataroot, path)
     with pytest.raises(ValidationError, match="unknown scene"):
         evaluate_detection_results(dataroot, VERSION, path, scenes=["nope"])
-    with pytest.raises(ValidationError, match="no nuScenes tables"):
+    with pytest.raises(ValidationError, match="has no nuScenes table folder 'v1.0-mini'; it has none"):
         evaluate_detection_results(tmp_path, VERSION, path)
 
 

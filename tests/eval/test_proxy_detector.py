@@ -290,9 +290,9 @@ def test_the_shipped_detector_loads_and_gives_finite_outputs():
 
 def test_bad_dataroots_are_one_clear_error(dataroot, tmp_path):
     model = _model()
-    with pytest.raises(ValidationError, match="no nuScenes tables"):
+    with pytest.raises(ValidationError, match="nuScenes dataroot .*missing does not exist"):
         detect(model, tmp_path / "missing", VERSION)
-    with pytest.raises(ValidationError, match="no nuScenes tables"):
+    with pytest.raises(ValidationError, match="nuScenes dataroot .*missing does not exist"):
         train_detector([(tmp_path / "missing", VERSION)], DetectorTrainConfig(steps=1), TINY)
     no_cams = shutil.copytree(dataroot / VERSION, tmp_path / "nocam" / VERSION)
     tables = NuScenesTables.load(dataroot, VERSION)

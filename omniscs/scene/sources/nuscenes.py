@@ -109,7 +109,8 @@ def find_version(root: Path, version: str | None) -> str:
     found = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("v1.0"))
     if version is not None:
         if version not in found:
-            raise OmniscsError(f"{root} has no nuScenes table folder {version!r}; it has {found or 'none'}")
+            raise OmniscsError(f"{root} has no nuScenes table folder {version!r}; it has {found or 'none'}"
+                               + (f" (name {found[0]!r} as the version, or leave it out)" if len(found) == 1 else ""))
         return version
     if not found:
         raise OmniscsError(f"{root} is not a nuScenes dataroot: it has no v1.0-* table folder; point at the folder "
