@@ -34,10 +34,25 @@ def worker_threads(workers: int, cores: int | None = None) -> int:
     return max(1, (cores or os.cpu_count() or 1) // max(int(workers), 1))
 
 
+class StoppableThreadPoolTaskRunner(ThreadPoolTaskRunner):
+    """Prefect's thread runner, except that a stopped run (SIGTERM turned into Prefect's TerminationSignal, or
+    SIGINT's KeyboardInterrupt) leaves without waiting for the running stages: Prefect's runner would wait for the
+    running fit to end (minutes) before the stop reached the CLI. The process exits right after, taking the
+    threads with it; the CLI records the run as cancelled and removes its temporaries."""
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        if exc_type is not None and not issubclass(exc_type, Exception) and self._executor is not None:
+            for event in getattr(self, "_cancel_events", {}).values():
+                event.set()
+            self._executor.shutdown(wait=False, cancel_futures=True)  # cancel_all() would wait for them
+            self._executor = None
+        super().__exit__(exc_type, exc_value, traceback)
+
+
 def scene_task_runner(task_runner: str = "threads", workers: int | None = None, dask_address: str | None = None):
     """The task runner that runs a flow's scenes (its choice checked with the run's inputs: ``check_runner``)."""
     if task_runner == "threads":
-        return ThreadPoolTaskRunner(max_workers=int(workers or MAX_PARALLEL_SCENES))
+        return StoppableThreadPoolTaskRunner(max_workers=int(workers or MAX_PARALLEL_SCENES))
     from prefect_dask import DaskTaskRunner
 
     if dask_address is not None:

@@ -47,15 +47,21 @@ def build(
     height: int = typer.Option(270, help="Synthetic sources: image height."),
     behavior_preset: str = typer.Option("balanced", help="Behaviour optimisation preset."),
     device: str = typer.Option("cpu", help="Compute device of the scene graph and behaviour optimisation."),
+    keep_failed: bool = typer.Option(False, help="Put variants that fail the quality gates into the dataset too, "
+                                                 "marked (by default they stay in the workspace and the catalog)."),
+    variant_budget: int = typer.Option(3, help="Candidates tried per requested variant until as many as "
+                                               "requested pass the quality gates."),
 ) -> None:
-    """Generate, render and annotate variants of every source, gathered as one dataset (and catalogued)."""
+    """Generate, render and annotate variants of every source; those that pass the quality gates are gathered as
+    one dataset (and catalogued)."""
     from omniscs.cli.generate import run_generate
 
     result = run_generate({"sources": list(sources), "workspace": str(workspace) if workspace else None,
                            "run_id": run_id, "n_frames": frames, "n_cameras": cameras, "width": width,
                            "height": height, "previews": False, "fit_preset": fit_preset,
                            "behavior_variants": behavior_variants, "behavior_preset": behavior_preset,
-                           "device": device, "annotate": True, "dataset_id": out})
+                           "device": device, "annotate": True, "dataset_id": out, "keep_failed": keep_failed,
+                           "variant_budget": variant_budget})
     show_dataset(Path(result["dataset_path"]))
 
 

@@ -93,3 +93,34 @@ def test_fault_injection_at_ten_moments(tmp_path):
     result = fault_injection(ReliabilityConfig(kills=10, seed=11), tmp_path)
     assert all(k["rerun_exit"] == 0 and k["catalog_equal"] and k["files_equal"] and not k["orphaned_processes"]
                and not k["temporaries_after_rerun"] for k in result["kills"]), result["kills"]
+
+
+@pytest.mark.slow
+def test_sigterm_during_a_fit_ends_the_run_in_seconds_and_a_rerun_reuses_what_finished(tmp_path):
+    from omniscs.bench.reliability import cli_command, cli_env, workspace_state
+
+    ws = tmp_path / "ws"
+    argv = cli_command() + ["generate", "syn:straight:51", "--frames", "6", "--cameras", "1", "--width", "160",
+                            "--height", "90", "--fit-preset", "fast", "--no-previews", "--run-id", "fitstop"]
+    proc = subprocess.Popen(argv, env=cli_env(ws, tmp_path / "prefect"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_for(lambda: any((ws / "models").glob("*/.tmp-*")) or any((ws / "models").glob("*/*/.tmp-*"))
+                         or any((ws / "models").rglob("*.lock")), 300), "the fit never started"
+        time.sleep(3)  # well inside the fit (tens of seconds here)
+        sent = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert took < 10, f"the run took {took:.1f} s to stop"
+    assert workspace_state(ws)["temporaries"] == []
+    (row,) = catalog.query(catalog.catalog_root(ws), "SELECT status, error FROM runs").to_pylist()
+    assert row["status"] == "cancelled" and "SIGTERM" in row["error"]
+    rerun = subprocess.run(argv[:-1] + ["fitagain"], env=cli_env(ws, tmp_path / "prefect"), capture_output=True,
+                           text=True, timeout=900)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert "reused" in rerun.stdout.split("ingest", 1)[1]  # the ingested store is reused, not made again

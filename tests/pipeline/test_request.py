@@ -159,11 +159,13 @@ def test_dataset_build_asks_the_flow_for_an_annotated_run(monkeypatch):
     monkeypatch.setattr(cli_generate, "run_generate", lambda request: seen.append(RunRequest.parse(request)) or {
         "dataset_path": "/nowhere"})
     monkeypatch.setattr("omniscs.cli.dataset.show_dataset", lambda path: None)
-    result = runner.invoke(app, ["dataset", "build", "syn:straight:3", "--frames", "8", "--out", "ds-mine"])
+    result = runner.invoke(app, ["dataset", "build", "syn:straight:3", "--frames", "8", "--out", "ds-mine",
+                                 "--keep-failed", "--variant-budget", "4"])
     assert result.exit_code == 0, result.output
     (request,) = seen
     assert (request.sources, request.annotate, request.fit_preset, request.behavior_variants, request.n_frames,
             request.dataset_id, request.previews) == (["syn:straight:3"], True, "fast", 2, 8, "ds-mine", False)
+    assert request.keep_failed and request.variant_budget == 4
 
 
 def test_a_run_is_checked_once_when_the_cli_hands_its_check_to_the_flow_and_afresh_otherwise(monkeypatch):
