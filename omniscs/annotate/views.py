@@ -148,8 +148,7 @@ class ViewAnnotator:
         self.last_render_seconds = time.perf_counter() - tick
         rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         alpha = out.alpha.cpu().numpy()
-        depth = np.where(alpha >= cfg.depth_alpha, out.depth.cpu().numpy(), 0.0).astype(np.float32)
-        depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+        depth = self._surface_depth(out.depth.cpu().numpy(), alpha)
         instance = np.full(alpha.shape, -1, dtype=np.int32)
         semantic = np.where(alpha >= cfg.depth_alpha, SEMANTIC_UNKNOWN, SEMANTIC_IDS["sky"]).astype(np.uint8)
         results = []
@@ -171,6 +170,23 @@ class ViewAnnotator:
                 if label is not None:
                     results.append(label)
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
+
+    @torch.no_grad()
+    def depth(self, view: View, node_poses: dict[int, np.ndarray],  # moved agent nodes: world_from_agent
+              hidden: frozenset[int] = frozenset()) -> np.ndarray:  # -> float32 [H, W] metres along the axis
+        """The depth ``annotate`` would give ``view`` (0 where the Gaussians cover less than ``depth_alpha`` of a
+        pixel), without colour worth keeping or labels: what a simulated sensor needs (``omniscs.annotate.lidar``).
+        The view need not be a camera the fit saw (no exposure correction is needed for depth)."""
+        f = self.graph.check_frame(view.frame_idx)
+        out = render_view(self.graph, view, sh_degree=0, agent_poses=self._poses(node_poses, f),
+                          only_agents=[t for t in self._may_show(view, node_poses) if t not in hidden],
+                          activated=self.activated)
+        return self._surface_depth(out.depth.cpu().numpy(), out.alpha.cpu().numpy())
+
+    def _surface_depth(self, depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:  # [H, W] x2 -> float32 [H, W]
+        """Depth where the Gaussians cover at least ``depth_alpha`` of the pixel, else 0; never NaN or infinite."""
+        out = np.where(alpha >= self.config.depth_alpha, depth, 0.0).astype(np.float32)
+        return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
 
     @torch.no_grad()
     def unedited(self, camera: str, frame: int, logged_image: Callable[[], np.ndarray] | None = None,
