@@ -448,8 +448,28 @@ def test_the_exported_variant_reads_back_into_a_scene_store(annotated, exported,
     assert max(err.values()) < 1e-9, err
 
 
+def test_a_car_moved_behind_the_ego_gets_lidar_points_from_the_ring_and_none_from_the_front_cameras(fitted, tmp_path):
+    """The default 360° LiDAR (a ring of depth renders at the mount) returns from a box behind the ego that no
+    dataset camera sees; sampling the cameras' depth alone (``lidar_source`` cameras) leaves it without points."""
+    scene, graph = fitted
+    variant = logged_variant(scene)
+    ego = scene.world_from_ego_all
+    variant["agents"]["1"] = [[float(ego[f, 0, 3] - 9.0), 0.0, 0.0] for f in range(scene.n_frames)]
+    counts = {}
+    for source in ("ring", "cameras"):
+        out = write_annotated_variant(graph, scene, variant, tmp_path / source, "nsg-test-v000",
+                                      config=AnnotateConfig(lidar_source=source, fidelity_every=0))
+        store = load_scene(out.store)
+        counts[source] = store.boxes[store.boxes.track_id == 1].num_lidar_points.to_numpy()
+        points = np.concatenate([store.lidar(t) for t in range(store.n_frames)])
+        assert np.isfinite(points).all() and out.summary["lidar_seconds"] > 0
+        np.testing.assert_allclose(np.asarray(store.manifest["ego_from_lidar"]).reshape(4, 4),
+                                   scene.world.lidar.ego_from_lidar)
+    assert (counts["ring"] >= 20).all() and (counts["cameras"] == 0).all()
+
+
 def test_lidar_points_per_box_match_a_count_over_every_point():
-    from omniscs.annotate.variant import points_in_boxes
+    from omniscs.annotate.lidar import points_in_boxes
     from omniscs.geometry import invert_transform, make_transform, transform_points
 
     rng = np.random.default_rng(4)
