@@ -52,9 +52,19 @@ class AnnotateConfig:
     columns of each camera's depth (cameras)."""
     lidar_max_range_m: float = 70.0
     """Simulated LiDAR: returns further than this are dropped."""
+    lidar_min_range_m: float = 1.0
+    """Simulated LiDAR (ring): returns nearer than this to the sensor are dropped (a spinning LiDAR's blind range;
+    nuScenes' devkit removes points within 1 m)."""
+    lidar_background_clearance_m: float = 3.0
+    """Simulated LiDAR (ring): background Gaussians whose centres lie nearer than this to the sensor are not drawn
+    for it (agent nodes always are). The lowest beam of a roof LiDAR meets the road about 3 m out, so little of the
+    static scene lies nearer; what a fit leaves there are stray Gaussians around the ego's own path, which no camera
+    looked at from the sensor and which would otherwise fill whole ring views at a few decimetres."""
     lidar_ring_views: int = 6
     """Simulated LiDAR (ring): pinhole views around the mount that the depth is rendered in (at least 3; each covers
     360° / views of azimuth)."""
+    lidar_depth_alpha: float = 0.5
+    """Simulated LiDAR (ring): a beam returns where the Gaussians cover at least this much of its pixel."""
     lidar_ring_pixel_deg: float = 0.33
     """Simulated LiDAR (ring): angular size of a ring view's pixel at its centre, the ring's resolution: larger is
     cheaper (fewer pixels to render) and coarser (neighbouring beams share a pixel's depth). At the default the six
@@ -98,9 +108,12 @@ class AnnotateConfig:
             raise OmniscsError(f"annotate exact_fidelity must be true or false; got {self.exact_fidelity!r}")
         if int(self.fidelity_every) < 0:
             raise OmniscsError(f"annotate fidelity_every must be >= 0; got {self.fidelity_every}")
-        for name in ("mask_weight", "depth_alpha"):
+        for name in ("mask_weight", "depth_alpha", "lidar_depth_alpha"):
             if not 0.0 < float(getattr(self, name)) <= 1.0:
                 raise OmniscsError(f"annotate {name} must lie in (0, 1]; got {getattr(self, name)}")
+        for name in ("lidar_min_range_m", "lidar_background_clearance_m"):
+            if not 0.0 <= float(getattr(self, name)) < float(self.lidar_max_range_m):
+                raise OmniscsError(f"annotate {name} must lie in [0, lidar_max_range_m); got {getattr(self, name)}")
         for name in ("min_label_depth_m", "lidar_vertical_step_deg", "lidar_horizontal_step_deg", "lidar_max_range_m",
                      "max_viewpoint_offset_m", "command_horizon_s", "command_lateral_m"):
             if not float(getattr(self, name)) > 0.0:

@@ -73,12 +73,14 @@ def ring_views(config: AnnotateConfig) -> list[RingView]:
 def lidar_from_views(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # (depth [H, W], K, lidar_from_view)
                      directions: np.ndarray,      # [R, 3] unit beam directions, LiDAR frame
                      ego_from_lidar: np.ndarray,  # [4, 4]
-                     max_range_m: float) -> np.ndarray:  # -> float32 [N, 4] ego frame, intensity 0
+                     max_range_m: float,
+                     min_range_m: float = 0.0) -> np.ndarray:  # -> float32 [N, 4] ego frame, intensity 0
     """The returns of a spinning LiDAR whose beams are looked up in rendered depth: each beam takes the view it
     points most squarely into among those whose image holds it, the depth (metres along that view's axis; 0 = no
     surface) of the pixel it crosses, and ends at range depth / cos(angle to the axis). Every view's camera sits at
     the LiDAR's origin. A beam no view holds, over a pixel without a surface (the sky), with a depth that is not
-    finite or a range beyond ``max_range_m`` gives no return. Intensity is 0: the scene graph knows no reflectivity."""
+    finite or a range outside (``min_range_m``, ``max_range_m``] gives no return. Intensity is 0: the scene graph
+    knows no reflectivity."""
     directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     n = len(directions)
     best_cos = np.full(n, MIN_AXIS_COS)
@@ -104,7 +106,8 @@ def lidar_from_views(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # 
     for i, (depth, _, _) in enumerate(views):
         mine = np.flatnonzero(chosen == i)
         ranges[mine] = np.asarray(depth, dtype=np.float64)[row[mine], col[mine]] / best_cos[mine]
-    keep = (chosen >= 0) & np.isfinite(ranges) & (ranges > 0.0) & (ranges <= float(max_range_m))
+    keep = (chosen >= 0) & np.isfinite(ranges) & (ranges > max(0.0, float(min_range_m))) \
+        & (ranges <= float(max_range_m))
     xyz = transform_points(np.asarray(ego_from_lidar, dtype=np.float64), directions[keep] * ranges[keep, None])
     out = np.zeros((len(xyz), 4), np.float32)
     out[:, :3] = xyz

@@ -176,8 +176,12 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
             if ring:  # the 360° sensor: depth rendered in the ring of views at the mount, then the beams looked up
                 world_from_lidar = vf.world_from_ego[t] @ lidar_mount
                 ring_depth = [(annotator.depth(View(f, world_from_lidar @ r.lidar_from_view, r.K, r.width, r.height),
-                                               vf.node_poses[t]), r.K, r.lidar_from_view) for r in ring]
-                points = lidar_from_views(ring_depth, beams, lidar_mount, config.lidar_max_range_m)
+                                               vf.node_poses[t], min_alpha=config.lidar_depth_alpha,
+                                               background_clearance_m=config.lidar_background_clearance_m),
+                               r.K, r.lidar_from_view)
+                              for r in ring]
+                points = lidar_from_views(ring_depth, beams, lidar_mount, config.lidar_max_range_m,
+                                          config.lidar_min_range_m)
             else:
                 points = lidar_from_depth(depth_views, config)
             lidar_s += time.perf_counter() - tick

@@ -3,6 +3,7 @@ edges (boxes behind the camera, cut by the border, none visible, the ego off the
 store reads and exports like any other."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -466,6 +467,35 @@ def test_a_car_moved_behind_the_ego_gets_lidar_points_from_the_ring_and_none_fro
         np.testing.assert_allclose(np.asarray(store.manifest["ego_from_lidar"]).reshape(4, 4),
                                    scene.world.lidar.ego_from_lidar)
     assert (counts["ring"] >= 20).all() and (counts["cameras"] == 0).all()
+
+
+def test_stray_background_gaussians_at_the_lidar_are_cleared_for_it_and_agents_never_are(fitted):
+    """A blob of background Gaussians around the sensor would fill every ring view at a few decimetres: the ring
+    leaves out background Gaussians within the clearance; agent nodes beside the sensor stay."""
+    from omniscs.annotate.lidar import ring_views
+    from omniscs.annotate.views import ViewAnnotator
+    from omniscs.gaussians import concat_params, params_from_values
+    from omniscs.nsg.observations import View
+
+    scene, graph = fitted
+    f = 3
+    world_from_lidar = scene.world_from_ego_all[f] @ np.asarray(scene.world.lidar.ego_from_lidar)
+    rng = np.random.default_rng(0)
+    blob = params_from_values(torch.from_numpy(world_from_lidar[:3, 3] + rng.normal(0, 0.3, (200, 3))).float(),
+                              torch.full((200, 3), 0.2), torch.full((200,), 0.9), torch.full((200, 3), 0.5),
+                              graph.sh_degree)
+    cluttered = dataclasses.replace(graph, background=concat_params([graph.background, blob.to(graph.background.device)]))
+    annotator = ViewAnnotator(cluttered, AnnotateConfig())
+    ahead = ring_views(AnnotateConfig())[0]
+    view = View(f, world_from_lidar @ ahead.lidar_from_view, ahead.K, ahead.width, ahead.height)
+    blocked = annotator.depth(view, {})
+    cleared = annotator.depth(view, {}, background_clearance_m=3.0)
+    assert np.median(blocked[blocked > 0]) < 1.0 < np.median(cleared[cleared > 0])
+    # the car ahead (an agent node 11 m on) is in the cleared view at its range
+    box = scene.boxes[(scene.boxes.frame_idx == f) & (scene.boxes.track_id == 1)].iloc[0]
+    ahead_m = float(np.linalg.norm(np.array([box.cx, box.cy]) - world_from_lidar[:2, 3]))
+    centre = cleared[:, ahead.width // 2]
+    assert np.any(np.abs(centre - (ahead_m - 0.5 * box.length)) < 1.0)
 
 
 def test_lidar_points_per_box_match_a_count_over_every_point():

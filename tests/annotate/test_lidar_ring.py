@@ -148,6 +148,10 @@ def test_returns_beyond_the_range_or_without_a_surface_are_dropped_and_never_nan
     ranges = np.linalg.norm(points[:, :3], axis=1)
     assert np.isfinite(points).all() and 0 < len(points) < len(beams) and ranges.max() <= 70.0
     assert len(lidar_from_views(near_edge, beams[:0], np.eye(4), 70.0)) == 0
+    # the blind range: a surface all round within 0.7 m returns nothing to a sensor blind within 1 m
+    close = [(np.full((r.height, r.width), 0.5, np.float32), r.K, r.lidar_from_view) for r in views]
+    assert len(lidar_from_views(close, beams, np.eye(4), 70.0, min_range_m=1.0)) == 0
+    assert len(lidar_from_views(close, beams, np.eye(4), 70.0)) == len(beams)
 
 
 def test_a_view_away_from_the_lidar_origin_is_refused():
@@ -169,7 +173,9 @@ def test_a_coarser_ring_renders_fewer_pixels():
                                           ("lidar_ring_pixel_deg", 0.0), ("lidar_ring_pixel_deg", 90.0),
                                           ("lidar_min_elevation_deg", 20.0), ("lidar_max_elevation_deg", 95.0),
                                           ("lidar_beams", 0), ("lidar_horizontal_step_deg", 1e-9),
-                                          ("lidar_ring_pixel_deg", float("nan"))])
+                                          ("lidar_ring_pixel_deg", float("nan")), ("lidar_min_range_m", -1.0),
+                                          ("lidar_min_range_m", 70.0), ("lidar_background_clearance_m", 80.0),
+                                          ("lidar_depth_alpha", 0.0)])
 def test_bad_lidar_settings_are_one_clear_error(field, value):
     with pytest.raises(OmniscsError, match=field):
         AnnotateConfig(**{field: value})
