@@ -135,16 +135,19 @@ def lidar_from_depth(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # 
     return out
 
 
-def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:  # -> [B]
-    """How many points lie in each box (ego frame)."""
+def points_in_boxes(points_ego: np.ndarray,      # [N, 3+] ego frame
+                    ego_from_boxes: np.ndarray,  # [B, 4, 4]
+                    sizes: np.ndarray,           # [B, 3] length, width, height
+                    margin: float = 0.0) -> np.ndarray:  # -> [B] int64
+    """How many points lie in each box grown by ``margin`` metres on every side."""
     counts = np.zeros(len(sizes), dtype=np.int64)
     order = np.argsort(points_ego[:, 0], kind="stable")
     xyz = points_ego[order, :3].astype(np.float64)  # sorted by x: a box's candidates are one slice
     for i, (T, size) in enumerate(zip(ego_from_boxes, sizes)):
-        reach = 0.5 * float(np.linalg.norm(size))  # the box's bounding cube
+        reach = 0.5 * float(np.linalg.norm(size)) + margin  # the box's bounding cube
         lo = int(np.searchsorted(xyz[:, 0], T[0, 3] - reach, side="left"))
         hi = int(np.searchsorted(xyz[:, 0], T[0, 3] + reach, side="right"))
         cand = xyz[lo:hi]
         near = np.abs(cand[:, 1:] - T[1:3, 3]).max(1) <= reach if len(cand) else np.zeros(0, bool)
-        counts[i] = int(points_in_box(cand[near], T, size).sum())
+        counts[i] = int(points_in_box(cand[near], T, size, margin).sum())
     return counts

@@ -25,7 +25,7 @@ from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
 from omniscs.annotate.lidar import beam_directions, lidar_from_depth, lidar_from_views, points_in_boxes, ring_views
 from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
-from omniscs.export.common import ego_from_lidar
+from omniscs.export.common import BOX_POINT_MARGIN_M, ego_from_lidar
 from omniscs.geometry import invert_transform, make_transform, yaw_from_matrix
 from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
@@ -191,7 +191,10 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                 ego_from_world = invert_transform(vf.world_from_ego[t])
                 ego_from_boxes = np.stack([ego_from_world @ _world_from_box(r) for r in frame_rows.itertuples()])
                 sizes = frame_rows[["length", "width", "height"]].to_numpy(np.float64)
-                boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes)
+                # returns lie on the surfaces, the rendered (alpha-blended) ones a few centimetres either side:
+                # counted with the slack the exporters and the procedural source count with
+                boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes,
+                                                                                  BOX_POINT_MARGIN_M)
             label_s += time.perf_counter() - tick
         tick = time.perf_counter()
         for future in pending:

@@ -515,6 +515,9 @@ def test_lidar_points_per_box_match_a_count_over_every_point():
     brute = [int(np.all(np.abs(transform_points(invert_transform(T), points[:, :3].astype(np.float64)))
                         <= 0.5 * s, axis=1).sum()) for T, s in zip(boxes, sizes)]
     assert points_in_boxes(points, boxes, sizes).tolist() == brute and sum(brute) > 0
+    grown = [int(np.all(np.abs(transform_points(invert_transform(T), points[:, :3].astype(np.float64)))
+                        <= 0.5 * s + 0.3, axis=1).sum()) for T, s in zip(boxes, sizes)]
+    assert points_in_boxes(points, boxes, sizes, margin=0.3).tolist() == grown and sum(grown) > sum(brute)
     assert points_in_boxes(np.zeros((0, 4), np.float32), boxes, sizes).tolist() == [0] * 12
 
 
