@@ -99,8 +99,8 @@ class AnnotateConfig:
                                f"< lidar_max_elevation_deg < {MAX_ELEVATION_DEG}; got {self.lidar_min_elevation_deg} "
                                f"and {self.lidar_max_elevation_deg}")
         if not float(self.lidar_horizontal_step_deg) >= MIN_LIDAR_STEP_DEG:
-            raise OmniscsError(f"annotate lidar_horizontal_step_deg must be >= {MIN_LIDAR_STEP_DEG} (360° / step beams "
-                               f"per ring); got {self.lidar_horizontal_step_deg}")
+            raise OmniscsError(f"annotate lidar_horizontal_step_deg must be >= {MIN_LIDAR_STEP_DEG} (360° / step "
+                               f"beams per ring); got {self.lidar_horizontal_step_deg}")
         for name in ("frame_every", "min_mask_pixels", "lidar_beams"):
             if int(getattr(self, name)) < 1:
                 raise OmniscsError(f"annotate {name} must be >= 1; got {getattr(self, name)}")

@@ -484,7 +484,8 @@ def test_stray_background_gaussians_at_the_lidar_are_cleared_for_it_and_agents_n
     blob = params_from_values(torch.from_numpy(world_from_lidar[:3, 3] + rng.normal(0, 0.3, (200, 3))).float(),
                               torch.full((200, 3), 0.2), torch.full((200,), 0.9), torch.full((200, 3), 0.5),
                               graph.sh_degree)
-    cluttered = dataclasses.replace(graph, background=concat_params([graph.background, blob.to(graph.background.device)]))
+    cluttered = dataclasses.replace(graph, background=concat_params([graph.background,
+                                                                     blob.to(graph.background.device)]))
     annotator = ViewAnnotator(cluttered, AnnotateConfig())
     ahead = ring_views(AnnotateConfig())[0]
     view = View(f, world_from_lidar @ ahead.lidar_from_view, ahead.K, ahead.width, ahead.height)
