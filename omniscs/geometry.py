@@ -168,6 +168,16 @@ def unproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:  
     return np.stack([x * depth, y * depth, depth], -1)
 
 
+def spinning_beam_directions(beams: int, min_elevation_deg: float, max_elevation_deg: float,
+                             azimuth_steps: int) -> np.ndarray:  # -> [beams * azimuth_steps, 3] unit, sensor frame
+    """Unit ray directions of a spinning LiDAR (x forward, y left, z up), beam-major: row = elevation from the top
+    beam to the bottom one (evenly spaced, both limits included), column = azimuth from -pi, evenly over 360°."""
+    elevation = np.radians(np.linspace(max_elevation_deg, min_elevation_deg, beams))
+    azimuth = np.linspace(-np.pi, np.pi, azimuth_steps, endpoint=False)
+    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+
+
 def in_image(uv: np.ndarray, width: int, height: int) -> np.ndarray:  # [N, 2] -> [N] bool
     return (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
 

@@ -22,10 +22,11 @@ import pyarrow.parquet as pq
 from omniscs.annotate.config import AnnotateConfig, visibility_level
 from omniscs.annotate.fidelity import box_mask, feature_drift, finite_or_none, image_fidelity
 from omniscs.annotate.frames import COMMANDS, VariantFrames, variant_frames
+from omniscs.annotate.lidar import beam_directions, lidar_from_depth, lidar_from_views, points_in_boxes, ring_views
 from omniscs.annotate.views import Instance, ViewAnnotation, ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
-from omniscs.geometry import (invert_transform, make_transform, points_in_box, transform_points, unproject,
-                              yaw_from_matrix)
+from omniscs.export.common import BOX_POINT_MARGIN_M, ego_from_lidar
+from omniscs.geometry import invert_transform, make_transform, yaw_from_matrix
 from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
@@ -72,42 +73,6 @@ def background_tracks(scene: Scene, graph: SceneGraph) -> dict[int, tuple[np.nda
     return out
 
 
-def lidar_from_depth(views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],  # (depth [H,W], K, ego_from_camera)
-                     config: AnnotateConfig) -> np.ndarray:  # -> float32 [N, 4] ego frame, intensity 0
-    """Points sampled from the rendered depth like a spinning LiDAR's beams (rows and columns at the configured
-    angular steps) over the cameras' fields of view: the LiDAR returns the scene graph itself can vouch for."""
-    points = []
-    for depth, K, ego_from_camera in views:
-        h, w = depth.shape
-        du = max(1, int(round(K[0, 0] * np.tan(np.radians(config.lidar_horizontal_step_deg)))))
-        dv = max(1, int(round(K[1, 1] * np.tan(np.radians(config.lidar_vertical_step_deg)))))
-        v, u = np.mgrid[dv // 2:h:dv, du // 2:w:du]
-        z = depth[v, u].astype(np.float64)
-        uv = np.stack([u + 0.5, v + 0.5], -1).reshape(-1, 2)
-        cam = unproject(uv, z.reshape(-1), K)
-        keep = (z.reshape(-1) > 0) & (np.linalg.norm(cam, axis=1) <= config.lidar_max_range_m)
-        points.append(transform_points(ego_from_camera, cam[keep]))
-    xyz = np.concatenate(points) if points else np.zeros((0, 3))
-    out = np.zeros((len(xyz), 4), np.float32)
-    out[:, :3] = xyz
-    return out
-
-
-def points_in_boxes(points_ego: np.ndarray, ego_from_boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:  # -> [B]
-    """How many points lie in each box (ego frame)."""
-    counts = np.zeros(len(sizes), dtype=np.int64)
-    order = np.argsort(points_ego[:, 0], kind="stable")
-    xyz = points_ego[order, :3].astype(np.float64)  # sorted by x: a box's candidates are one slice
-    for i, (T, size) in enumerate(zip(ego_from_boxes, sizes)):
-        reach = 0.5 * float(np.linalg.norm(size))  # the box's bounding cube
-        lo = int(np.searchsorted(xyz[:, 0], T[0, 3] - reach, side="left"))
-        hi = int(np.searchsorted(xyz[:, 0], T[0, 3] + reach, side="right"))
-        cand = xyz[lo:hi]
-        near = np.abs(cand[:, 1:] - T[1:3, 3]).max(1) <= reach if len(cand) else np.zeros(0, bool)
-        counts[i] = int(points_in_box(cand[near], T, size).sum())
-    return counts
-
-
 def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_dir: str | Path, store_id: str,
                             ego_xy_yaw: np.ndarray | None = None, solution: dict | None = None,
                             reference: Reference | None = None, config: AnnotateConfig = AnnotateConfig(),
@@ -147,7 +112,10 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     boxes["visible_pixels"] = 0
     vis_alpha: dict[tuple[int, int], list[tuple[float, float]]] = {}
     samples, annotations, fidelity = [], [], []
-    render_s = label_s = write_s = 0.0
+    render_s = label_s = write_s = lidar_s = 0.0
+    lidar_mount = ego_from_lidar(scene)  # [4, 4] the log's LiDAR mount, or a nuScenes-like one when it has none
+    ring = ring_views(config) if config.lidar_source == "ring" else []
+    beams = beam_directions(config) if ring else None
     source = {"kind": "variant", "scene_id": scene.scene_id, "variant_id": str(variant.get("variant_id")),
               "scene_content_hash": scene.content_hash}
     out_dir = Path(out_dir)
@@ -157,7 +125,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
             ThreadPoolExecutor(1, thread_name_prefix="variant-writer") as pool:
         writer.set_frames(vf.timestamps_us, vf.world_from_ego)
         writer.set_cameras(cameras)
-        writer.set_extra(source_scene_id=scene.scene_id, **_location(scene))
+        writer.set_extra(source_scene_id=scene.scene_id, ego_from_lidar=lidar_mount.reshape(16).tolist(),
+                         **_location(scene))
         if describe is not None and rig is None:
             writer.write_world_json(describe(vf))
         rows_by_frame = {t: g for t, g in boxes.groupby("frame_idx")}
@@ -204,13 +173,28 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                                                        adversary, moved, config))
                 progress(t * len(cameras) + cameras.index(cam) + 1, total, f"variant {variant.get('variant_id')}")
             tick = time.perf_counter()
-            points = lidar_from_depth(depth_views, config)
+            if ring:  # the 360° sensor: depth rendered in the ring of views at the mount, then the beams looked up
+                world_from_lidar = vf.world_from_ego[t] @ lidar_mount
+                ring_depth = [(annotator.depth(View(f, world_from_lidar @ r.lidar_from_view, r.K, r.width, r.height),
+                                               vf.node_poses[t], min_alpha=config.lidar_depth_alpha,
+                                               background_clearance_m=config.lidar_background_clearance_m),
+                               r.K, r.lidar_from_view)
+                              for r in ring]
+                points = lidar_from_views(ring_depth, beams, lidar_mount, config.lidar_max_range_m,
+                                          config.lidar_min_range_m)
+            else:
+                points = lidar_from_depth(depth_views, config)
+            lidar_s += time.perf_counter() - tick
+            tick = time.perf_counter()
             writer.write_lidar(t, points)
             if len(frame_rows):
                 ego_from_world = invert_transform(vf.world_from_ego[t])
                 ego_from_boxes = np.stack([ego_from_world @ _world_from_box(r) for r in frame_rows.itertuples()])
                 sizes = frame_rows[["length", "width", "height"]].to_numpy(np.float64)
-                boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes)
+                # returns lie on the surfaces, the rendered (alpha-blended) ones a few centimetres either side:
+                # counted with the slack the exporters and the procedural source count with
+                boxes.loc[frame_rows.index, "num_lidar_points"] = points_in_boxes(points, ego_from_boxes, sizes,
+                                                                                  BOX_POINT_MARGIN_M)
             label_s += time.perf_counter() - tick
         tick = time.perf_counter()
         for future in pending:
@@ -230,7 +214,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
         pq.write_table(pa.Table.from_pandas(attributes, schema=ATTRIBUTE_SCHEMA, preserve_index=False),
                        writer.tmp / ATTRIBUTES)
         summary = _summary(variant, vf, solution, fidelity, render_s, label_s, write_s, time.perf_counter() - started,
-                           total, len(annotations))
+                           total, len(annotations), lidar_s)
         (writer.tmp / VARIANT_JSON).write_text(json.dumps({
             "variant": variant, "ego_solution": solution, "scene_frames": vf.scene_frames.tolist(),
             "commands": [COMMANDS[c] for c in vf.commands], "dropped_frames": list(vf.dropped_frames),
@@ -331,7 +315,8 @@ def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant:
 
 
 def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: list[dict], render_s: float,
-             label_s: float, write_s: float, seconds: float, n_images: int, n_annotations: int) -> dict:
+             label_s: float, write_s: float, seconds: float, n_images: int, n_annotations: int,
+             lidar_s: float) -> dict:
     def mean(key: str) -> float | None:
         values = [f[key] for f in fidelity if f.get(key) is not None]
         return float(np.mean(values)) if values else None
@@ -346,4 +331,5 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
             "logged_psnr": mean("logged_psnr"),
             "fidelity_frames": len(fidelity),
             "max_viewpoint_offset_m": float(vf.viewpoint_offset_m.max()),
-            "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s, "seconds": seconds}
+            "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s,
+            "lidar_seconds": lidar_s, "seconds": seconds}

@@ -5,6 +5,7 @@ instance where that share is high), the unoccluded share of its alpha (visibilit
 from what was drawn, not from a separate geometric guess."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -17,7 +18,7 @@ from torch import Tensor
 from omniscs.annotate.config import AnnotateConfig
 from omniscs.annotate.replay import Replay
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import activate
+from omniscs.gaussians import Gaussians, activate
 from omniscs.geometry import (BOX_EDGES, box_corners_from_pose, clip_segment_to_near, invert_transform,
                               make_transform)
 from omniscs.nsg.compose import NodePose, place_gaussians
@@ -111,6 +112,7 @@ class ViewAnnotator:
         self._unedited: dict[tuple[str, int], tuple[np.ndarray, float | None]] = {}  # rgb, logged PSNR
         self._unedited_bytes = 0
         self._logged_rects: dict[tuple[str, int], dict[int, tuple[float, float, float, float]]] = {}
+        self._clear_cache: tuple | None = None  # (key, graph, activated) of the last cleared sensor position
         self.last_render_seconds = 0.0
         """Seconds the last ``annotate`` spent in the rasterisation of colour, depth and labels (the rest is
         annotation: masks, boxes, the instances' own alpha)."""
@@ -148,8 +150,7 @@ class ViewAnnotator:
         self.last_render_seconds = time.perf_counter() - tick
         rgb = (out.rgb.clamp(0.0, 1.0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         alpha = out.alpha.cpu().numpy()
-        depth = np.where(alpha >= cfg.depth_alpha, out.depth.cpu().numpy(), 0.0).astype(np.float32)
-        depth = np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+        depth = self._surface_depth(out.depth.cpu().numpy(), alpha)
         instance = np.full(alpha.shape, -1, dtype=np.int32)
         semantic = np.where(alpha >= cfg.depth_alpha, SEMANTIC_UNKNOWN, SEMANTIC_IDS["sky"]).astype(np.uint8)
         results = []
@@ -171,6 +172,47 @@ class ViewAnnotator:
                 if label is not None:
                     results.append(label)
         return ViewAnnotation(rgb, depth, instance, semantic, tuple(results))
+
+    @torch.no_grad()
+    def depth(self, view: View, node_poses: dict[int, np.ndarray],  # moved agent nodes: world_from_agent
+              hidden: frozenset[int] = frozenset(), min_alpha: float | None = None,
+              background_clearance_m: float = 0.0) -> np.ndarray:  # -> float32 [H, W] metres along the axis
+        """The depth ``annotate`` would give ``view`` (0 where the Gaussians cover less than ``min_alpha``, by
+        default ``depth_alpha``, of a pixel), without colour worth keeping or labels: what a simulated sensor needs
+        (``omniscs.annotate.lidar``). Background Gaussians whose centres lie within ``background_clearance_m`` of
+        the view's centre are left out (agent nodes never are). The view need not be a camera the fit saw (depth
+        needs no exposure)."""
+        graph, activated = self._cleared(view.world_from_camera[:3, 3], background_clearance_m)
+        f = graph.check_frame(view.frame_idx)
+        out = render_view(graph, view, sh_degree=0, agent_poses=self._poses(node_poses, f),
+                          only_agents=[t for t in self._may_show(view, node_poses) if t not in hidden],
+                          activated=activated)
+        return self._surface_depth(out.depth.cpu().numpy(), out.alpha.cpu().numpy(), min_alpha)
+
+    def _cleared(self, centre_world: np.ndarray,  # [3]
+                 radius_m: float) -> tuple[SceneGraph, dict[str, Gaussians]]:
+        """The graph and its activated nodes without the background Gaussians centred within ``radius_m`` of
+        ``centre_world``; the last one is kept, as the views of one sensor position share it."""
+        if radius_m <= 0.0:
+            return self.graph, self.activated
+        key = (tuple(np.asarray(centre_world, dtype=np.float64).round(9).tolist()), float(radius_m))
+        if self._clear_cache is None or self._clear_cache[0] != key:
+            bg = self.background
+            centre = torch.as_tensor(np.asarray(centre_world), dtype=bg.means.dtype, device=bg.means.device)
+            keep = torch.linalg.vector_norm(bg.means - centre, dim=1) >= radius_m
+            graph = dataclasses.replace(self.graph, background=self.graph.background.select(keep))
+            activated = {**self.activated, BACKGROUND: Gaussians(bg.means[keep], bg.quats[keep], bg.scales[keep],
+                                                                 bg.opacities[keep], bg.sh[keep])}
+            self._clear_cache = (key, graph, activated)
+        return self._clear_cache[1], self._clear_cache[2]
+
+    def _surface_depth(self, depth: np.ndarray, alpha: np.ndarray,  # [H, W] x2 -> float32 [H, W]
+                       min_alpha: float | None = None) -> np.ndarray:
+        """Depth where the Gaussians cover at least ``min_alpha`` (default ``depth_alpha``) of the pixel, else 0;
+        never NaN or infinite."""
+        min_alpha = self.config.depth_alpha if min_alpha is None else min_alpha
+        out = np.where(alpha >= min_alpha, depth, 0.0).astype(np.float32)
+        return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
 
     @torch.no_grad()
     def unedited(self, camera: str, frame: int, logged_image: Callable[[], np.ndarray] | None = None,

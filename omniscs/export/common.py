@@ -136,6 +136,18 @@ def encode_png(rgb: np.ndarray) -> bytes:  # uint8 [H, W, 3] RGB -> PNG bytes
     return buf.tobytes()
 
 
+def encode_mask_png(mask: np.ndarray) -> bytes:  # uint8 [H, W] -> PNG bytes, one channel
+    """A single-channel 8-bit PNG (a binary mask: 0 background, 255 foreground, as the devkit's MapMask reads it)."""
+    import cv2
+
+    if mask.dtype != np.uint8 or mask.ndim != 2:
+        raise OmniscsError(f"a mask PNG is uint8 [H, W]; got {mask.dtype} {mask.shape}")
+    ok, buf = cv2.imencode(".png", mask)
+    if not ok:
+        raise OmniscsError("could not encode a PNG mask")
+    return buf.tobytes()
+
+
 def write_bytes(path: Path, data: bytes) -> None:
     """Write a file inside an export's temporary folder (the folder as a whole is renamed when complete)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,7 @@ from omniscs.export.common import (
     box_velocities,
     ego_from_lidar,
     encode_jpeg,
-    encode_png,
+    encode_mask_png,
     token,
     visible_fraction,
     write_bytes,
@@ -170,8 +170,9 @@ def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSI
                 progress(done, total)
     for location, record in tables.maps.items():
         tables.add("map", **record)
-        mask = np.zeros((MAP_MASK_PIXELS, MAP_MASK_PIXELS, 3), np.uint8)
-        write_bytes(root / record["filename"], encode_png(mask))
+        # one channel, as nuScenes' semantic priors: the devkit's MapMask indexes it as a 2-D binary mask
+        mask = np.zeros((MAP_MASK_PIXELS, MAP_MASK_PIXELS), np.uint8)
+        write_bytes(root / record["filename"], encode_mask_png(mask))
     for location, expansion in map_expansions(placements, [s.scene_id for s in scenes]).items():
         write_bytes(root / "maps" / "expansion" / f"{location}.json", json.dumps(expansion).encode())
     (root / version).mkdir(parents=True, exist_ok=True)

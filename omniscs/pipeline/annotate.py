@@ -30,7 +30,7 @@ from omniscs.scs.behavior.solution import SolutionConfig, solution_bev_picture, 
 
 #: Bump when the code changes what the stages write (older outputs are then not reused).
 REPLAY_VERSION = 1
-ANNOTATE_VERSION = 1
+ANNOTATE_VERSION = 2  # 2: the 360° ring LiDAR (num_lidar_points of every box around the ego)
 
 
 def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Path, progress: Progress = no_progress,

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from omniscs.geometry import spinning_beam_directions
 from omniscs.world.assets import Material
 from omniscs.world.model import LidarSpec
 
@@ -29,11 +30,8 @@ for _m, _r in _REFLECTIVITY.items():
 
 
 def beam_directions(spec: LidarSpec) -> np.ndarray:  # -> [beams * azimuth_steps, 3] unit, lidar frame
-    """Unit ray directions, beam-major (row = elevation from top to bottom, column = azimuth)."""
-    elevation = np.radians(np.linspace(spec.max_elevation_deg, spec.min_elevation_deg, spec.beams))
-    azimuth = np.linspace(-np.pi, np.pi, spec.azimuth_steps, endpoint=False)
-    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
-    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    """Unit ray directions, beam-major (row = elevation from top to bottom, column = azimuth over 360°)."""
+    return spinning_beam_directions(spec.beams, spec.min_elevation_deg, spec.max_elevation_deg, spec.azimuth_steps)
 
 
 def intensity(material: np.ndarray, cos_incidence: np.ndarray, distance: np.ndarray) -> np.ndarray:

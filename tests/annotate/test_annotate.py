@@ -3,6 +3,7 @@ edges (boxes behind the camera, cut by the border, none visible, the ego off the
 store reads and exports like any other."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -448,8 +449,58 @@ def test_the_exported_variant_reads_back_into_a_scene_store(annotated, exported,
     assert max(err.values()) < 1e-9, err
 
 
+def test_a_car_moved_behind_the_ego_gets_lidar_points_from_the_ring_and_none_from_the_front_cameras(fitted, tmp_path):
+    """The default 360° LiDAR (a ring of depth renders at the mount) returns from a box behind the ego that no
+    dataset camera sees; sampling the cameras' depth alone (``lidar_source`` cameras) leaves it without points."""
+    scene, graph = fitted
+    variant = logged_variant(scene)
+    ego = scene.world_from_ego_all
+    variant["agents"]["1"] = [[float(ego[f, 0, 3] - 9.0), 0.0, 0.0] for f in range(scene.n_frames)]
+    counts = {}
+    for source in ("ring", "cameras"):
+        out = write_annotated_variant(graph, scene, variant, tmp_path / source, "nsg-test-v000",
+                                      config=AnnotateConfig(lidar_source=source, fidelity_every=0))
+        store = load_scene(out.store)
+        counts[source] = store.boxes[store.boxes.track_id == 1].num_lidar_points.to_numpy()
+        points = np.concatenate([store.lidar(t) for t in range(store.n_frames)])
+        assert np.isfinite(points).all() and out.summary["lidar_seconds"] > 0
+        np.testing.assert_allclose(np.asarray(store.manifest["ego_from_lidar"]).reshape(4, 4),
+                                   scene.world.lidar.ego_from_lidar)
+    assert (counts["ring"] >= 20).all() and (counts["cameras"] == 0).all()
+
+
+def test_stray_background_gaussians_at_the_lidar_are_cleared_for_it_and_agents_never_are(fitted):
+    """A blob of background Gaussians around the sensor would fill every ring view at a few decimetres: the ring
+    leaves out background Gaussians within the clearance; agent nodes beside the sensor stay."""
+    from omniscs.annotate.lidar import ring_views
+    from omniscs.annotate.views import ViewAnnotator
+    from omniscs.gaussians import concat_params, params_from_values
+    from omniscs.nsg.observations import View
+
+    scene, graph = fitted
+    f = 3
+    world_from_lidar = scene.world_from_ego_all[f] @ np.asarray(scene.world.lidar.ego_from_lidar)
+    rng = np.random.default_rng(0)
+    blob = params_from_values(torch.from_numpy(world_from_lidar[:3, 3] + rng.normal(0, 0.3, (200, 3))).float(),
+                              torch.full((200, 3), 0.2), torch.full((200,), 0.9), torch.full((200, 3), 0.5),
+                              graph.sh_degree)
+    cluttered = dataclasses.replace(graph, background=concat_params([graph.background,
+                                                                     blob.to(graph.background.device)]))
+    annotator = ViewAnnotator(cluttered, AnnotateConfig())
+    ahead = ring_views(AnnotateConfig())[0]
+    view = View(f, world_from_lidar @ ahead.lidar_from_view, ahead.K, ahead.width, ahead.height)
+    blocked = annotator.depth(view, {})
+    cleared = annotator.depth(view, {}, background_clearance_m=3.0)
+    assert np.median(blocked[blocked > 0]) < 1.0 < np.median(cleared[cleared > 0])
+    # the car ahead (an agent node 11 m on) is in the cleared view at its range
+    box = scene.boxes[(scene.boxes.frame_idx == f) & (scene.boxes.track_id == 1)].iloc[0]
+    ahead_m = float(np.linalg.norm(np.array([box.cx, box.cy]) - world_from_lidar[:2, 3]))
+    centre = cleared[:, ahead.width // 2]
+    assert np.any(np.abs(centre - (ahead_m - 0.5 * box.length)) < 1.0)
+
+
 def test_lidar_points_per_box_match_a_count_over_every_point():
-    from omniscs.annotate.variant import points_in_boxes
+    from omniscs.annotate.lidar import points_in_boxes
     from omniscs.geometry import invert_transform, make_transform, transform_points
 
     rng = np.random.default_rng(4)
@@ -465,6 +516,9 @@ def test_lidar_points_per_box_match_a_count_over_every_point():
     brute = [int(np.all(np.abs(transform_points(invert_transform(T), points[:, :3].astype(np.float64)))
                         <= 0.5 * s, axis=1).sum()) for T, s in zip(boxes, sizes)]
     assert points_in_boxes(points, boxes, sizes).tolist() == brute and sum(brute) > 0
+    grown = [int(np.all(np.abs(transform_points(invert_transform(T), points[:, :3].astype(np.float64)))
+                        <= 0.5 * s + 0.3, axis=1).sum()) for T, s in zip(boxes, sizes)]
+    assert points_in_boxes(points, boxes, sizes, margin=0.3).tolist() == grown and sum(grown) > sum(brute)
     assert points_in_boxes(np.zeros((0, 4), np.float32), boxes, sizes).tolist() == [0] * 12
 
 

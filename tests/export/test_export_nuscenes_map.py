@@ -67,6 +67,14 @@ def _scene_poses(nusc, scene):
     return np.array(xy)
 
 
+def test_every_map_record_points_at_a_one_channel_mask_the_devkit_can_look_points_up_in(nusc):
+    """The devkit's MapMask indexes its mask as a 2-D binary image (is_on_mask, the LIDAR_TOP map underlay)."""
+    for record in nusc.map:
+        mask = record["mask"]
+        assert mask.mask().ndim == 2
+        assert mask.is_on_mask(np.array([0.0, 1e4]), np.array([0.0, 1e4])).tolist() == [False, False]
+
+
 def test_the_devkit_opens_the_map_of_every_location_the_logs_name(nusc, dataroot):
     from nuscenes.map_expansion.map_api import NuScenesMap
 

@@ -136,6 +136,10 @@ def open_nuscenes(root: Path, version: str):
 def _open_cached(root: str, version: str, stamp: tuple):  # stamp: file sizes and times, so edits reload
     from nuscenes.nuscenes import NuScenes
 
+    from omniscs.export.devkit import patch_nuscenes_devkit
+
+    patch_nuscenes_devkit()  # the object handed out renders under numpy 2 too
+
     try:
         return NuScenes(version=version, dataroot=root, verbose=False)
     except KeyError as exc:
