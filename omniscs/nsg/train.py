@@ -109,7 +109,8 @@ def lidar_depth_loss(depth: Tensor, alpha: Tensor,  # [h, w] expected depth and 
 
 
 def evaluate_graph(graph: SceneGraph, obs: Observations, frames, cameras=None) -> dict:
-    """Full-resolution PSNR and SSIM of ``graph`` against the logged images of ``frames`` x ``cameras``."""
+    """Full-resolution PSNR and SSIM of ``graph`` against the logged images of ``frames`` x ``cameras`` (None when
+    there is no such view: a scene too short to hold frames out has no held-out score, not a NaN)."""
     cameras = tuple(cameras or [c.name for c in graph.cameras])
     rows = []
     for f in frames:
@@ -118,7 +119,7 @@ def evaluate_graph(graph: SceneGraph, obs: Observations, frames, cameras=None) -
             target = obs.image(cam, f)
             rows.append({"frame": int(f), "camera": cam, "psnr": psnr(out.rgb, target), "ssim": ssim(out.rgb, target)})
     if not rows:
-        return {"psnr": float("nan"), "ssim": float("nan"), "n_views": 0, "views": []}
+        return {"psnr": None, "ssim": None, "n_views": 0, "views": []}
     return {"psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": float(np.mean([r["ssim"] for r in rows])),
             "n_views": len(rows), "views": rows}
 

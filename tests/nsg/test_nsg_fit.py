@@ -170,3 +170,10 @@ def test_fits_stay_finite_at_the_extremes(tmp_path, case):
     assert np.isfinite(result.metrics["final_loss"]) and np.isfinite(result.metrics["heldout_psnr"])
     for agent in result.graph.agents:
         assert len(agent.gaussians) > 0
+
+
+def test_a_scene_too_short_to_hold_frames_out_has_no_held_out_score_rather_than_nan():
+    from types import SimpleNamespace
+
+    held = evaluate_graph(SimpleNamespace(cameras=[SimpleNamespace(name="CAM_FRONT")]), None, [])
+    assert held == {"psnr": None, "ssim": None, "n_views": 0, "views": []}
