@@ -8,6 +8,7 @@ scene holds back no other. The run's one parameter is a ``RunRequest`` (a form i
 """
 from __future__ import annotations
 
+import functools
 import signal
 import time
 
@@ -32,7 +33,7 @@ def _now_us() -> int:
 @flow(name="scene-pipeline", flow_run_name="scene-{label}", validate_parameters=False, log_prints=False)
 def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: str, run_id: str) -> dict:
     """Every stage of one scene that its plan needs, in the table's order; returns what they produced."""
-    state = walk_scene(start_scene(source, request, workspace, label), t.run_stage)
+    state = walk_scene(start_scene(source, request, workspace, label), functools.partial(t.run_stage, run_id=run_id))
     records = list(state.records)
     t.catalog_scene(run_id, workspace, state.scene_id, records)
     scene = state.record("ingest")
@@ -89,7 +90,8 @@ def generate_dataset(request: RunRequest) -> dict:
         if request.annotate and done:
             annotated = [StageRecord.from_dict(r["stages"]["annotate"]) for r in done if "annotate" in r["stages"]]
             dataset = t.dataset(annotated, ws, request.dataset_id, {"sources": [c.text for c in scenes],
-                                                                    "config": request.product_fields()})
+                                                                    "config": request.product_fields()},
+                                run_id=run_id)
             t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"

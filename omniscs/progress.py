@@ -1,10 +1,18 @@
 """The one progress contract: every long stage reports ``progress(done, total, note)``; one throttle decides
-when a sink (a Prefect progress artifact, a rich bar, plain lines in a log) hears about it."""
+when a sink (a Prefect progress artifact, a rich bar, plain lines in a log) hears about it. A run's feed carries the
+progress of stages that run elsewhere (a Prefect task, a Dask worker) to the command that started the run."""
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import shutil
 import sys
+import threading
 import time
-from typing import Callable, Protocol, TextIO
+import uuid
+from pathlib import Path
+from typing import Callable, Iterator, Protocol, TextIO
 
 
 class Progress(Protocol):
@@ -65,3 +73,140 @@ def percent(done: int, total: int | None) -> float:
     if not total:
         return 0.0
     return float(min(100.0, max(0.0, 100.0 * done / total)))
+
+
+def tee(*sinks: Progress) -> Progress:
+    """One progress callback that tells every one of ``sinks`` (each keeps its own throttle)."""
+    def both(done: int, total: int | None = None, note: str = "") -> None:
+        for sink in sinks:
+            sink(done, total, note)
+    return both
+
+
+# ----------------------------------------------------------------------------- a run's feed
+# The stages of a ``generate_dataset`` run execute as Prefect tasks, in this process (thread runner) or in Dask worker
+# processes, on this machine or on others that share the workspace. Their progress reaches the command that started
+# the run through a feed: a folder of the workspace that the command creates while it watches, into which every stage
+# appends its (throttled) progress as JSON lines, one file per stage run, and which the command reads every
+# FEED_POLL_S. Files in the workspace, rather than Dask's pub/sub or Prefect's log API, because they work the same
+# for every task runner (threads, a local cluster, a remote scheduler: the Dask runner already requires a shared
+# workspace), need no client handle or server round trip, survive a worker that dies (its lines stay; the retry
+# writes a new file), and cost nothing when nobody watches (no folder, no writes: a deployment's runs are unchanged).
+# The folder is a temporary of the watching process (``omniscs.storage`` naming): removed when the command ends, and
+# by ``clean_stale_temps`` if the command was killed.
+
+#: Folder of the workspace that holds the feeds of watched runs.
+FEED_ROOT = "progress"
+#: Seconds between two reads of a feed by the command that watches it.
+FEED_POLL_S = 0.5
+#: A stage writes into the feed when it moved this many percent ...
+FEED_STEP_PCT = 1.0
+#: ... or this many seconds passed with any movement: fine enough for a terminal bar, few enough writes to cost nothing.
+FEED_MIN_INTERVAL_S = 2.0
+
+
+def _feed_name(workspace: str | os.PathLike, run_id: str) -> Path:
+    return Path(workspace) / FEED_ROOT / run_id
+
+
+@contextlib.contextmanager
+def watched_run(workspace: str | os.PathLike, run_id: str) -> Iterator[Path]:
+    """Open the feed of run ``run_id`` for the block (its folder, which stages that start meanwhile write into);
+    the folder is removed afterwards."""
+    from omniscs.storage import temp_sibling
+
+    folder = temp_sibling(_feed_name(workspace, run_id))
+    folder.mkdir(parents=True)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+        with contextlib.suppress(OSError):  # the feeds' root goes once no run is watched
+            folder.parent.rmdir()
+
+
+def run_feed(workspace: str | os.PathLike, run_id: str | None, label: str) -> Progress:
+    """Where a stage of run ``run_id`` reports so that the command watching the run hears it (``label``, e.g.
+    ``syn-straight-s3 fit``, names the line it shows): a throttled writer into the run's feed, or ``no_progress``
+    when no command watches the run."""
+    from omniscs.storage import temp_siblings
+
+    folders = temp_siblings(_feed_name(workspace, run_id)) if run_id else []
+    if not folders:
+        return no_progress
+    return Throttled(FeedWriter(folders[0], label), step_pct=FEED_STEP_PCT, min_interval_s=FEED_MIN_INTERVAL_S)
+
+
+class FeedWriter:
+    """Appends one stage run's progress to a file of its own in a feed folder, one JSON line per report."""
+
+    def __init__(self, folder: str | os.PathLike, label: str) -> None:
+        self.path = Path(folder) / f"{uuid.uuid4().hex}.jsonl"
+        self.label = label
+        self._gone = False
+
+    def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
+        if self._gone:
+            return
+        line = json.dumps({"label": self.label, "done": int(done), "total": None if total is None else int(total),
+                           "note": str(note)})
+        try:  # one small write per line: a reader never sees half of a line unless the writer died inside it
+            with open(self.path, "a", encoding="utf-8") as stream:
+                stream.write(line + "\n")
+        except OSError:  # the watcher ended (its folder is gone): the stage goes on, unwatched
+            self._gone = True
+
+
+class FeedReader:
+    """Reads a feed folder incrementally: each ``read()`` returns the reports appended since the last one, as
+    ``(label, done, total, note)`` in the order each stage wrote them."""
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self._offsets: dict[Path, int] = {}
+
+    def read(self) -> list[tuple[str, int, int | None, str]]:
+        reports = []
+        for path in sorted(self.folder.glob("*.jsonl")):
+            start = self._offsets.get(path, 0)
+            try:
+                with open(path, "rb") as stream:
+                    stream.seek(start)
+                    chunk = stream.read()
+            except OSError:
+                continue
+            end = chunk.rfind(b"\n") + 1  # a line still being written waits for the next read
+            self._offsets[path] = start + end
+            for raw in chunk[:end].splitlines():
+                try:
+                    r = json.loads(raw)
+                    reports.append((str(r["label"]), int(r["done"]), None if r["total"] is None else int(r["total"]),
+                                    str(r.get("note", ""))))
+                except (ValueError, KeyError, TypeError):
+                    continue  # the tail of a writer killed mid-line
+        return reports
+
+
+@contextlib.contextmanager
+def following(folder: str | os.PathLike, deliver: Callable[[str, int, int | None, str], None],
+              poll_s: float = FEED_POLL_S) -> Iterator[None]:
+    """Pass every report of the feed in ``folder`` to ``deliver(label, done, total, note)`` while the block runs
+    (from one background thread), and what is left once it ends."""
+    reader, stop = FeedReader(folder), threading.Event()
+
+    def drain() -> None:
+        for report in reader.read():
+            deliver(*report)
+
+    def loop() -> None:
+        while not stop.wait(poll_s):
+            drain()
+
+    thread = threading.Thread(target=loop, name="omniscs-progress-feed", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+        drain()  # the last reports (a stage's 100 %) written just before the run ended
