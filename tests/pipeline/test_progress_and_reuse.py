@@ -2,6 +2,11 @@
 ``stage.json``, written last)."""
 import io
 import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -84,3 +89,68 @@ def test_a_failed_stage_leaves_nothing_and_a_damaged_manifest_is_not_reused(tmp_
     assert reusable(out, key) is None
     mark_done(out, key, {}, 1.0)
     assert json.loads((out / STAGE_MANIFEST).read_text())["stage"] == "behavior" and reusable(out, key)
+
+
+# ----------------------------------------------------------------------------- a run's feed (stages elsewhere -> CLI)
+def test_a_feed_reader_returns_each_report_once_in_order_and_waits_for_a_line_being_written(tmp_path):
+    from omniscs.progress import FeedReader, FeedWriter
+
+    writer, reader = FeedWriter(tmp_path, "s0 fit"), FeedReader(tmp_path)
+    writer(1, 10, "loss 0.5")
+    writer(5, 10, "loss 0.2")
+    assert reader.read() == [("s0 fit", 1, 10, "loss 0.5"), ("s0 fit", 5, 10, "loss 0.2")]
+    assert reader.read() == []
+    with open(writer.path, "a") as stream:  # a writer caught in the middle of a line
+        stream.write('{"label": "s0 fit", "done": 7,')
+    assert reader.read() == []
+    with open(writer.path, "a") as stream:
+        stream.write(' "total": 10, "note": ""}\n')
+    assert reader.read() == [("s0 fit", 7, 10, "")]
+
+
+def test_a_stage_writes_no_feed_unless_a_command_watches_its_run(tmp_path):
+    from omniscs.locks import clean_stale_temps
+    from omniscs.progress import FEED_ROOT, no_progress, run_feed, watched_run
+    from omniscs.storage import temp_owner
+
+    assert run_feed(tmp_path, "r1", "s0 fit") is no_progress
+    assert run_feed(tmp_path, None, "s0 fit") is no_progress
+    assert not (tmp_path / FEED_ROOT).exists()
+    with watched_run(tmp_path, "r1") as feed:
+        assert temp_owner(feed) == os.getpid()  # a temporary of the watcher: clean_stale_temps removes it once it died
+        assert clean_stale_temps(tmp_path) == []  # ... and not while it lives
+        assert run_feed(tmp_path, "r2", "s0 fit") is no_progress  # another run is not watched
+        run_feed(tmp_path, "r1", "s0 fit")(1, 4)
+        assert len(list(feed.glob("*.jsonl"))) == 1
+    assert not (tmp_path / FEED_ROOT).exists()
+    run_feed(tmp_path, "r1", "s0 fit")(2, 4)  # the watcher left: the stage goes on, writing nothing
+    assert not (tmp_path / FEED_ROOT).exists()
+
+
+def test_a_stage_in_another_process_shows_as_throttled_lines_of_the_command_that_watches_its_run(tmp_path, capsys):
+    from omniscs.cli.common import run_progress
+
+    ROOT = Path(__file__).resolve().parents[2]
+    stage = ("import sys; from omniscs.progress import run_feed\n"
+             "p = run_feed(sys.argv[1], 'r1', 'syn-a fit')\n"
+             "for i in range(1, 3001): p(i, 3000, f'loss {1 / i:.4f}')\n")
+    with run_progress(tmp_path, "r1"):
+        proc = subprocess.run([sys.executable, "-c", stage, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+    lines = capsys.readouterr().err.splitlines()
+    pcts = [int(re.fullmatch(r"syn-a fit: \d+/3000 \((\d+)%\)  loss [\d.]+", line).group(1)) for line in lines]
+    assert pcts[0] == 0 and pcts[-1] == 100 and lines[-1].startswith("syn-a fit: 3000/3000")
+    assert 11 <= len(lines) <= 12 and all(b - a >= 10 for a, b in zip(pcts, pcts[1:-1]))  # every 10 %, no flood
+    assert not (tmp_path / "progress").exists()
+
+
+def test_plain_lines_of_a_command_keep_one_throttle_per_label(capsys):
+    from omniscs.cli.common import Bars
+
+    bars = Bars(None)
+    assert bars.sink("s0 fit") is bars.sink("s0 fit")
+    for done in range(1, 501):  # a caller that asks for its sink at every step (scs train-behavior does)
+        bars.sink("s0 fit")(done, 500)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "s0 fit: 1/500 (0%)" and lines[-1] == "s0 fit: 500/500 (100%)" and len(lines) == 11
