@@ -13,8 +13,9 @@ from tasks.retries import STAGE_TASK_OPTIONS
 
 def _run(stage: str, state: SceneState, run_id: str | None = None) -> StageRecord:
     row = stages.stage(stage)
-    return row.run(state, task_progress(f"{row.doing} of {state.scene_id}", state.workspace, run_id,
-                                        f"{state.scene_id} {stage}"))
+    with task_progress(f"{row.doing} of {state.scene_id}", state.workspace, run_id,
+                       f"{state.scene_id} {stage}") as progress:
+        return row.run(state, progress)
 
 
 #: One Prefect task per row of the stage table, named after its stage.
@@ -31,11 +32,10 @@ def run_stage(row: Stage, state: SceneState, run_id: str | None = None) -> Stage
 @task(name="dataset", **STAGE_TASK_OPTIONS)
 def dataset(annotated: list[StageRecord], workspace: str, dataset_id: str | None, facts: dict,
             run_id: str | None = None) -> StageRecord:
-    # The stage reports no steps of its own (it copies finished variants): its start and end are the progress.
-    progress = task_progress("dataset of the run", workspace, run_id, "dataset")
-    progress(0, 1, f"gathering the variants of {len(annotated)} scene(s)")
-    record = stages.dataset_stage(annotated, workspace, dataset_id, facts)
-    progress(1, 1, f"{record.info['dataset_id']}")
+    # The stage reports no steps of its own (it gathers finished variants): its start and end are its progress.
+    with task_progress("dataset of the run", workspace, run_id, "dataset") as progress:
+        record = stages.dataset_stage(annotated, workspace, dataset_id, facts)
+        progress(1, 1, record.info["dataset_id"])
     return record
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import time
 from pathlib import Path
 from typing import Callable, Iterator, Optional, TypeVar
 
@@ -15,7 +16,7 @@ from rich.table import Table
 from rich.text import Text
 
 from omniscs.errors import OmniscsError
-from omniscs.progress import LineProgress, Throttled, following, watched_run
+from omniscs.progress import FeedReport, LineProgress, Throttled, following, watched_run
 
 # Output is text, never markup: ids, paths, SQL results and error messages may hold '[...]' or ':x:', which rich
 # would otherwise swallow or turn into emoji. Paths and ids stay whole when output is not a terminal.
@@ -57,6 +58,12 @@ class Bars:
             rich.update(self._tasks[label], completed=done, total=total, note=note)
         return update
 
+    def remind(self, label: str, note: str) -> None:
+        """In a log: the latest line of ``label`` again, with ``note``, when it printed nothing for
+        LINE_INTERVAL_S (a bar on a terminal shows its elapsed time itself)."""
+        if self._rich is None and label in self._lines:
+            self._lines[label].remind(note)
+
 
 #: Plain progress lines (a log, a pipe): one each time a stage moved this many percent ...
 LINE_STEP_PCT = 10.0
@@ -80,10 +87,25 @@ def progress_bars() -> Iterator[Bars]:
 def run_progress(workspace: Path, run_id: str) -> Iterator[None]:
     """Show the progress of every stage of run ``run_id`` as this command's bars or lines (``<scene> <stage>: ...``)
     while the block runs the flow, wherever the stages run: this process or Dask workers (the run's feed,
-    ``omniscs.progress``)."""
-    with progress_bars() as bars, watched_run(workspace, run_id) as feed, \
-            following(feed, lambda label, done, total, note: bars.sink(label)(done, total, note)):
-        yield
+    ``omniscs.progress``). In a log each stage says when it starts, and one that reports nothing for 30 s says
+    that it still runs."""
+    running: dict[str, float] = {}  # label -> when its stage started (monotonic seconds)
+
+    with progress_bars() as bars, watched_run(workspace, run_id) as feed:
+        def deliver(report: FeedReport) -> None:
+            if report.event == "end":
+                running.pop(report.label, None)
+                return
+            if report.event == "start":
+                running[report.label] = time.monotonic()
+            bars.sink(report.label)(report.done, report.total, report.note)
+
+        def tick() -> None:
+            for label, started in list(running.items()):
+                bars.remind(label, f"still running after {time.monotonic() - started:.0f} s")
+
+        with following(feed, deliver, tick):
+            yield
 
 
 # ----------------------------------------------------------------------------- output
