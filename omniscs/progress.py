@@ -61,13 +61,19 @@ class Throttled:
             self.sink(done, total, note)
 
     def remind(self, note: str) -> bool:
-        """Forward the latest report again, with ``note`` instead of its own, when the sink heard nothing for
-        ``min_interval_s``: a long step that reports nothing still shows that it runs. True when it did."""
+        """When the sink heard nothing for ``min_interval_s``: forward the latest report if the work moved since
+        the last one it heard (the interval rule, for reports that come too seldom to trigger it themselves), else
+        the latest report again with ``note`` instead of its own (a long step that reports nothing still shows that
+        it runs). True when it forwarded anything."""
         now = self._clock()
         if self._latest is None or now - self._last_time < self.min_interval_s:
             return False
+        done, total, own = self._latest
+        moved = done != self._last_done
+        if moved:
+            self._last_pct, self._last_done, self._last_total = (100.0 * done / total if total else None), done, total
         self._last_time = now
-        self.sink(self._latest[0], self._latest[1], note)
+        self.sink(done, total, own if moved else note)
         return True
 
 
@@ -158,6 +164,8 @@ class FeedReport:
     event: str = "progress"
     """``start`` and ``end`` bracket one run of the stage (written whatever its own reports); ``progress`` is one of
     its reports, throttled by the writer."""
+    at: float = 0.0
+    """When it was written (seconds since the epoch): orders the reports of stage runs that one read finds."""
 
 
 @contextlib.contextmanager
@@ -172,11 +180,11 @@ def stage_feed(workspace: str | os.PathLike, run_id: str | None, label: str) -> 
         yield no_progress
         return
     writer = FeedWriter(folders[0], label)
-    writer.write(FeedReport(label, 0, None, "started", "start"))
+    writer.write(FeedReport(label, 0, None, "started", "start", time.time()))
     try:
         yield Throttled(writer, step_pct=FEED_STEP_PCT, min_interval_s=FEED_MIN_INTERVAL_S)
     finally:
-        writer.write(FeedReport(label, 0, None, "", "end"))
+        writer.write(FeedReport(label, 0, None, "", "end", time.time()))
 
 
 class FeedWriter:
@@ -188,7 +196,8 @@ class FeedWriter:
         self._gone = False
 
     def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
-        self.write(FeedReport(self.label, int(done), None if total is None else int(total), str(note)))
+        self.write(FeedReport(self.label, int(done), None if total is None else int(total), str(note),
+                              at=time.time()))
 
     def write(self, report: FeedReport) -> None:
         if self._gone:
@@ -202,7 +211,7 @@ class FeedWriter:
 
 class FeedReader:
     """Reads a feed folder incrementally: each ``read()`` returns the reports appended since the last one, in the
-    order each stage run wrote them."""
+    order they were written."""
 
     def __init__(self, folder: str | os.PathLike) -> None:
         self.folder = Path(folder)
@@ -225,10 +234,10 @@ class FeedReader:
                     r = json.loads(raw)
                     reports.append(FeedReport(str(r["label"]), int(r["done"]),
                                               None if r["total"] is None else int(r["total"]), str(r["note"]),
-                                              str(r["event"])))
+                                              str(r["event"]), float(r["at"])))
                 except (ValueError, KeyError, TypeError):
                     continue  # the tail of a writer killed mid-line
-        return reports
+        return sorted(reports, key=lambda r: r.at)  # stable: a stage's own reports keep their order
 
 
 @contextlib.contextmanager

@@ -118,7 +118,14 @@ def test_a_silent_stage_is_reminded_only_after_the_interval_with_its_latest_coun
     clock.now = 45.0
     assert not throttle.remind("still running after 45 s")  # the reminder counts as a line
     throttle(1, 2, "variant 1")  # a report after a reminder: a new phase (a total), heard at once
-    assert heard == [(0, None, "started"), (0, None, "still running after 31 s"), (1, 2, "variant 1")]
+    clock.now = 50.0
+    throttle(2, 200, "step 2")  # a new phase: heard
+    clock.now = 60.0
+    throttle(3, 200, "step 3")  # too little, too soon
+    clock.now = 81.0
+    assert throttle.remind("still running after 81 s")  # it moved: the interval rule passes its own report
+    assert heard == [(0, None, "started"), (0, None, "still running after 31 s"), (1, 2, "variant 1"),
+                     (2, 200, "step 2"), (3, 200, "step 3")]
     out = io.StringIO()
     LineProgress("s0 behavior", out)(0, None, "still running after 31 s")
     LineProgress("s0 behavior", out)(0, None)
@@ -132,14 +139,19 @@ def test_a_feed_reader_returns_each_report_once_in_order_and_waits_for_a_line_be
     writer, reader = FeedWriter(tmp_path, "s0 fit"), FeedReader(tmp_path)
     writer(1, 10, "loss 0.5")
     writer(5, 10, "loss 0.2")
-    assert reader.read() == [FeedReport("s0 fit", 1, 10, "loss 0.5"), FeedReport("s0 fit", 5, 10, "loss 0.2")]
+    assert [(r.label, r.done, r.total, r.note) for r in reader.read()] == [("s0 fit", 1, 10, "loss 0.5"),
+                                                                            ("s0 fit", 5, 10, "loss 0.2")]
     assert reader.read() == []
     with open(writer.path, "a") as stream:  # a writer caught in the middle of a line
         stream.write('{"label": "s0 fit", "done": 7,')
     assert reader.read() == []
     with open(writer.path, "a") as stream:
-        stream.write(' "total": 10, "note": "", "event": "progress"}\n')
-    assert reader.read() == [FeedReport("s0 fit", 7, 10, "")]
+        stream.write(' "total": 10, "note": "", "event": "progress", "at": 1.0}\n')
+    assert reader.read() == [FeedReport("s0 fit", 7, 10, "", at=1.0)]
+    later, sooner = FeedWriter(tmp_path, "s0 fit"), FeedWriter(tmp_path, "s0 behavior")
+    later.write(FeedReport("s0 fit", 10, 10, "", at=3.0))
+    sooner.write(FeedReport("s0 behavior", 0, None, "started", "start", at=4.0))
+    assert [r.label for r in reader.read()] == ["s0 fit", "s0 behavior"]  # across files, in the order written
 
 
 def test_a_stage_writes_no_feed_unless_a_command_watches_its_run(tmp_path):
