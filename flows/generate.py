@@ -8,6 +8,7 @@ scene holds back no other. The run's one parameter is a ``RunRequest`` (a form i
 """
 from __future__ import annotations
 
+import functools
 import signal
 import time
 
@@ -32,7 +33,7 @@ def _now_us() -> int:
 @flow(name="scene-pipeline", flow_run_name="scene-{label}", validate_parameters=False, log_prints=False)
 def scene_pipeline(source: dict, label: str, request: SceneRequest, workspace: str, run_id: str) -> dict:
     """Every stage of one scene that its plan needs, in the table's order; returns what they produced."""
-    state = walk_scene(start_scene(source, request, workspace, label), t.run_stage)
+    state = walk_scene(start_scene(source, request, workspace, label), functools.partial(t.run_stage, run_id=run_id))
     records = list(state.records)
     t.catalog_scene(run_id, workspace, state.scene_id, records)
     scene = state.record("ingest")
@@ -92,7 +93,8 @@ def generate_dataset(request: RunRequest) -> dict:
             failed_scenes = [{"scene": r["label"], "error": r["error"]} for r in results if "error" in r]
             if failed_scenes:  # the card says which scenes are missing and why
                 facts["failed_scenes"] = failed_scenes
-            dataset = t.dataset(annotated, ws, request.dataset_id, facts, keep_failed=request.keep_failed)
+            dataset = t.dataset(annotated, ws, request.dataset_id, facts, keep_failed=request.keep_failed,
+                                run_id=run_id)
             t.catalog_dataset(run_id, ws, dataset)
     except BaseException as exc:  # recorded even when the run is interrupted (KeyboardInterrupt, SystemExit)
         status = "failed" if isinstance(exc, Exception) else "cancelled"

@@ -78,6 +78,18 @@ def _temp_sibling(path: Path) -> Path:
     return path.parent / f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:12]}"
 
 
+def temp_sibling(path: str | os.PathLike) -> Path:
+    """A fresh name for a temporary of this process beside ``path`` (``clean_stale_temps`` removes it once this
+    process is gone)."""
+    return _temp_sibling(Path(path))
+
+
+def temp_siblings(path: str | os.PathLike) -> list[Path]:
+    """The temporaries beside ``path`` that are named after it, whoever wrote them."""
+    path = Path(path)
+    return [p for p in path.parent.glob(f".{glob_escape(path.name)}.tmp-*") if temp_owner(p) is not None]
+
+
 def temp_owner(path: str | os.PathLike) -> int | None:
     """The pid of the writer a temporary file or folder belongs to (None: not a temporary)."""
     m = _TEMP_NAME.match(Path(path).name)

@@ -1,10 +1,13 @@
-"""Progress of a task run as a Prefect progress artifact, fed through the pipeline's one throttle; a run's summary as
-a table artifact."""
+"""Progress of a task run as a Prefect progress artifact, fed through the pipeline's one throttle, and into the run's
+feed when a command watches the run (``omniscs.progress.stage_feed``); a run's summary as a table artifact."""
 from __future__ import annotations
 
 from prefect.artifacts import create_progress_artifact, create_table_artifact, update_progress_artifact
 
-from omniscs.progress import Progress, Throttled, percent
+import contextlib
+from typing import Iterator
+
+from omniscs.progress import Progress, Throttled, percent, stage_feed, tee
 
 
 def artifact_progress(description: str) -> Progress:
@@ -12,6 +15,15 @@ def artifact_progress(description: str) -> Progress:
     artifact = create_progress_artifact(0.0, description=description)
     return Throttled(lambda done, total, note: update_progress_artifact(
         artifact, percent(done, total), description=f"{description}: {note}" if note else None))
+
+
+@contextlib.contextmanager
+def task_progress(description: str, workspace: str, run_id: str | None, label: str) -> Iterator[Progress]:
+    """The progress of one task run of run ``run_id`` for the block: its artifact (``description``) and, when the
+    command that started the run watches it, lines or a bar named ``label`` (``<scene> <stage>``) there, wherever
+    the task runs (this process or a Dask worker)."""
+    with stage_feed(workspace, run_id, label) as feed:
+        yield tee(artifact_progress(description), feed)
 
 
 def run_summary_artifact(run_id: str, results: list[dict], dataset_id: str | None,

@@ -7,13 +7,15 @@ from prefect import task
 from omniscs.pipeline import stages
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.stages import STAGES, SceneState, Stage
-from tasks.progress import artifact_progress
+from tasks.progress import task_progress
 from tasks.retries import STAGE_TASK_OPTIONS
 
 
-def _run(stage: str, state: SceneState) -> StageRecord:
+def _run(stage: str, state: SceneState, run_id: str | None = None) -> StageRecord:
     row = stages.stage(stage)
-    return row.run(state, artifact_progress(f"{row.doing} of {state.scene_id}"))
+    with task_progress(f"{row.doing} of {state.scene_id}", state.workspace, run_id,
+                       f"{state.scene_id} {stage}") as progress:
+        return row.run(state, progress)
 
 
 #: One Prefect task per row of the stage table, named after its stage.
@@ -21,15 +23,20 @@ STAGE_TASKS = {row.name: task(_run, name=row.name, task_run_name=f"{row.name}-{{
                               **STAGE_TASK_OPTIONS) for row in STAGES}
 
 
-def run_stage(row: Stage, state: SceneState) -> StageRecord:
-    """The walker's runner inside a flow: the stage as its Prefect task."""
-    return STAGE_TASKS[row.name](row.name, state)
+def run_stage(row: Stage, state: SceneState, run_id: str | None = None) -> StageRecord:
+    """The walker's runner inside a flow: the stage as its Prefect task (of run ``run_id``, whose watcher, if any,
+    hears its progress)."""
+    return STAGE_TASKS[row.name](row.name, state, run_id)
 
 
 @task(name="dataset", **STAGE_TASK_OPTIONS)
 def dataset(annotated: list[StageRecord], workspace: str, dataset_id: str | None, facts: dict,
-            keep_failed: bool = False) -> StageRecord:
-    return stages.dataset_stage(annotated, workspace, dataset_id, facts, keep_failed=keep_failed)
+            keep_failed: bool = False, run_id: str | None = None) -> StageRecord:
+    # The stage reports no steps of its own (it gathers finished variants): its start and end are its progress.
+    with task_progress("dataset of the run", workspace, run_id, "dataset") as progress:
+        record = stages.dataset_stage(annotated, workspace, dataset_id, facts, keep_failed=keep_failed)
+        progress(1, 1, record.info["dataset_id"])
+    return record
 
 
 @task(name="catalog-dataset", task_run_name="catalog-{record.scene_id}", **STAGE_TASK_OPTIONS)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import time
 from pathlib import Path
 from typing import Callable, Iterator, Optional, TypeVar
 
@@ -15,7 +16,7 @@ from rich.table import Table
 from rich.text import Text
 
 from omniscs.errors import OmniscsError
-from omniscs.progress import LineProgress, Throttled
+from omniscs.progress import FeedReport, LineProgress, Throttled, following, watched_run
 
 # Output is text, never markup: ids, paths, SQL results and error messages may hold '[...]' or ':x:', which rich
 # would otherwise swallow or turn into emoji. Paths and ids stay whole when output is not a terminal.
@@ -34,16 +35,21 @@ T = TypeVar("T")
 
 # ----------------------------------------------------------------------------- progress
 class Bars:
-    """Progress sinks for one command: rich bars on a terminal, plain periodic lines (throttled) otherwise.
-    ``bars.sink(label)`` is a ``pipeline.progress.Progress`` callback."""
+    """Progress sinks for one command: rich bars on a terminal, plain periodic lines otherwise (every 10 % or 30 s,
+    whichever comes first). ``bars.sink(label)`` is an ``omniscs.progress.Progress`` callback; asking again for
+    the same label gives the same bar or the same throttle."""
 
     def __init__(self, rich: Progress | None) -> None:
         self._rich = rich
         self._tasks: dict[str, int] = {}
+        self._lines: dict[str, Callable[[int, int | None, str], None]] = {}
 
     def sink(self, label: str) -> Callable[[int, int | None, str], None]:
         if self._rich is None:
-            return Throttled(LineProgress(label, sys.stderr), step_pct=10.0, min_interval_s=30.0)
+            if label not in self._lines:
+                self._lines[label] = Throttled(LineProgress(label, sys.stderr), step_pct=LINE_STEP_PCT,
+                                               min_interval_s=LINE_INTERVAL_S)
+            return self._lines[label]
         rich = self._rich
 
         def update(done: int, total: int | None = None, note: str = "") -> None:
@@ -51,6 +57,18 @@ class Bars:
                 self._tasks[label] = rich.add_task(label, total=total, note="")
             rich.update(self._tasks[label], completed=done, total=total, note=note)
         return update
+
+    def remind(self, label: str, note: str) -> None:
+        """In a log: the latest line of ``label`` again, with ``note``, when it printed nothing for
+        LINE_INTERVAL_S (a bar on a terminal shows its elapsed time itself)."""
+        if self._rich is None and label in self._lines:
+            self._lines[label].remind(note)
+
+
+#: Plain progress lines (a log, a pipe): one each time a stage moved this many percent ...
+LINE_STEP_PCT = 10.0
+#: ... or this many seconds passed with any movement, whichever comes first.
+LINE_INTERVAL_S = 30.0
 
 
 @contextlib.contextmanager
@@ -63,6 +81,31 @@ def progress_bars() -> Iterator[Bars]:
                   TextColumn("{task.fields[note]}"), TimeElapsedColumn(), TimeRemainingColumn(),
                   console=err_console, transient=False) as rich:
         yield Bars(rich)
+
+
+@contextlib.contextmanager
+def run_progress(workspace: Path, run_id: str) -> Iterator[None]:
+    """Show the progress of every stage of run ``run_id`` as this command's bars or lines (``<scene> <stage>: ...``)
+    while the block runs the flow, wherever the stages run: this process or Dask workers (the run's feed,
+    ``omniscs.progress``). In a log each stage says when it starts, and one that reports nothing for 30 s says
+    that it still runs."""
+    running: dict[str, float] = {}  # label -> when its stage started (monotonic seconds)
+
+    with progress_bars() as bars, watched_run(workspace, run_id) as feed:
+        def deliver(report: FeedReport) -> None:
+            if report.event == "end":
+                running.pop(report.label, None)
+                return
+            if report.event == "start":
+                running[report.label] = time.monotonic()
+            bars.sink(report.label)(report.done, report.total, report.note)
+
+        def tick() -> None:
+            for label, started in list(running.items()):
+                bars.remind(label, f"still running after {time.monotonic() - started:.0f} s")
+
+        with following(feed, deliver, tick):
+            yield
 
 
 # ----------------------------------------------------------------------------- output

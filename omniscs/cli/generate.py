@@ -14,7 +14,7 @@ from typing import Iterator, Optional
 
 import typer
 
-from omniscs.cli.common import console, print_error, print_table, read_edits, show_dataset
+from omniscs.cli.common import console, print_error, print_table, read_edits, run_progress, show_dataset
 
 #: Sources of the demo run: every road template, the parked-truck scene, and low-light variants.
 DEMO_SOURCES = ("syn:straight_parked_truck:3:day", "syn:t_junction:1:dusk", "syn:intersection:2:day",
@@ -31,7 +31,8 @@ DEMO_POOL_ASSETS = ("pool:box_truck", "pool:bus", "pool:sedan")
 
 def run_generate(request) -> dict:
     """Check the run once (a bad input fails here, before Prefect starts and before anything is written), then run
-    the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly.
+    the flow against a Prefect API that stops with this process; SIGINT / SIGTERM stop the run cleanly. The stages'
+    progress shows as bars on a terminal and plain lines in a log, whichever task runner runs them.
     ``request``: a ``RunRequest`` or its fields as a dict."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     from omniscs.pipeline.records import new_run_id
@@ -50,8 +51,9 @@ def run_generate(request) -> dict:
     from flows.generate import generate_dataset
     from omniscs.cli.prefect_api import prefect_api
 
-    with stops_cleanly(request.run_id, workspace_path(request.workspace), request.to_dict(), len(checked.scenes)), \
-            prefect_api():
+    ws = workspace_path(request.workspace)
+    with stops_cleanly(request.run_id, ws, request.to_dict(), len(checked.scenes)), prefect_api(), \
+            run_progress(ws, request.run_id):
         return generate_dataset(request)
 
 

@@ -86,7 +86,7 @@ def fit(
     options.setdefault(last, {})["out_dir"] = out
     with progress_bars() as bars:
         state = walk_scene(dataclasses.replace(state, options=options),
-                           run_directly(lambda name: bars.sink(f"{name} {planned.scene_id}")), until=until, skip=skip)
+                           run_directly(lambda name: bars.sink(f"{planned.scene_id} {name}")), until=until, skip=skip)
     record = state.record("fit")
     if record.info["status"] != "fitted":
         raise OmniscsError(f"the fit of {record.scene_id} diverged: {record.info['error']}")

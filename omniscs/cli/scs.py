@@ -107,7 +107,7 @@ def scs_behavior(
                                                                                  downscale=app_downscale))
     with progress_bars() as bars:
         result = write_scene_variants(traffic, out, variants, checkpoint, config, consistency,
-                                      progress=bars.sink(f"variants of {traffic.scene_id}"))
+                                      progress=bars.sink(f"{traffic.scene_id} behavior"))
     if not result.rows:
         raise OmniscsError(f"scene {traffic.scene_id} has no vehicle besides the ego at the now step; "
                            "no behaviour variant can be made")
@@ -159,7 +159,7 @@ def scs_appearance(
         result = appearance_scene_set(scene, out, pool=pool, checkpoint=nsg, insert=insert, pose=pose,
                                       replace=replace, with_model=with_model, sample=sample,
                                       objects=tuple(object_ids or ()), camera=camera, distance=distance, seed=seed,
-                                      colour=colour, shadow=shadow, progress=bars.sink("appearance variants"))
+                                      colour=colour, shadow=shadow, progress=bars.sink(f"{scene.name} appearance"))
     print_table([{"variant": v["variant_id"], "placement": v["placement"], "object": v["object_id"],
                   "track": v["track_id"], "pose": (v.get("pose") or {}).get("name", "user") if v["placement"] == "insert"
                   else "its motion"}
