@@ -2,6 +2,7 @@
 scene graph over HUGSIM's HTTP protocol so HUGSIM's own client (or any driving stack speaking it) can drive."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
@@ -77,15 +78,64 @@ def _num(v) -> str:
     return "n/a" if v is None else f"{float(v):.3f}"
 
 
+#: Environment variable with accepted tokens (separated by commas or newlines), read beside --token/--token-file.
+TOKENS_ENV = "OMNISCS_SERVER_TOKENS"
+
+
+def server_tokens(given: list[str], token_file: Path | None, env: str | None) -> list[str]:
+    """The accepted tokens from the command line, a token file and the environment; at least one, none empty."""
+    from omniscs.errors import ValidationError
+
+    tokens = list(given)
+    if token_file is not None:
+        try:
+            if not token_file.is_file():
+                raise ValidationError(f"--token-file {token_file} is not a file")
+            text = token_file.read_bytes().decode("utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValidationError(f"--token-file {token_file} cannot be read as text ({exc})") from None
+        tokens += [t.strip() for t in text.splitlines() if t.strip() and not t.strip().startswith("#")]
+    if env:
+        tokens += [t.strip() for t in env.replace(",", "\n").splitlines() if t.strip()]
+    if not tokens:
+        raise ValidationError(f"the server needs at least one auth token: give --token-file FILE (one per line), set "
+                              f"${TOKENS_ENV}, or --token VALUE")
+    if any(len(t) > 4096 or not t.isprintable() for t in tokens):
+        raise ValidationError("an auth token must be printable text of at most 4096 characters")
+    return sorted(set(tokens))
+
+
+def check_bindable(host: str, port: int) -> None:
+    """One clear error when ``host`` does not resolve or ``host:port`` cannot be bound (in use, not ours)."""
+    import socket
+
+    from omniscs.errors import ValidationError
+
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError, OverflowError) as exc:
+        raise ValidationError(f"--host {host!r} does not resolve to an address here ({exc})") from None
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            raise ValidationError(f"cannot serve on {host}:{port}: {exc.strerror or exc}; choose another --port "
+                                  "or stop what holds it") from None
+
+
 @app.command("serve")
 def serve(
     checkpoint: Optional[Path] = typer.Option(None, help="Scene-graph checkpoint (default: the scene's newest)."),
     scenario: list[str] = typer.Option(..., "--scenario", help="SCENE_ID/log or SCENE_ID/VARIANT_ID served (repeat; "
                                                                "one scene); clients run them in order."),
-    token: list[str] = typer.Option(..., "--token", help="An accepted auth-token header value (repeat); each token "
-                                                         "gets its own session."),
+    token: list[str] = typer.Option([], "--token", help="An accepted auth-token header value (repeat); each token "
+                                                        "gets its own sessions. Other local users can read a command "
+                                                        "line: prefer --token-file or $OMNISCS_SERVER_TOKENS."),
+    token_file: Optional[Path] = typer.Option(None, help="A file of accepted tokens, one per line (blank lines and "
+                                                         "lines starting with # are skipped)."),
     host: str = typer.Option("127.0.0.1", help="Address to bind (loopback unless told otherwise)."),
-    port: int = typer.Option(8065, help="Port (HUGSIM's client defaults to 8065)."),
+    port: int = typer.Option(8065, min=1, max=65535, help="Port (HUGSIM's client defaults to 8065)."),
     camera: list[str] = typer.Option([], "--camera", help="Render these cameras only (repeat; default all)."),
     width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
     reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
@@ -103,6 +153,8 @@ def serve(
 
     if any(not t for t in token):
         raise typer.BadParameter("a token must not be empty", param_hint="--token")
+    token = server_tokens(token, token_file, os.environ.get(TOKENS_ENV))
+    check_bindable(host, port)  # an unknown host or a port in use: one line now, not uvicorn's log at the end
     ws = workspace_path(workspace)
     refs = [resolve(ws, s, checkpoint) for s in scenario]
     if len({r.scene_id for r in refs}) != 1:
