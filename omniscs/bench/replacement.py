@@ -4,7 +4,7 @@ background repair behind it, measured against the procedural world with the same
 An appearance variant that replaces a parked trailer or truck by a sedan keeps the object's motion (it stands where
 the trailer stood) but covers only part of its footprint; the rest shows what the fitted graph has behind the
 trailer, which no camera saw: a smeared, trailer-shaped ghost. On held-out procedural logs with a large parked object
-(the removal benchmark's), a pool model of a smaller kind (the asset library's pool split, so no benchmark world holds
+(the removal benchmark's; of each log's large static objects the one the cameras see most), a pool model of a smaller kind (the asset library's pool split, so no benchmark world holds
 it) replaces the object in the fitted graph as it is ('no repair', what the factory did before) and in the graph the
 background stage repaired ('repaired', the same repair and key as for a removal); both are rendered at held-out
 logged views and at novel views (the ego shifted sideways) and compared with the world, with the same replacement,
@@ -32,8 +32,10 @@ from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline.background import background_stage
 from omniscs.pipeline.procedural import appearance_world, pool_asset_of
+from omniscs.plan import PlanConfig
 from omniscs.progress import Progress, no_progress
 from omniscs.quality import psnr
+from omniscs.scene.summary import agent_rows
 from omniscs.scs.appearance.compose import compose_variant, replace_variant
 from omniscs.storage import workspace_root
 from omniscs.world import WorldRenderer
@@ -42,6 +44,8 @@ from omniscs.world.assets import list_asset_ids
 #: The benchmark's part of ``reports/background/``.
 PART = "replacement"
 ARMS = ("no repair", "repaired")
+#: Categories of the objects replaced (the removal benchmark's).
+LARGE_CATEGORIES = ("truck", "trailer", "bus", "construction_vehicle")
 
 
 @dataclass(frozen=True)
@@ -139,6 +143,18 @@ def replacement_views(world, edited, track: int, frames, cameras, config: Replac
     return out
 
 
+def most_visible_large_object(scene) -> int:
+    """The track id of the scene's static truck, trailer, bus or construction vehicle of at least the plan's large
+    volume that the cameras see most of (largest mask in any view): where a ghost would show."""
+    large = PlanConfig().large_object_volume_m3
+    rows = [a for a in agent_rows(scene)
+            if not a["moving"] and a["category"] in LARGE_CATEGORIES
+            and a["length"] * a["width"] * a["height"] >= large]
+    if not rows:
+        raise OmniscsError(f"scene {scene.scene_id} has no large static object to replace")
+    return int(max(rows, key=lambda a: (a["max_visible_pixels"] or 0, a["track_id"]))["track_id"])
+
+
 def replacement_pool(workspace: Path, kind: str, progress: Progress = no_progress) -> tuple[Pool, str]:
     """The benchmark's pool (``<workspace>/pools/bench-replacement``) holding the first pool-split model of ``kind``,
     and that model's id."""
@@ -155,7 +171,8 @@ def replacement_pool(workspace: Path, kind: str, progress: Progress = no_progres
 
 def run_scene(item: str, config: ReplacementBenchConfig, workspace: Path, pool: Pool, model_id: str,
               progress: Progress = no_progress) -> dict:
-    scene, plan, fitted, track = prepare_scene(item, config.preset, workspace, progress, n_frames=config.n_frames)
+    scene, plan, fitted, track = prepare_scene(item, config.preset, workspace, progress, n_frames=config.n_frames,
+                                               pick=most_visible_large_object)
     t0 = time.perf_counter()
     repaired_record = background_stage(scene.path, plan, fitted, workspace, progress=progress, config=config.repair)
     repair_seconds = time.perf_counter() - t0
