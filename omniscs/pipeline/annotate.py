@@ -16,6 +16,7 @@ from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
+from omniscs.pipeline.background import variant_uncovers
 from omniscs.pipeline.common import waiting
 from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description, world_reference
 from omniscs.pipeline.records import StageRecord
@@ -58,19 +59,23 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
 
 def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
                    workspace: str | Path, config=None, progress: Progress = no_progress,
-                   reuse: bool = True, appearance: StageRecord | None = None) -> StageRecord:
+                   reuse: bool = True, appearance: StageRecord | None = None,
+                   uncovered: StageRecord | None = None) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
     ``config.exact_fidelity`` is off). ``appearance`` (the appearance stage's record) adds its variants, composed
     from their pool's models; with procedural scenes their exact reference inserts the library asset each pool
-    model was built from."""
+    model was built from. ``uncovered`` (the uncovered stage's record: ``model``'s graph repaired behind the objects
+    some appearance variants uncover) is the graph those variants are composed on; every other variant keeps
+    ``model``'s."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if not plan.stages.get("render_annotate"):
         return StageRecord.skip("annotate", scene.scene_id, "the request builds no dataset")
     behavior = behavior if behavior is not None and not behavior.skipped else None
     appearance = appearance if appearance is not None and not appearance.skipped else None
+    uncovered = uncovered if appearance is not None and uncovered is not None and not uncovered.skipped else None
     if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None):
         return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no variants to render")
     config = config or AnnotateConfig()
@@ -78,6 +83,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     inputs = {"scene": scene.content_hash, "graph": model.key, "variants": None if behavior is None else behavior.key}
     if appearance is not None:
         inputs["appearance"] = appearance.key
+    if uncovered is not None:  # absent otherwise: runs without a repair for their variants keep their keys
+        inputs["uncovered"] = uncovered.key
     key = StageKey.of("annotate", ANNOTATE_VERSION, inputs,
                       {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config)})
     out = layout.stage_folder(workspace, "annotate", scene.scene_id, f"annotate-{key.short}")
@@ -93,6 +100,11 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                 replayed = replay_stage(scene_path, model, workspace, progress=progress)
                 replay = Replay.open(replayed.path)
             graph = load_graph(model.path, scene)
+            repaired = None
+            if uncovered is not None:
+                objects = set(uncovered.info["repaired"])
+                repaired = (load_graph(uncovered.path, scene),
+                            {v["variant_id"] for v in variants if objects & set(variant_uncovers(scene, v))})
 
             def make(tmp: Path) -> dict:
                 results = annotate_variants(
@@ -101,7 +113,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     describe=world_description(scene), config=config,
                     progress=progress, replay=replay,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
-                    compose=appearance_composer(graph), reference_for=appearance_references(scene, variants)
+                    compose=appearance_composer(graph, repaired), reference_for=appearance_references(scene, variants)
                     if config.exact_fidelity else None)
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 
@@ -115,13 +127,16 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                              "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries)})
 
 
-def appearance_composer(graph):
+def appearance_composer(graph, repaired: tuple | None = None):
     """``variant -> Composite`` of appearance variants over ``graph``: objects from the variant's pool (or the graph's
-    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``)."""
+    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``). ``repaired``:
+    (a graph repaired behind the objects some variants uncover, the ids of those variants), composed over it
+    instead."""
     def compose(variant: dict):
+        base = repaired[0] if repaired is not None and variant.get("variant_id") in repaired[1] else graph
         pool = variant.get("pool")
-        resolve = model_resolver(pool, node_model_resolver(graph)) if pool else node_model_resolver(graph)
-        return compose_variant(graph, variant, resolve)
+        resolve = model_resolver(pool, node_model_resolver(base)) if pool else node_model_resolver(base)
+        return compose_variant(base, variant, resolve)
     return compose
 
 

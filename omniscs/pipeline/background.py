@@ -8,7 +8,9 @@ depth map, a preview sheet and ``repair.json``; one ``background_repairs`` catal
 The ``uncovered`` stage (after the variant stages) does the same repair, keyed the same way, for the large static
 objects that the drawn variants uncover and the plan could not know of: an appearance variant that replaces a parked
 trailer by a sedan (its target is chosen only when the variants are drawn) leaves the rest of the trailer's
-footprint empty, and the annotate stage renders every variant on the graph this stage repaired."""
+footprint empty. The annotate stage composes those variants on the graph this stage repaired, and every other variant
+on the graph it was given (the repair's refit also touches the background around the objects, which variants that keep
+them show)."""
 from __future__ import annotations
 
 import dataclasses
@@ -105,6 +107,12 @@ def uncovered_objects(scene, variants: Sequence[StageRecord | None],
     removed, replaced by a smaller object)."""
     agents = {a["track_id"]: a for a in agent_rows(scene)}
     return repair_objects(agents, variant_edits(variants), plan_config)
+
+
+def variant_uncovers(scene, variant: dict, plan_config: PlanConfig = PlanConfig()) -> tuple[int, ...]:
+    """Track ids of ``scene``'s large static objects whose footprint one variant spec's edits uncover."""
+    agents = {a["track_id"]: a for a in agent_rows(scene)}
+    return repair_objects(agents, parse_edits(variant.get("edits") or []), plan_config)
 
 
 def _repaired_record(stage: str, scene, plan: ScenePlan, model: StageRecord, objects: tuple[int, ...], workspace,

@@ -53,8 +53,8 @@ class SceneState:
     records: tuple[StageRecord, ...] = ()
     """The records of the stages that ran, in order."""
     model: StageRecord | None = None
-    """The scene graph later stages build on: the fit's record, replaced by agents', background's and uncovered's
-    when they made one."""
+    """The scene graph later stages build on: the fit's record, replaced by agents' and background's when they
+    made one."""
     options: dict = field(default_factory=dict)
     """Keyword arguments for single stages, by stage name (the CLI's ``--out`` and fit overrides)."""
 
@@ -157,7 +157,7 @@ def _uncovered(s: SceneState, progress: Progress) -> StageRecord:
 
 def _annotate(s: SceneState, progress: Progress) -> StageRecord:
     return annotate_stage(s.scene_path, s.plan, s.model, s.ran("behavior"), s.workspace, progress=progress,
-                          appearance=s.ran("appearance"), **_options(s, "annotate"))
+                          appearance=s.ran("appearance"), uncovered=s.ran("uncovered"), **_options(s, "annotate"))
 
 
 def _always(s: SceneState) -> bool:
@@ -180,8 +180,8 @@ STAGES: tuple[Stage, ...] = (
           "appearance variants"),
     Stage("uncovered", _uncovered, ("ingest", "plan", "model", "appearance"),
           lambda s: s.model is not None and s.ran("appearance") is not None and s.planned("render_annotate"),
-          "background repair behind replaced objects", makes_model=True),
-    Stage("annotate", _annotate, ("ingest", "plan", "model", "behavior", "appearance"),
+          "background repair behind replaced objects"),
+    Stage("annotate", _annotate, ("ingest", "plan", "model", "behavior", "appearance", "uncovered"),
           lambda s: s.planned("render_annotate"), "render + annotate variants"),
 )
 STAGE_NAMES = tuple(s.name for s in STAGES)
