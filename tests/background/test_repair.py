@@ -378,3 +378,19 @@ def test_a_smaller_replacement_shows_less_ghost_on_the_repaired_graph(fitted):
             after += scores[1]["ghost_pixels"]
     assert region_pixels > 200
     assert after < 0.8 * before, (before, after, region_pixels)
+
+
+def test_annotate_composes_only_the_variants_that_uncover_on_the_repaired_graph(monkeypatch, tmp_path):
+    from omniscs.pipeline import annotate
+    from omniscs.scene import load_scene
+
+    monkeypatch.setattr(annotate, "compose_variant", lambda graph, variant, resolve: graph)
+    monkeypatch.setattr(annotate, "node_model_resolver", lambda graph: None)
+    scene = load_scene(write_nsg_scene(tmp_path / "in", _truck_world(), "bg-test"))
+    variants = [dict(_replacing(TRUCK, (4.4, 1.8, 1.5)), variant_id="a001"),
+                dict(_replacing(TRUCK, (11.0, 2.5, 3.6)), variant_id="a002")]
+    uncovering = {v["variant_id"] for v in variants if TRUCK in annotate.variant_uncovers(scene, v)}
+    assert uncovering == {"a001"}
+    compose = annotate.appearance_composer("fitted graph", ("repaired graph", uncovering))
+    assert [compose(v) for v in variants] == ["repaired graph", "fitted graph"]
+    assert annotate.appearance_composer("fitted graph")(variants[0]) == "fitted graph"
