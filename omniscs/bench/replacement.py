@@ -262,7 +262,8 @@ def replacement_markdown(report: dict) -> str:
     lines = [
         "# A large parked object replaced by a smaller one (`omniscs bench background --replacement`)", "",
         f"Procedural logs {', '.join(c['scenes'])} ({c['n_frames']} frames x 3 cameras at 480x270, fit preset "
-        f"{c['preset']}); each log's largest parked truck/trailer is replaced by a pool {c['object_kind']} (its own "
+        f"{c['preset']}); of each log's large parked trucks and trailers, the one the cameras see most is replaced by "
+        f"a pool {c['object_kind']} (its own "
         "size, the object's pose, resting on the same ground) in the fitted graph as it is ('no repair') and in the "
         "graph the background stage repaired ('repaired'), and compared with the world with the same replacement at "
         f"held-out logged views and novel views (ego shifted {', '.join(f'{o:+.1f}' for o in c['offsets_m'])} m "
