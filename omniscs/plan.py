@@ -1,9 +1,9 @@
 """The per-scene plan: what a scene needs modelled, decided from its tracks and the requested edits.
 
-"Model only what a scene requires" (DESIGN.md): tracks that move or that an edit names become agent
-nodes; everything else stays in the background. Edits that turn an agent far from its observed
-views need a 360° model; moving or removing a large static object, or replacing it by a smaller one, needs
-background repair. The Gaussian budget follows the area the cameras see along the ego path. Stages nothing needs do not run.
+"Model only what a scene requires" (DESIGN.md): tracks that move or that an edit names become agent nodes; everything
+else stays in the background. Edits that turn an agent far from its observed views need a 360° model; moving or
+removing a large static object, or replacing it by a smaller one, needs background repair. The Gaussian budget
+follows the area the cameras see along the ego path. Stages nothing needs do not run.
 """
 from __future__ import annotations
 

@@ -2,15 +2,16 @@
 background repair behind it, measured against the procedural world with the same replacement.
 
 An appearance variant that replaces a parked trailer or truck by a sedan keeps the object's motion (it stands where
-the trailer stood) but covers only part of its footprint; the rest shows what the fitted graph has behind the
-trailer, which no camera saw: a smeared, trailer-shaped ghost. On held-out procedural logs with a large parked object
-(the removal benchmark's; of each log's large static objects the one the cameras see most), a pool model of a smaller kind (the asset library's pool split, so no benchmark world holds
-it) replaces the object in the fitted graph as it is ('no repair', what the factory did before) and in the graph the
-background stage repaired ('repaired', the same repair and key as for a removal); both are rendered at held-out
-logged views and at novel views (the ego shifted sideways) and compared with the world, with the same replacement,
-ray-cast. The region scored is the uncovered footprint: the old object's pixels in the world with it, less the new
-object's pixels in the world with the replacement. Ghost share: the share of that region where the render differs
-from the exact image by more than ``ghost_threshold`` grey levels on some channel; hole PSNR over the same region.
+the trailer stood) but covers only part of its footprint; the rest shows what the fitted graph has behind the trailer,
+which no camera saw: a smeared, trailer-shaped ghost. On held-out procedural logs with a large parked object (the
+removal benchmark's; of each log's large static objects the one the cameras see most), a pool model of a smaller kind
+(the asset library's pool split, so no benchmark world holds it) replaces the object in the fitted graph as it is ('no
+repair', what the factory did before) and in the graph the background stage repaired ('repaired', the same repair and
+key as for a removal); both are rendered at held-out logged views and at novel views (the ego shifted sideways) and
+compared with the world, with the same replacement, ray-cast. The region scored is the uncovered footprint: the old
+object's pixels in the world with it, less the new object's pixels in the world with the replacement. Ghost share: the
+share of that region where the render differs from the exact image by more than ``ghost_threshold`` grey levels on
+some channel; hole PSNR over the same region.
 """
 from __future__ import annotations
 
@@ -278,7 +279,8 @@ def replacement_markdown(report: dict) -> str:
                      f"{share} | {f(r['hole_psnr'])} |")
     lines += ["", "| scene | object | size (m) | replaced by | size (m) | repair (s) |", "|---|---|---|---|---|---|"]
     for s in report["scenes"]:
-        lines.append(f"| {s['scene_id']} | {s['category']} {s['track_id']} | {' x '.join(f'{x:.1f}' for x in s['size'])} "
+        size = " x ".join(f"{x:.1f}" for x in s["size"])
+        lines.append(f"| {s['scene_id']} | {s['category']} {s['track_id']} | {size} "
                      f"| {s['object_id']} | {' x '.join(f'{x:.1f}' for x in s['object_size'])} | "
                      f"{f(s['repair_seconds'], 1)}{' (reused)' if s['repair_reused'] else ''} |")
     lines += ["", "![replacement](replacement.png)", "",

@@ -27,6 +27,7 @@ from omniscs.background.depthnet import WEIGHTS_FILE
 from omniscs.background.inpaint import load_inpainter
 from omniscs.background.inpaintnet import SHIPPED as INPAINT_SHIPPED, WEIGHTS_FILE as INPAINT_WEIGHTS
 from omniscs.background.repair import RepairConfig, repair_background
+from omniscs.edits import parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
 from omniscs.nsg.config import FitConfig
@@ -34,7 +35,6 @@ from omniscs.nsg.observations import Observations
 from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
-from omniscs.edits import parse_edits
 from omniscs.plan import PlanConfig, ScenePlan, repair_objects
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
