@@ -113,7 +113,11 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                Section("Every ablation arm (ablations.json, older run)", "summary", part="ablations",
                        columns=("arm", "views", "scenes", "hole_psnr", "hole_ssim", "depth_absrel", "depth_delta",
                                 "full_psnr", "seconds")),
-               Section("Targets of the older run (ablations.json)", "targets", part="ablations"))),
+               Section("Targets of the older run (ablations.json)", "targets", part="ablations"),
+               Section("A large parked object replaced by a smaller one, without and with the repair "
+                       "(replacement.json, `omniscs bench background --replacement --quick`)", "summary",
+                       part="replacement", columns=("arm", "views", "n_views", "region_pixels", "ghost_pixels",
+                                                    "ghost_share", "hole_psnr")))),
     Benchmark("behavior", "Behaviour-level SCS", "omniscs bench behavior",
               "Adversarial success and plausibility per configuration on the fixed scene set, and the traffic "
               "model's held-out ADE/FDE.",

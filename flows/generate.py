@@ -1,10 +1,11 @@
 """The ``generate_dataset`` flow: one ``scene-pipeline`` sub-flow per scene, scenes side by side.
 
 Per scene, the stage table of ``omniscs.pipeline.stages`` (ingest → plan → preview → fit → agents → background →
-behaviour variants → appearance variants → render + annotate), each stage a task, then the scene's catalog rows;
-then, once every scene is done, the run's annotated variants become one dataset (``datasets/<id>/``, catalogued).
-Stages the scene's plan does not need are skipped. A scene waits for nothing but its own stages: one slow or failed
-scene holds back no other. The run's one parameter is a ``RunRequest`` (a form in Prefect's UI).
+behaviour variants → appearance variants → uncovered (repair) → render + annotate), each stage a task, then the
+scene's catalog rows; then, once every scene is done, the run's annotated variants become one dataset
+(``datasets/<id>/``, catalogued). Stages the scene's plan does not need are skipped. A scene waits for nothing but its
+own stages: one slow or failed scene holds back no other. The run's one parameter is a ``RunRequest`` (a form in
+Prefect's UI).
 """
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
 """The per-scene plan: what a scene needs modelled, decided from its tracks and the requested edits.
 
-"Model only what a scene requires" (DESIGN.md): tracks that move or that an edit names become agent
-nodes; everything else stays in the background. Edits that turn an agent far from its observed
-views need a 360° model; moving or removing a large static object needs background repair. The
-Gaussian budget follows the area the cameras see along the ego path. Stages nothing needs do not run.
+"Model only what a scene requires" (DESIGN.md): tracks that move or that an edit names become agent nodes; everything
+else stays in the background. Edits that turn an agent far from its observed views need a 360° model; moving or
+removing a large static object, or replacing it by a smaller one, needs background repair. The Gaussian budget
+follows the area the cameras see along the ego path. Stages nothing needs do not run.
 """
 from __future__ import annotations
 
@@ -19,6 +19,12 @@ from omniscs.scene.summary import MOVING_PATH_LENGTH_M, agent_rows
 from omniscs.taxonomy import VEHICLE_CATEGORIES
 
 PLAN_VERSION = 1
+
+#: A replacement uncovers what the old object hid when the old box reaches further than this (metres) beyond the
+#: new object's box on some side (the new box rests on the ground the old one stood on, under the same motion).
+#: A thinner sliver stays inside the dilated outline any rendered edge blurs over; a module constant rather than a
+#: PlanConfig field because PlanConfig is part of every fit's key.
+UNCOVERED_MARGIN_M = 0.25
 
 
 @dataclass(frozen=True)
@@ -64,7 +70,8 @@ class ScenePlan:
     needs_360: tuple[int, ...]
     """Agent nodes whose edits show sides never observed (large rotations, model swaps)."""
     background_repair: tuple[int, ...]
-    """Large static objects that an edit moves or removes: their footprint needs repair."""
+    """Large static objects that an edit moves, removes or replaces by a smaller object (one that leaves part of the
+    old footprint uncovered): their footprint needs repair."""
     inserted: tuple[int, ...]
     """Track ids that edits insert (they come from the model pool, not from this log)."""
     cameras: tuple[str, ...]
@@ -114,6 +121,42 @@ def _turns_far(edit: Edit, limit_deg: float) -> bool:
     if isinstance(edit, Rotate):
         return max(abs(edit.yaw_deg), abs(edit.roll_deg), abs(edit.pitch_deg)) > limit_deg
     return isinstance(edit, ReplaceModel)
+
+
+def uncovered_margin(old_size, edit: ReplaceModel) -> float:
+    """How far (m) an object's box of ``old_size`` (length, width, height) reaches beyond the box a ``ReplaceModel``
+    edit puts in its place, on its worst side: the new box is centred where the old one was along the length and
+    width and rests on the same ground (``omniscs.edits.resized_poses``), so the old box shows half the difference
+    at each end and side and the whole difference on top. 0 when the new box covers the old one (a ``size`` of None
+    scales the new model to the old box)."""
+    if edit.size is None:
+        return 0.0
+    old = np.asarray(old_size, dtype=np.float64)
+    new = np.asarray(edit.size, dtype=np.float64)
+    reach = np.array([0.5 * (old[0] - new[0]), 0.5 * (old[1] - new[1]), old[2] - new[2]])
+    return float(max(0.0, reach.max()))
+
+
+def uncovers(old_size, edit: Edit) -> bool:
+    """Whether ``edit`` leaves part of a box of ``old_size`` empty where the object stood: a replacement by an object
+    whose box does not cover the old one within UNCOVERED_MARGIN_M."""
+    return isinstance(edit, ReplaceModel) and uncovered_margin(old_size, edit) > UNCOVERED_MARGIN_M
+
+
+def repair_objects(agents: dict[int, dict], edits: list[Edit], config: PlanConfig = PlanConfig()) -> tuple[int, ...]:
+    """Track ids of the large static objects (``agents``: ``agent_rows`` by track id) whose footprint ``edits``
+    uncover: moved, removed, or replaced by a smaller object. A moving object's background was seen from other
+    frames, and a small object's hole is small: neither is repaired. Edits naming tracks outside ``agents``
+    (inserted objects) uncover nothing."""
+    out = []
+    for t, es in _edited_tracks(edits).items():
+        a = agents.get(t)
+        if a is None or a["moving"] or a["length"] * a["width"] * a["height"] < config.large_object_volume_m3:
+            continue
+        size = (a["length"], a["width"], a["height"])
+        if any(isinstance(e, (Translate, Rotate, Remove, SetTrajectory)) or uncovers(size, e) for e in es):
+            out.append(int(t))
+    return tuple(sorted(out))
 
 
 def modelled_area(scene: Scene, view_range_m: float) -> float:
@@ -168,12 +211,7 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
     nodes = tuple(sorted(reasons))
     needs_360 = tuple(sorted(t for t, es in by_track.items()
                              if any(_turns_far(e, config.rotation_needing_360_deg) for e in es)))
-    repair = tuple(sorted(
-        t for t, es in by_track.items()
-        if not agents[t]["moving"]
-        and agents[t]["length"] * agents[t]["width"] * agents[t]["height"] >= config.large_object_volume_m3
-        and any(isinstance(e, (Translate, Rotate, Remove, SetTrajectory)) for e in es)
-    ))
+    repair = repair_objects(agents, [e for e in edits if int(e.track_id) in by_track], config)
     frames = np.arange(scene.n_frames)
     if config.holdout_every and scene.n_frames >= config.holdout_every:
         held = frames[(frames + 1) % config.holdout_every == 0]

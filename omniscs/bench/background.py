@@ -130,9 +130,9 @@ def quick_config() -> BackgroundBenchConfig:
                                  repair=r)
 
 
-def _source(item: str):
+def _source(item: str, n_frames: int = 40):
     template, _, seed = item.partition(":")
-    return SyntheticSource(template, int(seed), "day", 40, 3, 480, 270)
+    return SyntheticSource(template, int(seed), "day", n_frames, 3, 480, 270)
 
 
 def large_static_object(scene) -> int:
@@ -144,11 +144,13 @@ def large_static_object(scene) -> int:
     return int(max(rows, key=lambda a: a["length"] * a["width"] * a["height"])["track_id"])
 
 
-def prepare_scene(item: str, preset: str, workspace: Path, progress: Progress = no_progress):
-    """Ingest, plan the object's removal (so it becomes a node) and fit (reused when fitted before)."""
-    ingested = ingest_stage(_source(item), workspace)
+def prepare_scene(item: str, preset: str, workspace: Path, progress: Progress = no_progress, n_frames: int = 40,
+                  pick=large_static_object):
+    """Ingest (``n_frames`` frames), plan the removal of the object ``pick(scene)`` names (so it becomes a node) and
+    fit (reused when fitted before)."""
+    ingested = ingest_stage(_source(item, n_frames), workspace)
     scene = load_scene(ingested.path)
-    track = large_static_object(scene)
+    track = pick(scene)
     request = SceneRequest(fit_preset=preset, edits=({"op": "remove", "track_id": track},), previews=False)
     plan = load_plan(plan_stage(ingested.path, request, workspace))
     fitted = fit_stage(ingested.path, plan, preset, workspace, progress=progress)

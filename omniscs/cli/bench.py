@@ -347,11 +347,20 @@ class BackgroundOptions:
     ablation: Optional[list[str]] = None
     """Only this ablation row (repeatable; default: all of them), e.g. 'planes + DRNet + RoI refit, planes first
     where the cleaned background covers'."""
+    replacement: bool = False
+    """Instead of the removal arms, the replacement case: the large object replaced by a smaller pool object, without
+    and with the background repair (ghost area and hole PSNR; reports/background/replacement.md)."""
 
 
 def run_background(o: BackgroundOptions, out: Path, bars: Bars) -> Path:
     from omniscs.bench.background import BackgroundBenchConfig, quick_config, run_background_benchmark
 
+    if o.replacement:
+        from omniscs.bench import replacement
+
+        config = replacement.quick_config() if o.quick else replacement.ReplacementBenchConfig()
+        replacement.run_replacement_benchmark(out, o.workspace, config, progress=bars.sink("replacement bench"))
+        return out / "background" / f"{replacement.PART}.md"
     config = quick_config() if o.quick else BackgroundBenchConfig()
     if o.no_ablations:
         config = dataclasses.replace(config, full_comparison=False)

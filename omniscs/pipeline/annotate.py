@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
+from omniscs.pipeline.background import variant_uncovers
 from omniscs.pipeline.common import waiting
 from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description, world_reference
 from omniscs.pipeline.records import StageRecord
@@ -27,6 +29,8 @@ from omniscs.scene import load_scene
 from omniscs.scs.appearance.compose import compose_variant
 from omniscs.scs.behavior import traffic_from_scene
 from omniscs.scs.behavior.solution import SolutionConfig, solution_bev_picture, solve_ego
+
+log = logging.getLogger(__name__)
 
 #: Bump when the code changes what the stages write (older outputs are then not reused).
 REPLAY_VERSION = 1
@@ -59,22 +63,26 @@ def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Pa
 
 def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None, behavior: StageRecord | None,
                    workspace: str | Path, config=None, progress: Progress = no_progress,
-                   reuse: bool = True, appearance: StageRecord | None = None, gates: GateConfig | None = None,
+                   reuse: bool = True, appearance: StageRecord | None = None,
+                   uncovered: StageRecord | None = None, gates: GateConfig | None = None,
                    keep_failed: bool = False) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
     ``config.exact_fidelity`` is off). ``appearance`` (the appearance stage's record) adds its variants, composed
     from their pool's models; with procedural scenes their exact reference inserts the library asset each pool
-    model was built from. With ``gates`` each variant gets its quality verdict; those failed before rendering are
-    rendered only with ``keep_failed``, and spare candidates only until each level has as many passing variants
-    as its stage was asked for (``omniscs.annotate.scene.annotate_variants``)."""
+    model was built from. ``uncovered`` (the uncovered stage's record: ``model``'s graph repaired behind the objects
+    some appearance variants uncover) is the graph those variants are composed on; every other variant keeps
+    ``model``'s. With ``gates`` each variant gets its quality verdict; those failed before rendering are rendered
+    only with ``keep_failed``, and spare candidates only until each level has as many passing variants as its
+    stage was asked for (``omniscs.annotate.scene.annotate_variants``)."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if not plan.stages.get("render_annotate"):
         return StageRecord.skip("annotate", scene.scene_id, "the request builds no dataset")
     behavior = behavior if behavior is not None and not behavior.skipped else None
     appearance = appearance if appearance is not None and not appearance.skipped else None
+    uncovered = uncovered if appearance is not None and uncovered is not None and not uncovered.skipped else None
     if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None):
         return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no variants to render")
     config = config or AnnotateConfig()
@@ -82,6 +90,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     inputs = {"scene": scene.content_hash, "graph": model.key, "variants": None if behavior is None else behavior.key}
     if appearance is not None:
         inputs["appearance"] = appearance.key
+    if uncovered is not None:  # absent otherwise: runs without a repair for their variants keep their keys
+        inputs["uncovered"] = uncovered.key
     wanted = {level: int(r.info.get("n_requested", r.info.get("n_variants", 0)))
               for level, r in (("behaviour", behavior), ("appearance", appearance)) if r is not None}
     gated = {"gates": gates.to_dict(), "keep_failed": bool(keep_failed), "wanted": wanted} if gates else {}
@@ -100,6 +110,13 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                 replayed = replay_stage(scene_path, model, workspace, progress=progress)
                 replay = Replay.open(replayed.path)
             graph = load_graph(model.path, scene)
+            repaired = None
+            objects = set(uncovered.info["repaired"]) if uncovered is not None else set()
+            if uncovered is not None:
+                repaired = (load_graph(uncovered.path, scene),
+                            {v["variant_id"] for v in variants if objects & set(variant_uncovers(scene, v))})
+            if appearance is not None and appearance.info.get("n_requested"):
+                variants = without_unrepaired_spares(scene, variants, int(appearance.info["n_requested"]), objects)
 
             def make(tmp: Path) -> dict:
                 results = annotate_variants(
@@ -108,7 +125,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     describe=world_description(scene), config=config,
                     progress=progress, replay=replay,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
-                    compose=appearance_composer(graph), reference_for=appearance_references(scene, variants)
+                    compose=appearance_composer(graph, repaired), reference_for=appearance_references(scene, variants)
                     if config.exact_fidelity else None, gates=gates, wanted=wanted if gates else None,
                     keep_failed=keep_failed)
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
@@ -133,13 +150,31 @@ def variant_verdicts(rows: dict) -> dict[str, dict]:
     return out
 
 
-def appearance_composer(graph):
+def without_unrepaired_spares(scene, variants: list[dict], n_requested: int, repaired: set[int]) -> list[dict]:
+    """``variants`` less the spare appearance candidates (beyond the first ``n_requested``) that would uncover a
+    large object no repair covers: rendered, they would show its ghost."""
+    kept, seen = [], 0
+    for v in variants:
+        if v.get("kind") == "appearance":
+            seen += 1
+            if seen > n_requested and set(variant_uncovers(scene, v)) - repaired:
+                log.info("spare appearance candidate %s is not rendered: it uncovers an object no repair covers",
+                         v.get("variant_id"))
+                continue
+        kept.append(v)
+    return kept
+
+
+def appearance_composer(graph, repaired: tuple | None = None):
     """``variant -> Composite`` of appearance variants over ``graph``: objects from the variant's pool (or the graph's
-    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``)."""
+    own ``nsg:`` nodes), colours through its colour transform (``omniscs.scs.appearance.compose``). ``repaired``:
+    (a graph repaired behind the objects some variants uncover, the ids of those variants), composed over it
+    instead."""
     def compose(variant: dict):
+        base = repaired[0] if repaired is not None and variant.get("variant_id") in repaired[1] else graph
         pool = variant.get("pool")
-        resolve = model_resolver(pool, node_model_resolver(graph)) if pool else node_model_resolver(graph)
-        return compose_variant(graph, variant, resolve)
+        resolve = model_resolver(pool, node_model_resolver(base)) if pool else node_model_resolver(base)
+        return compose_variant(base, variant, resolve)
     return compose
 
 

@@ -1,9 +1,16 @@
 """The background stage (Prefect-free): after the fit (and the agents stage), the background behind every large
-static object the plan's edits move or remove is repaired (``omniscs.background.repair``) and the repaired scene
-graph is written as a checkpoint the later stages render (``repaired/<scene_id>/background-<key>/``), with the
-objects' nodes still in it, so whichever edit moves or removes them shows the repaired background. Beside it,
-``repair/``: per hole view the hole mask, the filled image and the depth map, a preview sheet and
-``repair.json``; one ``background_repairs`` catalog row per repaired object."""
+static object the plan's edits move, remove or replace by a smaller object is repaired
+(``omniscs.background.repair``) and the repaired scene graph is written as a checkpoint the later stages render
+(``repaired/<scene_id>/background-<key>/``), with the objects' nodes still in it, so whichever edit moves or removes
+them shows the repaired background. Beside it, ``repair/``: per hole view the hole mask, the filled image and the
+depth map, a preview sheet and ``repair.json``; one ``background_repairs`` catalog row per repaired object.
+
+The ``uncovered`` stage (after the variant stages) does the same repair, keyed the same way, for the large static
+objects that the drawn variants uncover and the plan could not know of: an appearance variant that replaces a parked
+trailer by a sedan (its target is chosen only when the variants are drawn) leaves the rest of the trailer's
+footprint empty. The annotate stage composes those variants on the graph this stage repaired, and every other variant
+on the graph it was given (the repair's refit also touches the background around the objects, which variants that keep
+them show)."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,6 +18,7 @@ import hashlib
 import json
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -19,6 +27,7 @@ from omniscs.background.depthnet import WEIGHTS_FILE
 from omniscs.background.inpaint import load_inpainter
 from omniscs.background.inpaintnet import SHIPPED as INPAINT_SHIPPED, WEIGHTS_FILE as INPAINT_WEIGHTS
 from omniscs.background.repair import RepairConfig, repair_background
+from omniscs.edits import parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.nsg.checkpoint import load_graph, load_metrics, read_checkpoint_meta, write_checkpoint_files
 from omniscs.nsg.config import FitConfig
@@ -26,9 +35,10 @@ from omniscs.nsg.observations import Observations
 from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
-from omniscs.plan import ScenePlan
+from omniscs.plan import PlanConfig, ScenePlan, repair_objects
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.scene.summary import agent_rows
 from omniscs.storage import atomic_write_json
 
 #: Bumped when the background stage changes what it writes.
@@ -53,27 +63,86 @@ def background_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
         return StageRecord.skip("background", scene.scene_id, "no fitted scene graph to repair")
     if not plan.stages.get("background_repair"):
         return StageRecord.skip("background", scene.scene_id,
-                                "no edit moves or removes a large static object: nothing to repair")
+                                "no edit moves, removes or shrinks a large static object: nothing to repair")
+    return _repaired_record("background", scene, plan, model, plan.background_repair, workspace, progress, out_dir,
+                            config, reuse, started)
+
+
+def uncovered_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | None,
+                    variants: Sequence[StageRecord | None], workspace: str | Path | None = None,
+                    progress: Progress = no_progress, out_dir: str | Path | None = None, config=None,
+                    plan_config: PlanConfig = PlanConfig(), reuse: bool = True) -> StageRecord:
+    """The graph of ``model`` (the latest graph stage's record) with the background repaired behind the large static
+    objects that the edits of the drawn ``variants`` (variant stages' records; their ``variants.json``) uncover, as
+    the plan decides for a request's edits (``omniscs.plan.repair_objects``; ``plan_config``: its thresholds), less
+    those the background stage already repaired. Keyed like the background stage (the same objects on the same graph
+    are one repair), so a rerun reuses it. Skipped when there is no fitted graph or nothing is uncovered."""
+    started = time.perf_counter()
+    scene = load_scene(scene_path)
+    if model is None or model.info.get("status") != "fitted":
+        return StageRecord.skip("uncovered", scene.scene_id, "no fitted scene graph to repair")
+    objects = tuple(t for t in uncovered_objects(scene, variants, plan_config) if t not in plan.background_repair)
+    if not objects:
+        return StageRecord.skip("uncovered", scene.scene_id,
+                                "no variant uncovers what a large static object hid: nothing to repair")
+    return _repaired_record("uncovered", scene, plan, model, objects, workspace, progress, out_dir, config, reuse,
+                            started)
+
+
+def variant_edits(variants: Sequence[StageRecord | None]) -> list:
+    """Every edit of the variants that ``variants`` (stage records whose path is a ``variants.json``; skipped or
+    None ones are passed over) drew, up to the number each was asked for; variants without edits (behaviour
+    variants are trajectories) add none."""
+    edits = []
+    for record in variants:
+        if record is None or record.skipped:
+            continue
+        drawn = json.loads(Path(record.path).read_text())
+        # spare candidates (drawn beyond the request, for the quality gates) are not repaired for: the annotate
+        # stage leaves out a spare that would uncover an unrepaired object
+        drawn = drawn[:int(record.info["n_requested"])] if record.info.get("n_requested") else drawn
+        for v in drawn:
+            edits += parse_edits(v.get("edits") or [])
+    return edits
+
+
+def uncovered_objects(scene, variants: Sequence[StageRecord | None],
+                      plan_config: PlanConfig = PlanConfig()) -> tuple[int, ...]:
+    """Track ids of ``scene``'s large static objects whose footprint some edit of ``variants`` uncovers (moved,
+    removed, replaced by a smaller object)."""
+    agents = {a["track_id"]: a for a in agent_rows(scene)}
+    return repair_objects(agents, variant_edits(variants), plan_config)
+
+
+def variant_uncovers(scene, variant: dict, plan_config: PlanConfig = PlanConfig()) -> tuple[int, ...]:
+    """Track ids of ``scene``'s large static objects whose footprint one variant spec's edits uncover."""
+    agents = {a["track_id"]: a for a in agent_rows(scene)}
+    return repair_objects(agents, parse_edits(variant.get("edits") or []), plan_config)
+
+
+def _repaired_record(stage: str, scene, plan: ScenePlan, model: StageRecord, objects: tuple[int, ...], workspace,
+                     progress: Progress, out_dir, config, reuse: bool, started: float) -> StageRecord:
+    """The repair of ``objects`` on ``model``'s graph as ``stage``'s record (made, or reused by its key)."""
     config = config or RepairConfig()
     key = StageKey.of("background", BACKGROUND_VERSION,
-                      {"scene": scene.content_hash, "graph": model.key, "objects": list(plan.background_repair)},
+                      {"scene": scene.content_hash, "graph": model.key, "objects": list(objects)},
                       {"repair": config.to_dict(), "models": _model_ids(config)})
     name = f"background-{key.short}"
     if out_dir is None:
         if workspace is None:
-            raise OmniscsError("background_stage needs a workspace or an out_dir")
+            raise OmniscsError(f"{stage}_stage needs a workspace or an out_dir")
         out_dir = layout.stage_folder(workspace, "background", scene.scene_id, name)
     out_dir = Path(out_dir)
     manifest = reusable(out_dir, key) if reuse else None
     if manifest is None:
         def make(tmp: Path) -> dict:
-            rows = _repair(scene, plan, model, config, tmp, name, progress)
+            rows = _repair(scene, plan, objects, model, config, tmp, name, progress)
             atomic_write_json(tmp / CATALOG_ROWS, rows)
             return {"checkpoint": ".", "repair": REPAIR_DIR, "catalog_rows": CATALOG_ROWS}
 
         produce(out_dir, key, make)
     rows = json.loads((out_dir / CATALOG_ROWS).read_text())
-    return StageRecord("background", scene.scene_id, str(out_dir), reused=manifest is not None,
+    return StageRecord(stage, scene.scene_id, str(out_dir), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"background_repairs": rows},
                        info={"status": "fitted", "metrics": model.info.get("metrics"), "fit_path": model.path,
                              "repaired": [r["track_id"] for r in rows]})
@@ -93,12 +162,13 @@ def _model_ids(config) -> dict:
     return ids
 
 
-def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name: str, progress: Progress) -> list[dict]:
+def _repair(scene, plan: ScenePlan, objects: tuple[int, ...], model: StageRecord, config, out: Path, name: str,
+            progress: Progress) -> list[dict]:
     graph = load_graph(model.path, scene)
     meta_config = read_checkpoint_meta(model.path).get("config")
     fit_config = FitConfig.from_dict(meta_config) if meta_config else FitConfig()
     views = [(c, int(f)) for f in plan.train_frames for c in plan.cameras]
-    result = repair_background(graph, Observations(scene, plan.cameras), plan.background_repair, views, fit_config,
+    result = repair_background(graph, Observations(scene, plan.cameras), objects, views, fit_config,
                                config, progress=progress)
     metrics = {**load_metrics(model.path), "background_repair": result.facts}
     write_checkpoint_files(result.graph, out, plan, meta_config, metrics)
@@ -113,7 +183,7 @@ def _repair(scene, plan: ScenePlan, model: StageRecord, config, out: Path, name:
              "unfilled_pixels": f["unfilled_pixels"], "seeds": f["seeds"], "dropped_gaussians": f["dropped_gaussians"],
              "depth_method": config.depth_method, "refit": config.refit, "seconds": seconds,
              "repair_path": str((out / REPAIR_DIR).name)}
-            for t in plan.background_repair]
+            for t in objects]
 
 
 def write_repair_files(result, folder: Path, config) -> None:

@@ -2,9 +2,9 @@
 function that runs it, what it reads and when it runs. Three walkers go through it with ``walk_scene``: ``run_scene``
 (benchmarks, tests), the ``scene-pipeline`` Prefect sub-flow (each stage a task) and ``omniscs fit --until STAGE``.
 
-ingest → plan → preview → fit → agents → background → behavior → appearance → annotate (then, per run, dataset and
-catalog). Each stage function lives in its own module of this package, is Prefect-free, follows the one reuse
-contract (``reuse.py``) and the one progress contract (``omniscs.progress``) and returns a ``StageRecord``.
+ingest → plan → preview → fit → agents → background → behavior → appearance → uncovered → annotate (then, per run,
+dataset and catalog). Each stage function lives in its own module of this package, is Prefect-free, follows the one
+reuse contract (``reuse.py``) and the one progress contract (``omniscs.progress``) and returns a ``StageRecord``.
 """
 from __future__ import annotations
 
@@ -17,14 +17,14 @@ from omniscs.errors import OmniscsError
 from omniscs.pipeline.agents import agents_stage
 from omniscs.pipeline.annotate import annotate_stage, replay_stage
 from omniscs.pipeline.appearance import appearance_stage
-from omniscs.pipeline.background import background_stage
+from omniscs.pipeline.background import background_stage, uncovered_stage
 from omniscs.pipeline.behavior import behavior_stage
 from omniscs.pipeline.catalog import catalog_run_stage, catalog_scene_stage
 from omniscs.pipeline.common import device_overrides
 from omniscs.pipeline.dataset import catalog_dataset_stage, dataset_stage
 from omniscs.pipeline.fit import fit_stage
 from omniscs.pipeline.ingest import ingest_stage
-from omniscs.pipeline.plan import load_plan, plan_stage
+from omniscs.pipeline.plan import load_plan, plan_config_for, plan_stage
 from omniscs.pipeline.preview import preview_stage
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.request import SceneRequest
@@ -35,7 +35,7 @@ from omniscs.progress import Progress, no_progress
 __all__ = ["STAGES", "STAGE_NAMES", "SceneState", "Stage", "agents_stage", "annotate_stage", "appearance_stage",
            "background_stage", "behavior_stage", "catalog_dataset_stage", "catalog_run_stage", "catalog_scene_stage",
            "dataset_stage", "fit_stage", "ingest_stage", "load_plan", "plan_stage", "preview_stage", "replay_stage",
-           "run_directly", "run_scene", "stage", "start_scene", "walk_scene"]
+           "run_directly", "run_scene", "stage", "start_scene", "uncovered_stage", "walk_scene"]
 
 @dataclass(frozen=True)
 class SceneState:
@@ -154,9 +154,14 @@ def _appearance(s: SceneState, progress: Progress) -> StageRecord:
                             budget=s.request.variant_budget, **_options(s, "appearance"))
 
 
+def _uncovered(s: SceneState, progress: Progress) -> StageRecord:
+    return uncovered_stage(s.scene_path, s.plan, s.model, (s.ran("appearance"),), s.workspace, progress=progress,
+                           plan_config=plan_config_for(s.request), **_options(s, "uncovered"))
+
+
 def _annotate(s: SceneState, progress: Progress) -> StageRecord:
     return annotate_stage(s.scene_path, s.plan, s.model, s.ran("behavior"), s.workspace, progress=progress,
-                          appearance=s.ran("appearance"), gates=s.request.gates(),
+                          appearance=s.ran("appearance"), uncovered=s.ran("uncovered"), gates=s.request.gates(),
                           keep_failed=s.request.keep_failed, **_options(s, "annotate"))
 
 
@@ -178,7 +183,10 @@ STAGES: tuple[Stage, ...] = (
           "behaviour variants"),
     Stage("appearance", _appearance, ("ingest", "plan", "model"), lambda s: s.planned("appearance_variants"),
           "appearance variants"),
-    Stage("annotate", _annotate, ("ingest", "plan", "model", "behavior", "appearance"),
+    Stage("uncovered", _uncovered, ("ingest", "plan", "model", "appearance"),
+          lambda s: s.model is not None and s.ran("appearance") is not None and s.planned("render_annotate"),
+          "background repair behind replaced objects"),
+    Stage("annotate", _annotate, ("ingest", "plan", "model", "behavior", "appearance", "uncovered"),
           lambda s: s.planned("render_annotate"), "render + annotate variants"),
 )
 STAGE_NAMES = tuple(s.name for s in STAGES)

@@ -285,3 +285,112 @@ def test_seeds_in_front_of_observed_background_are_dropped_and_the_others_kept()
                        [-5.0, 0.0, 0.0]])   # behind the camera: no view says anything, kept
     kept, colours = consistent_seeds(points, np.arange(4)[:, None].repeat(3, 1), [hv])
     assert colours[:, 0].tolist() == [0, 2, 3]
+
+
+def _appearance_record(folder: Path, variants: list[dict]):
+    """A stand-in for the appearance stage's record: its variants.json."""
+    from omniscs.pipeline.records import StageRecord
+
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "variants.json").write_text(json.dumps(variants))
+    return StageRecord("appearance", "bg-test", str(folder / "variants.json"))
+
+
+def _replacing(track: int, size) -> dict:
+    from omniscs.scs.appearance.compose import replace_variant
+    from omniscs.nsg.edit import AgentModel
+
+    model = AgentModel(None, np.asarray(size, dtype=np.float64), "car")
+    return replace_variant("bg-test", "a000", track, model, "pm-smaller")
+
+
+@pytest.mark.slow
+def test_the_uncovered_stage_repairs_what_a_smaller_replacement_uncovers_as_the_background_stage_would(fitted,
+                                                                                                      tmp_path):
+    from omniscs.pipeline.background import uncovered_stage
+
+    store, plan, record, tmp = fitted
+    ws = tmp / "ws"
+    unplanned = dataclasses.replace(plan, background_repair=(), stages={**plan.stages, "background_repair": False})
+    sedan = _appearance_record(tmp_path / "a", [_replacing(TRUCK, (4.4, 1.8, 1.5))])
+    repaired = uncovered_stage(store, unplanned, record, [sedan], ws, config=SMALL)
+    assert repaired.stage == "uncovered" and not repaired.skipped and repaired.info["repaired"] == [TRUCK]
+    assert repaired.rows["background_repairs"][0]["track_id"] == TRUCK
+    # the same objects on the same graph are one repair, whichever stage asks for it
+    planned = background_stage(store, plan, record, ws, config=SMALL)
+    assert planned.reused and planned.path == repaired.path and planned.key == repaired.key
+    # nothing uncovered: a covering replacement (a bus over the truck), an insert, no variants, or what the
+    # background stage already repaired
+    bus = _appearance_record(tmp_path / "b", [_replacing(TRUCK, (11.0, 2.5, 3.6))])
+    assert uncovered_stage(store, unplanned, record, [bus], ws, config=SMALL).skipped
+    assert uncovered_stage(store, unplanned, record, [None], ws, config=SMALL).skipped
+    done = uncovered_stage(store, plan, planned, [sedan], ws, config=SMALL)
+    assert done.skipped and "nothing to repair" in done.info["why"]
+
+
+def test_only_edits_that_uncover_a_large_static_object_name_it_for_repair(tmp_path):
+    from omniscs.pipeline.background import uncovered_objects
+    from omniscs.scene import load_scene
+    from omniscs.scs.appearance.compose import insert_variant
+    from omniscs.nsg.edit import AgentModel
+
+    scene = load_scene(write_nsg_scene(tmp_path / "in", _truck_world(), "bg-test"))
+    car = AgentModel(None, np.array([4.4, 1.8, 1.5]), "car")
+    insert = insert_variant("bg-test", "a001", 9, car, "pm-smaller", 20.0, 3.0, 0.0, 0.0)
+    moving_car = _replacing(2, (2.0, 1.0, 1.0))  # track 2 passes by: its background was seen
+    record = _appearance_record(tmp_path / "a", [insert, moving_car, _replacing(TRUCK, (4.4, 1.8, 1.5))])
+    assert uncovered_objects(scene, [record]) == (TRUCK,)
+    assert uncovered_objects(scene, [_appearance_record(tmp_path / "b", [insert, moving_car])]) == ()
+
+
+@pytest.mark.slow
+def test_a_smaller_replacement_shows_less_ghost_on_the_repaired_graph(fitted):
+    """The truck replaced by the passing sedan's model, on the graph as fitted and on the repaired graph, against
+    the world with the same replacement: the repaired graph leaves fewer wrong pixels where the truck stood."""
+    from omniscs.bench.replacement import ghost_scores, uncovered_region
+    from omniscs.edits import ReplaceModel
+    from omniscs.nsg.checkpoint import load_graph
+    from omniscs.nsg.edit import apply_graph_edits
+    from omniscs.scene import load_scene
+    from omniscs.world import WorldRenderer, apply_edits
+
+    store, plan, record, tmp = fitted
+    scene = load_scene(store)
+    graph = load_graph(record.path, scene)
+    repaired = load_graph(background_stage(store, plan, record, tmp / "ws", config=SMALL).path, scene)
+    size = tuple(float(v) for v in graph.agent(2).size)
+    truth = WorldRenderer(apply_edits(scene.world, [ReplaceModel(TRUCK, "sedan-0011", size=size)]))
+    logged = WorldRenderer(scene.world)
+    swap = [ReplaceModel(TRUCK, "nsg:2", size=size)]
+    before_graph, after_graph = apply_graph_edits(graph, swap), apply_graph_edits(repaired, swap)
+    before = after = region_pixels = 0
+    for f in range(scene.n_frames):
+        for cam in scene.camera_names:
+            exact, region = uncovered_region(logged, truth, TRUCK, f, cam)
+            if not region.any():
+                continue
+            scores = []
+            for g in (before_graph, after_graph):
+                rgb = (g.render(g.view(cam, f)).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+                scores.append(ghost_scores(rgb, exact, region, 24))
+            region_pixels += scores[0]["region_pixels"]
+            before += scores[0]["ghost_pixels"]
+            after += scores[1]["ghost_pixels"]
+    assert region_pixels > 200
+    assert after < 0.8 * before, (before, after, region_pixels)
+
+
+def test_annotate_composes_only_the_variants_that_uncover_on_the_repaired_graph(monkeypatch, tmp_path):
+    from omniscs.pipeline import annotate
+    from omniscs.scene import load_scene
+
+    monkeypatch.setattr(annotate, "compose_variant", lambda graph, variant, resolve: graph)
+    monkeypatch.setattr(annotate, "node_model_resolver", lambda graph: None)
+    scene = load_scene(write_nsg_scene(tmp_path / "in", _truck_world(), "bg-test"))
+    variants = [dict(_replacing(TRUCK, (4.4, 1.8, 1.5)), variant_id="a001"),
+                dict(_replacing(TRUCK, (11.0, 2.5, 3.6)), variant_id="a002")]
+    uncovering = {v["variant_id"] for v in variants if TRUCK in annotate.variant_uncovers(scene, v)}
+    assert uncovering == {"a001"}
+    compose = annotate.appearance_composer("fitted graph", ("repaired graph", uncovering))
+    assert [compose(v) for v in variants] == ["repaired graph", "fitted graph"]
+    assert annotate.appearance_composer("fitted graph")(variants[0]) == "fitted graph"

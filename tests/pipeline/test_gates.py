@@ -134,3 +134,14 @@ def test_lidar_coverage_counts_each_box_once_and_only_within_range():
     warnings = card_warnings({"dropped_frames": 0}, gate_summary([], False), c)
     assert warnings == ["only 1 of 2 boxes within 50 m have LiDAR points; nuScenes' evaluation and UniAD's "
                         "valid_flag drop the others"]
+
+
+def test_a_spare_appearance_candidate_that_would_uncover_an_unrepaired_object_is_not_rendered(monkeypatch):
+    from omniscs.pipeline import annotate
+
+    uncovers = {"a000": (7,), "a001": (), "a002": (9,), "a003": (7,)}
+    monkeypatch.setattr(annotate, "variant_uncovers", lambda scene, v: uncovers[v["variant_id"]])
+    variants = [{"variant_id": "v00", "kind": "cut_in"}] + [{"variant_id": k, "kind": "appearance"} for k in uncovers]
+    kept = annotate.without_unrepaired_spares(None, variants, n_requested=2, repaired={7})
+    # a000 is requested (repaired for); a002 would uncover 9, which no repair covers; a003's object 7 is repaired
+    assert [v["variant_id"] for v in kept] == ["v00", "a000", "a001", "a003"]

@@ -3,7 +3,8 @@ import pytest
 
 from omniscs.edits import parse_edits
 from omniscs.errors import OmniscsError
-from omniscs.plan import PlanConfig, ScenePlan, make_plan
+from omniscs.edits import ReplaceModel
+from omniscs.plan import UNCOVERED_MARGIN_M, PlanConfig, ScenePlan, make_plan, uncovered_margin
 from omniscs.scene import load_scene
 from tests.conftest import write_tiny_scene
 
@@ -39,6 +40,36 @@ def test_moving_a_large_static_object_asks_for_background_repair(scene):
     assert small.background_repair == ()  # a 4.5 x 1.9 x 1.6 m car is under the volume threshold
     big = make_plan(scene, parse_edits('[{"op": "remove", "track_id": 0}]'), PlanConfig(large_object_volume_m3=10.0))
     assert big.background_repair == (0,) and big.stages["background_repair"]
+
+
+def _replace(track: int, size) -> list:
+    return [ReplaceModel(track, "pm-other", size=None if size is None else tuple(size))]
+
+
+def test_replacing_a_large_static_object_by_a_smaller_one_asks_for_background_repair(scene):
+    big = PlanConfig(large_object_volume_m3=10.0)  # track 0: a static 4.5 x 1.9 x 1.6 m car
+    shrunk = make_plan(scene, _replace(0, (3.0, 1.5, 1.2)), big)
+    assert shrunk.background_repair == (0,) and shrunk.stages["background_repair"]
+    # an object whose box covers the old one (larger, scaled to the old box, or smaller by less than the margin on
+    # every side) uncovers nothing
+    for size in ((5.0, 2.0, 1.8), None, (4.2, 1.8, 1.5)):
+        covered = make_plan(scene, _replace(0, size), big)
+        assert covered.background_repair == () and not covered.stages["background_repair"], size
+    # a smaller object uncovers one side only: longer and wider but lower still leaves the top of the old box empty
+    assert make_plan(scene, _replace(0, (6.0, 2.5, 1.0)), big).background_repair == (0,)
+    # under the volume threshold, or moving (the background behind it was seen): no repair
+    assert make_plan(scene, _replace(0, (3.0, 1.5, 1.2))).background_repair == ()
+    assert make_plan(scene, _replace(1, (1.0, 1.0, 1.0)), PlanConfig(large_object_volume_m3=0.1)).background_repair \
+        == ()
+
+
+def test_the_uncovered_margin_is_the_old_boxs_worst_overhang():
+    old = (13.0, 2.5, 4.0)  # a trailer replaced by a sedan resting on the same ground, centred where it stood
+    assert uncovered_margin(old, ReplaceModel(1, "pm", size=(4.6, 1.9, 1.5))) == pytest.approx(4.2)
+    assert uncovered_margin(old, ReplaceModel(1, "pm", size=(13.0, 2.5, 3.0))) == pytest.approx(1.0)  # the top
+    assert uncovered_margin(old, ReplaceModel(1, "pm", size=(14.0, 3.0, 4.5))) == 0.0
+    assert uncovered_margin(old, ReplaceModel(1, "pm")) == 0.0  # scaled to the old box
+    assert 0 < UNCOVERED_MARGIN_M < 0.5
 
 
 def test_every_fourth_frame_is_held_out(scene):

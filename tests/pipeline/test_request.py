@@ -110,7 +110,7 @@ def test_a_bad_request_is_one_line_naming_the_field(fields, message):
 
 def test_the_stage_table_is_the_pipeline_in_order():
     assert stages.STAGE_NAMES == ("ingest", "plan", "preview", "fit", "agents", "background", "behavior",
-                                  "appearance", "annotate")
+                                  "appearance", "uncovered", "annotate")
     assert [s.name for s in stages.STAGES if s.makes_model] == ["fit", "agents", "background"]
     with pytest.raises(OmniscsError, match="unknown stage 'fitt'"):
         stages.stage("fitt")
@@ -142,6 +142,18 @@ def test_a_walk_runs_what_the_plan_needs_and_hands_each_stage_the_latest_graph(m
     assert calls == [("ingest", None), ("plan", None), ("fit", None), ("agents", "fit"), ("background", "agents"),
                      ("behavior", "background"), ("annotate", "background")]
     assert state.model.stage == "background"
+
+
+def test_annotated_appearance_variants_get_a_repair_of_what_they_uncover_before_annotation(monkeypatch):
+    plan = _Plan(fit_nsg=True, appearance_variants=True, render_annotate=True)
+    calls, state = _fake_walk(monkeypatch, plan, SceneRequest(previews=False))
+    # the repaired graph is for the variants that uncover: the scene graph of the later stages stays the fit's
+    assert calls == [("ingest", None), ("plan", None), ("fit", None), ("appearance", "fit"), ("uncovered", "fit"),
+                     ("annotate", "fit")]
+    assert state.model.stage == "fit" and state.ran("uncovered") is not None
+    # without annotation nothing renders the variants: the repair is not needed
+    calls, _ = _fake_walk(monkeypatch, _Plan(fit_nsg=True, appearance_variants=True), SceneRequest(previews=False))
+    assert [c[0] for c in calls] == ["ingest", "plan", "fit", "appearance"]
 
 
 def test_a_walk_stops_after_until_and_leaves_out_skipped_stages(monkeypatch):
