@@ -125,6 +125,8 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
         "annotations": [r for v in results for r in v.annotations],
         "variants": [dict(v.summary, store_id=v.store.name, scene_id=scene.scene_id) for v in results],
         "bev": pictures, "rejected": rejected, "spare": spare, "wanted": wanted})
+    # variants left unrendered (failed before rendering, spares not needed) never reported their share
+    progress(1000 * len(variants), 1000 * len(variants), f"{len(results)} variant(s) rendered")
     return results
 
 

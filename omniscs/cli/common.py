@@ -208,7 +208,9 @@ def show_dataset(path: Path) -> None:
 
     card = read_json(path / CARD_JSON, "the dataset card is damaged; build the dataset again")
     c = card["counts"]
-    print_table([{k: v for k, v in row.items()} for row in card["variants"]], title=f"dataset {card['dataset_id']}")
+    shown = ("scene_id", "variant_id", "level", "passed_gates", "ego_solved", "n_images", "n_annotations",
+             "fidelity_psnr", "feature_drift")  # the rest is in the card (dataset.json, README.md)
+    print_table([{k: row.get(k) for k in shown} for row in card["variants"]], title=f"dataset {card['dataset_id']}")
     fid, drift = card["fidelity"]["variant_psnr"], card["fidelity"].get("variant_feature_drift")
     console.print(f"{c['variants']} variant(s) of {c['scenes']} scene(s): {c['frames']} frames, {c['images']} images, "
                   f"{c['annotations']} box annotations; ego solved in {c['ego_solved']}; "
