@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
+import os
 from pathlib import Path
 
 from omniscs.errors import OmniscsError
@@ -23,6 +25,22 @@ def is_real(value) -> bool:
 def is_finite(value) -> bool:
     """A real number that is neither NaN nor infinite."""
     return is_real(value) and math.isfinite(value)
+
+
+#: Most torch threads a command may ask for: a few per core (more only thrash; 10,000 took the load to 300).
+MAX_THREADS = 4 * (os.cpu_count() or 1)
+#: Most optimiser steps a command may ask for (the accurate preset takes 5,000).
+MAX_ITERATIONS = 1_000_000
+#: Largest seed a procedural world or a sampler takes (32 bits: what every tool that records seeds can hold).
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(value, what: str = "seed") -> int:
+    """``value`` as a seed in [0, MAX_SEED]; anything else (a bool, a float, a negative or larger number) is one
+    OmniscsError naming ``what``."""
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or not 0 <= value <= MAX_SEED:
+        raise OmniscsError(f"{what} must be a whole number from 0 to {MAX_SEED}; got {value!r}")
+    return int(value)
 
 
 def read_json(path: Path, damaged: str):

@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from omniscs.checks import MAX_ITERATIONS, MAX_THREADS
+
 from omniscs.cli.common import check_out, console, depth_picture, print_table, progress_bars, read_edits
 from omniscs.errors import OmniscsError
 
@@ -21,9 +23,10 @@ def fit(
     out: Path = typer.Option(..., help="Checkpoint folder to write (must not exist unless --overwrite; a folder "
                                        "holding this very fit is reused)."),
     preset: str = typer.Option("balanced", help="fast, balanced or accurate."),
-    iterations: Optional[int] = typer.Option(None, help="Override the preset's optimiser steps."),
+    iterations: Optional[int] = typer.Option(None, min=1, max=MAX_ITERATIONS,
+                                             help="Override the preset's optimiser steps."),
     edit: Optional[str] = typer.Option(None, help="Edits the graph must support (their tracks become nodes): JSON or @file."),
-    threads: int = typer.Option(1, help="torch CPU threads."),
+    threads: int = typer.Option(1, min=1, max=MAX_THREADS, help="torch CPU threads."),
     overwrite: bool = typer.Option(False, help="Replace an existing checkpoint at --out."),
     behavior_variants: int = typer.Option(0, help="Behaviour variants will be made with this graph (L_app): "
                                                   "every vehicle becomes a node."),

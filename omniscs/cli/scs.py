@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from omniscs.checks import MAX_SEED, MAX_THREADS
+
 from omniscs.cli.common import check_out, console, print_table, progress_bars
 from omniscs.errors import OmniscsError
 
@@ -18,11 +20,12 @@ app = typer.Typer(help="Safety-critical scenario synthesis (behaviour-level vari
 def scs_train_behavior(
     out: Path = typer.Option(..., help="Checkpoint folder to write (must not exist unless --overwrite)."),
     preset: str = typer.Option("balanced", help="fast (smoke test), balanced (the shipped checkpoint) or accurate."),
-    seed: int = typer.Option(0, help="Seed of training worlds, held-out worlds and initialisation."),
+    seed: int = typer.Option(0, min=0, max=MAX_SEED,
+                             help="Seed of training worlds, held-out worlds and initialisation."),
     worlds: Optional[int] = typer.Option(None, help="Procedural training worlds (default: the preset's)."),
     steps: Optional[int] = typer.Option(None, help="Optimiser steps (default: the preset's)."),
     scene: Optional[list[Path]] = typer.Option(None, "--scene", help="Scene stores to add as training data (repeat)."),
-    threads: int = typer.Option(1, help="torch CPU threads."),
+    threads: int = typer.Option(1, min=1, max=MAX_THREADS, help="torch CPU threads."),
     overwrite: bool = typer.Option(False, help="Replace an existing checkpoint at --out."),
 ) -> None:
     """Train the behaviour (traffic) model on procedural traffic (+ scene stores); writes weights, config and
@@ -69,7 +72,7 @@ def scs_behavior(
     checkpoint: Optional[Path] = typer.Option(None, help="Traffic-model checkpoint folder (default: the shipped one)."),
     preset: str = typer.Option("balanced", help="fast, balanced or accurate (optimisation steps)."),
     planner: str = typer.Option("replay", help="Ego plan: replay (the logged future) or rule (reacts, brakes)."),
-    threads: int = typer.Option(1, help="torch CPU threads."),
+    threads: int = typer.Option(1, min=1, max=MAX_THREADS, help="torch CPU threads."),
     nsg: Optional[Path] = typer.Option(None, help="The scene's fitted scene graph (omniscs fit --behavior-variants "
                                                   "N): adds L_app, rendered by it."),
     app_frames: int = typer.Option(3, help="L_app: horizon steps rendered per optimisation step."),
@@ -144,7 +147,7 @@ def scs_appearance(
                                                                           "default: every model of --pool)."),
     camera: Optional[str] = typer.Option(None, help="--sample: the camera objects must be seen by."),
     distance: str = typer.Option("8,30", help="--sample: lo,hi metres from that camera."),
-    seed: int = typer.Option(0, help="--sample: seed."),
+    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="--sample: seed."),
     colour: bool = typer.Option(True, "--colour/--no-colour", help="Map objects' colours by the scene's colour "
                                                                    "transform (estimated from its vehicles)."),
     shadow: bool = typer.Option(True, "--shadow/--no-shadow", help="A soft contact shadow under each object."),

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from omniscs.checks import MAX_SEED
 from omniscs.errors import OmniscsError
 
 from omniscs.cli.common import check_out, console, depth_picture, progress_bars, read_edits
@@ -18,7 +19,7 @@ app = typer.Typer(help="Procedural driving worlds (the embedded synthetic defaul
 def world_make(
     out: Path = typer.Option(..., help="Directory to write the scene store to (must not exist)."),
     template: str = typer.Option("straight", help="Road layout template."),
-    seed: int = typer.Option(0, help="Seed for layout, assets and traffic."),
+    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="Seed for layout, assets and traffic."),
     frames: int = typer.Option(40, help="Frames at 10 Hz."),
     cameras: int = typer.Option(3, help="Cameras, 1 to 6, nuScenes-like placement."),
     width: int = typer.Option(480), height: int = typer.Option(270),

@@ -8,6 +8,7 @@ from typing import Callable, Union
 
 import numpy as np
 
+from omniscs.checks import MAX_SEED, check_seed
 from omniscs.errors import OmniscsError
 from omniscs.scene.sources.common import FORMATS, DatasetSource
 from omniscs.scene.store import verify_store
@@ -49,9 +50,12 @@ def parse_source(text: str, **synthetic_defaults) -> Source:
         return _parse_dataset_source(fmt, rest)
     if text.startswith("syn:"):
         parts = text.split(":")
-        if len(parts) not in (3, 4) or not parts[2].lstrip("-").isdigit():
-            raise OmniscsError(f"bad synthetic source {text!r}; write syn:TEMPLATE:SEED[:LIGHTING], e.g. syn:straight:0:night")
-        fields = dict(template=parts[1], seed=int(parts[2]), **synthetic_defaults)
+        # ASCII digits only: str.isdigit and int() also take other scripts' digits ("٥" would become seed 5)
+        if len(parts) not in (3, 4) or not (parts[2].isascii() and parts[2].isdigit()):
+            raise OmniscsError(f"bad synthetic source {text!r}; write syn:TEMPLATE:SEED[:LIGHTING] with SEED a whole "
+                               f"number from 0 to {MAX_SEED} in ASCII digits, e.g. syn:straight:0:night")
+        fields = dict(template=parts[1], seed=check_seed(int(parts[2]), f"the seed of {text!r}"),
+                      **synthetic_defaults)
         if len(parts) == 4:
             fields["lighting"] = parts[3]
         return SyntheticSource(**fields)
@@ -129,6 +133,7 @@ def check_synthetic_fields(source: SyntheticSource) -> None:
         value = getattr(source, name)
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
             raise OmniscsError(f"synthetic source field {name} must be an integer; got {value!r}")
+    check_seed(source.seed, "synthetic source field seed")
     for name in ("template", "lighting"):
         if not isinstance(getattr(source, name), str):
             raise OmniscsError(f"synthetic source field {name} must be a string; got {getattr(source, name)!r}")

@@ -14,7 +14,9 @@ GOOD = {"sources": ["syn:straight:0"], "n_frames": 2, "n_cameras": 1, "width": 1
 CASES = [
     ("no sources", {"sources": []}, "at least one source"),
     ("unknown template", {"sources": ["syn:nope:1"]}, "unknown template"),
-    ("negative seed", {"sources": ["syn:straight:-1"]}, "bad seed -1"),
+    ("negative seed", {"sources": ["syn:straight:-1"]}, "bad synthetic source 'syn:straight:-1'"),
+    ("a seed in another script's digits", {"sources": ["syn:straight:\u0665"]}, "in ASCII digits"),
+    ("a seed beyond 32 bits", {"sources": ["syn:straight:18446744073709551616"]}, "from 0 to 4294967295"),
     ("unknown lighting", {"sources": ["syn:straight:0:purple"]}, "unknown lighting"),
     ("bad synthetic form", {"sources": ["syn:straight"]}, "bad synthetic source"),
     ("missing store", {"sources": ["/nonexistent/store"]}, "neither syn:TEMPLATE:SEED"),

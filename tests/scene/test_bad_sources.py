@@ -277,6 +277,8 @@ SOURCE_DICTS = {
     "unknown synthetic field": ({"kind": "synthetic", "frames": 4}, r"unknown field\(s\) \['frames'\] for a synthetic"),
     "synthetic frames a string": ({"kind": "synthetic", "n_frames": "4"}, r"field n_frames must be an integer; got '4'"),
     "synthetic seed a bool": ({"kind": "synthetic", "seed": True}, r"field seed must be an integer; got True"),
+    "synthetic seed beyond 32 bits": ({"kind": "synthetic", "seed": 2**40}, r"seed must be a whole number from 0 to "
+                                                                            r"4294967295"),
     "synthetic huge frames": ({"kind": "synthetic", "n_frames": 10**7}, r"limited to 10000 frames"),
     "store without path": ({"kind": "store"}, r"bad store source .* missing 1 required positional argument"),
     "store path a number": ({"kind": "store", "path": 5}, r"needs the path of a scene store; got 5"),
