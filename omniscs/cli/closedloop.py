@@ -25,7 +25,7 @@ def run(
                                                   "closedloop/<eval id>/)."),
     reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
     camera: list[str] = typer.Option([], "--camera", help="Render these cameras only (repeat; default all)."),
-    width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
+    width: Optional[int] = typer.Option(None, min=8, max=4096, help="Render width in pixels (default the camera's)."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
     run_id: Optional[str] = typer.Option(None, help="Run id (default: time-stamped)."),
     task_runner: str = typer.Option("threads", help="Where scenarios run: threads or dask (see omniscs generate)."),
@@ -37,16 +37,20 @@ def run(
     import os
 
     from omniscs.cli.prefect_api import prefect_api
+    from omniscs.ids import check_id
     from omniscs.pipeline.closedloop import parse_ref, resolve
+    from omniscs.scene import load_scene
     from omniscs.storage import workspace_path
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     if steps is not None and steps < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--steps")
+    if run_id is not None:
+        check_id("run id", run_id)
     ws = workspace_path(workspace)
-    for ref in scenarios:  # unknown scenes, graphs and variants fail here, before Prefect starts
+    for ref in scenarios:  # unknown scenes, graphs, variants and cameras fail here, before Prefect starts
         parse_ref(ref)
-        resolve(ws, ref)
+        check_cameras(load_scene(resolve(ws, ref).scene_path), camera)
     from flows.runners import check_runner
 
     check_runner(task_runner, None if dask_address else workers, dask_address)
@@ -76,6 +80,16 @@ def run(
 
 def _num(v) -> str:
     return "n/a" if v is None else f"{float(v):.3f}"
+
+
+def check_cameras(scene, cameras: list[str]) -> None:
+    """Every asked-for camera is one of the scene's (one line naming them otherwise)."""
+    from omniscs.errors import ValidationError
+
+    unknown = [c for c in cameras if c not in scene.camera_names]
+    if unknown:
+        raise ValidationError(f"--camera {', '.join(unknown)}: not a camera of scene {scene.scene_id}; it has "
+                              f"{', '.join(scene.camera_names)}")
 
 
 #: Environment variable with accepted tokens (separated by commas or newlines), read beside --token/--token-file.
@@ -137,7 +151,7 @@ def serve(
     host: str = typer.Option("127.0.0.1", help="Address to bind (loopback unless told otherwise)."),
     port: int = typer.Option(8065, min=1, max=65535, help="Port (HUGSIM's client defaults to 8065)."),
     camera: list[str] = typer.Option([], "--camera", help="Render these cameras only (repeat; default all)."),
-    width: Optional[int] = typer.Option(None, help="Render width in pixels (default the camera's)."),
+    width: Optional[int] = typer.Option(None, min=8, max=4096, help="Render width in pixels (default the camera's)."),
     reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
     out: Optional[Path] = typer.Option(None, help="Write each finished episode's run folder here."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),

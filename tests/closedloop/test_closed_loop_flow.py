@@ -69,11 +69,17 @@ def test_a_scenario_that_cannot_run_is_recorded_failed_and_the_others_still_run(
 def test_the_cli_refuses_an_unknown_scene_or_policy_in_one_line(workspace, world):
     for args in (["closedloop", "run", "no-such-scene/log"],
                  ["closedloop", "run", f"{world[0].scene_id}/log", "--policy", "greedy"],
-                 ["closedloop", "run", "a/b/c"]):
+                 ["closedloop", "run", "a/b/c"],
+                 ["closedloop", "run", f"{world[0].scene_id}/log", "--camera", "CAM_NOSE"],
+                 ["closedloop", "run", f"{world[0].scene_id}/log", "--run-id", "../x"],
+                 ["closedloop", "run", f"{world[0].scene_id}/log", "--width", "-5"]):
         proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", *args,
                                "--workspace", str(workspace)], capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 2 and "Traceback" not in proc.stderr
-        assert proc.stderr.strip().count("\n") == 0 and proc.stderr.startswith("error:")
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr and "Prefect" not in proc.stderr, args
+        if "--width" in args:  # the option's own range check (click's usage message)
+            assert "--width" in proc.stderr
+            continue
+        assert proc.stderr.strip().count("\n") == 0 and proc.stderr.startswith("error:"), proc.stderr
 
 
 def test_the_serve_command_serves_a_workspace_scenario_to_hugsims_client(workspace, world, monkeypatch):
