@@ -278,6 +278,11 @@ def verify_store(path: str | os.PathLike, progress: Callable[[int, int], None] |
                                       "is damaged or was changed); re-ingest the source or restore the file")
             if progress:
                 progress(i + 1, len(files))
+        # a hash vouches only for what was recorded: a file swapped together with its hash (a JPEG, another size,
+        # a cut-off PNG) is caught by the images' structure, read from a few bytes at each end
+        for cam in (scene.camera(c) for c in scene.camera_names):
+            for f in range(scene.n_frames):
+                check_png_structure(image_path(root, cam.name, f), cam)
         return scene
     cams = [scene.camera(c) for c in scene.camera_names]
     total = scene.n_frames * len(cams) * (2 if scene.has_gt else 1) + (scene.n_frames if scene.has_lidar else 0)
@@ -335,6 +340,34 @@ def file_sha256(path: Path) -> str:
         raise ValidationError(f"{path}: file is missing") from None
     except OSError as exc:
         raise ValidationError(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
+#: A PNG file's first 8 bytes, and its last chunk (length 0, type IEND, its CRC).
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def check_png_structure(path: Path, camera: CameraRecord) -> None:
+    """Without decoding: ``path`` is a whole PNG (signature, IHDR first, IEND last) of the camera's size;
+    ValidationError otherwise (a JPEG under a .png name, another size, a file cut off)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+            fh.seek(0, os.SEEK_END)
+            if fh.tell() < 24 + len(PNG_END):
+                raise ValidationError(f"{path}: too short to be a PNG image; re-ingest the source")
+            fh.seek(-len(PNG_END), os.SEEK_END)
+            tail = fh.read(len(PNG_END))
+    except FileNotFoundError:
+        raise ValidationError(f"{path}: image file is missing") from None
+    if head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValidationError(f"{path}: not a PNG image (a scene store keeps its images as PNG); re-ingest the source")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if (width, height) != (camera.width, camera.height):
+        raise ValidationError(f"{path}: image is {width}x{height} but camera {camera.name} is "
+                              f"{camera.width}x{camera.height} in {CAMERAS}")
+    if tail != PNG_END:
+        raise ValidationError(f"{path}: the PNG image is cut off (no IEND at its end); re-ingest the source")
 
 
 def read_store_image(path: Path, camera: CameraRecord) -> np.ndarray:  # -> uint8 [H, W, 3] RGB

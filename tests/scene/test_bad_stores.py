@@ -106,6 +106,22 @@ def replace_image(rel: str, rgb: np.ndarray):
     return damage
 
 
+def rehashed(damage, rel: str):
+    """``damage``, then the manifest's size and sha256 of ``rel`` brought up to date (a careless or hostile edit)."""
+    def apply(root: Path):
+        damage(root)
+        set_manifest(lambda m: m[FILES].__setitem__(rel, [(root / rel).stat().st_size, file_sha256(root / rel)]))(root)
+    return apply
+
+
+def jpeg_bytes(rel: str):
+    def damage(root: Path):
+        import cv2
+
+        (root / rel).write_bytes(cv2.imencode(".jpg", np.zeros((36, 64, 3), np.uint8))[1].tobytes())
+    return damage
+
+
 IMG = "images/CAM_FRONT/000002.png"
 LIDAR = "lidar/000003.npy"
 GT = "gt/CAM_FRONT/000001.npz"
@@ -191,6 +207,12 @@ CASES = {
     "missing LiDAR": (lambda root: (root / LIDAR).unlink(), r"000003.npy: LiDAR file is missing", "load"),
     "corrupt PNG of the same size": (flip_byte(IMG), r"000002.png: content differs from the sha256", "verify"),
     "LiDAR byte flipped": (flip_byte(LIDAR, 0.9), r"000003.npy: content differs from the sha256", "verify"),
+    # a file swapped together with its recorded size and hash: the images' structure still tells
+    "a JPEG under the PNG's name, hash updated": (rehashed(jpeg_bytes(IMG), IMG), r"000002.png: not a PNG image",
+                                                  "verify"),
+    "a PNG of another size, hash updated": (rehashed(replace_image(IMG, np.zeros((18, 32, 3), np.uint8)), IMG),
+                                            r"000002.png: image is 32x18 but camera CAM_FRONT is 64x36", "verify"),
+    "a cut-off PNG, hash updated": (rehashed(truncate(IMG), IMG), r"000002.png: the PNG image is cut off", "verify"),
     "boxes table changed": (flip_byte("boxes.parquet", 0.3), r"boxes.parquet", "load_or_verify"),
     # stores written before sizes and hashes were recorded: verify_store decodes
     "old store: garbage PNG": (old_store(garbage(IMG)), r"000002.png: image is unreadable", "verify"),
