@@ -60,12 +60,16 @@ def ingest(
 
 
 @app.command("info")
-def scene_info(path: Path, as_json: bool = typer.Option(False, "--json", help="Print JSON.")) -> None:
+def scene_info(path: Path, as_json: bool = typer.Option(False, "--json", help="Print JSON."),
+               verify: bool = typer.Option(True, help="Check every file against its recorded hash and every image's "
+                                                      "structure first (about 0.05 s per 100 images; --no-verify "
+                                                      "reads only the tables).")) -> None:
     """Summarise a scene store: source, frames, cameras, tracks."""
     from omniscs.scene import load_scene
+    from omniscs.scene.store import verify_store
     from omniscs.scene.summary import agent_rows
 
-    scene = load_scene(path)
+    scene = verify_store(path) if verify else load_scene(path)
     agents = agent_rows(scene)
     info = {
         "scene_id": scene.scene_id, "path": str(scene.path), "source": scene.source,

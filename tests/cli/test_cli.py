@@ -35,6 +35,27 @@ def test_scene_info_json_describes_the_scene(tiny_scene):
     assert info["cameras"] == {"CAM_FRONT": {"size": [64, 36]}}
 
 
+def test_scene_info_refuses_a_store_whose_image_was_swapped_with_its_hash(tiny_scene, tmp_path):
+    import shutil
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from omniscs.errors import OmniscsError
+    from omniscs.scene.store import FILES, MANIFEST, file_sha256
+
+    store = Path(shutil.copytree(tiny_scene, tmp_path / "store"))
+    rel = "images/CAM_FRONT/000001.png"
+    (store / rel).write_bytes(cv2.imencode(".jpg", np.zeros((36, 64, 3), np.uint8))[1].tobytes())
+    manifest = json.loads((store / MANIFEST).read_text())
+    manifest[FILES][rel] = [(store / rel).stat().st_size, file_sha256(store / rel)]
+    (store / MANIFEST).write_text(json.dumps(manifest))
+    result = runner.invoke(app, ["scene", "info", str(store), "--json"])
+    assert isinstance(result.exception, OmniscsError) and "not a PNG image" in str(result.exception)
+    assert runner.invoke(app, ["scene", "info", str(store), "--json", "--no-verify"]).exit_code == 0
+
+
 def test_scene_preview_writes_both_pictures(tiny_scene, tmp_path):
     result = runner.invoke(app, ["scene", "preview", str(tiny_scene), "--out", str(tmp_path / "pv")])
     assert result.exit_code == 0, result.output
