@@ -168,6 +168,7 @@ def test_unknown_scene_or_missing_tables_are_clear_errors(dataroot, tmp_path):
         evaluate_detection_results(tmp_path, VERSION, path)
 
 
+@pytest.mark.slow
 def test_the_eval_detection_command_prints_the_protocols_json_and_refuses_bad_results_in_one_line(dataroot, tmp_path):
     import subprocess
     import sys

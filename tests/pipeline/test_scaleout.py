@@ -155,6 +155,7 @@ def _write_many(root: str, writer: str, n: int) -> None:
             "config_json": "{}", "omniscs_version": "test", "error": None, "flow_run_id": None}], writer=writer)
 
 
+@pytest.mark.slow
 def test_two_writers_on_the_same_catalog_table_lose_nothing(tmp_path):
     root = str(tmp_path / "catalog")
     ctx = multiprocessing.get_context("spawn")
