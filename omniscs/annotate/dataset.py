@@ -135,6 +135,14 @@ def gate_summary(records: list[dict], keep_failed: bool) -> dict:
             "keep_failed": bool(keep_failed), "rejections": reasons}
 
 
+def gate_counts(gates: dict) -> str:
+    """The gates' counts as one line, per level asked for or tried (``gate_summary``'s requested/produced/rejected/
+    tried): what ``dataset info`` and ``generate`` print."""
+    return "; ".join(f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed, "
+                     f"{gates['rejected'][level]} rejected, {gates['tried'][level]} tried"
+                     for level in LEVELS if gates["requested"][level] or gates["tried"][level])
+
+
 def first_reasons(gates: dict, n: int = 3) -> str:
     """The first ``n`` rejections as one line."""
     shown = [f"{r['variant_id']}: {'; '.join(r['reasons'])}" for r in gates["rejections"][:n]]

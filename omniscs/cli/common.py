@@ -203,7 +203,7 @@ def workspace_option() -> Optional[Path]:
 
 def show_dataset(path: Path) -> None:
     """A dataset's card as a table of variants and a few lines: counts, fidelity, where things are."""
-    from omniscs.annotate.dataset import CARD_JSON
+    from omniscs.annotate.dataset import CARD_JSON, gate_counts
     from omniscs.checks import read_json
 
     card = read_json(path / CARD_JSON, "the dataset card is damaged; build the dataset again")
@@ -218,9 +218,7 @@ def show_dataset(path: Path) -> None:
                   + (f"; feature drift mean {drift['mean']:.3f}" if drift else ""))
     gates, lidar = card.get("gates"), card.get("lidar")
     if gates is not None:
-        console.print("quality gates: " + "; ".join(
-            f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed, "
-            f"{gates['rejected'][level]} rejected, {gates['tried'][level]} tried" for level in gates["requested"]))
+        console.print(f"quality gates: {gate_counts(gates)}")
         for r in gates["rejections"]:
             console.print(f"  rejected {r['scene_id']} {r['variant_id']} ({r['level']}"
                           f"{', in the dataset' if r['in_dataset'] else ''}): {'; '.join(r['reasons'])}")

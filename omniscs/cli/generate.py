@@ -197,10 +197,9 @@ def generate(**fields) -> None:
     print_table(rows, title=f"run {result['run_id']}")
     console.print(f"run {result['run_id']}: {len(result['scenes'])} scene(s) in {result['workspace']}")
     if result.get("dataset_path"):
-        gates = result.get("dataset_gates") or {}
-        counts = ", ".join(f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed "
-                           f"({gates['rejected'][level]} rejected, {gates['tried'][level]} tried)"
-                           for level in ("behaviour", "appearance") if gates.get("requested", {}).get(level))
+        from omniscs.annotate.dataset import gate_counts
+
+        counts = gate_counts(result["dataset_gates"]) if result.get("dataset_gates") else ""
         console.print(f"dataset {result['dataset_id']}: {result['dataset_path']}  (omniscs dataset info "
                       f"{result['dataset_id']})" + (f"\n  variants: {counts}" if counts else ""))
         for warning in result.get("dataset_warnings") or []:
