@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
-from omniscs.storage import atomic_write_bytes
+from omniscs.storage import atomic_write_bytes, inside
 
 SCHEMAS: dict[str, pa.Schema] = {
     "runs": pa.schema([
@@ -516,11 +516,25 @@ def views_sql(root: str = "omniscs-data/catalog") -> str:
     return "\n".join(lines + view_statements()) + "\n"
 
 
+def check_contained(root: Path) -> None:
+    """Refuse a catalog whose table folders or files are symbolic links out of ``root``: DuckDB allows the files
+    under ``root`` as written, so such a link would let a query read elsewhere."""
+    if not root.is_dir():
+        return
+    for table in root.iterdir():
+        inside(table, root, "catalog entry")
+        if table.is_dir() and not table.is_symlink():
+            for entry in table.iterdir():
+                if entry.is_symlink():
+                    inside(entry, root, "catalog file")
+
+
 def connect(root: Path) -> duckdb.DuckDBPyConnection:
     """An in-memory DuckDB connection with the catalog views over ``root`` (empty views when no files yet) that
     can read nothing but files under ``root``: no other file, no extension, no network, no setting changed
     (the configuration is locked), no spilling to disk."""
     root = Path(root).expanduser().resolve()
+    check_contained(root)
     prefix = _glob_prefix(root)
     con = duckdb.connect()
     try:

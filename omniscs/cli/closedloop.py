@@ -40,13 +40,15 @@ def run(
     from omniscs.ids import check_id
     from omniscs.pipeline.closedloop import parse_ref, resolve
     from omniscs.scene import load_scene
-    from omniscs.storage import workspace_path
+    from omniscs.storage import check_output, workspace_path
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     if steps is not None and steps < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--steps")
     if run_id is not None:
         check_id("run id", run_id)
+    if out is not None:
+        out = check_output(out, follow=True)
     ws = workspace_path(workspace)
     for ref in scenarios:  # unknown scenes, graphs, variants and cameras fail here, before Prefect starts
         parse_ref(ref)

@@ -179,12 +179,14 @@ def read_edits(edit: Optional[str]) -> list:
 
 
 def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> Path:
-    """An ``--out`` path checked before work starts: the right suffix, not under a file, and not already there
-    unless ``overwrite`` (a folder is then replaced only when omniscs wrote it)."""
-    from omniscs.storage import check_replaceable
+    """An ``--out`` path checked before work starts: the right suffix, the path policy (``storage.check_output``:
+    no symbolic link, names that fit, a writable folder), not under a file, and not already there unless
+    ``overwrite`` (a folder is then replaced only when omniscs wrote it)."""
+    from omniscs.storage import check_output, check_replaceable
 
     if suffix is not None and out.suffix.lower() != suffix:
         raise OmniscsError(f"--out must end in {suffix}; got {out}")
+    check_output(out)
     for parent in Path(out).absolute().parents:
         if parent.exists():
             if not parent.is_dir():
@@ -224,7 +226,8 @@ def show_dataset(path: Path) -> None:
                           f"{', in the dataset' if r['in_dataset'] else ''}): {'; '.join(r['reasons'])}")
     if lidar is not None and lidar.get("boxes_within"):
         console.print(f"LiDAR: {lidar['with_points_within']} of {lidar['boxes_within']} boxes within "
-                      f"{lidar['within_m']:g} m have points ({lidar['with_points']} of {lidar['boxes']} in all)")
+                      f"{lidar['within_m']:g} m have points ({lidar['with_points']} of {lidar['boxes']} in all; "
+                      f"{lidar.get('unlabelled', 0)} box(es) no sensor captures are not labelled)")
     for warning in card.get("warnings") or []:
         print_error(warning, label="warning", style="yellow")
     console.print(f"folder:  {path}")

@@ -99,6 +99,7 @@ def world_export(
 
     if fmt not in WRITERS:
         raise OmniscsError(f"unknown --format {fmt!r}; use one of {list(WRITERS)}")
+    check_out(out, overwrite)
     nuscenes = {"version": version, "keyframe_every": keyframe_every, "keep_unseen": keep_unseen}
     options = {"nuscenes": nuscenes, "kitti": {"camera": camera}, "waymo-v2": {}, "uniad": nuscenes}[fmt]
     if keep_unseen and fmt not in ("nuscenes", "uniad"):

@@ -49,6 +49,7 @@ from omniscs.export.common import (
 from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M, ScenePlacement, map_expansions, place_scenes
 from omniscs.geometry import invert_transform, points_in_box
 from omniscs.quaternions import rotmat_to_quat
+from omniscs.scene.seen import captured, labelled
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
 
@@ -275,20 +276,12 @@ def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, key
 
 
 def seen_span(rows, points_of: dict[int, int]) -> list:
-    """Index labels of the keyframe box ``rows`` (one scene, sorted by frame) that a sensor captured or that lie
-    between two that were, per track: nuScenes' annotators label an object from where the LiDAR or a camera first
-    shows it to where they last do, through occlusions in between; an object no sensor ever shows is not labelled.
-    A box is captured when it has LiDAR points (``points_of``: index label -> count) or visible pixels; one whose
-    visible pixels are unknown (-1, e.g. a recorded log's annotation) counts as captured."""
-    captured = {i: points_of[i] > 0 or int(v) != 0 for i, v in zip(rows.index, rows["visible_pixels"])}
-    keep = []
-    for _, track in rows.groupby("track_id", sort=False):
-        hits = [i for i in track.index if captured[i]]
-        if hits:
-            first, last = track.index.get_loc(hits[0]), track.index.get_loc(hits[-1])
-            keep.extend(track.index[first:last + 1])
-    order = {i: k for k, i in enumerate(rows.index)}
-    return sorted(keep, key=order.__getitem__)
+    """Index labels of the keyframe box ``rows`` (one scene, sorted by frame) that an annotator labels
+    (``omniscs.scene.seen``: per track, from the first box a sensor captured to the last), in the rows' order;
+    ``points_of``: index label -> LiDAR points."""
+    keep = labelled((i, int(t), int(f), captured(points_of[i], v))
+                    for i, t, f, v in zip(rows.index, rows["track_id"], rows["frame_idx"], rows["visible_pixels"]))
+    return [i for i in rows.index if i in keep]
 
 
 def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], tables: _Tables,
