@@ -157,8 +157,15 @@ def comma_list(text: Optional[str], parse: Callable[[str], T] = str, option: str
 
 
 def seeds(text: str) -> tuple[int, ...]:
-    """``--seeds 0,1,2``; at least one."""
-    out = comma_list(text, int, "--seeds", "0,1,2")
+    """``--seeds 0,1,2``; at least one, each in ASCII digits and in range (``checks.check_seed``)."""
+    from omniscs.checks import check_seed
+
+    def one(item: str) -> int:
+        if not (item.isascii() and item.isdigit()):
+            raise ValueError(item)
+        return check_seed(int(item), "each of --seeds")
+
+    out = comma_list(text, one, "--seeds", "0,1,2")
     if not out:
         raise OmniscsError("--seeds needs at least one seed")
     return out
