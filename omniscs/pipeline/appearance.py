@@ -202,7 +202,9 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
                          progress: Progress = no_progress) -> dict:
     """What ``omniscs scs appearance`` does: the scene and its graph, the variants asked for (one by hand or ``sample``
     drawn), the scene's colour transform, then ``render_appearance_set`` into ``out`` (a temporary folder that
-    becomes ``out`` only when everything is written)."""
+    becomes ``out`` only when everything is written). ``unrepaired`` in the result lists the large static objects
+    whose footprint the variants uncover (``omniscs.plan.repair_objects``): rendered here without the background
+    repair that ``omniscs generate`` runs for them (its uncovered stage), they leave a ghost."""
     try:
         lo, hi = (float(v) for v in str(distance).split(","))
     except ValueError:
@@ -236,11 +238,14 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
         v["colour"] = (transform.affine if transform is not None else IDENTITY).tolist()
         if pool is not None:
             v["pool"] = str(Path(pool).resolve())
+    from omniscs.pipeline.background import variant_uncovers  # the background stages import this module's users
+
+    unrepaired = sorted({t for v in specs for t in variant_uncovers(scene, v)})
     with atomic_directory(Path(out), overwrite=True) as tmp:
         result = render_appearance_set(scene, graph, specs, tmp, pool, config.composite, progress)
 
         atomic_write_json(tmp / "colour.json", None if transform is None else transform.to_dict())
-    return {"specs": specs, **result}
+    return {"specs": specs, **result, "unrepaired": unrepaired}
 
 
 # ----------------------------------------------------------------------------- models of what a detector missed
