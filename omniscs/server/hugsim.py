@@ -152,10 +152,11 @@ class ServerConfig:
     def __post_init__(self):
         if self.max_sessions < 1 or self.transaction_cache < 1 or self.max_plan_values < 2 or self.log_lines < 1:
             raise ValidationError("max_sessions, transaction_cache and log_lines must be >= 1, max_plan_values >= 2")
-        for name in ("max_sessions_per_token", "max_pending_per_token"):
+        for name, high in (("max_sessions_per_token", self.max_sessions),
+                           ("max_pending_per_token", self.max_sessions * PENDING_PER_SESSION)):
             value = getattr(self, name)
-            if value is not None and not (isinstance(value, int) and 1 <= value <= self.max_sessions * 16):
-                raise ValidationError(f"{name} must be None or 1 to {self.max_sessions * 16} (got {value!r})")
+            if value is not None and not (isinstance(value, int) and 1 <= value <= high):
+                raise ValidationError(f"{name} must be None or 1 to {high} (got {value!r})")
         if not (isinstance(self.request_burst, int) and 1 <= self.request_burst <= 100_000):
             raise ValidationError(f"request_burst must be 1 to 100000 requests (got {self.request_burst!r})")
         for name, low, high in (("requests_per_s", 0.01, 100_000.0), ("body_timeout_s", 0.01, 3600.0),
