@@ -96,6 +96,8 @@ MAX_TRANSACTION_ID = 128
 #: Numeric kinds a plan's declared dtype may have: signed and unsigned integers, floats.
 PLAN_KINDS = "iuf"
 PICKLED = "application/octet-stream"
+#: Largest request head accepted (bytes): a larger one gets 431, or 400 from h11 when it arrives in pieces.
+MAX_HEAD_BYTES = 16 * 1024
 #: Most dimensions a plan's declared shape may have (HUGSIM's client sends [P, 2] or [1, P, 2]).
 MAX_PLAN_DIMS = 4
 #: Requests a token may have in progress per session it may hold, unless ``ServerConfig.max_pending_per_token``
@@ -615,6 +617,10 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
         # the order matters: cheap refusals first (token, rate, pile of requests), on the event loop; then the body
         # (size and deadline); then, on one of this token's worker threads, the request is checked whole before
         # its session is looked up or opened, so a refused request never takes a slot
+        head = sum(len(k) + len(v) for k, v in request.headers.raw)
+        if head > MAX_HEAD_BYTES:  # h11 bounds only a head that arrives in pieces, not one read whole
+            raise HTTPException(431, f"request headers of {head} bytes are over the server's {MAX_HEAD_BYTES}-byte "
+                                     "limit", headers={"Connection": "close"})
         token = hub.authorise(request)
         hub.admit(token)
         sid = hub.session_id(request)
@@ -639,10 +645,6 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
         return out if isinstance(out, Response) else Response(out, media_type=PICKLED)
 
     return app
-
-
-#: Largest request head (request line and headers) accepted, bytes; h11 refuses a larger one with 400.
-MAX_HEAD_BYTES = 16 * 1024
 
 
 def _deadline_protocol(header_timeout_s: float) -> type:

@@ -189,6 +189,7 @@ def test_refused_requests_take_no_slot(tiny):
             (413, lambda i: call(server, "post", "/execute_action", "A", f"e{i}", data=b"x" * 5000)),
             (400, lambda i: call(server, "get", "/get_current_state", "A", f"bad id {i}")),
             (401, lambda i: call(server, "get", "/get_current_state", f"not-a-token-{i}", f"g{i}")),
+            (431, lambda i: call(server, "get", "/get_current_state", "A", f"h{i}", headers={"x": "y" * 20_000})),
         ]
         for i in range(3):
             for status, send in refusals:
