@@ -115,19 +115,19 @@ class ServerConfig:
     max_sessions: int = 32
     """Open sessions at most, over all tokens; a request that would open one more gets 429."""
     max_sessions_per_token: int | None = None
-    """Open sessions one token may hold; a request of that token that would open one more gets 429 (with
-    Retry-After), other tokens are not affected. None = a fair share, ``max(1, max_sessions // number of tokens)``:
-    then every token can always open its share, whatever the others do (as long as there are no more tokens than
-    ``max_sessions``)."""
+    """Open sessions one token may hold (None = a fair share, ``max(1, max_sessions // number of tokens)``); a
+    request of that token that would open one more gets 429 with Retry-After, other tokens are not affected. With
+    the fair share every token can always open its share whatever the others do (while there are no more tokens
+    than ``max_sessions``)."""
     requests_per_s: float = 20.0
     """Requests per second one token may make on average (a token bucket refilled at this rate); past it (and its
     burst) that token's requests get 429 with Retry-After, other tokens are not affected."""
     request_burst: int = 40
     """Requests one token may make at once before ``requests_per_s`` applies (the bucket's size)."""
     max_pending_per_token: int | None = None
-    """Requests of one token in progress at once (reading a body, waiting for its session or the renderer, or
-    running); one more gets 429. None = four per session the token may hold. Keeps one token's pile of requests
-    from holding the server's connections, memory and worker threads."""
+    """Requests of one token in progress at once (None = four per session it may hold); one more gets 429. In
+    progress means reading a body, waiting for its session or the renderer, or running: the cap keeps one token's
+    pile of requests from holding the server's connections and memory."""
     body_timeout_s: float = 20.0
     """A request body must arrive within this long once its headers have (seconds); a slower one gets 408 and its
     connection is closed."""
