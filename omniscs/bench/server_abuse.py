@@ -35,7 +35,7 @@ GOOD_PLAN = json.dumps({"data": PLAN, "shape": [6, 2], "dtype": "float32"})
 BENCH_LIMITS = dict(max_sessions=8, max_body_bytes=64 * 1024, requests_per_s=20.0, request_burst=40,
                     body_timeout_s=0.5, header_timeout_s=0.5, keep_alive_s=5.0)
 #: Longest the bystander's reset or step may take after a case (its renders take milliseconds).
-BYSTANDER_LIMIT_S = 2.0
+BYSTANDER_LIMIT_S = 2.5
 #: Longest any one request of a case may go unanswered.
 REQUEST_LIMIT_S = 10.0
 HANG = -1     # a request not answered within REQUEST_LIMIT_S
