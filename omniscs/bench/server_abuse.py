@@ -147,6 +147,12 @@ def _slow_bodies_at_once(p: Probe) -> list[int]:
         return list(pool.map(lambda i: p.raw(head, b" "), range(24)))
 
 
+def _reused_transaction(p: Probe) -> list[int]:
+    first = p.execute(transaction="same")  # a step (200, opening A's session) is the setting, not the abuse
+    return [p.execute(_plan(data=[[0.0, 0.4 * k] for k in range(1, 7)]), transaction="same")] if first == 200 \
+        else [first]
+
+
 def _chunked_over_limit(p: Probe) -> list[int]:
     chunks = (b"x" * 8192 for _ in range(BENCH_LIMITS["max_body_bytes"] // 8192 + 2))
     return [p.send("post", "/execute_action", data=chunks)]
@@ -203,6 +209,8 @@ SERVER_CASES: tuple[ServerCase, ...] = (
         b"POST /execute_action HTTP/1.1\r\nHost: x\r\nauth-token: nope\r\nContent-Length: 99999\r\n\r\n{", b" ")],
                frozenset({401})),
     ServerCase("24 slow bodies at once", _slow_bodies_at_once, frozenset({408, 429})),
+    ServerCase("a transaction id reused for another plan (after a step with it)", _reused_transaction,
+               frozenset({409}), slots=1),
     ServerCase("30 new session ids (valid requests)", _flood_sessions, frozenset({200, 429}),
                slots=BENCH_LIMITS["max_sessions"] // 2),
     ServerCase("a burst of 80 requests", _burst, frozenset({200, 429}), slots=1),

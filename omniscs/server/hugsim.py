@@ -237,7 +237,7 @@ class _Session:
         self.pending: list[str] = []        # scenario ids still to drive after it
         self.last: StepResult | None = None
         self.scene_done = False
-        self.replies: OrderedDict[str, bytes] = OrderedDict()
+        self.replies: OrderedDict[str, tuple[str, bytes]] = OrderedDict()  # transaction id -> (its plan_traj, reply)
         self.frames: list = []              # (step, rgb) of the first camera, kept only to write run folders
         self.started = 0.0
         self.episodes = 0
@@ -495,15 +495,18 @@ class _Hub:
         with s.lock:
             cached = s.replies.get(transaction)
             if cached is not None:
+                if cached[0] != request["plan_traj"]:  # a retry resends its plan; another plan would get a stale reply
+                    raise HTTPException(409, f"transaction_id {transaction[:40]!r} was already executed with another "
+                                             "plan; send each plan with a new id")
                 s.replies.move_to_end(transaction)
-                return cached
+                return cached[1]
             self.ensure_started(s)
             if not s.scene_done:
                 self.step(s, plan)
             elif s.pending:  # the plan was made for the ended scenario: start the next one and show it
                 self.begin(s, s.pending.pop(0))
             reply = self.state_bytes(s)
-            s.replies[transaction] = reply
+            s.replies[transaction] = (request["plan_traj"], reply)
             while len(s.replies) > self.config.transaction_cache:
                 s.replies.popitem(last=False)
             return reply
@@ -596,8 +599,8 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
       ``scores`` when a scenario ends). The server never unpickles anything: a plan arrives as the JSON string
       ``plan_traj`` = ``{"data", "shape", "dtype"}``.
     - ``execute_action`` checks the plan before anything moves (422 with the reason; the episode is not stepped)
-      and replays the stored reply for a ``transaction_id`` it has already executed (the client retries calls whose
-      answer it lost). When a scenario ends the reply says ``cur_scene_done``; the next call starts the session's
+      and replays the stored reply for a ``transaction_id`` it has already executed with the same plan (the client
+      retries calls whose answer it lost; the same id with another plan is 409, not a stale reply). When a scenario ends the reply says ``cur_scene_done``; the next call starts the session's
       next scenario and returns its first state (the plan, made for the ended one, is not driven), or repeats the
       final state with ``done`` once the queue is empty.
     - Bodies over ``max_body_bytes`` get 413, whether declared or only seen while reading. Errors are JSON

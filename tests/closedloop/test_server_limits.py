@@ -322,6 +322,16 @@ def test_trickled_headers_and_idle_connections_are_closed_after_the_header_deadl
         assert execute(server, "A").status_code == 200
 
 
+def test_a_transaction_id_reused_for_another_plan_is_409_not_the_stale_reply(tiny):
+    with make_server(tiny) as server:
+        first = execute(server, "A", transaction="same")
+        again = execute(server, "A", transaction="same")
+        other = execute(server, "A", plan_traj=_plan(data=[[0.0, 0.4 * k] for k in range(1, 7)]), transaction="same")
+        assert first.status_code == again.status_code == 200 and first.content == again.content
+        assert other.status_code == 409 and "another plan" in other.json()["detail"]
+        assert execute(server, "A", transaction="next").status_code == 200
+
+
 def test_the_render_lock_takes_turns_by_owner():
     lock, order = TurnLock(), []
     lock.acquire("held")
