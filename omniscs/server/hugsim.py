@@ -600,9 +600,10 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
       ``plan_traj`` = ``{"data", "shape", "dtype"}``.
     - ``execute_action`` checks the plan before anything moves (422 with the reason; the episode is not stepped)
       and replays the stored reply for a ``transaction_id`` it has already executed with the same plan (the client
-      retries calls whose answer it lost; the same id with another plan is 409, not a stale reply). When a scenario ends the reply says ``cur_scene_done``; the next call starts the session's
-      next scenario and returns its first state (the plan, made for the ended one, is not driven), or repeats the
-      final state with ``done`` once the queue is empty.
+      retries calls whose answer it lost; the same id with another plan is 409, not a stale reply). When a
+      scenario ends the reply says ``cur_scene_done``; the next call starts the session's next scenario and returns
+      its first state (the plan, made for the ended one, is not driven), or repeats the final state with ``done``
+      once the queue is empty.
     - Bodies over ``max_body_bytes`` get 413, whether declared or only seen while reading. Errors are JSON
       ``{"detail": ...}``; a failing request affects only its own reply. A malformed plan (any shape, dtype,
       value or JSON type) is 422, never 500.
