@@ -262,7 +262,7 @@ class _Hub:
         if start not in scenarios:
             raise ValidationError(f"default scenario {start!r} is not among the served ones {order}")
         self.make_simulator, self.scenarios, self.config = make_simulator, dict(scenarios), config
-        self.tokens = tuple(t.encode() for t in tokens)
+        self.tokens = tuple(dict.fromkeys(t.encode() for t in tokens))  # a repeated token is one client, not two
         i = order.index(start)
         self.order = order[i:] + order[:i]
         # One simulator now: its scene is checked against every scenario before a client comes, and the first
