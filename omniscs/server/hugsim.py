@@ -136,6 +136,9 @@ class ServerConfig:
     (seconds), else it is closed: a client trickling headers, or the rest of a refused body, holds nothing."""
     keep_alive_s: float = 5.0
     """An idle connection between requests is closed after this long (seconds; uvicorn's keep-alive timeout)."""
+    reply_timeout_s: float = 30.0
+    """A reply the client stops taking (its connection's send buffer stays full) for this long is dropped with the
+    connection (seconds): a client that never reads holds no memory."""
     max_body_bytes: int = 1 << 20
     """Largest request body accepted (bytes); larger ones get 413."""
     transaction_cache: int = 64
@@ -162,7 +165,8 @@ class ServerConfig:
         if not (isinstance(self.request_burst, int) and 1 <= self.request_burst <= 100_000):
             raise ValidationError(f"request_burst must be 1 to 100000 requests (got {self.request_burst!r})")
         for name, low, high in (("requests_per_s", 0.01, 100_000.0), ("body_timeout_s", 0.01, 3600.0),
-                                ("header_timeout_s", 0.01, 3600.0), ("keep_alive_s", 0.01, 3600.0)):
+                                ("header_timeout_s", 0.01, 3600.0), ("keep_alive_s", 0.01, 3600.0),
+                                ("reply_timeout_s", 0.01, 3600.0)):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and low <= value <= high):  # also refuses NaN
                 raise ValidationError(f"{name} must be {low:g} to {high:g} (got {value!r})")
@@ -590,8 +594,9 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
       (``RENDER_LOCK``). A request is checked whole (token, headers, body, plan) before its session is opened, so
       a refused one never takes a slot.
     - A body that has not arrived ``body_timeout_s`` after its headers gets 408; a connection that has not sent a
-      request's headers ``header_timeout_s`` after opening or after its last reply is closed (with
-      ``uvicorn_options``, which ``serve`` and ``start_in_thread`` use).
+      request's headers ``header_timeout_s`` after opening or after its last reply is closed, one whose reply the
+      client has not taken for ``reply_timeout_s`` is dropped (with ``uvicorn_options``, which ``serve`` and
+      ``start_in_thread`` use).
     - ``GET /get_current_state`` (resetting implicitly before the first ``/reset``) and ``POST /execute_action``
       reply ``pickle.dumps({"done", "cur_scene_done", "state": {"obs", "info"}})`` as application/octet-stream, as
       HUGSIM's client expects: ``obs`` maps each output (rgb uint8 [H, W, 3], depth float32 [H, W], semantic uint8
@@ -651,15 +656,19 @@ def create_app(make_simulator: Callable[[], Simulator], scenarios: dict[str, Clo
     return app
 
 
-def _deadline_protocol(header_timeout_s: float) -> type:
-    """uvicorn's h11 protocol with a deadline on each request's head: armed when a connection opens and after each
-    reply, disarmed when the next request's headers are complete; when it passes the connection is closed.
-    uvicorn's own keep-alive timer is disarmed by any byte received, so without this a client sending one byte a
-    second (of headers, or of the rest of a body the server has already refused) holds its connection forever."""
+def _deadline_protocol(header_timeout_s: float, reply_timeout_s: float) -> type:
+    """uvicorn's h11 protocol with two deadlines. One on each request's head: armed when a connection opens and
+    after each reply, disarmed when the next request's headers are complete; when it passes the connection is
+    closed. uvicorn's own keep-alive timer is disarmed by any byte received, so without this a client sending one
+    byte a second (of headers, or of the rest of a body the server has already refused) holds its connection
+    forever. One on replies: when the connection's send buffer stays full (the client does not read) for
+    ``reply_timeout_s`` the connection is aborted, dropping the buffered reply (a plain close would wait for it to
+    be sent)."""
     from uvicorn.protocols.http.h11_impl import H11Protocol
 
     class DeadlineH11Protocol(H11Protocol):
         _deadline: asyncio.TimerHandle | None = None
+        _stalled: asyncio.TimerHandle | None = None
 
         def _arm(self) -> None:
             self._disarm()
@@ -672,8 +681,25 @@ def _deadline_protocol(header_timeout_s: float) -> type:
 
         def _expired(self) -> None:
             self._deadline = None
-            if not self.transport.is_closing():
+            if self.transport.get_write_buffer_size():  # the last reply is still going out: the stall timer
+                self._arm()                             # decides about a client that does not take it
+            elif not self.transport.is_closing():
                 self.transport.close()
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            if self._stalled is None:
+                self._stalled = self.loop.call_later(reply_timeout_s, self._stalled_too_long)
+
+        def resume_writing(self) -> None:
+            if self._stalled is not None:
+                self._stalled.cancel()
+                self._stalled = None
+            super().resume_writing()
+
+        def _stalled_too_long(self) -> None:
+            self._stalled = None
+            self.transport.abort()
 
         def connection_made(self, transport) -> None:
             super().connection_made(transport)
@@ -691,6 +717,9 @@ def _deadline_protocol(header_timeout_s: float) -> type:
 
         def connection_lost(self, exc) -> None:
             self._disarm()
+            if self._stalled is not None:
+                self._stalled.cancel()
+                self._stalled = None
             super().connection_lost(exc)
 
     return DeadlineH11Protocol
@@ -701,7 +730,8 @@ def uvicorn_options(app) -> dict:
     size limit, from the app's ``ServerConfig`` (the defaults for an app not made by ``create_app``)."""
     hub = getattr(getattr(app, "state", None), "hub", None)
     config = hub.config if isinstance(hub, _Hub) else ServerConfig()
-    return {"http": _deadline_protocol(config.header_timeout_s), "timeout_keep_alive": config.keep_alive_s,
+    return {"http": _deadline_protocol(config.header_timeout_s, config.reply_timeout_s),
+            "timeout_keep_alive": config.keep_alive_s,
             "h11_max_incomplete_event_size": MAX_HEAD_BYTES}
 
 

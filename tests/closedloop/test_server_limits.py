@@ -369,3 +369,31 @@ def test_the_fair_share_of_sessions_and_requests_in_progress():
     assert ServerConfig(max_sessions=4).pending_per_token(2) == 8
     assert ServerConfig(max_pending_per_token=3).pending_per_token(2) == 3
     np.testing.assert_array_equal(parse_plan(GOOD_PLAN_TRAJ), np.array(PLAN))
+
+
+def test_a_client_that_does_not_read_its_replies_is_dropped_after_the_reply_deadline(tiny):
+    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
+
+    scene, graph, scenarios = tiny
+    big = ClosedLoopConfig(width=640)  # replies of about 1.6 MB: more than the kernel's buffers take
+    app = create_app(lambda: Simulator(graph, scene, big), scenarios, ["A"],
+                     ServerConfig(reply_timeout_s=0.5, header_timeout_s=30, keep_alive_s=30))
+    with start_in_thread(app) as server:
+        url = urlparse(server.url)
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.connect((url.hostname, url.port))
+        with sock:
+            sock.sendall(b"GET /get_current_state HTTP/1.1\r\nHost: x\r\nauth-token: A\r\n\r\n" * 6)  # never read
+            connections = server.server.server_state.connections
+            start = time.monotonic()
+            while not connections and time.monotonic() - start < 5:
+                time.sleep(0.01)
+            assert connections
+            while connections and time.monotonic() - start < 10:
+                time.sleep(0.05)
+            assert not connections  # dropped, with the replies it held
+            received, _ = _read_until_closed(sock, 5.0)
+        length = int(received.split(b"content-length: ")[1].split(b"\r\n")[0])
+        assert len(received) < 6 * length  # not every reply went out: the rest were dropped
+        assert call(server, "get", "/get_current_state", "A").status_code == 200
