@@ -163,13 +163,14 @@ MALFORMED_PLANS = [
     _plan(shape=[6.0, 2.0]), _plan(shape="6x2"), _plan(dtype=","), _plan(dtype="(2147483648,)f4"),
     _plan(dtype="object"), _plan(dtype="complex64"), _plan(dtype=None), _plan(data=[[0.0, float("nan")]] * 6),
     _plan(data=[[0.0, float("inf")]] * 6), _plan(data=[[0.0, 1e300]] * 6), _plan(data=[["0", "1"]] * 6),
+    _plan(dtype="int8", data=[[0, 100 * k] for k in range(1, 7)]), _plan(dtype="float16", data=[[0.0, 1e5]] * 6),
     _plan(data=[[True, False]] * 6), _plan(data=[[0.0, 1.0], [0.0]]),
     '{"data": [1.5, ' + "9" * 400 + '], "shape": [2], "dtype": "float32"}',
     '{"data": ' + "[" * 3000 + "]" * 3000 + ', "shape": [1], "dtype": "float32"}', "[" * 50_000, "not json", "",
 ]
 
 SERVER_CASES: tuple[ServerCase, ...] = (
-    ServerCase("22 malformed plans, each from a new session id", _each_session(MALFORMED_PLANS), frozenset({422})),
+    ServerCase("24 malformed plans, each from a new session id", _each_session(MALFORMED_PLANS), frozenset({422})),
     ServerCase("bodies that are not the envelope (not JSON, not UTF-8, pickled, deep, wrong types)",
                lambda p: [p.send("post", "/execute_action", session=f"b-{i}", data=body,
                                  headers={"content-type": "application/json"})

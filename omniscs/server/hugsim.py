@@ -201,12 +201,13 @@ def parse_plan(plan_traj: str, max_values: int = 1000) -> np.ndarray:  # -> floa
     if not isinstance(spec, dict) or not {"data", "shape", "dtype"} <= set(spec):
         raise ValidationError('plan_traj must be JSON {"data": [...], "shape": [...], "dtype": "..."}')
     dtype, shape = spec["dtype"], spec["shape"]
-    kind = None
+    declared = None
     if isinstance(dtype, str) and len(dtype) <= 32 and dtype.isascii():
         try:
-            kind = np.dtype(dtype).kind
+            declared = np.dtype(dtype)
         except Exception:  # noqa: BLE001 - numpy's parser raises TypeError, ValueError, SyntaxError, ... on junk
-            kind = None
+            declared = None
+    kind = declared.kind if declared is not None else None
     if kind is None or kind not in PLAN_KINDS:
         raise ValidationError(f"plan_traj dtype {str(dtype)[:40]!r} is not a numeric type (e.g. float32)")
     # every dimension is checked against the limit before they are multiplied: a shape of 10^30, or four of 10^5
@@ -226,6 +227,19 @@ def parse_plan(plan_traj: str, max_values: int = 1000) -> np.ndarray:  # -> floa
         raise ValidationError("plan_traj data must hold only numbers")
     if data.size != size:
         raise ValidationError(f"plan_traj data holds {data.size} numbers, its shape {shape} says {size}")
+    # the numbers must be what the declared dtype can hold (HUGSIM's client sends ``array.tolist()`` with the
+    # array's dtype, so they always are): else the plan the client meant is not the one these numbers make
+    if kind in "iu" and data.size:
+        info = np.iinfo(declared)
+        whole = data.dtype.kind != "f" or bool(np.isfinite(data).all() and (data == np.round(data)).all())
+        if not whole or data.min() < info.min or data.max() > info.max:
+            raise ValidationError(f"plan_traj data does not fit its dtype {declared} (whole numbers from {info.min} "
+                                  f"to {info.max})")
+    if kind == "f":
+        with np.errstate(over="ignore", invalid="ignore"):
+            cast = data.astype(declared)
+        if (np.isfinite(data) & ~np.isfinite(cast)).any():
+            raise ValidationError(f"plan_traj data overflows its dtype {declared}")
     return data.astype(np.float64).reshape(shape)
 
 

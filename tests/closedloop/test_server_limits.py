@@ -115,6 +115,10 @@ MALFORMED_PLANS = {
     "data an integer of 400 digits": '{"data": [[0, ' + "9" * 400 + ']], "shape": [1, 2], "dtype": "float32"}',
     "data an integer of 5000 digits": '{"data": [[0, ' + "9" * 5000 + ']], "shape": [1, 2], "dtype": "float32"}',
     "data a float and a huge integer": '{"data": [1.5, ' + "9" * 400 + '], "shape": [2], "dtype": "float32"}',
+    "data fractions under an integer dtype": _plan(dtype="int32"),
+    "data out of an int8's range": _plan(dtype="int8", data=[[0, 100 * k] for k in range(1, 7)]),
+    "data negative under an unsigned dtype": _plan(dtype="uint16", data=[[-1, k] for k in range(1, 7)]),
+    "data overflowing float16": _plan(dtype="float16", data=[[0.0, 1e5]] * 6),
     "data strings": _plan(data=[["0", "1"]] * 6),
     "data booleans": _plan(data=[[True, False]] * 6),
     "data nulls": _plan(data=[[None, None]] * 6),
@@ -369,6 +373,10 @@ def test_the_fair_share_of_sessions_and_requests_in_progress():
     assert ServerConfig(max_sessions=4).pending_per_token(2) == 8
     assert ServerConfig(max_pending_per_token=3).pending_per_token(2) == 3
     np.testing.assert_array_equal(parse_plan(GOOD_PLAN_TRAJ), np.array(PLAN))
+    ints = [[0, k] for k in range(1, 7)]
+    np.testing.assert_array_equal(parse_plan(_plan(dtype="int8", data=ints)), np.array(ints, float))
+    np.testing.assert_array_equal(parse_plan(_plan(dtype="float16", data=ints)), np.array(ints, float))
+    np.testing.assert_array_equal(parse_plan(_plan(dtype="uint8", data=[[0.0, 2.0]], shape=[1, 2])), [[0.0, 2.0]])
 
 
 def test_a_client_that_does_not_read_its_replies_is_dropped_after_the_reply_deadline(tiny):
