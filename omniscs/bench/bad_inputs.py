@@ -5,6 +5,9 @@ always the same: exit code 2, exactly one ``error:`` line on stderr, no tracebac
 case's folder, which is also its working directory and holds its workspace). Each outcome is classified as one of
 ``one clear line`` (expected), ``traceback``, ``silently wrong`` (exit 0: the mistake was accepted), ``left files``
 or ``other`` (e.g. several lines, or another exit code).
+
+The report has a second section, server abuse: hostile requests to the closed-loop render server, run by
+``omniscs.bench.server_abuse`` against in-thread servers (they are requests, not command lines).
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.bench.server_abuse import run_server_abuse, server_markdown
 from omniscs.export.common import export_scenes
 from omniscs.pipeline.stages import catalog_run_stage
 from omniscs.progress import Progress, no_progress
@@ -521,8 +525,9 @@ def run_bench(out_dir: str | Path = "reports", subprocess_mode: bool = False,
               progress: Progress = no_progress) -> dict:
     machine = machine_info()
     outcomes = run_table(subprocess_mode=subprocess_mode, progress=progress)
+    server_abuse = run_server_abuse(progress=progress)  # its own section: requests to the server, not argv
     report = {"mode": "subprocess" if subprocess_mode else "in-process", "machine": finish(machine),
-              "summary": summary(outcomes), "cases": [o.__dict__ for o in outcomes]}
+              "summary": summary(outcomes), "cases": [o.__dict__ for o in outcomes], "server_abuse": server_abuse}
     write_report(out_dir, "bad-inputs", report, markdown(report))
     return report
 
@@ -547,5 +552,7 @@ def markdown(report: dict) -> str:
         if c["outcome"] == "one clear line":
             text = c["stderr"].replace("|", "\\|")
             lines.append(f"| {c['case']} | `{text[:240]}` |")
+    if "server_abuse" in report:
+        lines += server_markdown(report["server_abuse"])
     lines += ["", load_line(report["machine"]), ""]
     return "\n".join(lines)

@@ -491,7 +491,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "rerun it (catalog and files must equal a clean run's, no temporaries, no orphaned server); run "
               "several at once on one workspace (each scene once per run)."),
     Benchmark("bad-inputs", BadInputsOptions, run_bad_inputs, "Try every bad input of the table over every "
-              "command; count one clear line / traceback / silently wrong / left files / other, by category."),
+              "command; count one clear line / traceback / silently wrong / left files / other, by category; then "
+              "abuse the closed-loop server with a second token watching."),
 )
 
 
