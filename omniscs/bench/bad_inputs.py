@@ -283,8 +283,62 @@ CASES: tuple[Case, ...] = (
     _c("bench", "unknown benchmark", "bench", "nope"),
 )
 
+#: Paths (links, names, writability) and the benchmarks' counts: cases of their own, after the table above.
+CASES += (
+    # --------------------------------------------------------------- paths: links, names, writability
+    _c("paths", "--out is a link to nothing", "world", "make", "--out", "{dangling}"),
+    _c("paths", "--out under a link to nothing", "world", "make", "--out", "{dangling}/store"),
+    _c("paths", "--out is a link to a folder, --overwrite", "world", "make", "--out", "{linkdir}", "--overwrite"),
+    _c("paths", "export onto a link to nothing", "world", "export", "{store}", "--format", "nuscenes", "--out",
+       "{dangling}"),
+    _c("paths", "ingest into a link to nothing", "ingest", "--source", "nuscenes", "--dataroot", "{nus}",
+       "--out", "{dangling}"),
+    _c("paths", "a name of 300 bytes", "world", "make", "--out", "{tmp}/" + "n" * 300),
+    _c("paths", "a name that leaves no room for the temporary", "world", "make", "--out", "{tmp}/" + "n" * 240),
+    _c("paths", "a path of 5000 bytes", "world", "export", "{store}", "--format", "kitti", "--out",
+       "{tmp}/" + "/".join(["p" * 200] * 25)),
+    _c("paths", "--out under /proc", "world", "make", "--out", "/proc/omniscs-out"),
+    _c("paths", "export under /sys", "world", "export", "{store}", "--format", "nuscenes", "--out",
+       "/sys/omniscs-out"),
+    _c("paths", "workspace is a link to nothing", "generate", "syn:straight:0", "--frames", "2", "--workspace",
+       "{dangling}"),
+    _c("paths", "workspace under a link to nothing", "generate", "syn:straight:0", "--frames", "2", "--workspace",
+       "{dangling}/ws"),
+    _c("paths", "catalog table that leads out of the workspace", "catalog", "query", "SELECT count(*) FROM runs",
+       "--workspace", "{wscatlink}"),
+    # --------------------------------------------------------------- counts and seeds of the benchmarks
+    _c("numbers", "bench seeds in Arabic-Indic digits", "bench", "world", "--seeds", "\u0665", "--out", "{tmp}/r"),
+    _c("numbers", "bench seed beyond 2^32", "bench", "world", "--seeds", "0,4294967296", "--out", "{tmp}/r"),
+    _c("numbers", "bench threads 100000", "bench", "behavior", "--threads", "100000", "--out", "{tmp}/r"),
+    _c("numbers", "bench seed offset negative", "bench", "behavior", "--seed-offset", "-5", "--out", "{tmp}/r"),
+    _c("numbers", "reliability seed beyond 2^32", "bench", "reliability", "--seed", "99999999999", "--out",
+       "{tmp}/r"),
+)
+
 
 # ----------------------------------------------------------------------------- fixtures
+#: Fixtures of the path cases: a link to nothing (inside the case's folder, so a folder made through it shows), a
+#: link to a folder, and a workspace whose catalog table is a link out of it.
+PATH_FIXTURES = ("dangling", "linkdir", "wscatlink")
+
+
+def path_fixture(name: str, path: Path) -> Path:
+    """Path fixture ``name`` at ``path``."""
+    if name == "dangling":
+        os.symlink(path.parent / "nowhere", path)
+    elif name == "linkdir":
+        (path.parent / "realdir").mkdir()
+        os.symlink(path.parent / "realdir", path)
+    elif name == "wscatlink":
+        catalog_run_stage("fixture-run", path, "generate_dataset", "completed", 0, 1, 0, {})
+        runs = path / "catalog" / "runs"
+        shutil.move(str(runs), str(path.parent / "elsewhere"))
+        os.symlink(path.parent / "elsewhere", runs)
+    else:
+        raise KeyError(name)
+    return path
+
+
 class Fixtures:
     """The files the cases point at, made once per table run in ``root`` and copied into each case's folder."""
 
@@ -298,6 +352,8 @@ class Fixtures:
     def make(self, name: str, case_dir: Path) -> Path:
         """Fixture ``name`` inside ``case_dir`` (made fresh: a case may damage it further)."""
         path = case_dir / name
+        if name in PATH_FIXTURES:
+            return path_fixture(name, path)
         if name in ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wrongcol", "noimage"):
             shutil.copytree(self.store, path)
             manifest = path / "manifest.json"
@@ -351,6 +407,7 @@ class Fixtures:
 #: The fixtures a case may name as ``{name}`` in its argv (``{tmp}`` is the case's folder itself).
 FIXTURES = ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wrongcol", "noimage", "nus", "file",
             "empty", "userdir", "notckpt", "bckpt_trunc", "ws")
+FIXTURES += PATH_FIXTURES
 _PLACEHOLDER = re.compile(r"\{(" + "|".join(FIXTURES + ("tmp",)) + r")\}")
 
 
