@@ -62,11 +62,12 @@ def check_names(path: Path, what: str) -> None:
                            f"hold at most {path_max - TEMP_NAME_ROOM - 1}")
 
 
-def check_writable(path: Path, what: str) -> None:
-    """Refuse ``path`` when the nearest existing folder above it (or it, when it is a folder) cannot take a new
-    file: read-only, not permitted, or a virtual file system such as /proc. A probe file is made there and removed
-    (the only test that holds for root and on every file system)."""
-    anchor = next((p for p in (path, *path.parents) if p.exists()), None)
+def check_writable(path: Path, what: str, inside: bool = False) -> None:
+    """Refuse ``path`` when the nearest existing folder above it (with ``inside``: it, when it exists: a folder
+    that is added to) cannot take a new file: read-only, not permitted, or a virtual file system such as /proc. A
+    probe file is made there and removed (the only test that holds for root and on every file system); an output
+    that will replace ``path`` never has its own folder touched."""
+    anchor = next((p for p in ((path,) if inside else ()) + tuple(path.parents) if p.exists()), None)
     if anchor is None:
         return
     if not anchor.is_dir():
@@ -93,7 +94,7 @@ def check_output(path: str | os.PathLike, what: str = "--out", follow: bool = Fa
         raise OmniscsError(f"{what} {path} is a symbolic link (to {os.readlink(path)}); give the real path")
     check_link(path, what)
     path = path.resolve() if follow else path
-    check_writable(path, what)
+    check_writable(path, what, inside=follow)
     return path
 
 
@@ -141,7 +142,7 @@ def usable_workspace(root: str | os.PathLike | None = None) -> Path:
                 raise OmniscsError(f"workspace {path} {where}; choose another --workspace")
             break
     check_names(path, "workspace")
-    check_writable(path, "workspace")
+    check_writable(path, "workspace", inside=True)
     return path
 
 
