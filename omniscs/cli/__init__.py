@@ -6,8 +6,8 @@ import sys
 
 import typer
 
-from omniscs.cli import (bench, catalog, closedloop, dataset, evaluation, generate, nsg, pool, predict, pretrained, scene,
-                         scs, world)
+from omniscs.cli import (bench, catalog, closedloop, dataset, evaluation, export, generate, nsg, pool, predict,
+                         pretrained, scene, scs, world)
 from omniscs.cli.common import print_error
 from omniscs.errors import OmniscsError
 
@@ -24,6 +24,7 @@ app.add_typer(scene.app, name="scene")
 app.add_typer(catalog.app, name="catalog")
 app.add_typer(dataset.app, name="dataset")
 app.add_typer(predict.app, name="predict")
+app.add_typer(export.app, name="export")
 app.add_typer(evaluation.app, name="eval")
 app.add_typer(pool.app, name="pool")
 app.add_typer(closedloop.app, name="closedloop")
