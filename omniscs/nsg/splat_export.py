@@ -29,7 +29,8 @@ def frame_gaussians(graph: SceneGraph, frame: int) -> dict[str, GaussianParams]:
         if not agent.present[frame] or len(agent.gaussians) == 0:
             continue
         T = agent.world_from_agent[frame]
-        out[agent_key(agent.track_id)] = with_sh_degree(rigidly_moved(agent.gaussians.detached(), T[:3, :3], T[:3, 3]),
+        out[agent_key(agent.track_id)] = with_sh_degree(rigidly_moved(agent.gaussians.detached(), T[:3, :3].copy(),
+                                                                      T[:3, 3].copy()),
                                                         degree)
     return out
 
