@@ -185,6 +185,21 @@ def read_edits(edit: Optional[str]) -> list:
     return parse_edits(edit)
 
 
+def edited_graph(graph, edits: list, pool: Path | None = None):
+    """``graph`` with ``edits`` applied (``omniscs.nsg.edit.apply_graph_edits``); model ids (``pm-...``) resolve in
+    ``pool`` when given, other ids to the graph's own nodes."""
+    if not edits:
+        return graph
+    from omniscs.nsg.edit import apply_graph_edits, node_model_resolver
+
+    resolve = None
+    if pool is not None:
+        from omniscs.agents.pool import model_resolver
+
+        resolve = model_resolver(pool, node_model_resolver(graph))
+    return apply_graph_edits(graph, edits, resolve)
+
+
 def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> Path:
     """An ``--out`` path checked before work starts: the right suffix, the path policy (``storage.check_output``:
     no symbolic link, names that fit, a writable folder), not under a file, and not already there unless

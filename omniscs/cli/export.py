@@ -6,7 +6,7 @@ from typing import Optional
 
 import typer
 
-from omniscs.cli.common import check_out, console, read_edits
+from omniscs.cli.common import check_out, console, edited_graph, read_edits
 
 app = typer.Typer(help="Export a fitted scene graph for other tools (3D Gaussian splatting PLY).",
                   no_args_is_help=True)
@@ -26,20 +26,11 @@ def export_ply(
     viewer open it): the background and every agent present at --frame, placed at its pose there."""
     from omniscs.errors import OmniscsError
     from omniscs.nsg.checkpoint import load_graph
-    from omniscs.nsg.edit import apply_graph_edits
     from omniscs.nsg.splat_export import write_scene_ply
 
     check_out(out, overwrite, suffix=None if split else ".ply")
     edits = read_edits(edit)
-    graph = load_graph(checkpoint)
-    if edits:
-        resolve = None
-        if pool is not None:
-            from omniscs.agents.pool import model_resolver
-            from omniscs.nsg.edit import node_model_resolver
-
-            resolve = model_resolver(pool, node_model_resolver(graph))
-        graph = apply_graph_edits(graph, edits, resolve)
+    graph = edited_graph(load_graph(checkpoint), edits, pool)
     if not 0 <= frame < graph.n_frames:
         raise OmniscsError(f"--frame {frame} is out of range: {graph.scene_id} has frames 0 to {graph.n_frames - 1}")
     files = write_scene_ply(graph, frame, out, split=split, overwrite=overwrite)

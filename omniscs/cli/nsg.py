@@ -10,7 +10,7 @@ import typer
 
 from omniscs.checks import MAX_ITERATIONS, MAX_THREADS
 
-from omniscs.cli.common import check_out, console, depth_picture, print_table, progress_bars, read_edits
+from omniscs.cli.common import check_out, console, depth_picture, edited_graph, print_table, progress_bars, read_edits
 from omniscs.errors import OmniscsError
 
 
@@ -138,7 +138,6 @@ def render(
     from omniscs.cli.common import comma_list
     from omniscs.geometry import pose_from_xyz_yaw
     from omniscs.nsg.checkpoint import load_graph
-    from omniscs.nsg.edit import apply_graph_edits
     from omniscs.storage import atomic_write_with
 
     check_out(out, overwrite=True, suffix=".png")
@@ -149,15 +148,7 @@ def render(
         if len(values) != 4 or not np.all(np.isfinite(values)):
             raise OmniscsError(f"--ego-pose must be four numbers x,y,z,yaw; got {ego_pose!r}")
         world_from_ego = pose_from_xyz_yaw(*values)
-    graph = load_graph(checkpoint)
-    if edits:
-        resolve = None
-        if pool is not None:
-            from omniscs.agents.pool import model_resolver
-            from omniscs.nsg.edit import node_model_resolver
-
-            resolve = model_resolver(pool, node_model_resolver(graph))
-        graph = apply_graph_edits(graph, edits, resolve)
+    graph = edited_graph(load_graph(checkpoint), edits, pool)
     result = graph.render(graph.view(camera, frame, world_from_ego))
     image = (result.rgb.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
     if depth:

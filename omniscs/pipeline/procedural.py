@@ -164,42 +164,37 @@ def appearance_world(world, variant: dict, asset_of):
     return apply_edits(world, edits)
 
 
-def appearance_reference(scene, asset_of):
-    """For a procedural scene, ``variant -> Reference`` of appearance variants: ``appearance_world`` ray-cast; None
-    for recorded logs, and a variant whose object has no asset of the library gets no reference."""
+def _appearance_renderers(scene, asset_of, sensor):
+    """``variant -> sensor(WorldRenderer of appearance_world)`` for a procedural scene; None for recorded logs, and a
+    variant whose object has no asset of the library gets None."""
     world = scene.world
     if world is None:
         return None
 
     def for_variant(variant: dict):
         edited = appearance_world(world, variant, asset_of)
-        if edited is None:
-            return None
-        renderer = WorldRenderer(edited)
+        return None if edited is None else sensor(WorldRenderer(edited))
 
-        def reference(vf, camera: str, t: int):
-            r = renderer.render_camera(int(vf.scene_frames[t]), camera)
+    return for_variant
+
+
+def appearance_reference(scene, asset_of):
+    """For a procedural scene, ``variant -> Reference`` of appearance variants: ``appearance_world`` ray-cast; None
+    for recorded logs, and a variant whose object has no asset of the library gets no reference."""
+    def camera(renderer):
+        def reference(vf, name: str, t: int):
+            r = renderer.render_camera(int(vf.scene_frames[t]), name)
             return r.rgb, r.instance
         return reference
 
-    return for_variant
+    return _appearance_renderers(scene, asset_of, camera)
 
 
 def appearance_lidar(scene, asset_of):
     """For a procedural scene, ``variant -> Sweep`` of appearance variants: ``appearance_world`` ray-cast with the
     world's own sensor; None for recorded logs, and a variant whose object has no asset of the library gets none."""
-    world = scene.world
-    if world is None:
-        return None
-
-    def for_variant(variant: dict):
-        edited = appearance_world(world, variant, asset_of)
-        if edited is None:
-            return None
-        renderer = WorldRenderer(edited)
-        return lambda vf, t: renderer.lidar_scan(int(vf.scene_frames[t]))
-
-    return for_variant
+    return _appearance_renderers(scene, asset_of,
+                                 lambda renderer: lambda vf, t: renderer.lidar_scan(int(vf.scene_frames[t])))
 
 
 def pool_asset_of(pool):
