@@ -78,8 +78,9 @@ def _depth(data: bytes) -> int:
     return int(np.cumsum(steps, dtype=np.int64).max(initial=0))
 
 
-def _numbers_hooks(allow_nan: bool, max_int_digits: int) -> dict:
-    """``json.loads`` hooks that refuse overlong integers and (unless ``allow_nan``) non-finite numbers."""
+def _numbers_hooks(allow_inf: bool, max_int_digits: int) -> dict:
+    """``json.loads`` hooks that refuse overlong integers and (unless ``allow_inf``) numbers that overflow a
+    float."""
     def parse_int(text: str) -> int:
         if len(text.lstrip("-")) > max_int_digits:
             raise _Refused(f"holds an integer of {len(text.lstrip('-'))} digits (at most {max_int_digits})")
@@ -87,14 +88,14 @@ def _numbers_hooks(allow_nan: bool, max_int_digits: int) -> dict:
 
     def parse_float(text: str) -> float:
         value = float(text)
-        if not allow_nan and not math.isfinite(value):
+        if not allow_inf and not math.isfinite(value):
             raise _Refused(f"holds a number too large for a float ({text[:40]}{'...' if len(text) > 40 else ''})")
         return value
 
     return {"parse_int": parse_int, "parse_float": parse_float}
 
 
-def _parse(data: bytes, allow_nan: bool, max_depth: int, max_int_digits: int):
+def _parse(data: bytes, allow_nan: bool, allow_inf: bool, max_depth: int, max_int_digits: int):
     """The JSON value in ``data``; a problem is ``_Refused`` (with what was wrong, for a message)."""
     try:
         text = data.decode("utf-8")
@@ -107,8 +108,9 @@ def _parse(data: bytes, allow_nan: bool, max_depth: int, max_int_digits: int):
         raise _Refused(f"is nested more than {max_depth} deep")
 
     def parse_constant(name: str) -> float:
-        if not allow_nan:
-            raise _Refused(f"holds {name}, which is not a number JSON allows (only finite numbers)")
+        if not (allow_nan if name == "NaN" else allow_inf):
+            allowed = "finite numbers or NaN" if allow_nan else "finite numbers"
+            raise _Refused(f"holds {name}, which is not a number JSON allows (only {allowed} here)")
         return float(name)
 
     hooks = {}
@@ -117,7 +119,7 @@ def _parse(data: bytes, allow_nan: bool, max_depth: int, max_int_digits: int):
     if may_refuse:  # look again outside strings (a token such as "e4120..." is no exponent)
         shapes = _outside_strings(data).translate(_NUMBER_SHAPES)
         if b"0" * (max_int_digits + 1) in shapes or b"e000" in shapes or b"e+000" in shapes:
-            hooks = _numbers_hooks(allow_nan, max_int_digits)
+            hooks = _numbers_hooks(allow_inf, max_int_digits)
     try:
         return json.loads(text, parse_constant=parse_constant, **hooks)
     except json.JSONDecodeError as exc:
@@ -128,24 +130,26 @@ def _parse(data: bytes, allow_nan: bool, max_depth: int, max_int_digits: int):
         raise _Refused(f"is not valid JSON ({exc})") from None
 
 
-def read_regular_file(path: str | os.PathLike, max_bytes: int, what: str, hint: str) -> bytes:
+def read_regular_file(path: str | os.PathLike, max_bytes: int, what: str, hint: str,
+                      error: type[OmniscsError] = OmniscsError) -> bytes:
     """The bytes of ``path``, which must be a regular file of at most ``max_bytes``; a FIFO, a device (an endless
-    stream such as /dev/zero), a folder, a missing or unreadable file is one OmniscsError naming ``what`` and the
-    file (``hint`` says what to do). The file is opened without blocking, so a FIFO with no writer never hangs."""
+    stream such as /dev/zero), a folder, a missing or unreadable file is one ``error`` (an OmniscsError) naming
+    ``what`` and the file (``hint`` says what to do). The file is opened without blocking, so a FIFO with no writer
+    never hangs."""
     path = Path(path)
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except OSError as exc:
-        raise OmniscsError(f"cannot read {what} {path} ({exc.strerror or exc}); {hint}") from None
+        raise error(f"cannot read {what} {path} ({exc.strerror or exc}); {hint}") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode)
                     else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
                     else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
-            raise OmniscsError(f"{what} {path} is {kind}, not a regular file; give a file")
+            raise error(f"{what} {path} is {kind}, not a regular file; give a file")
         if st.st_size > max_bytes:
-            raise OmniscsError(f"{what} {path} is {st.st_size:,} bytes, more than the {max_bytes:,} allowed; {hint}")
+            raise error(f"{what} {path} is {st.st_size:,} bytes, more than the {max_bytes:,} allowed; {hint}")
         chunks, total = [], 0
         while True:  # a file that grows while we read stops at the cap too
             chunk = os.read(fd, min(1 << 24, max_bytes + 1 - total))
@@ -154,35 +158,37 @@ def read_regular_file(path: str | os.PathLike, max_bytes: int, what: str, hint: 
             chunks.append(chunk)
             total += len(chunk)
             if total > max_bytes:
-                raise OmniscsError(f"{what} {path} is more than the {max_bytes:,} bytes allowed; {hint}")
+                raise error(f"{what} {path} is more than the {max_bytes:,} bytes allowed; {hint}")
         return b"".join(chunks)
     except OSError as exc:
-        raise OmniscsError(f"cannot read {what} {path} ({exc.strerror or exc}); {hint}") from None
+        raise error(f"cannot read {what} {path} ({exc.strerror or exc}); {hint}") from None
     finally:
         os.close(fd)
 
 
 def read_json(path: str | os.PathLike, damaged: str = "fix or replace the file", *, expect: type | None = None,
-              max_bytes: int = MAX_JSON_BYTES, allow_nan: bool = False, max_depth: int = MAX_JSON_DEPTH,
-              max_int_digits: int = MAX_INT_DIGITS, what: str = "JSON file"):
+              max_bytes: int = MAX_JSON_BYTES, allow_nan: bool = False, allow_inf: bool = False,
+              max_depth: int = MAX_JSON_DEPTH, max_int_digits: int = MAX_INT_DIGITS, what: str = "JSON file",
+              error: type[OmniscsError] = OmniscsError):
     """The JSON value in ``path`` (a regular file of at most ``max_bytes``), read as untrusted: strict UTF-8, nested
-    at most ``max_depth``, integers of at most ``max_int_digits`` digits, only finite numbers unless ``allow_nan``
-    (then NaN and +-Infinity, as Python's own json writes them, are read), and of type ``expect`` when given.
-    Anything else is one OmniscsError naming the file and what was wrong; ``damaged`` says what that means and what
-    to do (e.g. "the dataset card is damaged; build the dataset again")."""
-    data = read_regular_file(path, max_bytes, what, damaged)
+    at most ``max_depth``, integers of at most ``max_int_digits`` digits, only finite numbers (``allow_nan``: NaN too,
+    e.g. the nuScenes results format's "no velocity"; ``allow_inf``: +-Infinity and numbers that overflow a float, as
+    Python's own json writes and reads them), and of type ``expect`` when given.
+    Anything else is one ``error`` (OmniscsError or a subclass) naming the file and what was wrong; ``damaged`` says
+    what that means and what to do (e.g. "the dataset card is damaged; build the dataset again")."""
+    data = read_regular_file(path, max_bytes, what, damaged, error)
     try:
-        value = _parse(data, allow_nan, max_depth, max_int_digits)
+        value = _parse(data, allow_nan, allow_inf, max_depth, max_int_digits)
     except _Refused as exc:
-        raise OmniscsError(f"{path} {exc}; {damaged}") from None
+        raise error(f"{path} {exc}; {damaged}") from None
     if expect is not None and not isinstance(value, expect):
-        raise OmniscsError(f"{path} holds a JSON {_json_type(value)}, not {_json_type_name(expect)}; {damaged}")
+        raise error(f"{path} holds a JSON {_json_type(value)}, not {_json_type_name(expect)}; {damaged}")
     return value
 
 
 def loads_json(text: str | bytes | bytearray, what: str, hint: str = "", *, expect: type | None = None,
-               max_bytes: int = MAX_JSON_BYTES, allow_nan: bool = False, max_depth: int = MAX_JSON_DEPTH,
-               max_int_digits: int = MAX_INT_DIGITS):
+               max_bytes: int = MAX_JSON_BYTES, allow_nan: bool = False, allow_inf: bool = False,
+               max_depth: int = MAX_JSON_DEPTH, max_int_digits: int = MAX_INT_DIGITS):
     """JSON given as text (on the command line, in a request): the same checks as ``read_json``; an error names
     ``what`` (e.g. "the edit list") and ends with ``hint`` when given."""
     if isinstance(text, str):
@@ -196,7 +202,7 @@ def loads_json(text: str | bytes | bytearray, what: str, hint: str = "", *, expe
     if len(data) > max_bytes:
         raise OmniscsError(f"{what} is {len(data):,} bytes, more than the {max_bytes:,} allowed{tail}")
     try:
-        value = _parse(data, allow_nan, max_depth, max_int_digits)
+        value = _parse(data, allow_nan, allow_inf, max_depth, max_int_digits)
     except _Refused as exc:
         raise OmniscsError(f"{what} {exc}{tail}") from None
     if expect is not None and not isinstance(value, expect):

@@ -11,7 +11,6 @@ per frame, so image-to-pose timing is as in the dataset's own keyframes.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -38,6 +37,7 @@ from omniscs.scene.sources.common import (
     select_cameras,
 )
 from omniscs.scene.store import CameraRecord
+from omniscs.untrusted import MAX_TABLE_BYTES, read_json
 
 #: The v1.0 tables, in the order the devkit loads them.
 TABLES: tuple[str, ...] = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor",
@@ -212,13 +212,9 @@ def table_problem(root: Path, version: str) -> str | None:
         if not path.is_file():
             return f"{path}: nuScenes table {table!r} is missing"
         try:
-            rows = json.loads(path.read_text(encoding="utf-8"))
-        except UnicodeDecodeError:
-            return f"{path}: not a JSON text file (binary or damaged)"
-        except json.JSONDecodeError as exc:
-            return f"{path}: invalid JSON ({exc})"
-        except OSError as exc:
-            return f"{path}: cannot read ({exc.strerror or exc})"
+            rows = read_json(path, "fix or replace the table", max_bytes=MAX_TABLE_BYTES, what="nuScenes table")
+        except OmniscsError as exc:
+            return str(exc)
         if not isinstance(rows, list):
             return f"{path}: a nuScenes table must be a JSON list of records; got a {type(rows).__name__}"
         if table == "map" and not rows:
@@ -383,8 +379,12 @@ class NuScenesReader:
     def _chain(self, channel: str, t_end: int) -> list[dict]:
         """sample_data of ``channel`` from the first keyframe's forward, until after ``t_end``."""
         token = self.samples[0]["data"].get(channel)
-        out = []
+        out, seen = [], set()
         while token:
+            if token in seen:
+                raise ValidationError(f"{self.table_root / 'sample_data.json'}: {channel} sample_data chain of scene "
+                                      f"{self.scene['name']} loops at {token}; fix the table's next tokens")
+            seen.add(token)
             sd = self.nusc.get("sample_data", token)
             out.append(sd)
             if sd["timestamp"] > t_end:
