@@ -186,6 +186,13 @@ def read_json(path: str | os.PathLike, damaged: str = "fix or replace the file",
     return value
 
 
+def read_own_json(path: str | os.PathLike, damaged: str = "fix or replace the file", **options):
+    """A JSON file one of our stages wrote (a checkpoint's record, a dataset card, a plan, a stage's rows), read
+    as ``read_json`` reads untrusted files (someone may have damaged or replaced it) except that NaN and
+    infinities are kept: our writers record them (a diverged loss, a PSNR without a reference)."""
+    return read_json(path, damaged, allow_nan=True, allow_inf=True, **options)
+
+
 def loads_json(text: str | bytes | bytearray, what: str, hint: str = "", *, expect: type | None = None,
                max_bytes: int = MAX_JSON_BYTES, allow_nan: bool = False, allow_inf: bool = False,
                max_depth: int = MAX_JSON_DEPTH, max_int_digits: int = MAX_INT_DIGITS):

@@ -28,6 +28,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory
+from omniscs.untrusted import read_own_json
 
 #: The shipped weights (registry entry ``inpaint``; ``omniscs pretrained train inpaint --install`` writes them).
 SHIPPED = shipped_folder("inpaint")
@@ -333,7 +334,9 @@ def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
     """The InpaintNet saved in ``folder`` by ``save_inpaint_net`` (float32, eval mode)."""
     folder = verified_folder(folder)
     try:
-        arch = InpaintNetConfig.from_dict(json.loads((folder / INFO_FILE).read_text())["architecture"])
+        info = read_own_json(folder / INFO_FILE, "name a folder save_inpaint_net wrote", expect=dict,
+                             error=ValidationError)
+        arch = InpaintNetConfig.from_dict(info["architecture"])
         net = InpaintNet(arch)
         net.load_state_dict({k: v.float() if v.is_floating_point() else v
                              for k, v in load_file(str(folder / WEIGHTS_FILE)).items()})
