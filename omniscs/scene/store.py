@@ -445,7 +445,7 @@ def _is_type(value, kind) -> bool:
 def read_manifest(root: str | os.PathLike) -> dict:
     """A store's manifest after checking it is a JSON object with every field of the right type."""
     path = Path(root) / MANIFEST
-    if not path.is_file():
+    if not path.exists():
         raise ValidationError(f"{path}: not a scene store (manifest.json is missing)")
     manifest = read_json(path, "the scene store's manifest is damaged; re-ingest the source", what="manifest",
                          error=ValidationError)
