@@ -83,7 +83,8 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
     """A saved detector (default: the shipped one); a clear error when the folder is not one."""
     path = verified_folder(path if path is not None else DEFAULT_DETECTOR)
     try:
-        raw = read_json(path / CONFIG, "name a folder a detector training wrote", expect=dict, error=ValidationError)
+        raw = read_json(path / CONFIG, f"{path} is not a proxy detector checkpoint; train one with `omniscs "
+                        "pretrained train detector` or name its folder", expect=dict, error=ValidationError)
         config = DetectorConfig(**{**raw, "widths": tuple(raw["widths"]), "classes": tuple(raw["classes"])})
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError, KeyError) as e:

@@ -311,7 +311,8 @@ def load_planner(path: str | Path | None = None) -> ProxyPlanner:
     """A saved planner (default: the shipped one); a clear error when the folder is not one."""
     path = verified_folder(path if path is not None else DEFAULT_PLANNER)
     try:
-        config = PlannerConfig(**read_json(path / CONFIG, "name a folder a planner training wrote", expect=dict,
+        config = PlannerConfig(**read_json(path / CONFIG, f"{path} is not a proxy planner checkpoint; train one with "
+                                           "`omniscs pretrained train planner` or name its folder", expect=dict,
                                            error=ValidationError))
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError) as e:
