@@ -224,16 +224,24 @@ def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
     return T
 
 
+def read_detection_results(path: str | Path):
+    """The JSON value of a detection results file, read as untrusted (``omniscs.untrusted``; NaN is the format's
+    "no velocity", an infinity or an overflowing number never a measurement): a FIFO, a device, a folder, hostile or
+    invalid JSON is one ValidationError naming the file; its content is checked by ``load_results``."""
+    return read_json(path, "give a results file in the nuScenes detection results format", allow_nan=True,
+                     max_bytes=MAX_RESULTS_BYTES, what="results file", error=ValidationError)
+
+
 def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
-                 config: DetectionConfig = DetectionConfig(), camera_view: bool = False) -> tuple[Boxes, dict]:
+                 config: DetectionConfig = DetectionConfig(), camera_view: bool = False,
+                 data=None) -> tuple[Boxes, dict]:
     """Predictions of a results file (``{"meta": {...}, "results": {sample_token: [box, ...]}}``) for exactly the
     evaluated ``samples``, with their ego distance; and its meta. Unknown or missing sample tokens, more than
     ``max_boxes_per_sample`` boxes, unknown classes or attributes, non-finite numbers (a NaN velocity is allowed:
     no velocity) and non-positive sizes are refused with the first offending entry named. ``camera_view``: only the
-    boxes a camera sees (``in_camera_view``), as ``evaluated_ground_truth``."""
-    # NaN is the results format's "no velocity"; an infinity or an overflowing number is never a measurement
-    data = read_json(path, "give a results file in the nuScenes detection results format", allow_nan=True,
-                     max_bytes=MAX_RESULTS_BYTES, what="results file", error=ValidationError)
+    boxes a camera sees (``in_camera_view``), as ``evaluated_ground_truth``. ``data``: the file's JSON value when
+    the caller read it already (``read_detection_results``)."""
+    data = read_detection_results(path) if data is None else data
     if not isinstance(data, dict) or not isinstance(data.get("results"), dict):
         raise ValidationError(f"results {path} must be an object with a 'results' object (sample token -> boxes)")
     results, wanted = data["results"], set(samples)
@@ -315,13 +323,15 @@ def evaluate_detection_results(dataroot: str | Path, version: str, results: str 
     """The protocol end to end: ground truth of ``scenes`` (all when None) of a dataroot, the results file's
     predictions for exactly those samples, both filtered, then ``detection.evaluate``. ``camera_view``: ground
     truth and predictions alike only where a camera sees them (``in_camera_view``); nuScenes' own protocol has no
-    such filter, as its six cameras look all round."""
+    such filter, as its six cameras look all round. A results file that is not a regular file or not JSON is refused
+    first, before any table is read."""
+    data = read_detection_results(results)
     tables = NuScenesTables.load(dataroot, version)
     samples = tables.scene_samples(scenes)
     if not samples:
         raise ValidationError(f"{Path(dataroot) / version} has no samples to evaluate")
     gt, racks = evaluated_ground_truth(tables, samples, camera_view)
-    pred, meta = load_results(results, tables, samples, config, camera_view)
+    pred, meta = load_results(results, tables, samples, config, camera_view, data=data)
     metrics = evaluate(filter_boxes(gt, config, racks), filter_boxes(pred, config, racks), config)
     return metrics, {"n_samples": len(samples), "meta": meta, "camera_view": bool(camera_view)}
 
@@ -385,14 +395,22 @@ def load_planning_samples(tables: NuScenesTables, samples: list[str], steps: int
     return out, short
 
 
+def read_planning_results(path: str | Path):
+    """The JSON value of a planning results file, read as untrusted (``omniscs.untrusted``): a FIFO, a device, a
+    folder, hostile or invalid JSON is one ValidationError naming the file; its content is checked by
+    ``load_planning_results``."""
+    return read_json(path, "give planning results ({'results': {sample_token: {'trajectory': [[x, y], ...]}}})",
+                     max_bytes=MAX_RESULTS_BYTES, what="planning results", error=ValidationError)
+
+
 def load_planning_results(path: str | Path, samples: list[str], steps: int | None = None,
-                          allowed: list[str] | None = None) -> dict[str, np.ndarray]:
+                          allowed: list[str] | None = None, data=None) -> dict[str, np.ndarray]:
     """Planned trajectories: ``{"results": {sample_token: {"trajectory": [[x, y], ...]}}}`` (or the token mapped
     straight to the waypoints), in the planning frame; every evaluated sample must be there, and no token outside
-    ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there)."""
+    ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there).
+    ``data``: the file's JSON value when the caller read it already (``read_planning_results``)."""
     steps = STEPS if steps is None else steps
-    data = read_json(path, "give planning results ({'results': {sample_token: {'trajectory': [[x, y], ...]}}})",
-                     max_bytes=MAX_RESULTS_BYTES, what="planning results", error=ValidationError)
+    data = read_planning_results(path) if data is None else data
     results = data.get("results") if isinstance(data, dict) else None
     if not isinstance(results, dict):
         raise ValidationError(f"planning results {path} must be an object with a 'results' object "
@@ -422,7 +440,9 @@ def evaluate_planning_results(dataroot: str | Path, version: str | None, results
                               scenes: list[str] | None = None, on_coverage=None) -> dict:
     """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future.
     ``on_coverage(n_with_future, n_keyframes)`` hears how many there are before the results are read; none is an
-    error saying how long a scene must be."""
+    error saying how long a scene must be. A results file that is not a regular file or not JSON is refused first,
+    before any table is read."""
+    data = read_planning_results(results)
     tables = NuScenesTables.load(dataroot, version)
     keyframes = tables.scene_samples(scenes)
     samples, short = load_planning_samples(tables, keyframes)
@@ -434,7 +454,7 @@ def evaluate_planning_results(dataroot: str | Path, version: str | None, results
                               f"future the planning metrics need: a scene needs at least {STEPS + 1} keyframes at "
                               f"2 Hz ({frames_for_planning(10.0)} frames at 10 Hz) and the longest here has "
                               f"{longest}; make the logs longer (e.g. --frames 40)")
-    predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes)
+    predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes, data=data)
     out = evaluate_planning(samples, predictions)
     out["n_short_future"] = short
     return out

@@ -26,13 +26,13 @@ import numpy as np
 from omniscs.errors import ValidationError
 from omniscs.eval.nuscenes_io import (
     EGO_FROM_PLANNING,
-    MAX_RESULTS_BYTES,
     REFERENCE_CHANNEL,
     STEP_TOLERANCE_S,
     NuScenesTables,
     load_planning_results,
     load_planning_samples,
     load_results,
+    read_planning_results,
     world_from_planning,
 )
 from omniscs.eval.detector_views import transform_of
@@ -248,7 +248,7 @@ def check_results(task: str, path: str | Path, dataroot: str | Path, version: st
         return len(samples)
     if task == "planning":
         evaluated, _ = load_planning_samples(tables, samples)
-        load_planning_results(path, [s.token for s in evaluated], allowed=samples)
-        return len(read_json(path, "give planning results", max_bytes=MAX_RESULTS_BYTES, what="planning results",
-                             error=ValidationError)["results"])
+        data = read_planning_results(path)
+        load_planning_results(path, [s.token for s in evaluated], allowed=samples, data=data)
+        return len(data["results"])
     raise ValidationError(f"unknown task {task!r}; one of {TASKS}")

@@ -247,9 +247,31 @@ def diagnose(source: DatasetSource) -> str | None:
 
 
 def check_scene(source: DatasetSource) -> None:
-    """The tables load and name the source's scene (name or token); else one OmniscsError."""
+    """The tables load and name the source's scene (name or token), whose sample chain ends; else one
+    OmniscsError."""
     root = Path(source.dataroot)
-    _find_scene(open_nuscenes(root, find_version(root, source.version)), source.scene, root)
+    version = find_version(root, source.version)
+    nusc = open_nuscenes(root, version)
+    sample_chain(nusc, _find_scene(nusc, source.scene, root), root / version)
+
+
+def sample_chain(nusc, scene: dict, table_root: Path) -> list[dict]:
+    """The scene's samples along their ``next`` tokens; a chain that loops or names a sample the table lacks is
+    one ValidationError naming sample.json (a damaged or hostile table never hangs the reader)."""
+    samples, token, seen = [], scene["first_sample_token"], set()
+    while token:
+        if token in seen:
+            raise ValidationError(f"{table_root / 'sample.json'}: sample chain of scene {scene['name']} loops at "
+                                  f"{token}; fix the table's next tokens")
+        try:
+            sample = nusc.get("sample", token)
+        except KeyError:
+            raise ValidationError(f"{table_root / 'sample.json'}: sample chain of scene {scene['name']} names "
+                                  f"{token}, which the table lacks") from None
+        seen.add(token)
+        samples.append(sample)
+        token = sample["next"]
+    return samples
 
 
 def dataset_files(source: DatasetSource) -> list[Path]:
@@ -339,17 +361,7 @@ class NuScenesReader:
 
     # ------------------------------------------------------------------ plan
     def _samples(self) -> list[dict]:
-        samples, token = [], self.scene["first_sample_token"]
-        seen = set()
-        while token:
-            if token in seen:
-                raise ValidationError(f"{self.table_root / 'sample.json'}: sample chain of scene "
-                                      f"{self.scene['name']} loops at {token}")
-            seen.add(token)
-            sample = self.nusc.get("sample", token)
-            samples.append(sample)
-            token = sample["next"]
-        return samples
+        return sample_chain(self.nusc, self.scene, self.table_root)
 
     def _camera(self, channel: str, sd_token: str) -> CameraRecord:
         sd = self.nusc.get("sample_data", sd_token)
