@@ -5,7 +5,6 @@ appearance-level SCS variants: pool objects replacing a vehicle's model or inser
 (kind ``appearance``); the annotate stage renders them."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -106,7 +105,9 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
             spare = int(n_variants) * (max(1, int(budget)) - 1)
             produce(out_dir, key, lambda tmp: _draw(scene, plan, model, pool, ids, n_variants, config, progress,
                                                     tmp, out_dir, spare))
-    rows = json.loads((out_dir / "catalog_rows.json").read_text())
+    rows = read_own_json(out_dir / "catalog_rows.json",
+                         f"the stage folder {out_dir} is damaged; remove it and run again",
+                         expect=list)
     return StageRecord("appearance", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},
                        info={"n_variants": len(rows), "n_requested": int(n_variants),
