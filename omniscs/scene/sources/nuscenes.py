@@ -128,6 +128,9 @@ def open_nuscenes(root: Path, version: str):
     """The devkit's NuScenes object; a missing, corrupt or inconsistent table is a ValidationError."""
     for path, table in zip(table_paths(root, version), TABLES):
         require_file(path, f"nuScenes table {table!r}")
+        if path.stat().st_size > MAX_TABLE_BYTES:  # the devkit reads tables whole: refuse before it does
+            raise ValidationError(f"{path}: nuScenes table {table!r} is {path.stat().st_size:,} bytes, more than the "
+                                  f"{MAX_TABLE_BYTES:,} allowed; give the dataroot's own table")
     stamp = tuple(tuple(x) for x in fingerprint(table_paths(root, version), root))
     return _open_cached(str(root), version, stamp)
 
