@@ -222,8 +222,8 @@ def load_msnet(folder) -> MSNet:
     """An MSNet saved by ``save_msnet`` (a user's own weights of this architecture load the same way)."""
     folder = verified_folder(folder)
     try:
-        arch = read_own_json(folder / "training.json", "name a folder that save_msnet wrote", expect=dict,
-                             error=ValidationError)["architecture"]
+        arch = read_own_json(folder / "training.json", f"{folder} holds no MSNet weights this version reads",
+                             expect=dict, error=ValidationError)["architecture"]
         net = MSNet(MSNetConfig(tuple(arch["widths"]), int(arch["dim"])))
         net.load_state_dict(load_file(str(folder / "msnet.safetensors")))
     except (OSError, KeyError, ValueError, RuntimeError) as e:

@@ -442,7 +442,8 @@ def load_depth_net(folder: str | Path) -> DepthNet:
     """The DepthNet saved in ``folder`` by ``save_depth_net``, in eval mode."""
     folder = verified_folder(folder)
     try:
-        arch = read_own_json(folder / INFO_FILE, "name a folder save_depth_net wrote", expect=dict,
+        arch = read_own_json(folder / INFO_FILE, f"{folder} holds no relative-depth weights this version reads; "
+                             "retrain them with `omniscs pretrained train reldepth`", expect=dict,
                              error=ValidationError)["architecture"]
         net = DepthNet(DepthNetConfig(tuple(int(c) for c in arch["widths"]), int(arch["long_side"])))
         net.load_state_dict(load_file(str(folder / WEIGHTS_FILE)))

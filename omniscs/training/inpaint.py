@@ -209,7 +209,8 @@ def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataC
     folder = Path(folder)
     try:
         state = load_file(str(folder / WEIGHTS_FILE))
-        history = read_own_json(folder / INFO_FILE, "name the folder train.py wrote", expect=dict)
+        history = read_own_json(folder / INFO_FILE, f"{folder} holds no weights from infra/inpaint_gpu/train.py",
+                                expect=dict)
     except (OSError, ValueError) as e:
         raise OmniscsError(f"{folder} holds no weights from infra/inpaint_gpu/train.py ({type(e).__name__}: {e})") \
             from e
