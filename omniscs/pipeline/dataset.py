@@ -40,7 +40,7 @@ def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_i
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
             produce(out, key, lambda tmp: _assemble(tmp, out, done, dataset_id, facts, keep_failed))
-    rows = read_own_json(out / "rows.json", "the dataset is damaged; build it again", expect=list)
+    rows = read_own_json(out / "rows.json", "the dataset is damaged; build it again", expect=dict)
     card = read_own_json(out / CARD_JSON, "the dataset card is damaged; build the dataset again", expect=dict)
     c, fid, gates = card["counts"], card["fidelity"], card["gates"]
 
