@@ -12,10 +12,12 @@ import threading
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from omniscs.errors import OmniscsError, ValidationError
-from omniscs.untrusted import (MAX_INT_DIGITS, MAX_JSON_DEPTH, check_parquet_schema, loads_json, read_json,
-                               read_own_json)
+from omniscs.untrusted import (MAX_INT_DIGITS, MAX_JSON_DEPTH, check_parquet_files, check_parquet_schema,
+                               loads_json, read_json, read_own_json)
 
 
 def _one_line(exc: pytest.ExceptionInfo) -> str:
@@ -65,6 +67,20 @@ def test_command_line_text_with_undecodable_bytes_is_refused_with_their_offset()
     "0." + "1" * 5000,                                                       # a long fraction is an ordinary float
 ])
 def test_ordinary_json_reads_as_json_loads_reads_it(text):
+    assert loads_json(text, "x") == json.loads(text)
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**30, 10**30) | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(alphabet=st.characters(codec="utf-8"), max_size=12)
+    | st.sampled_from(['"', "\\", '\\"', "[", "]}", "e999"]),  # what could fool the bracket count or the scan
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4), max_leaves=30)
+
+
+@settings(max_examples=300, deadline=None)
+@given(JSON_VALUES, st.booleans())
+def test_any_json_we_could_write_reads_back_exactly_as_json_loads_reads_it(value, ascii_only):
+    text = json.dumps(value, ensure_ascii=ascii_only)
     assert loads_json(text, "x") == json.loads(text)
 
 
@@ -162,3 +178,14 @@ def test_junk_truncated_and_foreign_parquet_files_are_refused_by_name(tmp_path):
         pq.write_table(table, path)
         with pytest.raises(OmniscsError, match="is not one of ours"):
             check_parquet_schema(path, SCHEMA, "catalog file", "move it away", required=("scene_id",))
+
+
+def test_a_checked_file_replaced_by_junk_is_checked_again(tmp_path):
+    path = tmp_path / "rows.parquet"
+    pq.write_table(pa.table({"scene_id": ["a"]}), path)
+    check_parquet_files([path], SCHEMA, "catalog file", "move it away", required=("scene_id",))
+    junk = tmp_path / ".junk"
+    junk.write_bytes(b"PAR1 not really PAR1")
+    os.replace(junk, path)  # what a writer's atomic rename does: a new file under the same name
+    with pytest.raises(OmniscsError, match="is not a Parquet file|is a damaged Parquet file"):
+        check_parquet_files([path], SCHEMA, "catalog file", "move it away", required=("scene_id",))
