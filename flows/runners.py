@@ -24,6 +24,7 @@ import os
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from omniscs.pipeline.validate import TASK_RUNNERS, check_runner  # noqa: F401  (checked with the run's inputs)
+from omniscs.progress import clear_stop, request_stop
 
 #: Scenes processed at once by the thread runner; the machines this runs on have 2 cores.
 MAX_PARALLEL_SCENES = 2
@@ -37,10 +38,18 @@ def worker_threads(workers: int, cores: int | None = None) -> int:
 class StoppableThreadPoolTaskRunner(ThreadPoolTaskRunner):
     """Prefect's thread runner, except that a stopped run (SIGTERM turned into Prefect's TerminationSignal, or
     SIGINT's KeyboardInterrupt) leaves without waiting for the running stages: Prefect's runner would wait for the
-    running fit to end (minutes) before the stop reached the CLI. The process exits right after, taking the
-    threads with it; the CLI records the run as cancelled and removes its temporaries."""
+    running fit to end (minutes) before the stop reached the CLI. The CLI's process exits right after, taking the
+    threads with it, records the run as cancelled and removes its temporaries; any other process (a deployment's
+    flow process, Python calling the flow) waits for its threads at exit, so the running stages are also asked to
+    stop at their next progress report (``omniscs.progress.request_stop``)."""
+
+    def __enter__(self):
+        clear_stop()
+        return super().__enter__()
 
     def __exit__(self, exc_type, exc_value, traceback) -> None:
+        if exc_type is not None and not issubclass(exc_type, Exception):
+            request_stop()  # running stages end at their next progress report (a process waits for its threads)
         if exc_type is not None and not issubclass(exc_type, Exception) and self._executor is not None:
             for event in getattr(self, "_cancel_events", {}).values():
                 event.set()

@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
-from omniscs.storage import atomic_write_bytes
+from omniscs.storage import atomic_write_bytes, inside
 from omniscs.untrusted import check_parquet_files
 
 SCHEMAS: dict[str, pa.Schema] = {
@@ -517,6 +517,19 @@ def views_sql(root: str = "omniscs-data/catalog") -> str:
     return "\n".join(lines + view_statements()) + "\n"
 
 
+def check_contained(root: Path) -> None:
+    """Refuse a catalog whose table folders or files are symbolic links out of ``root``: DuckDB allows the files
+    under ``root`` as written, so such a link would let a query read elsewhere."""
+    if not root.is_dir():
+        return
+    for table in root.iterdir():
+        inside(table, root, "catalog entry")
+        if table.is_dir() and not table.is_symlink():
+            for entry in table.iterdir():
+                if entry.is_symlink():
+                    inside(entry, root, "catalog file")
+
+
 def catalog_files(root: Path, table: str) -> list[Path]:
     """Every file the views of ``table`` read: ``<root>/<table>/run_id=*/*.parquet`` (hidden names too, as DuckDB's
     glob matches them)."""
@@ -547,6 +560,7 @@ def connect(root: Path) -> duckdb.DuckDBPyConnection:
     can read nothing but files under ``root``: no other file, no extension, no network, no setting changed
     (the configuration is locked), no spilling to disk."""
     root = Path(root).expanduser().resolve()
+    check_contained(root)
     prefix = _glob_prefix(root)
     check_catalog_files(root)
     con = duckdb.connect()

@@ -28,6 +28,36 @@ def no_progress(done: int, total: int | None = None, note: str = "") -> None:
     """The progress callback of a caller that does not watch."""
 
 
+class Stopped(Exception):
+    """Raised from a stage's progress callback once the run is being stopped (``request_stop``): the stage unwinds
+    at its next report (its temporary output goes with it) instead of running to its end."""
+
+
+#: Set while the run this process works for is being stopped (SIGTERM or SIGINT reached its flow, or the run was
+#: cancelled): a process that ends only when its threads end (a deployment's flow process) then ends within one
+#: progress report of each running stage, not after the stage.
+_STOP = threading.Event()
+
+
+def request_stop() -> None:
+    """Ask every stage of this process to stop at its next progress report."""
+    _STOP.set()
+
+
+def clear_stop() -> None:
+    """Forget an earlier stop request (a new run starts in this process)."""
+    _STOP.clear()
+
+
+def stoppable(progress: "Progress") -> "Progress":
+    """``progress`` that raises ``Stopped`` instead of reporting once a stop was requested."""
+    def report(done: int, total: int | None = None, note: str = "") -> None:
+        if _STOP.is_set():
+            raise Stopped("the run is being stopped")
+        progress(done, total, note)
+    return report
+
+
 class Throttled:
     """Forwards a progress stream to ``sink`` only when it moved at least ``step_pct`` percent, or
     ``min_interval_s`` passed with any movement, or the work finished, or a new phase began (its total changed or

@@ -21,10 +21,101 @@ HOME_ENV = "OMNISCS_HOME"
 DEFAULT_HOME = "omniscs-data"
 
 
+#: Characters a name needs beyond its own for the temporary sibling written beside it
+#: (``.<name>.tmp-<pid>-<12 hex>``; pids have at most 7 digits on Linux).
+TEMP_NAME_ROOM = 27
+
+
+def check_link(path: Path, what: str) -> None:
+    """Refuse ``path`` when it, or a folder above it, is a symbolic link to nothing: writing through it would
+    create its target somewhere the user did not name."""
+    for candidate in (path, *path.parents):
+        if candidate.is_symlink() and not candidate.exists():
+            target = os.readlink(candidate)
+            where = "is" if candidate == path else f"lies under {candidate}, which is"
+            raise OmniscsError(f"{what} {path} {where} a symbolic link to {target}, which does not exist; create "
+                               "the target or give a real path")
+
+
+def check_names(path: Path, what: str) -> None:
+    """Refuse names the file system cannot hold (with room for a temporary sibling's) and paths past its limit,
+    before any work."""
+    anchor = Path(path.anchor or "/")  # the deepest existing folder, found from the top: a name too long for
+    for part in path.parts[1:]:          # the file system makes every call on the path below it fail
+        try:
+            if not (anchor / part).is_dir():
+                break
+        except OSError:
+            break
+        anchor = anchor / part
+    try:
+        name_max = os.pathconf(anchor, "PC_NAME_MAX")
+        path_max = os.pathconf(anchor, "PC_PATH_MAX")
+    except (OSError, ValueError):
+        name_max, path_max = 255, 4096
+    for part in path.parts[1:]:
+        if len(os.fsencode(part)) + TEMP_NAME_ROOM > name_max:
+            raise OmniscsError(f"{what} {path}: the name {part[:40]}... is {len(os.fsencode(part))} bytes; names "
+                               f"here hold at most {name_max - TEMP_NAME_ROOM} (with room for a temporary's)")
+    if len(os.fsencode(str(path))) + TEMP_NAME_ROOM >= path_max:
+        raise OmniscsError(f"{what} {str(path)[:60]}... is {len(os.fsencode(str(path)))} bytes long; paths here "
+                           f"hold at most {path_max - TEMP_NAME_ROOM - 1}")
+
+
+def check_writable(path: Path, what: str, inside: bool = False) -> None:
+    """Refuse ``path`` when the nearest existing folder above it (with ``inside``: it, when it exists: a folder
+    that is added to) cannot take a new file: read-only, not permitted, or a virtual file system such as /proc. A
+    probe file is made there and removed (the only test that holds for root and on every file system); an output
+    that will replace ``path`` never has its own folder touched."""
+    anchor = next((p for p in ((path,) if inside else ()) + tuple(path.parents) if p.exists()), None)
+    if anchor is None:
+        return
+    if not anchor.is_dir():
+        raise OmniscsError(f"{what} {path} lies under {anchor}, which is a file, not a folder")
+    probe = anchor / f".omniscs-probe-{os.getpid()}-{uuid.uuid4().hex[:12]}"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as exc:
+        raise OmniscsError(f"{what} {path}: cannot write in {anchor} ({exc.strerror or exc}); choose a folder you "
+                           "can write") from None
+    os.close(fd)
+    probe.unlink(missing_ok=True)
+
+
+def check_output(path: str | os.PathLike, what: str = "--out", follow: bool = False) -> Path:
+    """The path policy for outputs, applied before any work: ``path`` (made absolute) must not be a symbolic link
+    (a dangling one would send the output elsewhere, a live one would be replaced as a whole; give the link's
+    target instead) nor lie under a dangling one; its names must fit the file system; the nearest existing folder
+    above it (or it, when it is one) must be writable. ``follow``: an output folder that is added to (scene
+    stores, a pool) may be a link to an existing folder, and is returned resolved."""
+    path = Path(path).expanduser().absolute()
+    check_names(path, what)
+    if path.is_symlink() and not (follow and path.is_dir()):
+        raise OmniscsError(f"{what} {path} is a symbolic link (to {os.readlink(path)}); give the real path")
+    check_link(path, what)
+    path = path.resolve() if follow else path
+    check_writable(path, what, inside=follow)
+    return path
+
+
 def workspace_path(root: str | os.PathLike | None = None) -> Path:
     """The workspace root's absolute path (``root`` if given, else $OMNISCS_HOME, else ./omniscs-data), not
-    created."""
-    return Path(root or os.environ.get(HOME_ENV) or DEFAULT_HOME).expanduser().resolve()
+    created. A workspace may be a symbolic link to a folder (followed: the workspace is its target); one that
+    points nowhere is refused rather than created elsewhere."""
+    given = Path(root or os.environ.get(HOME_ENV) or DEFAULT_HOME).expanduser().absolute()
+    check_names(given, "workspace")
+    check_link(given, "workspace")
+    return given.resolve()
+
+
+def inside(path: str | os.PathLike, root: str | os.PathLike, what: str) -> Path:
+    """``path`` resolved, refused unless it stays under ``root`` (resolved): a folder of the workspace (catalog
+    table, pool models) that is a symbolic link out of it would let a reader read, or a writer write, elsewhere."""
+    resolved, top = Path(path).resolve(), Path(root).resolve()
+    if resolved != top and top not in resolved.parents:
+        raise OmniscsError(f"{what} {path} leads out of {root} (to {resolved}): a symbolic link; the project "
+                           "follows links only inside its folders")
+    return resolved
 
 
 def workspace_root(root: str | os.PathLike | None = None) -> Path:
@@ -50,6 +141,8 @@ def usable_workspace(root: str | os.PathLike | None = None) -> Path:
                 where = "is a file" if candidate == path else f"lies under {candidate}, which is a file"
                 raise OmniscsError(f"workspace {path} {where}; choose another --workspace")
             break
+    check_names(path, "workspace")
+    check_writable(path, "workspace", inside=True)
     return path
 
 
@@ -193,6 +286,8 @@ def atomic_directory(final: str | os.PathLike, overwrite: bool = False) -> Itera
     new folder holds the owner marker. Temporary siblings of ``final`` left by dead writers are removed first.
     """
     final = Path(final)
+    if final.is_symlink():
+        raise OmniscsError(f"{final} is a symbolic link (to {os.readlink(final)}); give the real path")
     if final.exists() and not overwrite:
         raise OmniscsError(f"{final} already exists; choose another --out or pass --overwrite")
     if overwrite:

@@ -7,7 +7,7 @@ from prefect.artifacts import create_progress_artifact, create_table_artifact, u
 import contextlib
 from typing import Iterator
 
-from omniscs.progress import Progress, Throttled, percent, stage_feed, tee
+from omniscs.progress import Progress, Throttled, percent, stage_feed, stoppable, tee
 
 
 def artifact_progress(description: str) -> Progress:
@@ -23,7 +23,7 @@ def task_progress(description: str, workspace: str, run_id: str | None, label: s
     command that started the run watches it, lines or a bar named ``label`` (``<scene> <stage>``) there, wherever
     the task runs (this process or a Dask worker)."""
     with stage_feed(workspace, run_id, label) as feed:
-        yield tee(artifact_progress(description), feed)
+        yield stoppable(tee(artifact_progress(description), feed))
 
 
 def run_summary_artifact(run_id: str, results: list[dict], dataset_id: str | None,

@@ -29,7 +29,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.gaussians import GaussianParams, rigidly_moved
 from omniscs.ids import check_id
 from omniscs.locks import output_lock
-from omniscs.storage import atomic_directory, atomic_write_bytes
+from omniscs.storage import atomic_directory, atomic_write_bytes, inside
 from omniscs.taxonomy import CATEGORIES
 from omniscs.untrusted import check_parquet_files, read_own_json
 
@@ -70,6 +70,14 @@ class Pool:
         if self.root.exists() and not self.root.is_dir():
             raise ValidationError(f"pool {self.root} is a file, not a folder")
 
+    def folder(self, model_id: str) -> Path:
+        """The folder of model ``model_id``, which must stay inside the pool: a ``models/`` folder (or a model's)
+        that is a symbolic link out of it is refused (``storage.inside``), not followed."""
+        folder = self.root / MODELS / model_id
+        if self.root.exists():
+            inside(folder, self.root, f"pool model folder of {model_id}")
+        return folder
+
     def add(self, params: GaussianParams, category: str, provenance: str, source: str,
             quality: float | None = None, calibration: dict | None = None, build: dict | None = None,
             material=None) -> str:
@@ -89,7 +97,7 @@ class Pool:
             raise ValidationError(f"the material is for {len(material)} Gaussians; the model has {len(params)}")
         params = params.detached()
         model_id = model_id_of(params, category, material)
-        folder = self.root / MODELS / model_id
+        folder = self.folder(model_id)
         means = params.means.double().numpy()
         size = means.max(0) - means.min(0)
         meta = {"model_id": model_id, "category": category, "size": size.tolist(), "n_gaussians": len(params),
@@ -127,7 +135,7 @@ class Pool:
         model). Embedding caches follow the pool's content and are recomputed on their next use. A model the pool
         does not hold is a clear error, and nothing changes."""
         check_id("pool model id", model_id)
-        folder = self.root / MODELS / model_id
+        folder = self.folder(model_id)
         index = self.root / INDEX / f"{model_id}.parquet"
         if not (folder / META).is_file() and not index.is_file():
             raise ValidationError(f"pool {self.root} has no model {model_id}")
@@ -162,7 +170,7 @@ class Pool:
         from safetensors.torch import load_file
 
         check_id("pool model id", model_id)
-        folder = self.root / MODELS / model_id
+        folder = self.folder(model_id)
         if not (folder / META).is_file():
             raise ValidationError(f"pool {self.root} has no model {model_id}")
         from omniscs.agents.material import GaussianMaterial
@@ -183,7 +191,7 @@ class Pool:
         """uint8 [30, H, W, 4] RGBA views of the model around it at 12 degree steps (``agents.mesh.keyframes``)."""
         self.get(model_id)
         try:
-            with np.load(self.root / MODELS / model_id / KEYFRAMES) as z:
+            with np.load(self.folder(model_id) / KEYFRAMES) as z:
                 return z["rgba"]
         except Exception as e:  # missing, truncated or not an npz
             raise ValidationError(f"pool model {model_id} in {self.root} has no readable keyframes ({KEYFRAMES}: "

@@ -5,8 +5,9 @@ from dataclasses import asdict, dataclass
 
 from omniscs.errors import OmniscsError
 
-#: ``lidar_source`` values: a 360° ring of rendered views at the LiDAR mount, or the dataset cameras' depth.
-LIDAR_SOURCES = ("ring", "cameras")
+#: ``lidar_source`` values: the exact sweep where the scene has one (else the ring), a 360° ring of rendered views
+#: at the LiDAR mount, or the dataset cameras' depth.
+LIDAR_SOURCES = ("world", "ring", "cameras")
 #: Bounds of ``lidar_ring_pixel_deg``: finer would render views thousands of pixels wide; coarser hardly samples.
 MIN_RING_PIXEL_DEG, MAX_RING_PIXEL_DEG = 0.05, 5.0
 #: The ring's azimuth step is at least this (degrees): 36,000 columns per beam already outnumber any sensor's.
@@ -33,8 +34,10 @@ class AnnotateConfig:
     min_label_depth_m: float = 0.5
     """Box corners nearer than this to the camera plane are clipped there before projection (boxes behind or
     beside the camera still get a correct image rectangle)."""
-    lidar_source: str = "ring"
-    """Where the simulated LiDAR's returns come from: ``ring``, a LIDAR_TOP-like spinning sensor at the ego's LiDAR
+    lidar_source: str = "world"
+    """Where the simulated LiDAR's returns come from: ``world``, the exact sweep of the variant where the scene has
+    one (procedural scenes: the world, with the variant's edits, ray-cast by its own HDL-32E-like sensor; cheaper
+    than the ring), the ring everywhere else; ``ring``, a LIDAR_TOP-like spinning sensor at the ego's LiDAR
     mount whose beams are looked up in depth the scene graph renders in a ring of views around it (360°, like the
     logs' LiDAR; costs ``lidar_ring_views`` extra depth renders per frame); ``cameras``, the dataset cameras' own
     depth only (no extra render; boxes outside every camera get no points)."""

@@ -20,6 +20,7 @@ import numpy as np
 from omniscs.annotate.scene import read_rows
 from omniscs.errors import OmniscsError
 from omniscs.preview import track_colour
+from omniscs.scene.seen import captured, labelled
 from omniscs.storage import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 CARD_JSON = "dataset.json"
@@ -83,7 +84,8 @@ def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path
                                "candidates, relax the gates, or give --keep-failed to build the dataset from them")
         raise OmniscsError("no annotated variant to put in a dataset; ask for behaviour variants of at least one "
                            "scene with a vehicle besides the ego, or for appearance variants")
-    card = dataset_card(dataset_id, variants, samples, annotations, card_facts, gates)
+    lidar = lidar_coverage(store_boxes([out_dir / SCENES / v["store_id"] for v in variants]))
+    card = dataset_card(dataset_id, variants, samples, annotations, card_facts, gates, lidar)
     atomic_write_json(out_dir / CARD_JSON, card)
     atomic_write_text(out_dir / CARD_MD, card_markdown(card))
     write_preview(out_dir, samples, annotations, out_dir / PREVIEW_PNG)
@@ -172,17 +174,36 @@ LIDAR_RANGE_M = 50.0
 LIDAR_SHARE_WARNING = 0.9
 
 
-def lidar_coverage(annotations: list[dict], max_range_m: float = LIDAR_RANGE_M) -> dict:
-    """Boxes (one per variant, frame and track, as the cameras annotated them) with and without LiDAR points, all
-    and within ``max_range_m`` of the ego; a count of -1 (not measured) is left out."""
-    boxes: dict[tuple, tuple[int, float]] = {}
-    for a in annotations:
-        n = int(a.get("num_lidar_points", -1))
-        if n >= 0:
-            boxes[(a["store_id"], int(a["frame_idx"]), int(a["track_id"]))] = (
-                n, float(np.hypot(float(a["ego_x"]), float(a["ego_y"]))))
-    near = [n for n, d in boxes.values() if d <= max_range_m]
-    return {"boxes": len(boxes), "with_points": sum(n > 0 for n, _ in boxes.values()),
+def store_boxes(stores: list[str | Path]) -> list[dict]:
+    """Every box of the variant ``stores`` (every frame and track, those no camera sees included): store, frame,
+    track, LiDAR points, visible pixels and horizontal distance of its centre from the ego (metres)."""
+    from omniscs.scene import load_scene
+
+    out = []
+    for path in stores:
+        scene = load_scene(path)
+        b = scene.boxes
+        if len(b) == 0:
+            continue
+        ego = scene.world_from_ego_all[b.frame_idx.to_numpy(np.int64)]  # [N, 4, 4]
+        dist = np.hypot(b.cx.to_numpy() - ego[:, 0, 3], b.cy.to_numpy() - ego[:, 1, 3])
+        out += [{"store_id": scene.scene_id, "frame_idx": int(f), "track_id": int(t), "num_lidar_points": int(n),
+                 "visible_pixels": int(v), "distance_m": float(d)}
+                for f, t, n, v, d in zip(b.frame_idx, b.track_id, b.num_lidar_points, b.visible_pixels, dist)]
+    return out
+
+
+def lidar_coverage(boxes: list[dict], max_range_m: float = LIDAR_RANGE_M) -> dict:
+    """Of ``boxes`` (``store_boxes``), those with and without LiDAR points, all and within ``max_range_m`` of the
+    ego, counted over the boxes the exports label (``omniscs.scene.seen``: per track, from the first box a sensor
+    captured, by LiDAR points or visible pixels, to the last); ``unlabelled`` counts the others (hidden from every
+    sensor before, after or throughout a track). A box whose points were not measured (-1) is left out."""
+    measured = {(b["store_id"], b["frame_idx"], b["track_id"]): b for b in boxes if b["num_lidar_points"] >= 0}
+    keep = labelled((key, key[::2], key[1], captured(b["num_lidar_points"], b["visible_pixels"]))
+                    for key, b in measured.items())
+    kept = [(b["num_lidar_points"], b["distance_m"]) for key, b in measured.items() if key in keep]
+    near = [n for n, d in kept if d <= max_range_m]
+    return {"boxes": len(kept), "with_points": sum(n > 0 for n, _ in kept), "unlabelled": len(measured) - len(kept),
             "within_m": max_range_m, "boxes_within": len(near), "with_points_within": sum(n > 0 for n in near),
             "share_within": (sum(n > 0 for n in near) / len(near)) if near else None}
 
@@ -212,7 +233,7 @@ def card_warnings(counts: dict, gates: dict, lidar: dict, failed_scenes: list[di
 
 
 def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], annotations: list[dict],
-                 facts: dict, gates: dict | None = None) -> dict:
+                 facts: dict, gates: dict | None = None, lidar: dict | None = None) -> dict:
     """The dataset card: what was asked for, what went in and what was rejected (with reasons), how faithful the
     renders are, how many boxes the LiDAR sees, and warnings in plain words."""
     gates = gates or gate_summary([], False)
@@ -234,7 +255,7 @@ def dataset_card(dataset_id: str, variants: list[dict], samples: list[dict], ann
               "annotations_by_category": dict(sorted(categories.items())),
               "annotations_by_visibility": {f"level {k}": n for k, n in levels.items()},
               "samples_by_command": dict(sorted(commands.items()))}
-    lidar = lidar_coverage(annotations)
+    lidar = lidar if lidar is not None else lidar_coverage([])
     return {
         "dataset_id": dataset_id, **facts,
         "counts": counts,
@@ -287,7 +308,8 @@ def card_markdown(card: dict) -> str:
         share = "n/a" if lidar["share_within"] is None else f"{100 * lidar['share_within']:.0f} %"
         lines.append(f"- Boxes with LiDAR points: {lidar['with_points']} of {lidar['boxes']}; within "
                      f"{lidar['within_m']:g} m of the ego {lidar['with_points_within']} of {lidar['boxes_within']} "
-                     f"({share})")
+                     f"({share}); {lidar.get('unlabelled', 0)} box(es) no sensor captures before, after or "
+                     "throughout their track are not labelled (nuScenes' rule; exports leave them out)")
     lines += [f"- Annotations by category: {c['annotations_by_category']}",
               f"- Annotations by nuScenes visibility level: {c['annotations_by_visibility']}",
               f"- Samples by driving command: {c['samples_by_command']}", "",

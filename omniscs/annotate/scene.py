@@ -11,7 +11,7 @@ import numpy as np
 
 from omniscs.annotate.config import AnnotateConfig
 from omniscs.annotate.replay import Replay, write_replay
-from omniscs.annotate.variant import AnnotatedVariant, Reference, background_tracks, write_annotated_variant
+from omniscs.annotate.variant import AnnotatedVariant, Reference, Sweep, background_tracks, write_annotated_variant
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
 from omniscs.gates import GateConfig, Verdict, edited_visible_frames, rendered_verdict
@@ -41,7 +41,8 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                       replay: Replay | None = None, compose: Callable[[dict], object] | None = None,
                       reference_for: Callable[[dict], Reference | None] | None = None,
                       gates: GateConfig | None = None, wanted: dict[str, int] | None = None,
-                      keep_failed: bool = False) -> list[AnnotatedVariant]:
+                      keep_failed: bool = False, lidar: Sweep | None = None,
+                      lidar_for: Callable[[dict], Sweep | None] | None = None) -> list[AnnotatedVariant]:
     """Render and annotate ``variants`` (``variants.json`` entries of ``scene``) into ``out_dir/<store id>/``.
 
     ``solve(variant) -> EgoSolution`` gives the ego's avoiding trajectory (``scs.behavior.solution``): when it is
@@ -51,7 +52,9 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
     graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies.
     Appearance variants (``kind`` appearance) keep the logged ego over every frame and are drawn by the graph
     ``compose(variant)`` returns (``omniscs.scs.appearance.compose.Composite``: the edited graph and the boxes of
-    the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given.
+    the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given. ``lidar`` and
+    ``lidar_for(variant)`` give the exact LiDAR sweeps of behaviour and appearance variants (procedural scenes);
+    without them the sweep is looked up in the graph's depth (``write_annotated_variant``).
 
     With ``gates`` (``omniscs.gates``) every rendered variant's summary gets its verdict (``gate``): what its
     behaviour stage found, the ego's solution, the edited object's visibility and the fidelity floors. A variant
@@ -93,7 +96,8 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                 composite.graph, scene, framed, out_dir / store_id, store_id,
                 reference=reference_for(variant) if reference_for is not None else None, config=config,
                 progress=step, annotator=ViewAnnotator(composite.graph, config, replay), members=members,
-                describe=describe, edited=composite.boxes)
+                describe=describe, edited=composite.boxes,
+                lidar=lidar_for(variant) if lidar_for is not None else None)
             if gates is not None:
                 result.summary["edited_visible_frames"] = edited_visible_frames(
                     result.annotations, int(variant["track_id"]), gates)
@@ -114,7 +118,7 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
         result = write_annotated_variant(graph, scene, variant, out_dir / store_id, store_id, ego_xy_yaw=ego,
                                          solution=None if solution is None else solution.to_dict(),
                                          reference=reference, config=config, progress=step, annotator=annotator,
-                                         members=members, describe=describe)
+                                         members=members, describe=describe, lidar=lidar)
         if picture is not None and solution is not None:
             pictures.append(Path(picture(variant, solution, out_dir / f"{store_id}-bev.png")).name)
         if gates is not None:

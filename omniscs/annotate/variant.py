@@ -44,6 +44,8 @@ WRITE_QUEUE = 8
 VISIBILITY_NAMES = {1: "v0-40", 2: "v40-60", 3: "v60-80", 4: "v80-100"}
 #: A reference image for fidelity: (rgb uint8 [H, W, 3], instance int32 [H, W]) of a camera at a rendered frame.
 Reference = Callable[[VariantFrames, str, int], tuple[np.ndarray, np.ndarray]]
+#: The exact LiDAR sweep of a rendered frame: float32 [N, 4] (x, y, z in the ego frame, intensity 0..255).
+Sweep = Callable[[VariantFrames, int], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                             progress: Progress = no_progress, annotator: ViewAnnotator | None = None,
                             members: dict | None = None, rig: list[CameraRecord] | None = None,
                             describe: Callable[[VariantFrames], str] | None = None,
-                            edited: dict | None = None) -> AnnotatedVariant:
+                            edited: dict | None = None, lidar: Sweep | None = None) -> AnnotatedVariant:
     """Render every camera of every frame of ``variant`` through ``graph`` (the ego on ``ego_xy_yaw``, its solution,
     when given) with full ground truth, as the scene store ``out_dir`` (id ``store_id``). ``reference`` gives the
     exact image of a frame (procedural scenes) for fidelity; on every scene the viewpoint offset and the feature
@@ -89,7 +91,9 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     camera the fit never saw); fidelity is then not measured unless ``reference`` knows those cameras.
     ``describe(frames) -> world.json`` writes the variant's procedural world into its store (synthetic sources:
     its roads reach the exports' maps). ``edited`` gives the boxes of the nodes an appearance variant's edits made
-    or changed (``variant_frames``); ``graph`` is then the edited graph."""
+    or changed (``variant_frames``); ``graph`` is then the edited graph. ``lidar`` gives the exact sweep of a frame
+    (procedural scenes, ``config.lidar_source`` world); without it the sweep is looked up in the graph's depth (the
+    ring, or the cameras with ``lidar_source`` cameras)."""
     started = time.perf_counter()
     if graph.scene_id != scene.scene_id:
         raise OmniscsError(f"scene graph of {graph.scene_id} does not belong to scene {scene.scene_id}")
@@ -114,7 +118,7 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
     samples, annotations, fidelity = [], [], []
     render_s = label_s = write_s = lidar_s = 0.0
     lidar_mount = ego_from_lidar(scene)  # [4, 4] the log's LiDAR mount, or a nuScenes-like one when it has none
-    ring = ring_views(config) if config.lidar_source == "ring" else []
+    ring = ring_views(config) if lidar is None and config.lidar_source != "cameras" else []
     beams = beam_directions(config) if ring else None
     source = {"kind": "variant", "scene_id": scene.scene_id, "variant_id": str(variant.get("variant_id")),
               "scene_content_hash": scene.content_hash}
@@ -173,7 +177,9 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
                                                        adversary, moved, config))
                 progress(t * len(cameras) + cameras.index(cam) + 1, total, f"variant {variant.get('variant_id')}")
             tick = time.perf_counter()
-            if ring:  # the 360° sensor: depth rendered in the ring of views at the mount, then the beams looked up
+            if lidar is not None:
+                points = lidar(vf, t)
+            elif ring:  # the 360° sensor: depth rendered in the ring of views at the mount, then the beams looked up
                 world_from_lidar = vf.world_from_ego[t] @ lidar_mount
                 ring_depth = [(annotator.depth(View(f, world_from_lidar @ r.lidar_from_view, r.K, r.width, r.height),
                                                vf.node_poses[t], min_alpha=config.lidar_depth_alpha,
@@ -214,7 +220,8 @@ def write_annotated_variant(graph: SceneGraph, scene: Scene, variant: dict, out_
         pq.write_table(pa.Table.from_pandas(attributes, schema=ATTRIBUTE_SCHEMA, preserve_index=False),
                        writer.tmp / ATTRIBUTES)
         summary = _summary(variant, vf, solution, fidelity, render_s, label_s, write_s, time.perf_counter() - started,
-                           total, len(annotations), lidar_s)
+                           total, len(annotations), lidar_s,
+                           "world" if lidar is not None else "ring" if ring else "cameras")
         (writer.tmp / VARIANT_JSON).write_text(json.dumps({
             "variant": variant, "ego_solution": solution, "scene_frames": vf.scene_frames.tolist(),
             "commands": [COMMANDS[c] for c in vf.commands], "dropped_frames": list(vf.dropped_frames),
@@ -316,7 +323,7 @@ def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant:
 
 def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: list[dict], render_s: float,
              label_s: float, write_s: float, seconds: float, n_images: int, n_annotations: int,
-             lidar_s: float) -> dict:
+             lidar_s: float, lidar_source: str) -> dict:
     def mean(key: str) -> float | None:
         values = [f[key] for f in fidelity if f.get(key) is not None]
         return float(np.mean(values)) if values else None
@@ -332,4 +339,4 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
             "fidelity_frames": len(fidelity),
             "max_viewpoint_offset_m": float(vf.viewpoint_offset_m.max()),
             "render_seconds": render_s, "annotate_seconds": label_s, "write_seconds": write_s,
-            "lidar_seconds": lidar_s, "seconds": seconds}
+            "lidar_seconds": lidar_s, "lidar_source": lidar_source, "seconds": seconds}

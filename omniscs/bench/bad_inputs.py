@@ -5,6 +5,9 @@ always the same: exit code 2, exactly one ``error:`` line on stderr, no tracebac
 case's folder, which is also its working directory and holds its workspace). Each outcome is classified as one of
 ``one clear line`` (expected), ``traceback``, ``silently wrong`` (exit 0: the mistake was accepted), ``left files``
 or ``other`` (e.g. several lines, or another exit code).
+
+The report has a second section, server abuse: hostile requests to the closed-loop render server, run by
+``omniscs.bench.server_abuse`` against in-thread servers (they are requests, not command lines).
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.bench.server_abuse import run_server_abuse, server_markdown
 from omniscs.export.common import export_scenes
 from omniscs.pipeline.stages import catalog_run_stage
 from omniscs.progress import Progress, no_progress
@@ -331,8 +335,62 @@ CASES: tuple[Case, ...] = (
     _c("bench", "unknown benchmark", "bench", "nope"),
 )
 
+#: Paths (links, names, writability) and the benchmarks' counts: cases of their own, after the table above.
+CASES += (
+    # --------------------------------------------------------------- paths: links, names, writability
+    _c("paths", "--out is a link to nothing", "world", "make", "--out", "{dangling}"),
+    _c("paths", "--out under a link to nothing", "world", "make", "--out", "{dangling}/store"),
+    _c("paths", "--out is a link to a folder, --overwrite", "world", "make", "--out", "{linkdir}", "--overwrite"),
+    _c("paths", "export onto a link to nothing", "world", "export", "{store}", "--format", "nuscenes", "--out",
+       "{dangling}"),
+    _c("paths", "ingest into a link to nothing", "ingest", "--source", "nuscenes", "--dataroot", "{nus}",
+       "--out", "{dangling}"),
+    _c("paths", "a name of 300 bytes", "world", "make", "--out", "{tmp}/" + "n" * 300),
+    _c("paths", "a name that leaves no room for the temporary", "world", "make", "--out", "{tmp}/" + "n" * 240),
+    _c("paths", "a path of 5000 bytes", "world", "export", "{store}", "--format", "kitti", "--out",
+       "{tmp}/" + "/".join(["p" * 200] * 25)),
+    _c("paths", "--out under /proc", "world", "make", "--out", "/proc/omniscs-out"),
+    _c("paths", "export under /sys", "world", "export", "{store}", "--format", "nuscenes", "--out",
+       "/sys/omniscs-out"),
+    _c("paths", "workspace is a link to nothing", "generate", "syn:straight:0", "--frames", "2", "--workspace",
+       "{dangling}"),
+    _c("paths", "workspace under a link to nothing", "generate", "syn:straight:0", "--frames", "2", "--workspace",
+       "{dangling}/ws"),
+    _c("paths", "catalog table that leads out of the workspace", "catalog", "query", "SELECT count(*) FROM runs",
+       "--workspace", "{wscatlink}"),
+    # --------------------------------------------------------------- counts and seeds of the benchmarks
+    _c("numbers", "bench seeds in Arabic-Indic digits", "bench", "world", "--seeds", "\u0665", "--out", "{tmp}/r"),
+    _c("numbers", "bench seed beyond 2^32", "bench", "world", "--seeds", "0,4294967296", "--out", "{tmp}/r"),
+    _c("numbers", "bench threads 100000", "bench", "behavior", "--threads", "100000", "--out", "{tmp}/r"),
+    _c("numbers", "bench seed offset negative", "bench", "behavior", "--seed-offset", "-5", "--out", "{tmp}/r"),
+    _c("numbers", "reliability seed beyond 2^32", "bench", "reliability", "--seed", "99999999999", "--out",
+       "{tmp}/r"),
+)
+
 
 # ----------------------------------------------------------------------------- fixtures
+#: Fixtures of the path cases: a link to nothing (inside the case's folder, so a folder made through it shows), a
+#: link to a folder, and a workspace whose catalog table is a link out of it.
+PATH_FIXTURES = ("dangling", "linkdir", "wscatlink")
+
+
+def path_fixture(name: str, path: Path) -> Path:
+    """Path fixture ``name`` at ``path``."""
+    if name == "dangling":
+        os.symlink(path.parent / "nowhere", path)
+    elif name == "linkdir":
+        (path.parent / "realdir").mkdir()
+        os.symlink(path.parent / "realdir", path)
+    elif name == "wscatlink":
+        catalog_run_stage("fixture-run", path, "generate_dataset", "completed", 0, 1, 0, {})
+        runs = path / "catalog" / "runs"
+        shutil.move(str(runs), str(path.parent / "elsewhere"))
+        os.symlink(path.parent / "elsewhere", runs)
+    else:
+        raise KeyError(name)
+    return path
+
+
 class Fixtures:
     """The files the cases point at, made once per table run in ``root`` and copied into each case's folder."""
 
@@ -346,6 +404,8 @@ class Fixtures:
     def make(self, name: str, case_dir: Path) -> Path:
         """Fixture ``name`` inside ``case_dir`` (made fresh: a case may damage it further)."""
         path = case_dir / name
+        if name in PATH_FIXTURES:
+            return path_fixture(name, path)
         if name in ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wrongcol", "noimage"):
             shutil.copytree(self.store, path)
             manifest = path / "manifest.json"
@@ -469,6 +529,7 @@ FIXTURES = ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wron
             "mdeep", "mbigint", "mlatin1", "mfifo", "worlddeep", "nusdeep", "nusloop", "nusfifo", "deepjson",
             "bigintjson", "infjson", "emptyresults", "latin1json", "fifo", "dsdeep", "wsjunk", "wstrunc", "wsforeign",
             "pooljunk", "poolforeign")
+FIXTURES += PATH_FIXTURES
 _PLACEHOLDER = re.compile(r"\{(" + "|".join(FIXTURES + ("tmp",)) + r")\}")
 
 
@@ -643,8 +704,9 @@ def run_bench(out_dir: str | Path = "reports", subprocess_mode: bool = False,
               progress: Progress = no_progress) -> dict:
     machine = machine_info()
     outcomes = run_table(subprocess_mode=subprocess_mode, progress=progress)
+    server_abuse = run_server_abuse(progress=progress)  # its own section: requests to the server, not argv
     report = {"mode": "subprocess" if subprocess_mode else "in-process", "machine": finish(machine),
-              "summary": summary(outcomes), "cases": [o.__dict__ for o in outcomes]}
+              "summary": summary(outcomes), "cases": [o.__dict__ for o in outcomes], "server_abuse": server_abuse}
     write_report(out_dir, "bad-inputs", report, markdown(report))
     return report
 
@@ -669,5 +731,7 @@ def markdown(report: dict) -> str:
         if c["outcome"] == "one clear line":
             text = c["stderr"].replace("|", "\\|")
             lines.append(f"| {c['case']} | `{text[:240]}` |")
+    if "server_abuse" in report:
+        lines += server_markdown(report["server_abuse"])
     lines += ["", load_line(report["machine"]), ""]
     return "\n".join(lines)

@@ -16,6 +16,7 @@ from typing import Callable, Optional
 
 import typer
 
+from omniscs.checks import MAX_SEED, MAX_THREADS
 from omniscs.cli.common import Bars, comma_list, console, progress_bars
 from omniscs.cli.common import seeds as parse_seeds
 from omniscs.errors import OmniscsError
@@ -29,6 +30,11 @@ WORKSPACE_HELP = "Where the benchmark's scenes and fits go (and are reused)."
 def _flag(name: str):
     """A field that appears on the command line under another flag than its name."""
     return {"flag": name}
+
+
+def _bounded(low: int, high: int) -> dict:
+    """A count the option itself bounds (refused with exit 2 before any work): threads, seeds."""
+    return {"min": low, "max": high}
 
 
 # ----------------------------------------------------------------------------- options and runs, one per benchmark
@@ -78,7 +84,7 @@ class BehaviorOptions:
     """Traffic-model checkpoint (default: the shipped one)."""
     rule_planner: bool = True
     """Also run against the reacting rule-based planner."""
-    threads: int = 1
+    threads: int = field(default=1, metadata=_bounded(1, MAX_THREADS))
     """torch CPU threads."""
     appearance_scenes: int = 4
     """Rendered scenes fitted with a scene graph for the with/without L_app comparison (0 skips it)."""
@@ -88,7 +94,7 @@ class BehaviorOptions:
     """Comma-separated L_app weights compared."""
     only_appearance: bool = False
     """Rerun only the L_app comparison in an existing report in --out."""
-    seed_offset: int = 2000
+    seed_offset: int = field(default=2000, metadata=_bounded(0, MAX_SEED))
     """First scene seed: 2000 is the fixed set, any other a fresh one."""
     only_default: bool = False
     """Run only the default configuration on the procedural logs."""
@@ -402,7 +408,7 @@ class ReliabilityOptions:
     """SIGKILL moments of the fault-injection check (each then rerun)."""
     processes: int = 4
     """Concurrent generate processes of the concurrency check."""
-    seed: int = 2026
+    seed: int = field(default=2026, metadata=_bounded(0, MAX_SEED))
     """Seed of the kill moments."""
 
 
@@ -485,7 +491,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               "rerun it (catalog and files must equal a clean run's, no temporaries, no orphaned server); run "
               "several at once on one workspace (each scene once per run)."),
     Benchmark("bad-inputs", BadInputsOptions, run_bad_inputs, "Try every bad input of the table over every "
-              "command; count one clear line / traceback / silently wrong / left files / other, by category."),
+              "command; count one clear line / traceback / silently wrong / left files / other, by category; then "
+              "abuse the closed-loop server with a second token watching."),
 )
 
 
@@ -513,8 +520,9 @@ def _handler(bench: Benchmark) -> Callable[..., None]:
                               "rerun replaces them."))]
     for f in fields(bench.options):
         decls = [f.metadata["flag"]] if "flag" in f.metadata else []
+        bounds = {k: f.metadata[k] for k in ("min", "max") if k in f.metadata}
         params.append(inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=hints[f.name],
-                                        default=typer.Option(f.default, *decls, help=docs.get(f.name))))
+                                        default=typer.Option(f.default, *decls, help=docs.get(f.name), **bounds)))
 
     def handler(**given) -> None:
         out = Path(given.pop("out"))

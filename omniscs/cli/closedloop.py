@@ -40,13 +40,15 @@ def run(
     from omniscs.ids import check_id
     from omniscs.pipeline.closedloop import parse_ref, resolve
     from omniscs.scene import load_scene
-    from omniscs.storage import workspace_path
+    from omniscs.storage import check_output, workspace_path
 
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     if steps is not None and steps < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--steps")
     if run_id is not None:
         check_id("run id", run_id)
+    if out is not None:
+        out = check_output(out, follow=True)
     ws = workspace_path(workspace)
     for ref in scenarios:  # unknown scenes, graphs, variants and cameras fail here, before Prefect starts
         parse_ref(ref)
@@ -154,6 +156,11 @@ def serve(
     width: Optional[int] = typer.Option(None, min=8, max=4096, help="Render width in pixels (default the camera's)."),
     reactive: bool = typer.Option(False, help="Agents brake (IDM) when the ego is ahead in their path."),
     out: Optional[Path] = typer.Option(None, help="Write each finished episode's run folder here."),
+    max_sessions: int = typer.Option(32, min=1, max=4096, help="Open sessions at most, over all tokens."),
+    sessions_per_token: Optional[int] = typer.Option(None, min=1, help="Open sessions one token may hold (default "
+                                                                       "a fair share: max-sessions / tokens)."),
+    requests_per_s: float = typer.Option(20.0, min=0.01, max=100_000.0, help="Requests per second one token may "
+                                                                              "make (after a burst of 40)."),
     workspace: Optional[Path] = typer.Option(None, help="Workspace root (default $OMNISCS_HOME or ./omniscs-data)."),
 ) -> None:
     """Serve HUGSIM's HTTP protocol (GET /, POST /reset, GET /get_current_state, POST /execute_action) over one
@@ -167,7 +174,11 @@ def serve(
 
     if any(not t for t in token):
         raise typer.BadParameter("a token must not be empty", param_hint="--token")
+    if sessions_per_token is not None and sessions_per_token > max_sessions:
+        raise typer.BadParameter(f"at most --max-sessions ({max_sessions})", param_hint="--sessions-per-token")
     token = server_tokens(token, token_file, os.environ.get(TOKENS_ENV))
+    server_config = ServerConfig(out_dir=str(out) if out else None, max_sessions=max_sessions,
+                                 max_sessions_per_token=sessions_per_token, requests_per_s=requests_per_s)
     check_bindable(host, port)  # an unknown host or a port in use: one line now, not uvicorn's log at the end
     ws = workspace_path(workspace)
     refs = [resolve(ws, s, checkpoint) for s in scenario]
@@ -182,6 +193,8 @@ def serve(
     def make_simulator() -> Simulator:
         return Simulator(graph, scene, config)
 
-    app_ = create_app(make_simulator, scenarios, set(token), ServerConfig(out_dir=str(out) if out else None))
-    console.print(f"serving {', '.join(scenarios)} on http://{host}:{port} ({len(token)} token(s))")
+    app_ = create_app(make_simulator, scenarios, set(token), server_config)
+    per_token = server_config.sessions_per_token(len(token))
+    console.print(f"serving {', '.join(scenarios)} on http://{host}:{port} ({len(token)} token(s), "
+                  f"{per_token} session(s) and {requests_per_s:g} requests/s each)")
     serve_app(app_, host=host, port=port)

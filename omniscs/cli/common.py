@@ -157,8 +157,15 @@ def comma_list(text: Optional[str], parse: Callable[[str], T] = str, option: str
 
 
 def seeds(text: str) -> tuple[int, ...]:
-    """``--seeds 0,1,2``; at least one."""
-    out = comma_list(text, int, "--seeds", "0,1,2")
+    """``--seeds 0,1,2``; at least one, each in ASCII digits and in range (``checks.check_seed``)."""
+    from omniscs.checks import check_seed
+
+    def one(item: str) -> int:
+        if not (item.isascii() and item.isdigit()):
+            raise ValueError(item)
+        return check_seed(int(item), "each of --seeds")
+
+    out = comma_list(text, one, "--seeds", "0,1,2")
     if not out:
         raise OmniscsError("--seeds needs at least one seed")
     return out
@@ -182,12 +189,14 @@ def read_edits(edit: Optional[str]) -> list:
 
 
 def check_out(out: Path, overwrite: bool = False, suffix: str | None = None) -> Path:
-    """An ``--out`` path checked before work starts: the right suffix, not under a file, and not already there
-    unless ``overwrite`` (a folder is then replaced only when omniscs wrote it)."""
-    from omniscs.storage import check_replaceable
+    """An ``--out`` path checked before work starts: the right suffix, the path policy (``storage.check_output``:
+    no symbolic link, names that fit, a writable folder), not under a file, and not already there unless
+    ``overwrite`` (a folder is then replaced only when omniscs wrote it)."""
+    from omniscs.storage import check_output, check_replaceable
 
     if suffix is not None and out.suffix.lower() != suffix:
         raise OmniscsError(f"--out must end in {suffix}; got {out}")
+    check_output(out)
     for parent in Path(out).absolute().parents:
         if parent.exists():
             if not parent.is_dir():
@@ -227,7 +236,8 @@ def show_dataset(path: Path) -> None:
                           f"{', in the dataset' if r['in_dataset'] else ''}): {'; '.join(r['reasons'])}")
     if lidar is not None and lidar.get("boxes_within"):
         console.print(f"LiDAR: {lidar['with_points_within']} of {lidar['boxes_within']} boxes within "
-                      f"{lidar['within_m']:g} m have points ({lidar['with_points']} of {lidar['boxes']} in all)")
+                      f"{lidar['within_m']:g} m have points ({lidar['with_points']} of {lidar['boxes']} in all; "
+                      f"{lidar.get('unlabelled', 0)} box(es) no sensor captures are not labelled)")
     for warning in card.get("warnings") or []:
         print_error(warning, label="warning", style="yellow")
     console.print(f"folder:  {path}")

@@ -83,6 +83,9 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
                                                          "-yaw - pi/2) or as UniAD v2.0 does (v2)."),
            val_scene: list[str] = typer.Option([], help="uniad: a variant scene id for the val pickle (repeat the "
                                                         "option); the others go to train."),
+           keep_unseen: bool = typer.Option(False, help="Also label boxes no sensor captured (no LiDAR point, no "
+                                                        "visible pixel) before an object is first seen or after it "
+                                                        "is last seen, and objects never seen."),
            workspace: Optional[Path] = workspace_option()) -> None:
     """Export every variant store of a dataset as one nuScenes dataroot (with map expansion) or for UniAD."""
     from omniscs.annotate.dataset import SCENES
@@ -92,7 +95,7 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
         raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes or uniad")
     path = dataset_path(dataset, workspace)
     check_out(out, overwrite)
-    options = {"location": location}
+    options = {"location": location, "keep_unseen": keep_unseen}
     if format == "uniad":
         options.update(box_convention=box_convention, val_scenes=tuple(val_scene))
     elif box_convention != "v1" or val_scene:

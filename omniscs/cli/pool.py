@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from omniscs.cli.common import console
+from omniscs.storage import check_output
 
 app = typer.Typer(help="The model pool: 360-degree Gaussian models of road users in their vehicle frame.",
                   no_args_is_help=True)
@@ -43,7 +44,7 @@ def pool_export(model_id: str = typer.Argument(..., help="A pool model id (pm-..
     """Write a pool model as a 3D Gaussian splatting PLY (opens in common splat viewers)."""
     from omniscs.agents.pool import Pool
 
-    console.print(f"wrote {Pool(pool).export_ply(model_id, out)}")
+    console.print(f"wrote {Pool(pool).export_ply(model_id, check_output(out))}")
 
 
 @app.command("remove")
@@ -94,6 +95,7 @@ def pool_build(
     ids = asset_ids(assets.split(","))
     if gaussians < 10 or refine_steps < 0:
         raise ValidationError("--gaussians must be >= 10 and --refine-steps >= 0")
+    out = check_output(out, follow=True)
     for aid in ids:
         row = pool_asset_stage(aid, out, gaussians, refine_steps).rows["pool"][0]
         quality = "n/a" if row["quality"] is None else f"{row['quality']:.1f} dB"

@@ -9,6 +9,7 @@ import typer
 
 from omniscs.cli.common import comma_list, console, print_error, print_table, progress_bars
 from omniscs.errors import OmniscsError
+from omniscs.storage import check_output
 
 app = typer.Typer(help="Inspect scene stores.", no_args_is_help=True)
 
@@ -35,6 +36,7 @@ def ingest(
 
     if source not in FORMATS:
         raise OmniscsError(f"unknown --source {source!r}; use one of {list(FORMATS)}")
+    out = check_output(out, follow=True)
     if not dataroot.is_dir():
         raise OmniscsError(f"--dataroot {dataroot} is not a directory")
     names = [n for item in (scenes or []) for n in comma_list(item)] or list_scenes(source, dataroot, version)

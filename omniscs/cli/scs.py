@@ -9,7 +9,7 @@ import typer
 
 from omniscs.checks import MAX_SEED, MAX_THREADS
 
-from omniscs.cli.common import check_out, console, print_table, progress_bars
+from omniscs.cli.common import check_out, console, print_error, print_table, progress_bars
 from omniscs.errors import OmniscsError
 from omniscs.untrusted import read_own_json
 
@@ -172,6 +172,11 @@ def scs_appearance(
                   s["fidelity_masked_psnr"]} for s in result["variants"]], title="rendered and annotated")
     console.print(f"wrote {out} ({result['n_images']} images, {result['n_annotations']} box annotations); "
                   f"preview: {out / 'preview.png'}")
+    if result.get("unrepaired"):
+        print_error(f"track(s) {', '.join(map(str, result['unrepaired']))}: the variant uncovers the footprint of a "
+                    "large static object, and the background it hid is not repaired here, so a ghost of it shows; "
+                    "`omniscs generate` with --appearance-object (or --edit) repairs it first (its uncovered "
+                    "stage)", label="warning", style="yellow")
 
 
 @app.command("mine")

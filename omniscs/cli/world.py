@@ -89,6 +89,9 @@ def world_export(
                                                       "unless told; eval and predict read a dataroot's only one)."),
     keyframe_every: Optional[int] = typer.Option(None, help="nuScenes: frames per keyframe (default: 2 Hz)."),
     camera: str = typer.Option("CAM_FRONT", help="KITTI: the camera written as image_02."),
+    keep_unseen: bool = typer.Option(False, help="nuScenes, uniad: also label boxes no sensor captured (no LiDAR "
+                                                 "point, no visible pixel) before an object is first seen or after "
+                                                 "it is last seen, and objects never seen."),
     overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
 ) -> None:
     """Write scene stores as a nuScenes v1.0, KITTI tracking or Waymo Open Dataset v2 dataset."""
@@ -96,8 +99,11 @@ def world_export(
 
     if fmt not in WRITERS:
         raise OmniscsError(f"unknown --format {fmt!r}; use one of {list(WRITERS)}")
-    options = {"nuscenes": {"version": version, "keyframe_every": keyframe_every}, "kitti": {"camera": camera},
-               "waymo-v2": {}, "uniad": {"version": version, "keyframe_every": keyframe_every}}[fmt]
+    check_out(out, overwrite)
+    nuscenes = {"version": version, "keyframe_every": keyframe_every, "keep_unseen": keep_unseen}
+    options = {"nuscenes": nuscenes, "kitti": {"camera": camera}, "waymo-v2": {}, "uniad": nuscenes}[fmt]
+    if keep_unseen and fmt not in ("nuscenes", "uniad"):
+        raise OmniscsError("--keep-unseen applies to --format nuscenes and uniad only")
     started = time.perf_counter()
     with progress_bars() as bars:
         export_scenes(scenes, fmt, out, overwrite=overwrite, progress=bars.sink(f"export {fmt}"), **options)

@@ -18,6 +18,10 @@ its calibration). Tools built on nuScenes read directions in that frame: UniAD's
 Estimated fields: ``visibility`` from the store's visible pixels over the boxes' image rectangles (v80-100 when the
 store does not know them, or the value a nuScenes reader kept); ``attribute`` from the track's speed (or kept);
 ``num_lidar_pts`` counted in the LiDAR sweep when the store does not know it; ``num_radar_pts`` 0.
+
+Like nuScenes' own annotation, an object is labelled from the keyframe where a sensor first captures it (LiDAR
+points or visible pixels) to the one where a sensor last does, through occlusions between; an object no sensor
+captures is not labelled (``seen_span``; ``keep_unseen`` keeps every box of the store).
 """
 from __future__ import annotations
 
@@ -45,6 +49,7 @@ from omniscs.export.common import (
 from omniscs.export.nuscenes_map import DEFAULT_LOCATION, SCENE_SPACING_M, ScenePlacement, map_expansions, place_scenes
 from omniscs.geometry import invert_transform, points_in_box
 from omniscs.quaternions import rotmat_to_quat
+from omniscs.scene.seen import captured, labelled
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
 
@@ -146,10 +151,12 @@ class _Tables:
 
 def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSION, keyframe_every: int | None = None,
                    progress: Callable[[int, int], None] | None = None, location: str = DEFAULT_LOCATION,
-                   scene_spacing_m: float = SCENE_SPACING_M) -> Path:
+                   scene_spacing_m: float = SCENE_SPACING_M, keep_unseen: bool = False) -> Path:
     """Write ``scenes`` as a nuScenes dataroot at ``root`` (tables under ``root/version``, map expansions under
     ``root/maps/expansion``); scenes without a recorded nuScenes location go to ``location``, one grid cell of
-    ``scene_spacing_m`` metres each."""
+    ``scene_spacing_m`` metres each. Boxes no sensor captured before an object is first seen or after it is last
+    seen, and objects never seen, are left out as nuScenes' annotators leave them (``seen_span``) unless
+    ``keep_unseen``."""
     if not isinstance(version, str) or not version.startswith("v1.0"):
         raise OmniscsError(f"nuScenes versions look like v1.0-mini or v1.0-trainval; got {version!r}")
     placements = place_scenes(scenes, location, scene_spacing_m)
@@ -164,7 +171,7 @@ def write_nuscenes(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSI
     done = 0
     names = _scene_names(scenes)
     for scene, name, placement in zip(scenes, names, placements):
-        for _ in _write_scene(scene, name, root, tables, keyframe_every, placement):
+        for _ in _write_scene(scene, name, root, tables, keyframe_every, placement, keep_unseen):
             done += 1
             if progress:
                 progress(done, total)
@@ -190,7 +197,7 @@ def _scene_names(scenes: list[Scene]) -> list[str]:
 
 
 def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, keyframe_every: int | None,
-                 placement: ScenePlacement):
+                 placement: ScenePlacement, keep_unseen: bool):
     """Write one scene's files and records; yields once per frame written."""
     sid = scene.scene_id
     ts = scene.frames["timestamp_us"].to_numpy(np.int64) + placement.time_offset_us
@@ -265,11 +272,20 @@ def _write_scene(scene: Scene, scene_name: str, root: Path, tables: _Tables, key
                        prev=token("sample_data", sid, channel, f - 1) if f > 0 else "",
                        next=token("sample_data", sid, channel, f + 1) if f + 1 < len(ts) else "")
         yield f
-    _annotations(scene, keys, sample_tokens, tables, placement.global_from_world)
+    _annotations(scene, keys, sample_tokens, tables, placement.global_from_world, keep_unseen)
+
+
+def seen_span(rows, points_of: dict[int, int]) -> list:
+    """Index labels of the keyframe box ``rows`` (one scene, sorted by frame) that an annotator labels
+    (``omniscs.scene.seen``: per track, from the first box a sensor captured to the last), in the rows' order;
+    ``points_of``: index label -> LiDAR points."""
+    keep = labelled((i, int(t), int(f), captured(points_of[i], v))
+                    for i, t, f, v in zip(rows.index, rows["track_id"], rows["frame_idx"], rows["visible_pixels"]))
+    return [i for i in rows.index if i in keep]
 
 
 def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], tables: _Tables,
-                 global_from_world: np.ndarray) -> None:
+                 global_from_world: np.ndarray, keep_unseen: bool) -> None:
     sid = scene.scene_id
     boxes = scene.boxes.reset_index(drop=True)
     if len(boxes) == 0:
@@ -287,11 +303,9 @@ def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], table
     chains: dict[int, list[str]] = {}
     categories: dict[int, str] = {}
     on_keys = boxes[boxes["frame_idx"].isin(keys)].sort_values(["frame_idx", "track_id"])
+    points_of: dict[int, int] = {}
     for i, row in zip(on_keys.index, on_keys.itertuples()):
-        f, tid = int(row.frame_idx), int(row.track_id)
-        label = nuscenes_label(row.category, row.source_category)
-        categories.setdefault(tid, label)
-        n_points = int(row.num_lidar_points)
+        f, n_points = int(row.frame_idx), int(row.num_lidar_points)
         if n_points < 0:
             if scene.has_lidar:
                 if f not in lidar_cache:
@@ -301,6 +315,14 @@ def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], table
                 n_points = int(points_in_box(lidar_cache[f], ego_from_box, size, BOX_POINT_MARGIN_M).sum())
             else:
                 n_points = 0
+        points_of[i] = n_points
+    if not keep_unseen:
+        on_keys = on_keys.loc[seen_span(on_keys, points_of)]
+    for i, row in zip(on_keys.index, on_keys.itertuples()):
+        f, tid = int(row.frame_idx), int(row.track_id)
+        label = nuscenes_label(row.category, row.source_category)
+        categories.setdefault(tid, label)
+        n_points = points_of[i]
         if (f, tid) in kept_visibility and kept_visibility[(f, tid)] in level_tokens:
             vis = level_tokens[kept_visibility[(f, tid)]]
         else:

@@ -144,16 +144,16 @@ class UniADConfig:
 # ----------------------------------------------------------------------------- entry point
 def write_uniad(scenes: list[Scene], root: Path, version: str = DEFAULT_VERSION, keyframe_every: int | None = None,
                 progress: Callable[[int, int], None] | None = None, location: str = DEFAULT_LOCATION,
-                scene_spacing_m: float = SCENE_SPACING_M, **options) -> Path:
+                scene_spacing_m: float = SCENE_SPACING_M, keep_unseen: bool = False, **options) -> Path:
     """Write ``scenes`` as UniAD's data folder at ``root`` (layout in the module docstring); ``options`` are
-    UniADConfig fields."""
+    UniADConfig fields; ``keep_unseen`` keeps the boxes no sensor captured (``write_nuscenes``)."""
     unknown = sorted(set(options) - {f.name for f in fields(UniADConfig)})
     if unknown:
         raise OmniscsError(f"unknown UniAD option(s) {unknown}; it takes {[f.name for f in fields(UniADConfig)]}")
     config = UniADConfig(**options)
     dataroot = root / DATAROOT_DIR
     write_nuscenes(scenes, dataroot, version=version, keyframe_every=keyframe_every, progress=progress,
-                   location=location, scene_spacing_m=scene_spacing_m)
+                   location=location, scene_spacing_m=scene_spacing_m, keep_unseen=keep_unseen)
     from nuscenes.nuscenes import NuScenes
 
     nusc = NuScenes(version=version, dataroot=str(dataroot), verbose=False)

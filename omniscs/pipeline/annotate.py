@@ -20,7 +20,8 @@ from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
 from omniscs.pipeline.background import variant_uncovers
 from omniscs.pipeline.common import waiting
-from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description, world_reference
+from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, pool_asset_of, world_description,
+                                        world_lidar, world_reference)
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
@@ -127,7 +128,7 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
                     compose=appearance_composer(graph, repaired), reference_for=appearance_references(scene, variants)
                     if config.exact_fidelity else None, gates=gates, wanted=wanted if gates else None,
-                    keep_failed=keep_failed)
+                    keep_failed=keep_failed, **exact_lidar(scene, variants, config))
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 
             produce(out, key, make)
@@ -139,6 +140,17 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                              "n_annotations": len(rows["annotations"]),
                              "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries),
                              "verdicts": variant_verdicts(rows)})
+
+
+def exact_lidar(scene, variants: list[dict], config: AnnotateConfig) -> dict:
+    """``annotate_variants``' ``lidar`` and ``lidar_for`` of a procedural scene with ``lidar_source`` world (the
+    variants' worlds ray-cast); empty otherwise (the sweeps come from the graph's depth)."""
+    if config.lidar_source != "world" or scene.world is None:
+        return {}
+    pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
+    by_pool = {p: appearance_lidar(scene, pool_asset_of(Pool(p))) for p in pools}
+    return {"lidar": world_lidar(scene),
+            "lidar_for": lambda v: by_pool[v["pool"]](v) if v.get("pool") in by_pool else None}
 
 
 def variant_verdicts(rows: dict) -> dict[str, dict]:

@@ -21,7 +21,8 @@ from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
 from omniscs.pipeline.closedloop import newest_checkpoint
-from omniscs.pipeline.procedural import appearance_reference, pool_asset_of, world_description
+from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, pool_asset_of,
+                                        world_description)
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
@@ -184,11 +185,12 @@ def render_appearance_set(scene, graph, variants: list[dict], out: Path, pool=No
     with the world's exact images. Returns the variants' summaries."""
     composite = composite or CompositeConfig()
     resolve = model_resolver(pool, node_model_resolver(graph)) if pool is not None else node_model_resolver(graph)
-    reference = appearance_reference(scene, pool_asset_of(Pool(pool) if pool is not None else None))
+    asset_of = pool_asset_of(Pool(pool) if pool is not None else None)
     atomic_write_json(out / "variants.json", variants)
     results = annotate_variants(graph, scene, variants, out / SCENES, describe=world_description(scene),
                                 progress=progress, compose=lambda v: compose_variant(graph, v, resolve, composite),
-                                reference_for=reference)
+                                reference_for=appearance_reference(scene, asset_of),
+                                lidar_for=appearance_lidar(scene, asset_of))
     samples = [s for r in results for s in r.samples]
     annotations = [a for r in results for a in r.annotations]
     if samples:
@@ -202,7 +204,9 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
                          progress: Progress = no_progress) -> dict:
     """What ``omniscs scs appearance`` does: the scene and its graph, the variants asked for (one by hand or ``sample``
     drawn), the scene's colour transform, then ``render_appearance_set`` into ``out`` (a temporary folder that
-    becomes ``out`` only when everything is written)."""
+    becomes ``out`` only when everything is written). ``unrepaired`` in the result lists the large static objects
+    whose footprint the variants uncover (``omniscs.plan.repair_objects``): rendered here without the background
+    repair that ``omniscs generate`` runs for them (its uncovered stage), they leave a ghost."""
     try:
         lo, hi = (float(v) for v in str(distance).split(","))
     except ValueError:
@@ -236,11 +240,14 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
         v["colour"] = (transform.affine if transform is not None else IDENTITY).tolist()
         if pool is not None:
             v["pool"] = str(Path(pool).resolve())
+    from omniscs.pipeline.background import variant_uncovers  # the background stages import this module's users
+
+    unrepaired = sorted({t for v in specs for t in variant_uncovers(scene, v)})
     with atomic_directory(Path(out), overwrite=True) as tmp:
         result = render_appearance_set(scene, graph, specs, tmp, pool, config.composite, progress)
 
         atomic_write_json(tmp / "colour.json", None if transform is None else transform.to_dict())
-    return {"specs": specs, **result}
+    return {"specs": specs, **result, "unrepaired": unrepaired}
 
 
 # ----------------------------------------------------------------------------- models of what a detector missed

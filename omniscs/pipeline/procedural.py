@@ -112,6 +112,25 @@ def world_reference(scene):
     return reference
 
 
+def world_lidar(scene):
+    """For a procedural scene, the exact LiDAR sweep of any rendered variant frame (``annotate.variant.Sweep``):
+    ``variant_world`` ray-cast with the world's own spinning sensor (``omniscs.world.model.LidarSpec``), points in the
+    ego frame; None for recorded logs (their variants' sweeps come from the scene graph's depth). One renderer is
+    kept, for the variant swept last."""
+    world = scene.world
+    if world is None:
+        return None
+
+    held: list = []
+
+    def sweep(vf, t: int) -> np.ndarray:  # -> float32 [N, 4] ego frame (x, y, z, intensity)
+        if not held or held[0] is not vf:
+            held[:] = [vf, WorldRenderer(variant_world(world, vf))]
+        return held[1].lidar_scan(int(vf.scene_frames[t]))
+
+    return sweep
+
+
 def world_description(scene):
     """For a procedural scene, ``vf -> world.json`` of a rendered variant (``variant_world`` cut to the rendered
     frames), so a variant's store describes its own roads and traffic like any synthetic store; None otherwise."""
@@ -162,6 +181,23 @@ def appearance_reference(scene, asset_of):
             r = renderer.render_camera(int(vf.scene_frames[t]), camera)
             return r.rgb, r.instance
         return reference
+
+    return for_variant
+
+
+def appearance_lidar(scene, asset_of):
+    """For a procedural scene, ``variant -> Sweep`` of appearance variants: ``appearance_world`` ray-cast with the
+    world's own sensor; None for recorded logs, and a variant whose object has no asset of the library gets none."""
+    world = scene.world
+    if world is None:
+        return None
+
+    def for_variant(variant: dict):
+        edited = appearance_world(world, variant, asset_of)
+        if edited is None:
+            return None
+        renderer = WorldRenderer(edited)
+        return lambda vf, t: renderer.lidar_scan(int(vf.scene_frames[t]))
 
     return for_variant
 

@@ -21,7 +21,7 @@ from omniscs.annotate.views import projected_box
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, pose_from_xyz_yaw, rotmat_from_euler
 from omniscs.nsg.graph import BACKGROUND, render_view
-from omniscs.pipeline.procedural import world_description, world_reference
+from omniscs.pipeline.procedural import variant_world, world_description, world_lidar, world_reference
 from omniscs.scene import load_scene
 
 K = np.array([[50.0, 0, 48], [0, 50.0, 27], [0, 0, 1]])
@@ -467,6 +467,30 @@ def test_a_car_moved_behind_the_ego_gets_lidar_points_from_the_ring_and_none_fro
         np.testing.assert_allclose(np.asarray(store.manifest["ego_from_lidar"]).reshape(4, 4),
                                    scene.world.lidar.ego_from_lidar)
     assert (counts["ring"] >= 20).all() and (counts["cameras"] == 0).all()
+
+
+def test_a_procedural_variant_gets_the_exact_sweep_of_its_own_world(fitted, tmp_path):
+    """With ``lidar`` (procedural scenes, lidar_source world) a variant's LiDAR is its world ray-cast with the
+    variant's edits: a car moved behind the ego returns points where its new box is, none where it stood."""
+    from omniscs.annotate.frames import variant_frames
+    from omniscs.world import WorldRenderer
+
+    scene, graph = fitted
+    variant = logged_variant(scene)
+    ego = scene.world_from_ego_all
+    variant["agents"]["1"] = [[float(ego[f, 0, 3] - 9.0), 0.0, 0.0] for f in range(scene.n_frames)]
+    out = write_annotated_variant(graph, scene, variant, tmp_path / "w", "nsg-test-v000", lidar=world_lidar(scene),
+                                  config=AnnotateConfig(fidelity_every=0))
+    assert out.summary["lidar_source"] == "world"
+    store = load_scene(out.store)
+    vf = variant_frames(scene, variant, frozenset(graph.agent_ids), None, AnnotateConfig())
+    exact = WorldRenderer(variant_world(scene.world, vf))
+    for t in (0, store.n_frames - 1):
+        np.testing.assert_array_equal(store.lidar(t), exact.lidar_scan(int(vf.scene_frames[t])))
+    moved = store.boxes[store.boxes.track_id == 1].num_lidar_points.to_numpy()
+    assert (moved >= 20).all()
+    logged = WorldRenderer(scene.world).lidar_scan(int(vf.scene_frames[0]))  # the unedited world: car ahead
+    assert not np.array_equal(logged, store.lidar(0))
 
 
 def test_stray_background_gaussians_at_the_lidar_are_cleared_for_it_and_agents_never_are(fitted):

@@ -96,18 +96,21 @@ def test_fault_injection_at_ten_moments(tmp_path):
 
 
 @pytest.mark.slow
-def test_sigterm_during_a_fit_ends_the_run_in_seconds_and_a_rerun_reuses_what_finished(tmp_path):
-    from omniscs.bench.reliability import cli_command, cli_env, workspace_state
+@pytest.mark.parametrize("runner", [(), ("--task-runner", "dask", "--workers", "1")], ids=["threads", "dask"])
+def test_sigterm_during_a_fit_ends_the_run_in_seconds_and_a_rerun_reuses_what_finished(runner, tmp_path):
+    """With the thread runner and with a local Dask worker process (which must not outlive the run)."""
+    from omniscs.bench.reliability import children, cli_command, cli_env, running, workspace_state
 
     ws = tmp_path / "ws"
     argv = cli_command() + ["generate", "syn:straight:51", "--frames", "6", "--cameras", "1", "--width", "160",
-                            "--height", "90", "--fit-preset", "fast", "--no-previews", "--run-id", "fitstop"]
+                            "--height", "90", "--fit-preset", "fast", "--no-previews", *runner, "--run-id", "fitstop"]
     proc = subprocess.Popen(argv, env=cli_env(ws, tmp_path / "prefect"), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         assert _wait_for(lambda: any((ws / "models").glob("*/.tmp-*")) or any((ws / "models").glob("*/*/.tmp-*"))
                          or any((ws / "models").rglob("*.lock")), 300), "the fit never started"
         time.sleep(3)  # well inside the fit (tens of seconds here)
+        helpers = children(proc.pid)  # the Prefect server, and the Dask worker processes with the dask runner
         sent = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=120)
@@ -120,6 +123,9 @@ def test_sigterm_during_a_fit_ends_the_run_in_seconds_and_a_rerun_reuses_what_fi
     assert workspace_state(ws)["temporaries"] == []
     (row,) = catalog.query(catalog.catalog_root(ws), "SELECT status, error FROM runs").to_pylist()
     assert row["status"] == "cancelled" and "SIGTERM" in row["error"]
+    assert _wait_for(lambda: not any(running(p) for p in helpers), 10), "a child process outlived the run"
+    if runner:
+        return  # the rerun's reuse does not depend on the runner (it is the stages' own)
     rerun = subprocess.run(argv[:-1] + ["fitagain"], env=cli_env(ws, tmp_path / "prefect"), capture_output=True,
                            text=True, timeout=900)
     assert rerun.returncode == 0, rerun.stderr[-2000:]

@@ -52,3 +52,16 @@ def test_serve_without_any_token_says_where_tokens_may_come_from(monkeypatch):
     monkeypatch.delenv(TOKENS_ENV, raising=False)
     result = runner.invoke(app, ["closedloop", "serve", "--scenario", "s/log"])
     assert isinstance(result.exception, OmniscsError) and "--token-file" in str(result.exception)
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--sessions-per-token", "33"], "--sessions-per-token"),               # more than --max-sessions (32)
+    (["--max-sessions", "4", "--sessions-per-token", "5"], "--sessions-per-token"),
+    (["--sessions-per-token", "0"], "--sessions-per-token"),
+    (["--max-sessions", "0"], "--max-sessions"),
+    (["--requests-per-s", "0"], "--requests-per-s"),
+    (["--requests-per-s", "nan"], "--requests-per-s"),
+])
+def test_server_limits_out_of_range_are_refused_before_any_scene_is_loaded(argv, option):
+    result = runner.invoke(app, ["closedloop", "serve", "--scenario", "s/log", "--token", "t", *argv])
+    assert result.exit_code == 2 and option in result.output, result.output

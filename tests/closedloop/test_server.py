@@ -42,7 +42,7 @@ def make_server(served, tokens=TOKENS, **config):
 
 @pytest.fixture(scope="module")
 def server(served):
-    with make_server(served, max_body_bytes=BODY_LIMIT, max_sessions=64) as handle:
+    with make_server(served, max_body_bytes=BODY_LIMIT, max_sessions=64, max_sessions_per_token=4) as handle:
         yield handle
 
 

@@ -46,8 +46,10 @@ def stores(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def out(stores, tmp_path_factory):
+    # every box of the stores (also those no sensor captures, e.g. the intersection's trucks): the format is
+    # checked on all of them; which boxes an export labels is tests/export/test_unseen_boxes.py's subject
     return export_scenes(stores, "uniad", tmp_path_factory.mktemp("uniad") / "data", version=VERSION,
-                         val_scenes=["scene-0002"])
+                         val_scenes=["scene-0002"], keep_unseen=True)
 
 
 def _load(path):

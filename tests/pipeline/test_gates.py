@@ -122,18 +122,29 @@ def test_the_card_counts_requested_produced_and_rejected_per_level_and_warns_in_
     assert any(w.startswith("1 variant(s) in this dataset failed") for w in warnings)
 
 
-def test_lidar_coverage_counts_each_box_once_and_only_within_range():
-    def ann(store, frame, track, n, x):
-        return {"store_id": store, "frame_idx": frame, "track_id": track, "num_lidar_points": n, "ego_x": x,
-                "ego_y": 0.0}
-    rows = [ann("s", 0, 1, 5, 10.0), ann("s", 0, 1, 5, 10.0),  # the same box in two cameras
-            ann("s", 0, 2, 0, 20.0), ann("s", 0, 3, 0, 80.0), ann("s", 1, 1, -1, 10.0)]  # -1: not measured
+def test_lidar_coverage_counts_boxes_within_range():
+    def box(frame, track, n, d):
+        return {"store_id": "s", "frame_idx": frame, "track_id": track, "num_lidar_points": n,
+                "visible_pixels": 10, "distance_m": d}
+    rows = [box(0, 1, 5, 10.0), box(0, 2, 0, 20.0), box(0, 3, 0, 80.0), box(1, 1, -1, 10.0)]  # -1: not measured
     c = lidar_coverage(rows)
     assert (c["boxes"], c["with_points"], c["boxes_within"], c["with_points_within"]) == (3, 1, 2, 1)
     assert c["share_within"] == 0.5
     warnings = card_warnings({"dropped_frames": 0}, gate_summary([], False), c)
     assert warnings == ["only 1 of 2 boxes within 50 m have LiDAR points; nuScenes' evaluation and UniAD's "
                         "valid_flag drop the others"]
+
+
+def test_lidar_coverage_counts_only_the_boxes_an_annotator_labels():
+    def box(frame, track, n, pixels):
+        return {"store_id": "s", "frame_idx": frame, "track_id": track, "num_lidar_points": n,
+                "visible_pixels": pixels, "distance_m": 10.0}
+    rows = [box(0, 1, 0, 0), box(1, 1, 0, 30), box(2, 1, 0, 0), box(3, 1, 4, 0), box(4, 1, 0, 0),
+            # track 1: seen at 1 (camera) and 3 (LiDAR): frames 1..3 labelled; track 2: never captured
+            box(0, 2, 0, 0), box(1, 2, 0, 0)]
+    c = lidar_coverage(rows)
+    assert (c["boxes"], c["with_points"], c["unlabelled"]) == (3, 1, 4)
+    assert (c["boxes_within"], c["with_points_within"]) == (3, 1)
 
 
 def test_a_spare_appearance_candidate_that_would_uncover_an_unrepaired_object_is_not_rendered(monkeypatch):

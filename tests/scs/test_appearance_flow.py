@@ -100,6 +100,24 @@ def test_scs_appearance_inserts_at_a_user_pose_and_refuses_an_overlap(built, poo
                                    str(pool_path), "--insert", car, "--pose", "14,0,0", "--out", str(tmp_path / "x")])
     assert isinstance(bad.exception, OmniscsError) and "overlaps" in str(bad.exception)
     assert not (tmp_path / "x").exists()  # nothing half-written
+    assert "not repaired here" not in ok.output
+
+
+def test_scs_appearance_warns_when_a_variant_uncovers_a_large_object_it_does_not_repair(built, pool_path, tmp_path,
+                                                                                      monkeypatch):
+    """By hand the background is not repaired (``omniscs generate``'s uncovered stage does it): the command says
+    so when the plan finds an uncovered footprint (here the plan's answer is given: the scene has no large
+    object)."""
+    from omniscs.agents.pool import Pool
+    from omniscs.pipeline import background
+
+    _, store, result = built
+    monkeypatch.setattr(background, "variant_uncovers", lambda scene, v: (1,))
+    car = Pool(pool_path).table().set_index("source").loc["sedan-0045", "model_id"]
+    ok = CliRunner().invoke(app, ["scs", "appearance", str(store), "--nsg", _checkpoint(result), "--pool",
+                                  str(pool_path), "--insert", car, "--pose", "22,6.4,5", "--out", str(tmp_path / "w")])
+    assert ok.exit_code == 0, ok.output
+    assert "track(s) 1: the variant uncovers the footprint of a large static object" in " ".join(ok.output.split())
 
 
 def test_scs_mine_reports_what_a_detector_missed_on_an_export(built, tmp_path):

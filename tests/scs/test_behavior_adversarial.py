@@ -39,6 +39,19 @@ def test_a_car_in_the_next_lane_is_steered_into_the_ego_plausibly(model):
     assert v.losses["L_app"] is None and v.losses["L_beh"] < 10.0
 
 
+def test_progress_moves_with_the_optimiser_steps_and_never_goes_back(model):
+    traffic = traffic_from_world(straight_world([{"x": 8.0, "y": 3.3, "speed": 8.0},
+                                                 {"x": -12.0, "y": 3.3, "speed": 9.0}]))
+    seen: list[tuple[int, int]] = []
+    variants = generate_variants(traffic, model, 2, FAST, progress=lambda k, n: seen.append((k, n)))
+    assert len(variants) == 2
+    total = 2 * (FAST.iterations + 1)
+    assert {n for _, n in seen} == {total} and seen[-1][0] == total
+    done = [k for k, _ in seen]
+    assert done == sorted(done) and len(set(done)) == len(done)
+    assert len(done) > 4  # within each variant, not once per variant
+
+
 def test_numerical_extremes_far_standing_single_and_late_agents_and_a_standing_ego(model):
     world = straight_world([
         {"x": 500.0, "y": 3.3, "speed": 9.0},        # far
@@ -265,11 +278,12 @@ def test_with_gates_further_candidates_are_tried_until_enough_pass_or_the_budget
     def run(outcomes, n, accept, budget):
         it = iter(outcomes)
 
-        def fake(problem, candidates, node, window, reachable, index, used):
+        def fake(problem, candidates, node, window, reachable, index, used, on_step=None):
             used.add((node, tuple(window)))
             return SimpleNamespace(success=next(it), node=node, window=window)
         monkeypatch.setattr(generation, "optimise_with_fallback", fake)
-        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 0.5), (0.5, 1.0))), horizon=20,
+        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 0.5), (0.5, 1.0)), iterations=60),
+                                  horizon=20,
                                   traffic=SimpleNamespace(scene_id="s"))
         candidates = [(1, True, 3.0), (2, True, 5.0), (3, False, 9.0)]
         return generation.distinct_variants(problem, candidates, n, accept=accept, budget=budget)
@@ -286,8 +300,8 @@ def test_with_gates_further_candidates_are_tried_until_enough_pass_or_the_budget
 
     def unreachable(outcomes, n, budget):
         it = iter(outcomes)
-        monkeypatch.setattr(generation, "optimise_with_fallback", lambda *a: SimpleNamespace(success=next(it)))
-        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 1.0),)), horizon=20,
+        monkeypatch.setattr(generation, "optimise_with_fallback", lambda *a, **k: SimpleNamespace(success=next(it)))
+        problem = SimpleNamespace(config=SimpleNamespace(time_windows=((0.0, 1.0),), iterations=60), horizon=20,
                                   traffic=SimpleNamespace(scene_id="s"))
         return generation.distinct_variants(problem, [(1, False, 40.0), (2, False, 50.0)], n, accept=passes,
                                             budget=budget)

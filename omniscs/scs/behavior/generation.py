@@ -39,13 +39,14 @@ def variant_schedule(candidates: list[Candidate], n_variants: int, horizon: int,
 
 def optimise_with_fallback(problem: BehaviorProblem, candidates: list[Candidate], node: int,
                            window: tuple[int, int], reachable: bool, index: int,
-                           used: set[tuple[int, tuple[int, int]]] | None = None) -> VariantResult:
+                           used: set[tuple[int, tuple[int, int]]] | None = None,
+                           on_step: Callable[[int], None] | None = None) -> VariantResult:
     """Optimise variant ``index`` with adversary ``node``; while it finds no collision, restart it from warm starts
     (up to ``restarts``); while it fails (no collision, or implausible), try the next reachable candidates the
     same way (up to ``attempts_per_variant`` adversaries) that no earlier variant used with this window, so
     variants stay distinct. Standing candidates (with ``warm_start_standing``) begin with the warm starts and
     start from the fitted latents last. Keeps the best outcome; its time covers every attempt; records its
-    (adversary, window) in ``used``."""
+    (adversary, window) in ``used``. ``on_step(iteration)`` is called after every optimiser step of every try."""
     cfg = problem.config
     used = set() if used is None else used
     others = [(c[0], c[1]) for c in candidates if c[1] and c[0] != node and (c[0], tuple(window)) not in used]
@@ -59,7 +60,8 @@ def optimise_with_fallback(problem: BehaviorProblem, candidates: list[Candidate]
         for restart in starts:
             began = time.perf_counter()
             z_start = None if restart is None else warm_start(problem, n, window, restart)
-            result = optimise(problem, n, window, f"v{index:02d}-track{track}", ok, z_start=z_start)
+            result = optimise(problem, n, window, f"v{index:02d}-track{track}", ok, z_start=z_start,
+                              on_step=on_step)
             seconds += time.perf_counter() - began
             if best is None or outcome(result) > outcome(best):
                 best = result
@@ -88,7 +90,10 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
     """Up to ``n_variants`` variants, no two with the same (adversary, time window): the schedule's pairs in
     order, skipping pairs an earlier variant (or its fallback) already used. Fewer come back when the scene
     has fewer distinct pairs. With ``accept(variant)`` (the quality gates), variants are made until
-    ``n_variants`` are accepted or ``budget`` variants were tried, and every variant tried comes back."""
+    ``n_variants`` are accepted or ``budget`` variants were tried, and every variant tried comes back.
+    ``progress(done, total)`` moves with the optimiser's steps: each requested variant is ``iterations + 1`` units,
+    filled by the current optimisation and never going back (a restart, a further adversary or a rejected variant
+    holds it where it was)."""
     pool = [c for c in candidates if c[1]] or candidates
     windows = problem.config.time_windows
     queue = variant_schedule(candidates, len(pool) * len(windows), problem.horizon, windows)
@@ -100,6 +105,18 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
     results: list[VariantResult] = []
     accepted = 0
     used: set[tuple[int, tuple[int, int]]] = set()
+    unit = problem.config.iterations + 1
+    shown = 0
+
+    def report(done: int) -> None:
+        nonlocal shown
+        if progress and done > shown:
+            shown = done
+            progress(done, n_variants * unit)
+
+    def on_step(it: int) -> None:
+        report(accepted * unit + min(it + 1, unit - 1))
+
     while accepted < n_variants and len(results) < budget:
         queue = [q for q in queue if (q[0], tuple(q[1])) not in used]
         if not queue:
@@ -107,10 +124,12 @@ def distinct_variants(problem: BehaviorProblem, candidates: list[Candidate], n_v
                         len(results))
             break
         node, window, reachable = queue.pop(0)
-        results.append(optimise_with_fallback(problem, candidates, node, window, reachable, len(results), used))
+        results.append(optimise_with_fallback(problem, candidates, node, window, reachable, len(results), used,
+                                              on_step=on_step if progress else None))
         accepted += 1 if accept is None or accept(results[-1]) else 0
-        if progress:
-            progress(accepted if accept is not None else len(results), n_variants)
+        report(accepted * unit)
+    if progress and shown < n_variants * unit:  # fewer accepted than requested: the stage's work is done anyway
+        progress(n_variants * unit, n_variants * unit)
     return results
 
 
