@@ -25,6 +25,7 @@ import pyarrow.parquet as pq
 from omniscs.errors import OmniscsError
 from omniscs.ids import check_id
 from omniscs.storage import atomic_write_bytes, inside
+from omniscs.untrusted import check_parquet_files
 
 SCHEMAS: dict[str, pa.Schema] = {
     "runs": pa.schema([
@@ -529,6 +530,31 @@ def check_contained(root: Path) -> None:
                     inside(entry, root, "catalog file")
 
 
+def catalog_files(root: Path, table: str) -> list[Path]:
+    """Every file the views of ``table`` read: ``<root>/<table>/run_id=*/*.parquet`` (hidden names too, as DuckDB's
+    glob matches them)."""
+    folder = Path(root) / table
+    if not folder.is_dir():
+        return []
+    return sorted(f for d in folder.iterdir() if d.name.startswith("run_id=") and d.is_dir()
+                  for f in d.iterdir() if f.name.endswith(".parquet"))
+
+
+#: Columns a file of each table must have to be one of ours (the first logical key, which every version wrote; a
+#: run's status for ``runs``, whose key lives in the path).
+_REQUIRED = {table: ("status",) if table == "runs" else KEYS[table][:1] for table in SCHEMAS}
+
+
+def check_catalog_files(root: Path) -> None:
+    """Refuse, as one OmniscsError naming the file, a file in the catalog that is not one of its tables' Parquet
+    files (junk, truncated, or a foreign schema), before DuckDB reads it: DuckDB would fail with its own trace on
+    junk and show a foreign file's rows as the table's (``union_by_name``)."""
+    for table, schema in SCHEMAS.items():
+        check_parquet_files(catalog_files(root, table), schema, f"catalog file of table {table}",
+                            "catalog files are written by omniscs only: move that file out of the catalog folder",
+                            required=_REQUIRED[table])
+
+
 def connect(root: Path) -> duckdb.DuckDBPyConnection:
     """An in-memory DuckDB connection with the catalog views over ``root`` (empty views when no files yet) that
     can read nothing but files under ``root``: no other file, no extension, no network, no setting changed
@@ -536,6 +562,7 @@ def connect(root: Path) -> duckdb.DuckDBPyConnection:
     root = Path(root).expanduser().resolve()
     check_contained(root)
     prefix = _glob_prefix(root)
+    check_catalog_files(root)
     con = duckdb.connect()
     try:
         for name, value in [("temp_directory", ""), ("python_enable_replacements", False),

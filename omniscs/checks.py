@@ -1,15 +1,16 @@
 """Small checks shared by everything that reads JSON a user or a crash could have damaged (checkpoints, stores,
 dataset tables, presets, requests): JSON's numbers are Python's, so ``True`` is an int and ``NaN`` a float; these
-predicates say what a field really holds, and ``read_json`` turns any unreadable file into one domain error."""
+predicates say what a field really holds, and ``read_json`` turns any unreadable file into one domain error (through
+``omniscs.untrusted``, the one reader of untrusted JSON)."""
 from __future__ import annotations
 
-import json
 import math
 import numbers
 import os
 from pathlib import Path
 
 from omniscs.errors import OmniscsError
+from omniscs.untrusted import read_own_json
 
 
 def is_int(value) -> bool:
@@ -44,13 +45,8 @@ def check_seed(value, what: str = "seed") -> int:
 
 
 def read_json(path: Path, damaged: str):
-    """The JSON value in ``path``; text that is not UTF-8 or not JSON, or a file that cannot be read, is one
-    OmniscsError naming the file (``damaged`` says what that means and what to do)."""
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise OmniscsError(f"{path} is not JSON text; {damaged}") from None
-    except json.JSONDecodeError as exc:
-        raise OmniscsError(f"{path} is not valid JSON ({exc}); {damaged}") from None
-    except OSError as exc:
-        raise OmniscsError(f"cannot read {path} ({exc.strerror or exc})") from None
+    """The JSON value in ``path``, one of our own artifacts (a checkpoint, a card), read as untrusted
+    (``omniscs.untrusted.read_json``: a regular file, size, depth and digit caps, strict UTF-8); NaN and infinities
+    are read, as our writers may record them. Any problem is one OmniscsError naming the file (``damaged`` says
+    what that means and what to do)."""
+    return read_own_json(path, damaged)

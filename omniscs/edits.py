@@ -8,13 +8,13 @@ points to the agent's former right).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, pose_from_xyz_yaw, rotmat_from_euler
+from omniscs.untrusted import loads_json
 
 
 @dataclass(frozen=True)
@@ -234,16 +234,9 @@ def parse_edits(text_or_list) -> list[Edit]:
     """Edits from a JSON string (one edit object or a list of them), a dict, a list of dicts, or edit objects;
     each is checked (see ``edit_from_dict``), and anything else is one OmniscsError."""
     value = text_or_list
-    if isinstance(value, (bytes, bytearray)):
-        try:
-            value = value.decode("utf-8")
-        except UnicodeDecodeError:
-            raise OmniscsError("edit list is not UTF-8 text") from None
-    if isinstance(value, str):
-        try:
-            value = json.loads(value)
-        except json.JSONDecodeError as exc:
-            raise OmniscsError(f"edit list is not valid JSON: {exc}") from None
+    if isinstance(value, (str, bytes, bytearray)):
+        value = loads_json(value, "the edit list", 'give one edit object or a list of them, e.g. '
+                                                   '[{"op": "remove", "track_id": 3}]')
     if isinstance(value, (dict, *_OPS.values())):
         value = [value]
     if not isinstance(value, (list, tuple)):

@@ -9,7 +9,6 @@ Scene-agnostic: works from a scene store (boxes, cameras, logged images) and a f
 world is never read."""
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from omniscs.quality import psnr_from_mse
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET, rgb_to_sh_dc, rotate_sh
 from omniscs.storage import atomic_write_json
 from omniscs.taxonomy import VEHICLE_CATEGORIES
+from omniscs.untrusted import read_own_json
 
 STRATEGIES = ("fitted", "online", "pool")
 MIRROR_Y = np.diag([1.0, -1.0, 1.0])  # the vehicle's x-z plane
@@ -709,7 +709,7 @@ def write_decisions(path: str | Path, decisions: list[Decision]) -> None:
 
 
 def read_decisions(path: str | Path) -> list[dict]:
-    return json.loads(Path(path).read_text())["tracks"]
+    return read_own_json(path, "run the agents stage again", expect=dict)["tracks"]
 
 
 __all__ = ["DualConfig", "Clarity", "Decision", "TrackView", "track_views", "clarity", "choose", "mirrored",

@@ -36,6 +36,7 @@ from omniscs.errors import ValidationError
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory
+from omniscs.untrusted import read_own_json
 
 
 class _Light3x3(nn.Module):  # depthwise-separable 3x3: 1x1 then depthwise 3x3, BN, ReLU
@@ -221,7 +222,8 @@ def load_msnet(folder) -> MSNet:
     """An MSNet saved by ``save_msnet`` (a user's own weights of this architecture load the same way)."""
     folder = verified_folder(folder)
     try:
-        arch = json.loads((folder / "training.json").read_text())["architecture"]
+        arch = read_own_json(folder / "training.json", f"{folder} holds no MSNet weights this version reads",
+                             expect=dict, error=ValidationError)["architecture"]
         net = MSNet(MSNetConfig(tuple(arch["widths"]), int(arch["dim"])))
         net.load_state_dict(load_file(str(folder / "msnet.safetensors")))
     except (OSError, KeyError, ValueError, RuntimeError) as e:

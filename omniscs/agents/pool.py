@@ -25,12 +25,13 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from omniscs.errors import ValidationError
+from omniscs.errors import OmniscsError, ValidationError
 from omniscs.gaussians import GaussianParams, rigidly_moved
 from omniscs.ids import check_id
 from omniscs.locks import output_lock
 from omniscs.storage import atomic_directory, atomic_write_bytes, inside
 from omniscs.taxonomy import CATEGORIES
+from omniscs.untrusted import check_parquet_files, read_own_json
 
 POOL_VERSION = 1
 MODELS, INDEX = "models", "index"
@@ -140,8 +141,8 @@ class Pool:
             raise ValidationError(f"pool {self.root} has no model {model_id}")
         with output_lock(folder):
             try:
-                meta = json.loads((folder / META).read_text())
-            except (OSError, ValueError):  # a row left without its model (removed by hand): the row still goes
+                meta = read_own_json(folder / META, "remove it", what="pool model record")
+            except OmniscsError:  # a row left without its model (removed by hand): the row still goes
                 meta = {"model_id": model_id}
             index.unlink(missing_ok=True)
             if folder.exists():
@@ -157,6 +158,10 @@ class Pool:
         files = sorted((self.root / INDEX).glob("pm-*.parquet"))
         if not files:
             return pd.DataFrame(columns=list(INDEX_COLUMNS))
+        # junk, a truncated row or a foreign Parquet file is one error naming it, never a pyarrow trace or rows
+        check_parquet_files(files, INDEX_SCHEMA, f"pool {self.root} index file",
+                            "index rows are written by omniscs only: remove that file, or add its model again",
+                            required=("model_id",))
         # one scan over the row files: 0.26 s for 320 rows, against 1.6 s reading them one by one
         table = ds.dataset([str(f) for f in files], format="parquet", schema=INDEX_SCHEMA).to_table()
         return table.to_pandas().sort_values("model_id", ignore_index=True)
@@ -177,7 +182,8 @@ class Pool:
                 if (folder / MATERIAL).is_file() else None
             if material is not None and len(material) != len(params):
                 raise ValidationError(f"material for {len(material)} Gaussians, model of {len(params)}")
-            return PoolModel(model_id, params, json.loads((folder / META).read_text()), material)
+            meta = read_own_json(folder / META, "add the model again", expect=dict, what="pool model record")
+            return PoolModel(model_id, params, meta, material)
         except Exception as e:  # safetensors raises its own error type for a damaged file
             raise ValidationError(f"pool model {model_id} in {self.root} is damaged ({type(e).__name__}: {e})") from e
 

@@ -30,6 +30,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pretrained.registry import verified_folder
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory
+from omniscs.untrusted import read_own_json
 
 #: RGB normalisation of the network's input (after scaling to 0..1): mean and spread of road scenes, roughly.
 RGB_MEAN = 0.45
@@ -441,7 +442,9 @@ def load_depth_net(folder: str | Path) -> DepthNet:
     """The DepthNet saved in ``folder`` by ``save_depth_net``, in eval mode."""
     folder = verified_folder(folder)
     try:
-        arch = json.loads((folder / INFO_FILE).read_text())["architecture"]
+        arch = read_own_json(folder / INFO_FILE, f"{folder} holds no relative-depth weights this version reads; "
+                             "retrain them with `omniscs pretrained train reldepth`", expect=dict,
+                             error=ValidationError)["architecture"]
         net = DepthNet(DepthNetConfig(tuple(int(c) for c in arch["widths"]), int(arch["long_side"])))
         net.load_state_dict(load_file(str(folder / WEIGHTS_FILE)))
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:

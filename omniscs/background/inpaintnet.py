@@ -28,6 +28,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pretrained.registry import folder as shipped_folder, verified_folder
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory
+from omniscs.untrusted import read_own_json
 
 #: The shipped weights (registry entry ``inpaint``; ``omniscs pretrained train inpaint --install`` writes them).
 SHIPPED = shipped_folder("inpaint")
@@ -332,13 +333,16 @@ def save_inpaint_net(state_dict: dict[str, Tensor], architecture: InpaintNetConf
 def load_inpaint_net(folder: str | Path = SHIPPED) -> InpaintNet:
     """The InpaintNet saved in ``folder`` by ``save_inpaint_net`` (float32, eval mode)."""
     folder = verified_folder(folder)
+    make = ("train them with `omniscs pretrained train inpaint --export-data PACK`, infra/inpaint_gpu/train.py and "
+            "`omniscs pretrained train inpaint --install OUT`")
     try:
-        arch = InpaintNetConfig.from_dict(json.loads((folder / INFO_FILE).read_text())["architecture"])
+        info = read_own_json(folder / INFO_FILE, f"{folder} holds no inpainting weights this version reads; {make}",
+                             expect=dict, error=ValidationError)
+        arch = InpaintNetConfig.from_dict(info["architecture"])
         net = InpaintNet(arch)
         net.load_state_dict({k: v.float() if v.is_floating_point() else v
                              for k, v in load_file(str(folder / WEIGHTS_FILE)).items()})
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
         raise ValidationError(f"{folder} holds no inpainting weights this version reads ({type(e).__name__}: {e}); "
-                              "train them with `omniscs pretrained train inpaint --export-data PACK`, "
-                              "infra/inpaint_gpu/train.py and `omniscs pretrained train inpaint --install OUT`") from e
+                              f"{make}") from e
     return net.eval()

@@ -12,6 +12,7 @@ The report has a second section, server abuse: hostile requests to the closed-lo
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import os
@@ -60,6 +61,10 @@ def _c(category: str, name: str, *argv: str) -> Case:
 
 
 REMOVE_99 = '{"op": "remove", "track_id": 99}'
+HUGE_TRACK = '{"op": "remove", "track_id": ' + "7" * 5000 + "}"
+DEEP = b"[" * 100_000
+NUS_VERSION = "v1.0-trainval"  # what the fixture dataroot holds (named, so eval prints no note about it)
+NUS_EVAL = ("--dataroot", "{nus}", "--version", NUS_VERSION)
 GEN = ("generate", "syn:straight:0")
 
 CASES: tuple[Case, ...] = (
@@ -272,6 +277,53 @@ CASES: tuple[Case, ...] = (
     _c("catalog", "workspace that does not exist", "catalog", "query", "SELECT 1", "--workspace", "{tmp}/nope"),
     _c("catalog", "default workspace missing", "catalog", "query", "SELECT 1"),
     _c("catalog", "views: workspace that does not exist", "catalog", "views", "--workspace", "{tmp}/nope"),
+    # --------------------------------------------------------------- hostile JSON (on the command line and in files)
+    _c("hostile JSON", "edit nested 100,000 deep", *GEN, "--edit", "[" * 100_000),
+    _c("hostile JSON", "edit with a 5000-digit track id", *GEN, "--edit", HUGE_TRACK),
+    _c("hostile JSON", "edit amount 1e400", *GEN, "--edit", '{"op": "translate", "track_id": 1, "lateral": 1e400}'),
+    _c("hostile JSON", "world render: edit yaw -Infinity", "world", "render", "{store}", "--out", "x.png", "--edit",
+       '{"op": "rotate", "track_id": 1, "yaw_deg": -Infinity}'),
+    _c("hostile JSON", "fit: edit file nested deep", "fit", "{store}", "--out", "m", "--edit", "@{deepjson}"),
+    _c("hostile JSON", "edit file not UTF-8", *GEN, "--edit", "@{latin1json}"),
+    _c("hostile JSON", "scene info: manifest nested deep", "scene", "info", "{mdeep}"),
+    _c("hostile JSON", "generate: manifest with a 5000-digit number", "generate", "{mbigint}"),
+    _c("hostile JSON", "fit: manifest not UTF-8", "fit", "{mlatin1}", "--out", "m"),
+    _c("hostile JSON", "world render: world.json nested deep", "world", "render", "{worlddeep}", "--out", "x.png"),
+    _c("hostile JSON", "eval detection: results nested deep", "eval", "detection", *NUS_EVAL,
+       "--results", "{deepjson}"),
+    _c("hostile JSON", "eval detection: results with an Infinity velocity", "eval", "detection", *NUS_EVAL,
+       "--results", "{infjson}"),
+    _c("hostile JSON", "eval planning: results with a 5000-digit number", "eval", "planning", *NUS_EVAL,
+       "--results", "{bigintjson}"),
+    _c("hostile JSON", "ingest: nuScenes table nested deep", "ingest", "--source", "nuscenes", "--dataroot",
+       "{nusdeep}", "--out", "o"),
+    _c("hostile JSON", "eval: nuScenes sample chain that loops", "eval", "detection", "--dataroot", "{nusloop}",
+       "--version", NUS_VERSION, "--results", "{emptyresults}"),
+    _c("hostile JSON", "generate: nuScenes sample chain that loops", "generate", "nuscenes:{nusloop}"),
+    _c("hostile JSON", "dataset info: card nested deep", "dataset", "info", "{dsdeep}"),
+    # --------------------------------------------------------------- hostile files (not regular, junk, foreign)
+    _c("hostile files", "eval detection: results are /dev/zero", "eval", "detection", *NUS_EVAL,
+       "--results", "/dev/zero"),
+    _c("hostile files", "eval planning: results are a FIFO", "eval", "planning", *NUS_EVAL,
+       "--results", "{fifo}"),
+    _c("hostile files", "eval detection: results are a folder", "eval", "detection", *NUS_EVAL,
+       "--results", "{empty}"),
+    _c("hostile files", "edit file is /dev/zero", *GEN, "--edit", "@/dev/zero"),
+    _c("hostile files", "world render: edit file is a FIFO", "world", "render", "{store}", "--out", "x.png",
+       "--edit", "@{fifo}"),
+    _c("hostile files", "scene info: manifest is a FIFO", "scene", "info", "{mfifo}"),
+    _c("hostile files", "eval: nuScenes table is a FIFO", "eval", "detection", "--dataroot", "{nusfifo}",
+       "--version", NUS_VERSION, "--results", "{emptyresults}"),
+    _c("hostile files", "ingest: nuScenes table is a FIFO", "ingest", "--source", "nuscenes", "--dataroot",
+       "{nusfifo}", "--out", "o"),
+    _c("hostile files", "catalog: junk Parquet file", "catalog", "query", "SELECT * FROM runs", "--workspace",
+       "{wsjunk}"),
+    _c("hostile files", "catalog: truncated Parquet file", "catalog", "query", "SELECT count(*) FROM runs_raw",
+       "--workspace", "{wstrunc}"),
+    _c("hostile files", "catalog: foreign Parquet file", "catalog", "query", "SELECT * FROM runs_raw",
+       "--workspace", "{wsforeign}"),
+    _c("hostile files", "pool list: junk Parquet index file", "pool", "list", "{pooljunk}"),
+    _c("hostile files", "pool list: foreign Parquet index file", "pool", "list", "{poolforeign}"),
     # --------------------------------------------------------------- bench (option errors only)
     _c("bench", "world: seeds not numbers", "bench", "world", "--seeds", "abc", "--out", "r"),
     _c("bench", "world: no seeds", "bench", "world", "--seeds", ",", "--out", "r"),
@@ -380,8 +432,74 @@ class Fixtures:
                 pq.write_table(table, path / "frames.parquet")
             elif name == "noimage":
                 sorted((path / "images").rglob("*.png"))[0].unlink()
+        elif name in ("mdeep", "mbigint", "mlatin1", "mfifo", "worlddeep"):
+            shutil.copytree(self.store, path)
+            manifest = path / "manifest.json"
+            if name == "mdeep":
+                manifest.write_bytes(DEEP)
+            elif name == "mbigint":
+                m = json.loads(manifest.read_text())
+                manifest.write_text(json.dumps(m)[:-1] + ', "seed": ' + "9" * 5000 + "}")
+            elif name == "mlatin1":  # the scene id in Latin-1, as an editor set to it would save it
+                m = json.loads(manifest.read_text())
+                m["scene_id"] = "caf\u00e9"
+                manifest.write_bytes(json.dumps(m, ensure_ascii=False).encode("latin-1"))
+            elif name == "mfifo":
+                manifest.unlink()
+                os.mkfifo(manifest)
+            else:  # with its size and hash updated in the manifest, as a careful attacker would
+                (path / "world.json").write_bytes(DEEP)
+                m = json.loads(manifest.read_text())
+                m["files"]["world.json"] = [len(DEEP), hashlib.sha256(DEEP).hexdigest()]
+                manifest.write_text(json.dumps(m))
         elif name == "nus":
             shutil.copytree(self.nus, path)
+        elif name in ("nusdeep", "nusloop", "nusfifo"):
+            shutil.copytree(self.nus, path)
+            tables = next(path.glob("v1.0-*"))
+            if name == "nusdeep":
+                (tables / "sample.json").write_bytes(DEEP)
+            elif name == "nusloop":  # the scene's last keyframe leads back to its first
+                rows = json.loads((tables / "sample.json").read_text())
+                last = next(r for r in rows if not r["next"])
+                last["next"] = next(r for r in rows if not r["prev"])["token"]
+                (tables / "sample.json").write_text(json.dumps(rows))
+            else:
+                (tables / "sample_annotation.json").unlink()
+                os.mkfifo(tables / "sample_annotation.json")
+        elif name == "deepjson":
+            path.write_bytes(DEEP)
+        elif name == "bigintjson":
+            path.write_text('{"results": {}, "n": ' + "1" * 5000 + "}")
+        elif name == "infjson":
+            path.write_text('{"results": {"t": [{"velocity": [Infinity, 0.0]}]}}')
+        elif name == "emptyresults":
+            path.write_text('{"results": {}}')
+        elif name == "latin1json":
+            path.write_bytes('[{"op": "remove", "track_id": 1, "why": "caf\u00e9"}]'.encode("latin-1"))
+        elif name == "fifo":
+            os.mkfifo(path)
+        elif name == "dsdeep":
+            path.mkdir()
+            (path / "dataset.json").write_bytes(DEEP)
+        elif name in ("wsjunk", "wstrunc", "wsforeign"):
+            catalog_run_stage("fixture-run", path, "generate_dataset", "completed", 0, 1, 0, {})
+            files = sorted((path / "catalog" / "runs").rglob("*.parquet"))
+            bad = files[0].parent / "run-0000000000000001-000000000000.parquet"
+            if name == "wsjunk":
+                bad.write_text("run_id,status\nx,completed\n")
+            elif name == "wstrunc":
+                bad.write_bytes(files[0].read_bytes()[:-20])
+            else:  # a real Parquet file with someone else's columns: it must not show as a run
+                pq.write_table(pa.table({"status": ["completed"], "card_number": ["4111 1111 1111 1111"]}), bad)
+        elif name in ("pooljunk", "poolforeign"):
+            index = path / "index"
+            index.mkdir(parents=True)
+            if name == "pooljunk":
+                (index / "pm-000000000000.parquet").write_bytes(b"\x00" * 64)
+            else:
+                pq.write_table(pa.table({"model_id": ["pm-000000000000"], "owner": ["someone else"]}),
+                               index / "pm-000000000000.parquet")
         elif name == "file":
             path.write_text("this is a file, not a folder {\n")
         elif name == "empty":
@@ -406,7 +524,11 @@ class Fixtures:
 
 #: The fixtures a case may name as ``{name}`` in its argv (``{tmp}`` is the case's folder itself).
 FIXTURES = ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wrongcol", "noimage", "nus", "file",
-            "empty", "userdir", "notckpt", "bckpt_trunc", "ws")
+            "empty", "userdir", "notckpt", "bckpt_trunc", "ws",
+            # hostile JSON and files
+            "mdeep", "mbigint", "mlatin1", "mfifo", "worlddeep", "nusdeep", "nusloop", "nusfifo", "deepjson",
+            "bigintjson", "infjson", "emptyresults", "latin1json", "fifo", "dsdeep", "wsjunk", "wstrunc", "wsforeign",
+            "pooljunk", "poolforeign")
 FIXTURES += PATH_FIXTURES
 _PLACEHOLDER = re.compile(r"\{(" + "|".join(FIXTURES + ("tmp",)) + r")\}")
 

@@ -178,10 +178,13 @@ def read_edits(edit: Optional[str]) -> list:
     if not edit:
         return []
     if edit.startswith("@"):
+        from omniscs.untrusted import read_json
+
         path = Path(edit[1:])
-        if not path.is_file():
+        if not path.exists():
             raise OmniscsError(f"edit file {path} does not exist")
-        edit = path.read_text()
+        return parse_edits(read_json(path, 'give a file of one edit object or a list of them, e.g. '
+                                           '[{"op": "remove", "track_id": 3}]', what="edit file"))
     return parse_edits(edit)
 
 

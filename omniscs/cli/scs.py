@@ -1,7 +1,6 @@
 """``omniscs scs``: behaviour-level safety-critical scenario synthesis (train the traffic model, make variants)."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Optional
@@ -12,6 +11,7 @@ from omniscs.checks import MAX_SEED, MAX_THREADS
 
 from omniscs.cli.common import check_out, console, print_error, print_table, progress_bars
 from omniscs.errors import OmniscsError
+from omniscs.untrusted import read_own_json
 
 app = typer.Typer(help="Safety-critical scenario synthesis (behaviour-level variants).", no_args_is_help=True)
 
@@ -121,7 +121,7 @@ def scs_behavior(
     if consistency is None:
         console.print("L_app: off (give --nsg with the scene's fitted scene graph to add it)")
     for r in result.rows:
-        for v in json.loads(result.variants_json.read_text()):
+        for v in read_own_json(result.variants_json, "run the command again", expect=list):
             if v["variant_id"] == r["variant_id"] and v["violations"]:
                 console.print(f"{r['variant_id']}: " + "; ".join(v["violations"][:4]))
     console.print(f"wrote {result.variants_json} and {len(result.bev_pngs)} BEV picture(s)")

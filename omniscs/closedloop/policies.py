@@ -28,6 +28,7 @@ from omniscs.errors import OmniscsError, ValidationError
 from omniscs.eval.planning import EGO_SHIFT, STEPS, STEP_S
 from omniscs.eval.scenarios import HISTORY_S, boxes_in_frame, to_frame
 from omniscs.taxonomy import VEHICLE_CATEGORIES
+from omniscs.untrusted import loads_json
 
 #: How far the reference path is extended past its end, so a policy can keep driving on (metres).
 ROUTE_EXTENSION_M = 200.0
@@ -286,8 +287,9 @@ class DriveArenaDriver:
             if time.monotonic() > deadline:
                 raise OmniscsError(f"DriveArena driver gave no plan within {self.timeout_s:.0f} s")
             time.sleep(self.poll_s)
+        answer = loads_json(body, "the DriveArena driver's answer", expect=dict)  # another process: untrusted
         try:
-            traj = json.loads(body)["bbox_results"][0]["planning_traj"]
+            traj = answer["bbox_results"][0]["planning_traj"]
             plan = np.asarray(traj, dtype=np.float64).reshape(-1, 2)
         except (ValueError, KeyError, IndexError, TypeError) as e:
             raise OmniscsError(f"DriveArena driver's answer has no bbox_results[0].planning_traj: {e}") from None

@@ -31,7 +31,6 @@ centre-distance NMS per class across the cameras of a sample.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from safetensors.torch import load_file, save_file
@@ -50,6 +49,7 @@ from omniscs.eval.nuscenes_io import (
 )
 from omniscs.pretrained.registry import folder as shipped_folder, network_with_weights, verified_folder
 from omniscs.storage import atomic_directory, atomic_write_json, atomic_write_text
+from omniscs.untrusted import read_json
 
 WEIGHTS = "detector.safetensors"
 CONFIG = "detector_config.json"
@@ -83,7 +83,8 @@ def load_detector(path: str | Path | None = None) -> ProxyDetector:
     """A saved detector (default: the shipped one); a clear error when the folder is not one."""
     path = verified_folder(path if path is not None else DEFAULT_DETECTOR)
     try:
-        raw = json.loads((path / CONFIG).read_text())
+        raw = read_json(path / CONFIG, f"{path} is not a proxy detector checkpoint; train one with `omniscs "
+                        "pretrained train detector` or name its folder", expect=dict, error=ValidationError)
         config = DetectorConfig(**{**raw, "widths": tuple(raw["widths"]), "classes": tuple(raw["classes"])})
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError, KeyError) as e:

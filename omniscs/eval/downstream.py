@@ -23,16 +23,18 @@ from omniscs.eval.scenarios import (PlanningExample, planning_examples, scenario
                                    variant_keyframes)
 from omniscs.scene import load_scene
 from omniscs.scs.behavior import traffic_from_scene
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
 
 def dataset_card(dataset_path: str | Path) -> dict:
     path = Path(dataset_path) / CARD_JSON
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ValidationError(f"{dataset_path} is not a dataset ({CARD_JSON}: {e})") from e
+    if not path.exists():
+        raise ValidationError(f"{dataset_path} is not a dataset (it has no {CARD_JSON}); build one with omniscs "
+                              "generate")
+    return read_own_json(path, "the dataset card is damaged; build the dataset again", expect=dict,
+                         error=ValidationError)
 
 
 def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], dict]:
@@ -44,10 +46,8 @@ def variant_examples(dataset_path: str | Path) -> tuple[list[PlanningExample], d
     for v in card.get("variants", []):
         counts["variants"] += 1
         store_path = root / "scenes" / v["store_id"]
-        try:
-            meta = json.loads((store_path / VARIANT_JSON).read_text())
-        except (OSError, ValueError) as e:
-            raise ValidationError(f"dataset {card.get('dataset_id')}: {store_path / VARIANT_JSON} unreadable ({e})") from e
+        meta = read_own_json(store_path / VARIANT_JSON, f"dataset {card.get('dataset_id')} is damaged; build it "
+                             "again", expect=dict, error=ValidationError)
         solution = meta.get("ego_solution") or {}
         if not solution.get("solved"):
             counts["unsolved"] += 1

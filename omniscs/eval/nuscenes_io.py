@@ -4,7 +4,6 @@ protocol does not accept. Plain JSON reading (no ``NuScenes`` object, no officia
 any dataroot can be evaluated."""
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ from omniscs.geometry import make_transform
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.sources.nuscenes import find_version
 from omniscs.taxonomy import NUSCENES_DETECTION_CLASS
+from omniscs.untrusted import MAX_TABLE_BYTES, read_json
 
 #: nuScenes category -> detection class (the devkit's ``category_to_detection_name``).
 CATEGORY_TO_DETECTION: dict[str, str] = NUSCENES_DETECTION_CLASS
@@ -25,6 +25,8 @@ BIKE_RACK = "static_object.bicycle_rack"
 #: Largest time between an annotation and its neighbour for a velocity (s; doubled across both neighbours).
 MAX_VELOCITY_DT_S = 1.5
 REFERENCE_CHANNEL = "LIDAR_TOP"
+#: Size cap of a results file (bytes): 500 boxes per sample of the 6,019 validation samples is about 1 GB.
+MAX_RESULTS_BYTES = 2 * 2**30
 
 
 def resolve_version(dataroot: str | Path, version: str | None) -> str:
@@ -58,12 +60,13 @@ class NuScenesTables:
         for name in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "sample_annotation",
                      "instance", "category", "attribute"):
             path = folder / f"{name}.json"
-            try:
-                rows = json.loads(path.read_text())
-            except (OSError, ValueError) as e:
-                raise ValidationError(f"{path} is missing or not JSON ({e})") from e
-            if not isinstance(rows, list):
-                raise ValidationError(f"{path} must hold a list of records")
+            rows = read_json(path, "give the dataroot's own table (a list of records)", expect=list,
+                             max_bytes=MAX_TABLE_BYTES, what="nuScenes table", error=ValidationError)
+            bad = next((i for i, r in enumerate(rows) if not isinstance(r, dict) or not isinstance(r.get("token"), str)),
+                       None)
+            if bad is not None:
+                raise ValidationError(f"{path}: record {bad} is not an object with a string 'token'; give the "
+                                      "dataroot's own table")
             tables[name] = {r["token"]: r for r in rows}
         return cls(Path(dataroot), version, tables)
 
@@ -82,10 +85,24 @@ class NuScenesTables:
             chosen.append(rec)
         tokens = []
         for scene in chosen:
-            t = scene["first_sample_token"]
-            while t:
-                tokens.append(t)
-                t = self["sample"][t]["next"]
+            tokens += self.chain("sample", scene["first_sample_token"], f"scene {scene.get('name')}")
+        return tokens
+
+    def chain(self, table: str, first: str, owner: str, limit: int | None = None) -> list[str]:
+        """Tokens of ``table`` from ``first`` along ``next`` (at most ``limit``); a chain that loops or names a token
+        the table lacks is one ValidationError naming the table (a hostile or damaged table never hangs us)."""
+        tokens, seen, t = [], set(), first
+        while t and (limit is None or len(tokens) < limit):
+            if t in seen:
+                raise ValidationError(f"{self.root / self.version / (table + '.json')}: the next chain of {owner} loops "
+                                      f"at {t}; fix the table's next tokens")
+            record = self[table].get(t)
+            if record is None:
+                raise ValidationError(f"{self.root / self.version / (table + '.json')}: the next chain of {owner} "
+                                      f"names {t}, which the table lacks")
+            seen.add(t)
+            tokens.append(t)
+            t = record.get("next")
         return tokens
 
     def reference_pose(self, sample_token: str) -> dict:
@@ -109,6 +126,10 @@ class NuScenesTables:
         prev, nxt = ann["prev"], ann["next"]
         if not prev and not nxt:
             return np.full(3, np.nan)
+        for t in (prev, nxt):
+            if t and t not in self["sample_annotation"]:
+                raise ValidationError(f"{self.root / self.version / 'sample_annotation.json'}: annotation "
+                                      f"{ann.get('token')} names a neighbour {t} the table lacks")
         first = self["sample_annotation"][prev] if prev else ann
         last = self["sample_annotation"][nxt] if nxt else ann
         dt = 1e-6 * (self["sample"][last["sample_token"]]["timestamp"]
@@ -203,17 +224,24 @@ def _unit_frame(ann: dict) -> np.ndarray:  # world_from_unit_cube [4, 4]
     return T
 
 
+def read_detection_results(path: str | Path):
+    """The JSON value of a detection results file, read as untrusted (``omniscs.untrusted``; NaN is the format's
+    "no velocity", an infinity or an overflowing number never a measurement): a FIFO, a device, a folder, hostile or
+    invalid JSON is one ValidationError naming the file; its content is checked by ``load_results``."""
+    return read_json(path, "give a results file in the nuScenes detection results format", allow_nan=True,
+                     max_bytes=MAX_RESULTS_BYTES, what="results file", error=ValidationError)
+
+
 def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
-                 config: DetectionConfig = DetectionConfig(), camera_view: bool = False) -> tuple[Boxes, dict]:
+                 config: DetectionConfig = DetectionConfig(), camera_view: bool = False,
+                 data=None) -> tuple[Boxes, dict]:
     """Predictions of a results file (``{"meta": {...}, "results": {sample_token: [box, ...]}}``) for exactly the
     evaluated ``samples``, with their ego distance; and its meta. Unknown or missing sample tokens, more than
     ``max_boxes_per_sample`` boxes, unknown classes or attributes, non-finite numbers (a NaN velocity is allowed:
     no velocity) and non-positive sizes are refused with the first offending entry named. ``camera_view``: only the
-    boxes a camera sees (``in_camera_view``), as ``evaluated_ground_truth``."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise ValidationError(f"results {path} is missing or not JSON ({e})") from e
+    boxes a camera sees (``in_camera_view``), as ``evaluated_ground_truth``. ``data``: the file's JSON value when
+    the caller read it already (``read_detection_results``)."""
+    data = read_detection_results(path) if data is None else data
     if not isinstance(data, dict) or not isinstance(data.get("results"), dict):
         raise ValidationError(f"results {path} must be an object with a 'results' object (sample token -> boxes)")
     results, wanted = data["results"], set(samples)
@@ -295,13 +323,15 @@ def evaluate_detection_results(dataroot: str | Path, version: str, results: str 
     """The protocol end to end: ground truth of ``scenes`` (all when None) of a dataroot, the results file's
     predictions for exactly those samples, both filtered, then ``detection.evaluate``. ``camera_view``: ground
     truth and predictions alike only where a camera sees them (``in_camera_view``); nuScenes' own protocol has no
-    such filter, as its six cameras look all round."""
+    such filter, as its six cameras look all round. A results file that is not a regular file or not JSON is refused
+    first, before any table is read."""
+    data = read_detection_results(results)
     tables = NuScenesTables.load(dataroot, version)
     samples = tables.scene_samples(scenes)
     if not samples:
         raise ValidationError(f"{Path(dataroot) / version} has no samples to evaluate")
     gt, racks = evaluated_ground_truth(tables, samples, camera_view)
-    pred, meta = load_results(results, tables, samples, config, camera_view)
+    pred, meta = load_results(results, tables, samples, config, camera_view, data=data)
     metrics = evaluate(filter_boxes(gt, config, racks), filter_boxes(pred, config, racks), config)
     return metrics, {"n_samples": len(samples), "meta": meta, "camera_view": bool(camera_view)}
 
@@ -339,10 +369,7 @@ def load_planning_samples(tables: NuScenesTables, samples: list[str], steps: int
         anns_by_sample.setdefault(ann["sample_token"], []).append(ann)
     out, short = [], 0
     for token in samples:
-        future, t = [], tables["sample"][token]["next"]
-        while t and len(future) < steps:
-            future.append(t)
-            t = tables["sample"][t]["next"]
+        future = tables.chain("sample", token, f"sample {token}", limit=steps + 1)[1:]
         if len(future) < steps:
             short += 1
             continue
@@ -368,16 +395,22 @@ def load_planning_samples(tables: NuScenesTables, samples: list[str], steps: int
     return out, short
 
 
+def read_planning_results(path: str | Path):
+    """The JSON value of a planning results file, read as untrusted (``omniscs.untrusted``): a FIFO, a device, a
+    folder, hostile or invalid JSON is one ValidationError naming the file; its content is checked by
+    ``load_planning_results``."""
+    return read_json(path, "give planning results ({'results': {sample_token: {'trajectory': [[x, y], ...]}}})",
+                     max_bytes=MAX_RESULTS_BYTES, what="planning results", error=ValidationError)
+
+
 def load_planning_results(path: str | Path, samples: list[str], steps: int | None = None,
-                          allowed: list[str] | None = None) -> dict[str, np.ndarray]:
+                          allowed: list[str] | None = None, data=None) -> dict[str, np.ndarray]:
     """Planned trajectories: ``{"results": {sample_token: {"trajectory": [[x, y], ...]}}}`` (or the token mapped
     straight to the waypoints), in the planning frame; every evaluated sample must be there, and no token outside
-    ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there)."""
+    ``allowed`` (default: ``samples``; e.g. a scene's last keyframes, which have no full future, may be there).
+    ``data``: the file's JSON value when the caller read it already (``read_planning_results``)."""
     steps = STEPS if steps is None else steps
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise ValidationError(f"planning results {path} are missing or not JSON ({e})") from e
+    data = read_planning_results(path) if data is None else data
     results = data.get("results") if isinstance(data, dict) else None
     if not isinstance(results, dict):
         raise ValidationError(f"planning results {path} must be an object with a 'results' object "
@@ -407,7 +440,9 @@ def evaluate_planning_results(dataroot: str | Path, version: str | None, results
                               scenes: list[str] | None = None, on_coverage=None) -> dict:
     """UniAD's planning metrics of a results file over the keyframes of ``scenes`` that have a full future.
     ``on_coverage(n_with_future, n_keyframes)`` hears how many there are before the results are read; none is an
-    error saying how long a scene must be."""
+    error saying how long a scene must be. A results file that is not a regular file or not JSON is refused first,
+    before any table is read."""
+    data = read_planning_results(results)
     tables = NuScenesTables.load(dataroot, version)
     keyframes = tables.scene_samples(scenes)
     samples, short = load_planning_samples(tables, keyframes)
@@ -419,7 +454,7 @@ def evaluate_planning_results(dataroot: str | Path, version: str | None, results
                               f"future the planning metrics need: a scene needs at least {STEPS + 1} keyframes at "
                               f"2 Hz ({frames_for_planning(10.0)} frames at 10 Hz) and the longest here has "
                               f"{longest}; make the logs longer (e.g. --frames 40)")
-    predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes)
+    predictions = load_planning_results(results, [s.token for s in samples], allowed=keyframes, data=data)
     out = evaluate_planning(samples, predictions)
     out["n_short_future"] = short
     return out

@@ -14,7 +14,6 @@ near a scenario's end has its later ones masked out), plus an optional collision
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -31,6 +30,7 @@ from omniscs.eval.planning import EGO_LENGTH, EGO_SHIFT, EGO_WIDTH, STEP_S, STEP
 from omniscs.eval.scenarios import COMMANDS, PlanningExample, PlanningInput
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_directory, atomic_write_json
+from omniscs.untrusted import read_json
 
 CELL_M = 0.5
 X_RANGE = (-20.0, 20.0)
@@ -311,7 +311,9 @@ def load_planner(path: str | Path | None = None) -> ProxyPlanner:
     """A saved planner (default: the shipped one); a clear error when the folder is not one."""
     path = verified_folder(path if path is not None else DEFAULT_PLANNER)
     try:
-        config = PlannerConfig(**json.loads((path / CONFIG).read_text()))
+        config = PlannerConfig(**read_json(path / CONFIG, f"{path} is not a proxy planner checkpoint; train one with "
+                                           "`omniscs pretrained train planner` or name its folder", expect=dict,
+                                           error=ValidationError))
         state = load_file(str(path / WEIGHTS))
     except (OSError, ValueError, TypeError) as e:
         raise ValidationError(f"{path} is not a proxy planner checkpoint ({e}); train one with "

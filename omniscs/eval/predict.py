@@ -18,7 +18,6 @@ waypoints in):
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from omniscs.eval.nuscenes_io import (
     load_planning_results,
     load_planning_samples,
     load_results,
+    read_planning_results,
     world_from_planning,
 )
 from omniscs.eval.detector_views import transform_of
@@ -40,6 +40,7 @@ from omniscs.eval.planning import STEP_S, STEPS
 from omniscs.eval.scenarios import HISTORY_S, PlanningInput, boxes_in_frame, command_of, to_frame
 from omniscs.progress import Progress, no_progress
 from omniscs.quaternions import quat_to_rotmat
+from omniscs.untrusted import MAX_TABLE_BYTES, read_json
 
 #: The tasks ``omniscs predict`` makes results for.
 TASKS = ("detection", "planning")
@@ -68,8 +69,10 @@ class DrivableArea:
         that is not one."""
         import shapely
 
+        # a map expansion of a real city is tens of MB
+        data = read_json(path, "give a nuScenes map expansion (v1.3) file", expect=dict, max_bytes=MAX_TABLE_BYTES,
+                         what="map expansion", error=ValidationError)
         try:
-            data = json.loads(Path(path).read_text())
             nodes = {n["token"]: (float(n["x"]), float(n["y"])) for n in data["node"]}
             polygons = {p["token"]: p for p in data["polygon"]}
             out = []
@@ -90,8 +93,10 @@ def scene_drivable_areas(tables: NuScenesTables) -> dict[str, DrivableArea | Non
     """{scene token: the drivable area of its log's location, or None when the dataroot has no map expansion of it}."""
     log_path = tables.root / tables.version / "log.json"  # not among the tables the evaluation loads
     try:
-        logs = {r["token"]: r for r in json.loads(log_path.read_text())} if log_path.is_file() else {}
-    except (OSError, ValueError, KeyError, TypeError) as e:
+        logs = {r["token"]: r for r in read_json(log_path, "give the dataroot's own log table", expect=list,
+                                                 max_bytes=MAX_TABLE_BYTES, what="nuScenes table",
+                                                 error=ValidationError)} if log_path.exists() else {}
+    except (KeyError, TypeError) as e:
         raise ValidationError(f"{log_path} is not a nuScenes log table ({type(e).__name__}: {e})") from e
     by_location: dict[str, DrivableArea | None] = {}
     out = {}
@@ -193,14 +198,15 @@ def dataroot_planning_inputs(tables: NuScenesTables, samples: list[str], progres
         t = sample["timestamp"] * 1e-6
         prev = sample["prev"]
         if prev:
+            if prev not in tables["sample"]:
+                raise ValidationError(f"{tables.root / tables.version / 'sample.json'}: sample {token} names a previous "
+                                      f"sample {prev} the table lacks")
             gap = t - tables["sample"][prev]["timestamp"] * 1e-6
             if abs(gap - HISTORY_S) > STEP_TOLERANCE_S:
                 raise ValidationError(f"keyframes {prev} and {token} are {gap:.3f} s apart; the planner reads one "
                                       f"keyframe every {STEP_S} s (export with keyframes at 2 Hz)")
-        future, nxt = [], sample["next"]
-        while nxt and len(future) < STEPS:
-            future.append(_frame_2d(world_from_planning(tables, nxt))[:2, 2])
-            nxt = tables["sample"][nxt]["next"]
+        future = [_frame_2d(world_from_planning(tables, nxt))[:2, 2]
+                  for nxt in tables.chain("sample", token, f"sample {token}", limit=STEPS + 1)[1:]]
         command = command_of(to_frame(frame, np.array(future))) if future else "forward"
         now = _sample_boxes(tables, anns_by_sample.get(token, []), frame)
         past = _sample_boxes(tables, anns_by_sample.get(prev, []), frame) if prev else now
@@ -242,7 +248,7 @@ def check_results(task: str, path: str | Path, dataroot: str | Path, version: st
         return len(samples)
     if task == "planning":
         evaluated, _ = load_planning_samples(tables, samples)
-        load_planning_results(path, [s.token for s in evaluated], allowed=samples)
-        data = json.loads(Path(path).read_text())
+        data = read_planning_results(path)
+        load_planning_results(path, [s.token for s in evaluated], allowed=samples, data=data)
         return len(data["results"])
     raise ValidationError(f"unknown task {task!r}; one of {TASKS}")

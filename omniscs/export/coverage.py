@@ -3,7 +3,6 @@ LiDAR (or radar) points, UniAD's training drops boxes whose ``valid_flag`` is fa
 only, so it measures what a consumer would see (the dataset card reports it)."""
 from __future__ import annotations
 
-import json
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +11,7 @@ import numpy as np
 
 from omniscs.errors import OmniscsError
 from omniscs.quaternions import quat_to_rotmat
+from omniscs.untrusted import MAX_TABLE_BYTES, read_json
 
 #: nuScenes' detection classes reach at most 50 m (car, truck, bus, ...): the boxes its evaluation can keep at all.
 NEAR_EGO_M = 50.0
@@ -43,10 +43,11 @@ def nuscenes_point_coverage(dataroot: str | Path, version: str, max_distance_m: 
     (a camera's where a sample has none), and how many have ``num_lidar_pts + num_radar_pts > 0``."""
     tables = Path(dataroot) / version
     names = ("sample_annotation", "sample_data", "ego_pose", "calibrated_sensor", "sensor")
-    missing = [n for n in names if not (tables / f"{n}.json").is_file()]
+    missing = [n for n in names if not (tables / f"{n}.json").exists()]
     if missing:
         raise OmniscsError(f"{tables} lacks the nuScenes table(s) {missing}; point at a dataroot and its version")
-    rows = {n: json.loads((tables / f"{n}.json").read_text()) for n in names}
+    rows = {n: read_json(tables / f"{n}.json", "give the dataroot's own table (a list of records)", expect=list,
+                         max_bytes=MAX_TABLE_BYTES, what="nuScenes table") for n in names}
     modality = {s["token"]: s["modality"] for s in rows["sensor"]}
     sensor_of = {c["token"]: modality[c["sensor_token"]] for c in rows["calibrated_sensor"]}
     ego_xy = {e["token"]: np.asarray(e["translation"][:2], dtype=np.float64) for e in rows["ego_pose"]}

@@ -13,7 +13,6 @@ upright in the rectified frame (rotation_y only). Truncation and occlusion level
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable
 
@@ -39,6 +38,7 @@ from omniscs.scene.sources.kitti import (
     pose_to_oxts_geo,
 )
 from omniscs.scene.store import Scene
+from omniscs.untrusted import loads_json
 
 #: Where scenes without a KITTI pose frame are placed: latitude, longitude (degrees), altitude (m) of Karlsruhe.
 DEFAULT_GEO_ORIGIN = (49.011, 8.4165, 115.0)
@@ -135,7 +135,8 @@ def _dont_care(scene: Scene, camera: str) -> dict[int, list[list[float]]]:
     attrs = attrs[(attrs["name"] == "dont_care_bbox") & (attrs["camera"] == camera)]
     out: dict[int, list[list[float]]] = {}
     for f, value in zip(attrs["frame_idx"], attrs["value"]):
-        out.setdefault(int(f), []).append(json.loads(value))
+        out.setdefault(int(f), []).append(loads_json(value, f"a dont_care_bbox attribute of {scene.path}",
+                                                     "re-ingest the source", expect=list))
     return out
 
 

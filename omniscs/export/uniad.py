@@ -319,8 +319,18 @@ def _scene_ego_motion(nusc, scene: dict) -> dict[int, np.ndarray]:
     sample = nusc.get("sample", scene["first_sample_token"])
     channel = "LIDAR_TOP" if "LIDAR_TOP" in sample["data"] else sorted(sample["data"])[0]
     sd = nusc.get("sample_data", sample["data"][channel])
+    seen = {sd["token"]}
+
+    def step(token: str, direction: str) -> dict:  # a chain that loops is a damaged table, never a hang
+        if token in seen:
+            raise OmniscsError(f"the {channel} sample_data {direction} chain of scene {scene['name']} loops at "
+                               f"{token}; fix the dataroot's sample_data.json")
+        seen.add(token)
+        return nusc.get("sample_data", token)
+
     while sd["prev"]:
-        sd = nusc.get("sample_data", sd["prev"])
+        sd = step(sd["prev"], "prev")
+    seen = {sd["token"]}
     poses, stamps = [], []
     while True:
         pose = nusc.get("ego_pose", sd["ego_pose_token"])
@@ -328,7 +338,7 @@ def _scene_ego_motion(nusc, scene: dict) -> dict[int, np.ndarray]:
         stamps.append(pose["timestamp"])
         if not sd["next"]:
             break
-        sd = nusc.get("sample_data", sd["next"])
+        sd = step(sd["next"], "next")
     acc, omega, vel = ego_motion(np.stack(poses), np.asarray(stamps, np.int64))
     return {int(t): np.concatenate([acc[i], omega[i], vel[i]]) for i, t in enumerate(stamps)}
 

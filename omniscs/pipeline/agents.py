@@ -5,7 +5,6 @@ agents-<key>/``: the checkpoint, ``decisions.json``) with one ``agent_models`` c
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
 from omniscs.storage import atomic_write_json
+from omniscs.untrusted import read_own_json
 
 #: Bumped when the agents stage changes what it writes (2: relit pool models, the size rule; 3: matching compares a
 #: crop seen small with keyframes as small, ``matching.GALLERY_SCALES``).
@@ -75,7 +75,9 @@ def agents_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord | N
 
         produce(out_dir, key, make)
 
-    rows = json.loads((out_dir / "catalog_rows.json").read_text())
+    rows = read_own_json(out_dir / "catalog_rows.json",
+                         f"the stage folder {out_dir} is damaged; remove it and run again",
+                         expect=list)
     return StageRecord("agents", scene.scene_id, str(out_dir), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"agent_models": rows},
                        info={"status": "fitted", "metrics": model.info.get("metrics"), "fit_path": model.path,

@@ -5,7 +5,6 @@ appearance-level SCS variants: pool objects replacing a vehicle's model or inser
 (kind ``appearance``); the annotate stage renders them."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -46,6 +45,7 @@ from omniscs.scs.appearance.variants import (
     write_appearance_variants,
 )
 from omniscs.storage import atomic_directory, atomic_write_json, workspace_root
+from omniscs.untrusted import read_json, read_own_json
 
 #: Bumped when the appearance stage changes what it writes.
 APPEARANCE_VERSION = 1
@@ -106,7 +106,9 @@ def appearance_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord
             spare = int(n_variants) * (max(1, int(budget)) - 1)
             produce(out_dir, key, lambda tmp: _draw(scene, plan, model, pool, ids, n_variants, config, progress,
                                                     tmp, out_dir, spare))
-    rows = json.loads((out_dir / "catalog_rows.json").read_text())
+    rows = read_own_json(out_dir / "catalog_rows.json",
+                         f"the stage folder {out_dir} is damaged; remove it and run again",
+                         expect=list)
     return StageRecord("appearance", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},
                        info={"n_variants": len(rows), "n_requested": int(n_variants),
@@ -255,7 +257,8 @@ def _source_scene(workspace: Path, store_id: str) -> str | None:
     if (layout.scene_folder(workspace, "ingest", store_id) / "manifest.json").is_file():
         return store_id
     for manifest in sorted(Path(workspace).glob(f"{layout.FOLDERS['dataset']}/*/scenes/{store_id}/manifest.json")):
-        source = json.loads(manifest.read_text()).get("source_scene_id")
+        source = read_json(manifest, "the dataset's scene store is damaged; build the dataset again", expect=dict,
+                           what="manifest").get("source_scene_id")
         if source:
             return str(source)
     return None
@@ -268,10 +271,7 @@ def missed_object_models(missed_json: Path, workspace: Path, pool: Path, limit: 
     completed by mirror symmetry when one side was never seen (the pool's construction from a track's views), added
     to ``pool`` (provenance scene_track; the same model twice is one entry). Objects that cannot be traced, or whose
     track was left in the background, are listed with the reason. At most ``limit`` objects, in pick order."""
-    try:
-        payload = json.loads(Path(missed_json).read_text())
-    except (OSError, ValueError) as exc:
-        raise OmniscsError(f"{missed_json}: not a missed.json of `omniscs scs mine` ({exc})") from None
+    payload = read_own_json(missed_json, "give a missed.json of `omniscs scs mine`", expect=dict)
     wanted, seen = [], set()
     for pick in payload.get("picks") or []:
         for box in pick.get("missed") or []:

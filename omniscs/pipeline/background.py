@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import time
 from pathlib import Path
 from typing import Sequence
@@ -40,6 +39,7 @@ from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
 from omniscs.scene.summary import agent_rows
 from omniscs.storage import atomic_write_json
+from omniscs.untrusted import read_own_json
 
 #: Bumped when the background stage changes what it writes.
 BACKGROUND_VERSION = 1
@@ -97,7 +97,8 @@ def variant_edits(variants: Sequence[StageRecord | None]) -> list:
     for record in variants:
         if record is None or record.skipped:
             continue
-        drawn = json.loads(Path(record.path).read_text())
+        drawn = read_own_json(record.path, "the stage's variants file is damaged; remove its folder and run again",
+                              expect=list)
         # spare candidates (drawn beyond the request, for the quality gates) are not repaired for: the annotate
         # stage leaves out a spare that would uncover an unrepaired object
         drawn = drawn[:int(record.info["n_requested"])] if record.info.get("n_requested") else drawn
@@ -141,7 +142,8 @@ def _repaired_record(stage: str, scene, plan: ScenePlan, model: StageRecord, obj
             return {"checkpoint": ".", "repair": REPAIR_DIR, "catalog_rows": CATALOG_ROWS}
 
         produce(out_dir, key, make)
-    rows = json.loads((out_dir / CATALOG_ROWS).read_text())
+    rows = read_own_json(out_dir / CATALOG_ROWS, f"the stage folder {out_dir} is damaged; remove it and run again",
+                         expect=list)
     return StageRecord(stage, scene.scene_id, str(out_dir), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"background_repairs": rows},
                        info={"status": "fitted", "metrics": model.info.get("metrics"), "fit_path": model.path,

@@ -3,7 +3,6 @@ the ego, with L_app rendered by the scene graph when one is fitted)."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
 from omniscs.scs.behavior.checkpoint import DEFAULT_CHECKPOINT, checkpoint_hash
 from omniscs.scs.behavior.scene_render import RenderConsistencyConfig, render_consistency_from_checkpoint
 from omniscs.scs.behavior.variants import write_scene_variants
+from omniscs.untrusted import read_own_json
 
 #: Bump when the code changes what the stage writes (older outputs are then not reused).
 BEHAVIOR_VERSION = 1
@@ -74,7 +74,9 @@ def behavior_stage(scene_path: str | Path, plan: ScenePlan, n_variants: int, wor
                         "bev": [p.name for p in result.bev_pngs]}
 
             produce(out_dir, key, make)
-    rows = json.loads((out_dir / "catalog_rows.json").read_text())
+    rows = read_own_json(out_dir / "catalog_rows.json",
+                         f"the stage folder {out_dir} is damaged; remove it and run again",
+                         expect=list)
     return StageRecord("behavior", scene.scene_id, str(out_dir / "variants.json"), reused=manifest is not None,
                        seconds=time.perf_counter() - started, key=key.digest, rows={"variants": rows},
                        info={"n_variants": len(rows), "n_success": sum(bool(r["success"]) for r in rows),

@@ -27,6 +27,7 @@ from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ def find_variant(workspace: str | Path, scene_id: str, variant_id: str) -> tuple
     files = sorted(layout.scene_folder(workspace, "behavior", scene_id).glob("*/variants.json"),
                    key=lambda p: p.stat().st_mtime, reverse=True)
     for path in files:
-        for v in json.loads(path.read_text()):
+        for v in read_own_json(path, "the workspace is damaged; run the behaviour stage again", expect=list):
             if str(v.get("variant_id")) == variant_id:
                 return path, v
     raise OmniscsError(f"scene {scene_id} has no behaviour variant {variant_id} in {workspace} "

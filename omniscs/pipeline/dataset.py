@@ -15,6 +15,7 @@ from omniscs.pipeline import layout
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.storage import atomic_write_json
+from omniscs.untrusted import read_own_json
 
 #: Bump when the code changes what the stage writes (older outputs are then not reused).
 DATASET_VERSION = 1
@@ -39,8 +40,8 @@ def dataset_stage(annotated: list[StageRecord], workspace: str | Path, dataset_i
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
             produce(out, key, lambda tmp: _assemble(tmp, out, done, dataset_id, facts, keep_failed))
-    rows = json.loads((out / "rows.json").read_text())
-    card = json.loads((out / CARD_JSON).read_text())
+    rows = read_own_json(out / "rows.json", "the dataset is damaged; build it again", expect=dict)
+    card = read_own_json(out / CARD_JSON, "the dataset card is damaged; build the dataset again", expect=dict)
     c, fid, gates = card["counts"], card["fidelity"], card["gates"]
 
     def mean(stat):

@@ -60,6 +60,7 @@ from omniscs.pipeline.procedural import procedural_scene_id, procedural_scenes, 
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.progress import Progress, no_progress
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,8 @@ def base_planner_logs(base_path: str | Path, progress: Progress = no_progress) -
     record names (``templates`` in turn over the ``train_seeds`` range, ``n_frames`` each, as ``omniscs pretrained
     train planner`` trains the shipped one); [] for a base whose record names none."""
     path = Path(base_path) / "training.json"
-    data = (json.loads(path.read_text()).get("data") or {}) if path.is_file() else {}
+    data = (read_own_json(path, "name a planner folder a training wrote", expect=dict).get("data") or {}) \
+        if path.exists() else {}
     seeds, templates, n_frames = data.get("train_seeds"), data.get("templates"), data.get("n_frames")
     if not (seeds and templates and n_frames):
         return []

@@ -18,6 +18,7 @@ from omniscs.scs.behavior import adversarial_preset, traffic_from_scene
 from omniscs.scs.behavior.checkpoint import load_traffic_model
 from omniscs.scs.behavior.problem import now_and_horizon
 from omniscs.storage import atomic_write_text
+from omniscs.untrusted import read_own_json
 
 #: Bump when the code changes what the stage writes (older outputs are then not reused).
 PLAN_VERSION = 1
@@ -68,7 +69,7 @@ def check_behavior_request(scene, request: SceneRequest) -> None:
 def load_plan(record_or_path: StageRecord | str | Path) -> ScenePlan:
     """The plan a plan stage recorded."""
     path = record_or_path.path if isinstance(record_or_path, StageRecord) else record_or_path
-    return ScenePlan.from_dict(json.loads(Path(path).read_text()))
+    return ScenePlan.from_dict(read_own_json(path, "the workspace is damaged; plan the scene again", expect=dict))
 
 
 def plan_row(plan: ScenePlan, plan_id: str, path: Path, reused: bool) -> dict:

@@ -2,13 +2,14 @@
 hash of the stage's name and version, its inputs and its config); a folder whose key matches is reused as is."""
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from omniscs.errors import OmniscsError
 from omniscs.storage import atomic_directory, atomic_write_json, content_hash
+from omniscs.untrusted import read_own_json
 
 #: The file in every stage output folder that says what it was made from; written last.
 STAGE_MANIFEST = "stage.json"
@@ -41,9 +42,9 @@ def reusable(out_dir: str | Path, key: StageKey) -> dict | None:
     """The stage manifest of ``out_dir`` when it was made from ``key`` (None when absent, damaged or another
     key): the caller may reuse the folder as is."""
     path = Path(out_dir) / STAGE_MANIFEST
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError):
+    try:  # a damaged or replaced manifest (any of the reader's refusals) only means: not reusable
+        manifest = read_own_json(path, "not reusable")
+    except OmniscsError:
         return None
     if not isinstance(manifest, dict) or manifest.get("key") != key.digest or manifest.get("stage") != key.stage:
         return None

@@ -17,7 +17,6 @@ Stores are written by ``omniscs.scene.writer.SceneWriter``; this module reads an
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 import zipfile
@@ -33,6 +32,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from omniscs.checks import is_int, is_real
+from omniscs.untrusted import read_json
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.geometry import is_rigid
 from omniscs.ids import check_id
@@ -213,8 +213,10 @@ class Scene:
             return None
         from omniscs.world.model import World  # the world package is heavy; only synthetic scenes need it
 
+        raw = read_json(path, "the store is damaged: write it again with `omniscs world make`", expect=dict,
+                        what="world description", error=ValidationError)
         try:
-            return World.from_json(path.read_text(encoding="utf-8"))
+            return World.from_dict(raw)
         except OmniscsError:
             raise
         except (ValueError, KeyError, TypeError, AttributeError, IndexError, OSError) as exc:
@@ -307,12 +309,8 @@ def verify_store(path: str | os.PathLike, progress: Callable[[int, int], None] |
             raise ValidationError(f"{side}: unreadable Parquet ({_first_line(exc)}); re-ingest the source") from None
     world = root / WORLD
     if world.is_file():
-        try:
-            if not isinstance(json.loads(world.read_text(encoding="utf-8")), dict):
-                raise ValueError("not a JSON object")
-        except (ValueError, OSError) as exc:
-            raise ValidationError(f"{world}: not a readable world description ({_first_line(exc)}); write the "
-                                  "store again with `omniscs world make`") from None
+        read_json(world, "not a readable world description; write the store again with `omniscs world make`",
+                  expect=dict, what="world description", error=ValidationError)
     return scene
 
 
@@ -447,16 +445,10 @@ def _is_type(value, kind) -> bool:
 def read_manifest(root: str | os.PathLike) -> dict:
     """A store's manifest after checking it is a JSON object with every field of the right type."""
     path = Path(root) / MANIFEST
-    if not path.is_file():
+    if not path.exists():
         raise ValidationError(f"{path}: not a scene store (manifest.json is missing)")
-    try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
-    except UnicodeDecodeError:
-        raise ValidationError(f"{path}: not UTF-8 text (the manifest is damaged); re-ingest the source") from None
-    except json.JSONDecodeError as exc:
-        raise ValidationError(f"{path}: invalid JSON ({exc}); re-ingest the source") from None
-    except OSError as exc:
-        raise ValidationError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    manifest = read_json(path, "the scene store's manifest is damaged; re-ingest the source", what="manifest",
+                         error=ValidationError)
     if not isinstance(manifest, dict):
         raise ValidationError(f"{path}: must be a JSON object with the store's fields; got a {_json_type(manifest)}")
     version = manifest.get("schema_version")

@@ -8,7 +8,6 @@ worlds 3900-3919; never below 3000 (the benchmarks' worlds).
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -36,6 +35,7 @@ from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
 from omniscs.quality import UINT8_RANGE, psnr, psnr_from_mse
 from omniscs.storage import atomic_write_with, content_hash, workspace_root
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
@@ -209,7 +209,8 @@ def install_trained_inpaint(folder: Path, data: InpaintDataConfig = InpaintDataC
     folder = Path(folder)
     try:
         state = load_file(str(folder / WEIGHTS_FILE))
-        history = json.loads((folder / INFO_FILE).read_text())
+        history = read_own_json(folder / INFO_FILE, f"{folder} holds no weights from infra/inpaint_gpu/train.py",
+                                expect=dict)
     except (OSError, ValueError) as e:
         raise OmniscsError(f"{folder} holds no weights from infra/inpaint_gpu/train.py ({type(e).__name__}: {e})") \
             from e

@@ -7,7 +7,6 @@ benchmarks' worlds).
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -27,6 +26,7 @@ from omniscs.bench.harness import finish, machine_info
 from omniscs.errors import OmniscsError
 from omniscs.progress import Progress, no_progress
 from omniscs.storage import atomic_write_with, content_hash, workspace_root
+from omniscs.untrusted import read_own_json
 from omniscs.world import WorldRenderer, generate_world
 
 log = logging.getLogger(__name__)
@@ -342,7 +342,8 @@ def install_trained_depth(folder: Path, data: DepthDataConfig = DepthDataConfig(
     folder = Path(folder)
     try:
         state = load_file(str(folder / WEIGHTS_FILE))
-        history = json.loads((folder / INFO_FILE).read_text())
+        history = read_own_json(folder / INFO_FILE, f"{folder} holds no weights from infra/depth_gpu/train.py",
+                                expect=dict)
     except (OSError, ValueError) as e:
         raise OmniscsError(f"{folder} holds no weights from infra/depth_gpu/train.py ({type(e).__name__}: {e})") from e
     history.pop("architecture", None)  # save_depth_net's; the configuration in the history names it too

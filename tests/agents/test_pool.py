@@ -270,3 +270,25 @@ def test_a_models_material_is_stored_with_it_and_part_of_its_id(tmp_path):
     save_file(material.select(torch.arange(5)).as_dict(), str(pool.root / MODELS / with_m / MATERIAL))
     with pytest.raises(ValidationError, match="damaged"):
         pool.get(with_m)
+
+
+@pytest.mark.parametrize("content", ["junk", "truncated", "foreign"])
+def test_a_junk_truncated_or_foreign_index_file_is_one_error_naming_it(tmp_path, content):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pool = Pool(tmp_path / "pool")
+    a = pool.add(_model(2), "car", "imported", "a.ply")
+    good = tmp_path / "pool" / "index" / f"{a}.parquet"
+    bad = good.parent / "pm-000000000000.parquet"
+    if content == "junk":
+        bad.write_text("model_id,category\npm-1,car\n")
+    elif content == "truncated":
+        bad.write_bytes(good.read_bytes()[:100])
+    else:
+        pq.write_table(pa.table({"model_id": ["pm-000000000000"], "owner": ["someone else"]}), bad)
+    with pytest.raises(OmniscsError) as info:
+        pool.table()
+    assert "\n" not in str(info.value) and str(bad) in str(info.value) and "remove that file" in str(info.value)
+    bad.unlink()
+    assert pool.table().model_id.tolist() == [a]

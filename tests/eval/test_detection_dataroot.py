@@ -265,3 +265,51 @@ def test_scoring_in_the_cameras_view_leaves_out_the_boxes_no_camera_sees(dataroo
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["camera_view"] and out["mAP"] == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------- hostile results and tables
+@pytest.mark.parametrize("content, message", [
+    (b"[" * 100_000, "nested more than 256 deep"),
+    (b'{"results": {}, "meta": {"n": ' + b"1" * 5000 + b"}}", "integer of 5000 digits"),
+    (b'{"results": {"t": [{"velocity": [Infinity, 0]}]}}', "holds Infinity"),
+    (b'{"results": {"t": [{"size": [1e400, 1, 1]}]}}', "too large for a float"),
+    (b'{"results": {"\xff": []}}', "not UTF-8 text (byte 14 is 0xff)"),
+])
+def test_hostile_results_files_are_one_clear_error(dataroot, tmp_path, content, message):
+    path = tmp_path / "results.json"
+    path.write_bytes(content)
+    with pytest.raises(ValidationError) as info:
+        evaluate_detection_results(dataroot, VERSION, path)
+    assert message in str(info.value) and str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_an_endless_stream_or_a_fifo_as_results_is_refused_without_reading_it(dataroot, tmp_path):
+    import os
+
+    with pytest.raises(ValidationError, match="results file /dev/zero is a device, not a regular file"):
+        evaluate_detection_results(dataroot, VERSION, "/dev/zero")
+    fifo = tmp_path / "results.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ValidationError, match="is a FIFO"):  # opened without blocking: no writer is needed
+        evaluate_detection_results(dataroot, VERSION, fifo)
+
+
+@pytest.mark.parametrize("chain", ["sample", "annotation"])
+def test_a_next_chain_that_loops_or_dangles_is_one_error_not_a_hang(dataroot, tmp_path, chain):
+    import shutil
+
+    root = shutil.copytree(dataroot, tmp_path / "nus")
+    table = root / VERSION / ("sample.json" if chain == "sample" else "sample_annotation.json")
+    rows = json.loads(table.read_text())
+    if chain == "sample":
+        rows[-1]["next"] = rows[0]["token"]  # the scene's last keyframe leads back to its first
+        expected = "loops at"
+    else:
+        rows[0]["next"] = "f" * 32
+        expected = "names a neighbour"
+    table.write_text(json.dumps(rows))
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"results": {}}))
+    with pytest.raises(ValidationError, match=expected) as info:
+        evaluate_detection_results(root, VERSION, path)
+    assert str(table) in str(info.value)

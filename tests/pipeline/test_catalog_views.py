@@ -332,3 +332,37 @@ def test_cli_refuses_a_write_with_exit_2_and_one_line(workspace):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "catalog queries are read-only" in proc.stderr
     assert proc.stdout == "" and not target.exists()
+
+
+@pytest.mark.parametrize("content", ["junk", "truncated", "foreign"])
+def test_a_junk_truncated_or_foreign_file_in_a_table_is_one_error_naming_it_and_never_rows(tmp_path, clock, content):
+    import pyarrow.parquet as pq
+
+    root = tmp_path / "catalog"
+    _run(root, "r1")
+    good = catalog.write_rows(root, "scenes", "r1", [_row("scenes", scene_id="s1")])
+    bad = good.parent / "zz-dropped-here.parquet"
+    if content == "junk":
+        bad.write_bytes(b"not a parquet file\n")
+    elif content == "truncated":
+        bad.write_bytes(good.read_bytes()[: good.stat().st_size - 9])
+    else:  # a real Parquet file of someone else's table: its rows must not show as scenes
+        pq.write_table(pa.table({"scene_id": ["intruder"], "password": ["hunter2"]}), bad)
+    with pytest.raises(OmniscsError) as info:
+        catalog.query(root, "SELECT scene_id FROM scenes_raw")
+    message = str(info.value)
+    assert "\n" not in message and str(bad) in message and "move that file out of the catalog folder" in message
+    assert "hunter2" not in message
+    bad.unlink()
+    assert catalog.query(root, "SELECT scene_id FROM scenes_raw").column("scene_id").to_pylist() == ["s1"]
+
+
+def test_the_cli_refuses_a_junk_catalog_file_with_exit_2_and_one_line(tmp_path):
+    ws = tmp_path / "ws"
+    _run(catalog.catalog_root(ws), "r1")
+    junk = catalog.catalog_root(ws) / "runs" / "run_id=r1" / "junk.parquet"
+    junk.write_bytes(b"PAR1" + b"\x00" * 40 + b"PAR1")
+    proc = subprocess.run([sys.executable, "-c", "from omniscs.cli import main; main()", "catalog", "query",
+                           "SELECT * FROM runs", "--workspace", str(ws)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and str(junk) in proc.stderr.replace("\n", "")

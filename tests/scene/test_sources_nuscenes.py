@@ -1,6 +1,7 @@
 """nuScenes: a synthetic scene written as a v1.0 dataroot loads in the devkit, reads back within tolerance,
 and broken dataroots fail with one clear error (or, when asked, skip bad frames with a warning)."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -218,11 +219,27 @@ BREAKAGES = {
     "zero-size box": (lambda root: _break_table(root, "sample_annotation", _zero_size),
                       "field size .* must be three positive numbers", True),
     "corrupt table": (lambda root: (root / VERSION / "sample.json").write_text('[{"token": '),
-                      "sample.json: invalid JSON", False),
+                      "sample.json is not valid JSON", False),
+    "table nested 100,000 deep": (lambda root: (root / VERSION / "sample.json").write_text("[" * 100_000),
+                                  "sample.json is nested more than 256 deep", False),
+    "table is a FIFO": (lambda root: _fifo(root / VERSION / "sample.json"),
+                        "sample.json: nuScenes table 'sample' is not a regular file", False),
+    "sample chain loops": (lambda root: _break_table(root, "sample", _loop_chain),
+                           "sample chain of scene .* loops at", False),
     "dangling token": (lambda root: _break_table(root, "sample_annotation",
                                                  lambda rows: rows[0].update(instance_token="f" * 32)),
                        "tables are inconsistent", False),
 }
+
+
+def _fifo(path):
+    path.unlink()
+    os.mkfifo(path)
+
+
+def _loop_chain(rows):
+    """The last sample of the scene points back at its second one."""
+    rows[-1]["next"] = rows[1]["token"]
 
 
 def _truncate(path):

@@ -40,7 +40,7 @@ CASES = {
     "config a number": (write(MODEL_CONFIG, b"64"), r"model_config.json must be a JSON object .* got a int"),
     "config not JSON": (write(MODEL_CONFIG, b"{hidden: 64}"), r"model_config.json is not valid JSON"),
     "config cut in half": (cut(MODEL_CONFIG), r"model_config.json is not valid JSON"),
-    "config binary": (write(MODEL_CONFIG, b"\xff\xfe\xfd"), r"model_config.json is not JSON text"),
+    "config binary": (write(MODEL_CONFIG, b"\xff\xfe\xfd"), r"model_config.json is not UTF-8 text \(byte 0 is 0xff\)"),
     "config missing": (lambda ckpt: (ckpt / MODEL_CONFIG).unlink(), r"no behaviour-model checkpoint in .* "
                                                                     r"\(model.safetensors and model_config.json"),
     "unknown config field": (config_change(lambda c: c.update(heads=8)), r"model_config.json: unknown field\(s\) "

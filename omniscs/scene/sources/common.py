@@ -214,8 +214,11 @@ def interpolate_pose(a_from_b0: np.ndarray, a_from_b1: np.ndarray, t: float) -> 
 
 # ----------------------------------------------------------------------------- files
 def require_file(path: Path, what: str) -> Path:
-    """``path`` when it is a file; otherwise a ValidationError naming it."""
+    """``path`` when it is a regular file; otherwise a ValidationError naming it (a FIFO or a device, which would
+    block or never end, is refused as not a file)."""
     if not path.is_file():
+        if path.exists():
+            raise ValidationError(f"{path}: {what} is not a regular file (a folder, a FIFO or a device); give a file")
         raise ValidationError(f"{path}: {what} is missing")
     return path
 

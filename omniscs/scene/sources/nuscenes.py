@@ -11,7 +11,6 @@ per frame, so image-to-pose timing is as in the dataset's own keyframes.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -38,6 +37,7 @@ from omniscs.scene.sources.common import (
     select_cameras,
 )
 from omniscs.scene.store import CameraRecord
+from omniscs.untrusted import MAX_TABLE_BYTES, read_json
 
 #: The v1.0 tables, in the order the devkit loads them.
 TABLES: tuple[str, ...] = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor",
@@ -128,6 +128,9 @@ def open_nuscenes(root: Path, version: str):
     """The devkit's NuScenes object; a missing, corrupt or inconsistent table is a ValidationError."""
     for path, table in zip(table_paths(root, version), TABLES):
         require_file(path, f"nuScenes table {table!r}")
+        if path.stat().st_size > MAX_TABLE_BYTES:  # the devkit reads tables whole: refuse before it does
+            raise ValidationError(f"{path}: nuScenes table {table!r} is {path.stat().st_size:,} bytes, more than the "
+                                  f"{MAX_TABLE_BYTES:,} allowed; give the dataroot's own table")
     stamp = tuple(tuple(x) for x in fingerprint(table_paths(root, version), root))
     return _open_cached(str(root), version, stamp)
 
@@ -212,13 +215,9 @@ def table_problem(root: Path, version: str) -> str | None:
         if not path.is_file():
             return f"{path}: nuScenes table {table!r} is missing"
         try:
-            rows = json.loads(path.read_text(encoding="utf-8"))
-        except UnicodeDecodeError:
-            return f"{path}: not a JSON text file (binary or damaged)"
-        except json.JSONDecodeError as exc:
-            return f"{path}: invalid JSON ({exc})"
-        except OSError as exc:
-            return f"{path}: cannot read ({exc.strerror or exc})"
+            rows = read_json(path, "fix or replace the table", max_bytes=MAX_TABLE_BYTES, what="nuScenes table")
+        except OmniscsError as exc:
+            return str(exc)
         if not isinstance(rows, list):
             return f"{path}: a nuScenes table must be a JSON list of records; got a {type(rows).__name__}"
         if table == "map" and not rows:
@@ -251,9 +250,31 @@ def diagnose(source: DatasetSource) -> str | None:
 
 
 def check_scene(source: DatasetSource) -> None:
-    """The tables load and name the source's scene (name or token); else one OmniscsError."""
+    """The tables load and name the source's scene (name or token), whose sample chain ends; else one
+    OmniscsError."""
     root = Path(source.dataroot)
-    _find_scene(open_nuscenes(root, find_version(root, source.version)), source.scene, root)
+    version = find_version(root, source.version)
+    nusc = open_nuscenes(root, version)
+    sample_chain(nusc, _find_scene(nusc, source.scene, root), root / version)
+
+
+def sample_chain(nusc, scene: dict, table_root: Path) -> list[dict]:
+    """The scene's samples along their ``next`` tokens; a chain that loops or names a sample the table lacks is
+    one ValidationError naming sample.json (a damaged or hostile table never hangs the reader)."""
+    samples, token, seen = [], scene["first_sample_token"], set()
+    while token:
+        if token in seen:
+            raise ValidationError(f"{table_root / 'sample.json'}: sample chain of scene {scene['name']} loops at "
+                                  f"{token}; fix the table's next tokens")
+        try:
+            sample = nusc.get("sample", token)
+        except KeyError:
+            raise ValidationError(f"{table_root / 'sample.json'}: sample chain of scene {scene['name']} names "
+                                  f"{token}, which the table lacks") from None
+        seen.add(token)
+        samples.append(sample)
+        token = sample["next"]
+    return samples
 
 
 def dataset_files(source: DatasetSource) -> list[Path]:
@@ -343,17 +364,7 @@ class NuScenesReader:
 
     # ------------------------------------------------------------------ plan
     def _samples(self) -> list[dict]:
-        samples, token = [], self.scene["first_sample_token"]
-        seen = set()
-        while token:
-            if token in seen:
-                raise ValidationError(f"{self.table_root / 'sample.json'}: sample chain of scene "
-                                      f"{self.scene['name']} loops at {token}")
-            seen.add(token)
-            sample = self.nusc.get("sample", token)
-            samples.append(sample)
-            token = sample["next"]
-        return samples
+        return sample_chain(self.nusc, self.scene, self.table_root)
 
     def _camera(self, channel: str, sd_token: str) -> CameraRecord:
         sd = self.nusc.get("sample_data", sd_token)
@@ -383,8 +394,12 @@ class NuScenesReader:
     def _chain(self, channel: str, t_end: int) -> list[dict]:
         """sample_data of ``channel`` from the first keyframe's forward, until after ``t_end``."""
         token = self.samples[0]["data"].get(channel)
-        out = []
+        out, seen = [], set()
         while token:
+            if token in seen:
+                raise ValidationError(f"{self.table_root / 'sample_data.json'}: {channel} sample_data chain of scene "
+                                      f"{self.scene['name']} loops at {token}; fix the table's next tokens")
+            seen.add(token)
             sd = self.nusc.get("sample_data", token)
             out.append(sd)
             if sd["timestamp"] > t_end:
