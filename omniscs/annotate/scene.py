@@ -2,7 +2,6 @@
 each variant), then one scene store per variant, and the rows and pictures that describe them."""
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Callable
@@ -20,6 +19,7 @@ from omniscs.nsg.graph import SceneGraph
 from omniscs.progress import Progress, no_progress
 from omniscs.scene.store import Scene
 from omniscs.storage import atomic_write_json
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
@@ -147,11 +147,7 @@ def _judge(result: AnnotatedVariant, before: Verdict, gates: GateConfig) -> bool
 
 def read_rows(out_dir: str | Path) -> dict:
     """The rows an annotate stage wrote (samples, annotations, variant summaries, BEV file names)."""
-    path = Path(out_dir) / ROWS_JSON
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise OmniscsError(f"{path}: cannot read the annotate stage's rows ({exc}); run the stage again") from None
+    return read_own_json(Path(out_dir) / ROWS_JSON, "run the annotate stage again", expect=dict)
 
 
 def replay_scene(graph: SceneGraph, scene: Scene, out_dir: str | Path, progress: Progress = no_progress) -> dict:

@@ -52,6 +52,7 @@ from omniscs.quaternions import rotmat_to_quat
 from omniscs.scene.seen import captured, labelled
 from omniscs.scene.sources.nuscenes import ATTRIBUTES, CATEGORIES, LIDAR_CHANNEL, TABLES, VISIBILITY
 from omniscs.scene.store import Scene
+from omniscs.untrusted import loads_json
 
 #: nuScenes annotates keyframes at 2 Hz.
 KEYFRAME_PERIOD_US = 500_000
@@ -328,7 +329,9 @@ def _annotations(scene: Scene, keys: np.ndarray, sample_tokens: list[str], table
         else:
             vis = _visibility_token(visible_fraction(scene, row, world_from_box[i]))
         if (f, tid) in kept_attributes:
-            names = [n for n in json.loads(kept_attributes[(f, tid)]) if n in ATTRIBUTES]
+            names = [n for n in loads_json(kept_attributes[(f, tid)], f"the attributes of track {tid} at frame {f}",
+                                           "the store's attributes.parquet is damaged", expect=list)
+                     if n in ATTRIBUTES]
         else:
             names = _attribute_names(label, float(speed[i]), moves[tid])
         ann = token("sample_annotation", sid, tid, f)

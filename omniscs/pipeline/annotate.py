@@ -4,7 +4,6 @@ and the replay it compares with (the unedited logged views, rendered once per gr
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from omniscs.scene import load_scene
 from omniscs.scs.appearance.compose import compose_variant
 from omniscs.scs.behavior import traffic_from_scene
 from omniscs.scs.behavior.solution import SolutionConfig, solution_bev_picture, solve_ego
+from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
@@ -102,9 +102,10 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     with output_lock(out, waiting(progress, out)):
         manifest = reusable(out, key) if reuse else None
         if manifest is None:
-            variants = json.loads(Path(behavior.path).read_text()) if behavior is not None else []
+            variants = read_own_json(behavior.path, "run the behavior stage again", expect=list) \
+                if behavior is not None else []
             if appearance is not None:
-                variants += json.loads(Path(appearance.path).read_text())
+                variants += read_own_json(appearance.path, "run the appearance stage again", expect=list)
             traffic = traffic_from_scene(scene)
             replay = None
             if config.fidelity_every:  # the proxies compare with the unedited logged views: rendered once per graph
