@@ -62,6 +62,29 @@ class PoolModel:
     material: object = None  # agents.material.GaussianMaterial, or None (a model made from splats)
 
 
+#: The largest Gaussian a pool model may hold (metres, along any axis; the stored log-scale's exponential) and the
+#: largest extent of its centres: a vehicle or an object on the road, not a scene. A PLY whose log-scales were
+#: written as scales (80 is e^80 = 5e34 m) is refused rather than stored as a model that fills every view.
+MAX_GAUSSIAN_SIZE_M = 10.0
+MAX_MODEL_EXTENT_M = 100.0
+
+
+def check_model_extent(params: GaussianParams) -> None:
+    """Refuse a model whose Gaussians (as the renderer turns the log-scales into sizes) or centres reach beyond what
+    an object can be (``MAX_GAUSSIAN_SIZE_M``, ``MAX_MODEL_EXTENT_M``), or whose orientations are not quaternions."""
+    largest = float(params.log_scales.detach().double().max())
+    if largest > np.log(MAX_GAUSSIAN_SIZE_M):
+        raise ValidationError(f"a pool model's Gaussians may be at most {MAX_GAUSSIAN_SIZE_M:g} m across; the largest "
+                              f"here is e^{largest:.3g} = {np.exp(min(largest, 700.0)):.3g} m (log-scales are stored: "
+                              "was a size written where its logarithm belongs?)")
+    means = params.means.detach().double()
+    extent = float((means.max(0).values - means.min(0).values).max()) if len(params) else 0.0
+    if extent > MAX_MODEL_EXTENT_M:
+        raise ValidationError(f"a pool model may span at most {MAX_MODEL_EXTENT_M:g} m; this one spans {extent:.3g} m")
+    if float(params.quats.detach().double().norm(dim=1).min()) < 1e-6:
+        raise ValidationError("a pool model's orientations must be quaternions (a norm of at least 1e-6)")
+
+
 class Pool:
     """A pool folder (created on the first add)."""
 
@@ -93,6 +116,7 @@ class Pool:
             raise ValidationError("a pool model needs at least one Gaussian")
         if not params.is_finite():
             raise ValidationError("a pool model's parameters must be finite")
+        check_model_extent(params)
         if material is not None and len(material) != len(params):
             raise ValidationError(f"the material is for {len(material)} Gaussians; the model has {len(params)}")
         params = params.detached()

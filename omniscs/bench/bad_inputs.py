@@ -30,10 +30,13 @@ from typing import Iterator
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+import torch
 
+from omniscs.agents.ply import write_gaussian_ply
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
 from omniscs.bench.server_abuse import run_server_abuse, server_markdown
 from omniscs.export.common import export_scenes
+from omniscs.gaussians import GaussianParams
 from omniscs.pipeline.stages import catalog_run_stage
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource
@@ -365,10 +368,20 @@ CASES += (
     _c("numbers", "bench seed offset negative", "bench", "behavior", "--seed-offset", "-5", "--out", "{tmp}/r"),
     _c("numbers", "reliability seed beyond 2^32", "bench", "reliability", "--seed", "99999999999", "--out",
        "{tmp}/r"),
+    _c("numbers", "eval: a box size of 1e300", "eval", "detection", *NUS_EVAL, "--results", "{ressize}"),
+    _c("numbers", "eval: sizes given as strings", "eval", "detection", *NUS_EVAL, "--results", "{resstring}"),
+    _c("numbers", "eval: a boolean score", "eval", "detection", *NUS_EVAL, "--results", "{resbool}"),
+    _c("numbers", "eval: a quaternion of norm 1e-30", "eval", "detection", *NUS_EVAL, "--results", "{resquat}"),
+    _c("numbers", "eval: a score of 7", "eval", "detection", *NUS_EVAL, "--results", "{resscore}"),
+    _c("numbers", "pool import: log-scales of 80 (5e34 m Gaussians)", "pool", "import", "{plyhuge}/model.ply", "--category",
+       "car", "--pool", "{tmp}/pool"),
 )
 
 
 # ----------------------------------------------------------------------------- fixtures
+#: Fixtures of the number cases: detection results with a size of 1e300, sizes as strings, a boolean score, a
+#: near-zero quaternion, a score of 7; a PLY whose log-scales hold 80.
+NUMBER_FIXTURES = ("ressize", "resstring", "resbool", "resquat", "resscore", "plyhuge")
 #: Fixtures of the path cases: a link to nothing (inside the case's folder, so a folder made through it shows), a
 #: link to a folder, and a workspace whose catalog table is a link out of it.
 PATH_FIXTURES = ("dangling", "linkdir", "wscatlink")
@@ -400,6 +413,27 @@ class Fixtures:
                                                            height=18), root / "store")
 
         self.nus = Path(export_scenes([self.store], "nuscenes", root / "nus"))
+
+    def number_fixture(self, name: str, path: Path) -> None:
+        """Results files whose numbers are JSON but wrong, and a PLY whose log-scales are sizes."""
+        if name == "plyhuge":
+            g = torch.Generator().manual_seed(0)
+            params = GaussianParams(torch.randn(50, 3, generator=g), torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(50, 1),
+                                    torch.full((50, 3), 80.0), torch.zeros(50), torch.rand(50, 3, generator=g),
+                                    torch.zeros(50, 0, 3))
+            path.mkdir()
+            write_gaussian_ply(params, path / "model.ply")  # a folder holding it: the suffix says it is a splat
+            return
+        samples = json.loads((self.nus / NUS_VERSION / "sample.json").read_text())
+        box = {"sample_token": samples[0]["token"], "translation": [1.0, 2.0, 0.5], "size": [1.8, 4.5, 1.6],
+               "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0], "detection_name": "car",
+               "detection_score": 0.5, "attribute_name": ""}
+        box.update({"ressize": {"size": [1.8, 1e300, 1.6]}, "resstring": {"size": ["1.8", "4.5", "1.6"]},
+                    "resbool": {"detection_score": True}, "resquat": {"rotation": [1e-30, 0.0, 0.0, 0.0]},
+                    "resscore": {"detection_score": 7.0}}[name])
+        results = {s["token"]: [] for s in samples}
+        results[samples[0]["token"]] = [box]
+        path.write_text(json.dumps({"meta": {"use_camera": True}, "results": results}))
 
     def make(self, name: str, case_dir: Path) -> Path:
         """Fixture ``name`` inside ``case_dir`` (made fresh: a case may damage it further)."""
@@ -473,6 +507,8 @@ class Fixtures:
             path.write_text('{"results": {}, "n": ' + "1" * 5000 + "}")
         elif name == "infjson":
             path.write_text('{"results": {"t": [{"velocity": [Infinity, 0.0]}]}}')
+        elif name in NUMBER_FIXTURES:
+            self.number_fixture(name, path)
         elif name == "emptyresults":
             path.write_text('{"results": {}}')
         elif name == "latin1json":
@@ -529,7 +565,7 @@ FIXTURES = ("store", "badid", "badpng", "trunclidar", "mlist", "mgarbage", "wron
             "mdeep", "mbigint", "mlatin1", "mfifo", "worlddeep", "nusdeep", "nusloop", "nusfifo", "deepjson",
             "bigintjson", "infjson", "emptyresults", "latin1json", "fifo", "dsdeep", "wsjunk", "wstrunc", "wsforeign",
             "pooljunk", "poolforeign")
-FIXTURES += PATH_FIXTURES
+FIXTURES += PATH_FIXTURES + NUMBER_FIXTURES
 _PLACEHOLDER = re.compile(r"\{(" + "|".join(FIXTURES + ("tmp",)) + r")\}")
 
 

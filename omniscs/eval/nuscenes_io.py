@@ -276,23 +276,54 @@ def load_results(path: str | Path, tables: NuScenesTables, samples: list[str],
     return boxes, data.get("meta", {})
 
 
+#: What a results file's numbers may be (beyond this they are a mistake, and a distance or an error computed from
+#: them would overflow): positions (metres, a dataroot's global frame), box sizes (metres), speeds (m/s), and the
+#: smallest norm a rotation quaternion may have before it is normalised.
+MAX_COORDINATE_M = 1e6
+MAX_BOX_SIZE_M = 100.0
+MAX_SPEED_MPS = 200.0
+MIN_QUATERNION_NORM = 1e-6
+
+
+def _numbers(value, n: int, where: str, field: str, allow_nan: bool = False) -> list[float]:
+    """``value`` as ``n`` real numbers: JSON numbers only (a string or a boolean is refused, not read as one); finite
+    unless ``allow_nan`` (NaN only)."""
+    if not isinstance(value, (list, tuple)) or len(value) != n:
+        raise ValidationError(f"{where}: {field} needs {n} numbers; got {str(value)[:60]}")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
+        raise ValidationError(f"{where}: {field} must be JSON numbers, not strings or booleans; got {value}")
+    out = [float(x) for x in value]
+    if not all(math.isfinite(x) or (allow_nan and math.isnan(x)) for x in out):
+        raise ValidationError(f"{where}: {field} must be finite{' (or NaN: unknown)' if allow_nan else ''}; got {value}")
+    return out
+
+
 def _checked_box(box, where: str) -> dict:
     if not isinstance(box, dict):
         raise ValidationError(f"{where} must be an object")
-    try:
-        rec = {"sample_token": str(box["sample_token"]), "translation": [float(x) for x in box["translation"]],
-               "size": [float(x) for x in box["size"]], "rotation": [float(x) for x in box["rotation"]],
-               "velocity": [float(x) for x in box.get("velocity", (math.nan, math.nan))][:2],
-               "detection_name": str(box["detection_name"]), "detection_score": float(box["detection_score"]),
-               "attribute_name": str(box.get("attribute_name", ""))}
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValidationError(f"{where} is not a nuScenes detection box ({type(e).__name__}: {e})") from e
-    if len(rec["translation"]) != 3 or len(rec["size"]) != 3 or len(rec["rotation"]) != 4 or len(rec["velocity"]) != 2:
-        raise ValidationError(f"{where}: translation, size, rotation and velocity need 3, 3, 4 and 2 numbers")
-    if not all(math.isfinite(x) for x in rec["translation"] + rec["size"] + rec["rotation"] + [rec["detection_score"]]):
-        raise ValidationError(f"{where}: translation, size, rotation and detection_score must be finite")
-    if min(rec["size"]) <= 0 or not any(rec["rotation"]):
-        raise ValidationError(f"{where}: sizes must be positive and the rotation a non-zero quaternion")
+    missing = [k for k in ("sample_token", "translation", "size", "rotation", "detection_name", "detection_score")
+               if k not in box]
+    if missing:
+        raise ValidationError(f"{where} is not a nuScenes detection box (it lacks {missing})")
+    velocity = box.get("velocity", (math.nan, math.nan))
+    velocity = list(velocity)[:2] if isinstance(velocity, (list, tuple)) else velocity
+    rec = {"sample_token": str(box["sample_token"]), "translation": _numbers(box["translation"], 3, where, "translation"),
+           "size": _numbers(box["size"], 3, where, "size"), "rotation": _numbers(box["rotation"], 4, where, "rotation"),
+           "velocity": _numbers(velocity, 2, where, "velocity", allow_nan=True),
+           "detection_name": str(box["detection_name"]),
+           "detection_score": _numbers([box["detection_score"]], 1, where, "detection_score")[0],
+           "attribute_name": str(box.get("attribute_name", ""))}
+    if max(abs(x) for x in rec["translation"]) > MAX_COORDINATE_M:
+        raise ValidationError(f"{where}: translation {rec['translation']} lies beyond {MAX_COORDINATE_M:g} m")
+    if min(rec["size"]) <= 0 or max(rec["size"]) > MAX_BOX_SIZE_M:
+        raise ValidationError(f"{where}: sizes must be positive and at most {MAX_BOX_SIZE_M:g} m; got {rec['size']}")
+    if math.sqrt(sum(x * x for x in rec["rotation"])) < MIN_QUATERNION_NORM:
+        raise ValidationError(f"{where}: the rotation {rec['rotation']} is not a quaternion (norm below "
+                              f"{MIN_QUATERNION_NORM:g})")
+    if any(abs(v) > MAX_SPEED_MPS for v in rec["velocity"] if not math.isnan(v)):
+        raise ValidationError(f"{where}: velocity {rec['velocity']} is beyond {MAX_SPEED_MPS:g} m/s")
+    if not 0.0 <= rec["detection_score"] <= 1.0:
+        raise ValidationError(f"{where}: detection_score must lie in [0, 1]; got {rec['detection_score']}")
     if rec["detection_name"] not in DETECTION_NAMES:
         raise ValidationError(f"{where}: unknown detection_name {rec['detection_name']!r}; one of {DETECTION_NAMES}")
     allowed = CLASS_ATTRIBUTES[rec["detection_name"]]
@@ -425,6 +456,11 @@ def load_planning_results(path: str | Path, samples: list[str], steps: int | Non
         if entry is None:
             raise ValidationError(f"planning results {path} lack sample {token!r}")
         traj = entry.get("trajectory") if isinstance(entry, dict) else entry
+        if not isinstance(traj, list) or not all(
+                isinstance(w, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in w)
+                for w in traj):
+            raise ValidationError(f"results[{token!r}] must be a list of (x, y) waypoints of JSON numbers (not "
+                                  "strings or booleans)")
         try:
             arr = np.asarray(traj, np.float64)
         except (TypeError, ValueError) as e:
@@ -432,6 +468,8 @@ def load_planning_results(path: str | Path, samples: list[str], steps: int | Non
         if arr.ndim != 2 or arr.shape[1] < 2 or arr.shape[0] < steps or not np.isfinite(arr[:steps, :2]).all():
             raise ValidationError(f"results[{token!r}] must hold at least {steps} finite (x, y) waypoints; got shape "
                                   f"{arr.shape}")
+        if np.abs(arr[:steps, :2]).max() > MAX_COORDINATE_M:
+            raise ValidationError(f"results[{token!r}]: a waypoint lies beyond {MAX_COORDINATE_M:g} m of the ego")
         out[token] = arr[:steps, :2]
     return out
 

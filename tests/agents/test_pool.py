@@ -292,3 +292,21 @@ def test_a_junk_truncated_or_foreign_index_file_is_one_error_naming_it(tmp_path,
     assert "\n" not in str(info.value) and str(bad) in str(info.value) and "remove that file" in str(info.value)
     bad.unlink()
     assert pool.table().model_id.tolist() == [a]
+
+
+def test_a_model_of_huge_gaussians_or_a_huge_extent_is_refused(tmp_path):
+    from omniscs.agents.pool import MAX_GAUSSIAN_SIZE_M
+    from omniscs.errors import ValidationError
+
+    pool = Pool(tmp_path / "pool")
+    p = _model()
+    huge = type(p)(p.means, p.quats, torch.full_like(p.log_scales, 80.0), p.opacity_logits, p.sh_dc, p.sh_rest)
+    with pytest.raises(ValidationError, match="e\\^80"):
+        pool.add(huge, "car", "imported", "x.ply")
+    wide = type(p)(p.means * 100.0, p.quats, p.log_scales, p.opacity_logits, p.sh_dc, p.sh_rest)
+    with pytest.raises(ValidationError, match="span at most"):
+        pool.add(wide, "car", "imported", "x.ply")
+    edge = type(p)(p.means, p.quats, torch.full_like(p.log_scales, float(np.log(MAX_GAUSSIAN_SIZE_M)) - 1e-3),
+                   p.opacity_logits, p.sh_dc, p.sh_rest)
+    assert pool.add(edge, "car", "imported", "x.ply").startswith("pm-")
+    assert not (tmp_path / "pool" / "models").exists() or len(list((tmp_path / "pool" / "models").iterdir())) == 1
