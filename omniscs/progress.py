@@ -28,9 +28,11 @@ def no_progress(done: int, total: int | None = None, note: str = "") -> None:
     """The progress callback of a caller that does not watch."""
 
 
-class Stopped(Exception):
+class Stopped(BaseException):
     """Raised from a stage's progress callback once the run is being stopped (``request_stop``): the stage unwinds
-    at its next report (its temporary output goes with it) instead of running to its end."""
+    at its next report (its temporary output goes with it) instead of running to its end. Like KeyboardInterrupt it
+    is not an ``Exception``: no handler of errors takes it for a failure to record or retry, and Prefect reports
+    the task as crashed (one line), not as failed with a traceback."""
 
 
 #: Set while the run this process works for is being stopped (SIGTERM or SIGINT reached its flow, or the run was
