@@ -20,6 +20,7 @@ from omniscs.annotate.frames import COMMANDS, driving_commands
 from omniscs.annotate.variant import background_tracks
 from omniscs.annotate.views import Instance, ViewAnnotator, background_members
 from omniscs.closedloop import metrics
+from omniscs.closedloop.hugsim_frames import cam_params, ego_from_lidar, hugsim_position, hugsim_rotation
 from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.traffic import IDMConfig, Traffic
 from omniscs.closedloop.vehicle import (Controls, PurePursuitConfig, VehicleLimits, VehicleState, advance, plan_to_ego,
@@ -310,9 +311,11 @@ class Simulator:
         return out
 
     def info(self) -> dict:
-        """JSON-able facts of the current step. HUGSIM's keys (ego_pos, ego_rot, ego_velo, ego_steer, accelerate,
-        steer_rate, timestamp, command, ego_box and obj_boxes as [x, y, z, w, l, h, yaw], cam_params, collision, rc)
-        plus ours (world_from_ego, velocity, boxes with ids, calibration, offroad, reason)."""
+        """JSON-able facts of the current step. HUGSIM's keys in HUGSIM's conventions (``hugsim_frames``: ego_pos and
+        ego_rot in its OpenCV-axes world, cam_params with intrinsic {fovx, fovy, H, W, cx, cy}, l2c and v2c), and
+        ego_velo, ego_steer, accelerate, steer_rate, timestamp, command, ego_box and obj_boxes as [x, y, z, w, l, h,
+        yaw], collision, rc; plus ours (ego_xyz, ego_yaw, world_from_ego in our z-up world, velocity, boxes with ids,
+        offroad, reason)."""
         ep = self._episode()
         sc, s = ep.scenario, ep.state
         centre = self.ego_centre()
@@ -322,9 +325,11 @@ class Simulator:
         boxes = self.boxes()
         contacts = ep.contacts[-1]
         command = self.command()
+        lidar = ego_from_lidar(sc.ego_centre_ahead_m - EGO_SHIFT)
         return {
             "scenario_id": sc.scenario_id, "step": ep.step, "timestamp": round(ep.t, 6),
-            "ego_pos": [float(v) for v in T[:3, 3]], "ego_rot": [0.0, 0.0, float(s.yaw)],
+            "ego_pos": hugsim_position(T[:3, 3]), "ego_rot": hugsim_rotation(s.yaw),
+            "ego_xyz": [float(v) for v in T[:3, 3]], "ego_yaw": float(s.yaw),
             "ego_velo": float(s.speed), "ego_steer": float(s.steer), "accelerate": float(s.accel),
             "steer_rate": float(s.steer_rate), "yaw_rate": float(yaw_rate),
             "velocity": [float(v) for v in s.speed * heading],
@@ -336,7 +341,7 @@ class Simulator:
                            b["yaw"]] for b in boxes],
             "boxes": boxes,
             "world_from_ego": T.tolist(),
-            "cam_params": {c.name: _cam_params(c) for c in self.rig},
+            "cam_params": {c.name: cam_params(c.K, c.width, c.height, c.ego_from_camera, lidar) for c in self.rig},
             "collision": bool(contacts), "collided_with": [int(sc.track_ids[c.track]) for c in contacts],
             "offroad": bool(ep.offroad[-1]), "rc": float(ep.route_completion),
             "fitted_area_offset_m": float(self._offset()), "reason": ep.reason,
@@ -450,13 +455,6 @@ def _resized(cam: CameraRecord, width: int | None, height: int | None) -> Camera
     K[0] *= w / cam.width
     K[1] *= h / cam.height
     return replace(cam, width=w, height=h, K=K)
-
-
-def _cam_params(cam: CameraRecord) -> dict:
-    K = np.asarray(cam.K)
-    return {"intrinsic": {"W": int(cam.width), "H": int(cam.height), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-                          "cx": float(K[0, 2]), "cy": float(K[1, 2])},
-            "K": K.tolist(), "ego_from_camera": np.asarray(cam.ego_from_camera).tolist()}
 
 
 def _reference_commands(sc: ClosedLoopScenario) -> np.ndarray:  # -> [S] index into COMMANDS

@@ -100,8 +100,8 @@ def test_a_straight_plan_through_the_client_advances_the_clock_and_moves_the_ego
     before = client.get_current_state().state.info
     after = client.execute_action(straight(before["ego_velo"])).state.info
     assert after["timestamp"] == pytest.approx(0.1) and after["step"] == 1
-    heading = np.array([np.cos(before["ego_rot"][2]), np.sin(before["ego_rot"][2])])
-    moved = np.subtract(after["ego_pos"][:2], before["ego_pos"][:2])
+    heading = np.array([np.cos(before["ego_yaw"]), np.sin(before["ego_yaw"])])
+    moved = np.subtract(after["ego_xyz"][:2], before["ego_xyz"][:2])
     assert moved @ heading == pytest.approx(before["ego_velo"] * 0.1, rel=0.3)
 
 
