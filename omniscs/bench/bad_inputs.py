@@ -384,8 +384,8 @@ CASES += (
     _c("numbers", "eval: a boolean score", "eval", "detection", *NUS_EVAL, "--results", "{resbool}"),
     _c("numbers", "eval: a quaternion of norm 1e-30", "eval", "detection", *NUS_EVAL, "--results", "{resquat}"),
     _c("numbers", "eval: a score of 7", "eval", "detection", *NUS_EVAL, "--results", "{resscore}"),
-    _c("numbers", "pool import: log-scales of 80 (5e34 m Gaussians)", "pool", "import", "{plyhuge}/model.ply", "--category",
-       "car", "--pool", "{tmp}/pool"),
+    _c("numbers", "pool import: log-scales of 80 (5e34 m Gaussians)", "pool", "import", "{plyhuge}/model.ply",
+       "--category", "car", "--pool", "{tmp}/pool"),
 )
 
 

@@ -167,7 +167,8 @@ def load_test(scene, graph, scenarios: dict, config: ClosedLoopBenchConfig, prog
     # the published client retries a failed step 3 times, 5 s apart: one try each, so errors are counted, not hidden
     once = HugsimClient._execute_action.retry_with(stop=tenacity.stop_after_attempt(1), reraise=True)
 
-    from omniscs.server.hugsim import ServerConfig, create_app, start_in_thread
+    from omniscs.server.hugsim import ServerConfig, create_app
+    from omniscs.server.transport import start_in_thread
 
     cfg = ClosedLoopConfig(cameras=(graph.cameras[0].name,), width=config.load_size[0], height=config.load_size[1],
                            outputs=("rgb", "depth"))

@@ -280,7 +280,8 @@ def classify_server(case: ServerCase, statuses: list[int], abuser_sessions: int,
 
 
 def run_server_case(case: ServerCase, make_simulator, scenarios) -> ServerOutcome:
-    from omniscs.server.hugsim import ServerConfig, create_app, start_in_thread
+    from omniscs.server.hugsim import ServerConfig, create_app
+    from omniscs.server.transport import start_in_thread
 
     app = create_app(make_simulator, scenarios, (ABUSER, BYSTANDER), ServerConfig(**BENCH_LIMITS))
     with start_in_thread(app) as handle:

@@ -169,7 +169,7 @@ def serve(
     from omniscs.errors import ValidationError
     from omniscs.pipeline.closedloop import load_world, resolve
     from omniscs.server.hugsim import ServerConfig, create_app
-    from omniscs.server.hugsim import serve as serve_app
+    from omniscs.server.transport import serve as serve_app
     from omniscs.storage import workspace_path
 
     if any(not t for t in token):

@@ -294,7 +294,8 @@ def _numbers(value, n: int, where: str, field: str, allow_nan: bool = False) -> 
         raise ValidationError(f"{where}: {field} must be JSON numbers, not strings or booleans; got {value}")
     out = [float(x) for x in value]
     if not all(math.isfinite(x) or (allow_nan and math.isnan(x)) for x in out):
-        raise ValidationError(f"{where}: {field} must be finite{' (or NaN: unknown)' if allow_nan else ''}; got {value}")
+        unknown = " (or NaN: unknown)" if allow_nan else ""
+        raise ValidationError(f"{where}: {field} must be finite{unknown}; got {value}")
     return out
 
 
@@ -307,7 +308,8 @@ def _checked_box(box, where: str) -> dict:
         raise ValidationError(f"{where} is not a nuScenes detection box (it lacks {missing})")
     velocity = box.get("velocity", (math.nan, math.nan))
     velocity = list(velocity)[:2] if isinstance(velocity, (list, tuple)) else velocity
-    rec = {"sample_token": str(box["sample_token"]), "translation": _numbers(box["translation"], 3, where, "translation"),
+    rec = {"sample_token": str(box["sample_token"]),
+           "translation": _numbers(box["translation"], 3, where, "translation"),
            "size": _numbers(box["size"], 3, where, "size"), "rotation": _numbers(box["rotation"], 4, where, "rotation"),
            "velocity": _numbers(velocity, 2, where, "velocity", allow_nan=True),
            "detection_name": str(box["detection_name"]),

@@ -19,8 +19,8 @@ from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
 from omniscs.pipeline.background import variant_uncovers
 from omniscs.pipeline.common import waiting
-from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, pool_asset_of, world_description,
-                                        world_lidar, world_reference)
+from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, appearance_renderer, pool_asset_of,
+                                        variant_renderer, world_description, world_lidar, world_reference)
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
@@ -123,13 +123,11 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
             def make(tmp: Path) -> dict:
                 results = annotate_variants(
                     graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
-                    reference=world_reference(scene) if config.exact_fidelity else None,
                     describe=world_description(scene), config=config,
                     progress=progress, replay=replay,
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
-                    compose=appearance_composer(graph, repaired), reference_for=appearance_references(scene, variants)
-                    if config.exact_fidelity else None, gates=gates, wanted=wanted if gates else None,
-                    keep_failed=keep_failed, **exact_lidar(scene, variants, config))
+                    compose=appearance_composer(graph, repaired), gates=gates, wanted=wanted if gates else None,
+                    keep_failed=keep_failed, **exact_sensors(scene, variants, config))
                 return {"stores": [r.store.name for r in results], "rows": "rows.json"}
 
             produce(out, key, make)
@@ -143,15 +141,27 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                              "verdicts": variant_verdicts(rows)})
 
 
-def exact_lidar(scene, variants: list[dict], config: AnnotateConfig) -> dict:
-    """``annotate_variants``' ``lidar`` and ``lidar_for`` of a procedural scene with ``lidar_source`` world (the
-    variants' worlds ray-cast); empty otherwise (the sweeps come from the graph's depth)."""
-    if config.lidar_source != "world" or scene.world is None:
+def exact_sensors(scene, variants: list[dict], config: AnnotateConfig) -> dict:
+    """``annotate_variants``' exact sensors of a procedural scene, empty for a recorded log: ``reference`` and
+    ``reference_for`` (the exact images of behaviour and appearance variants, with ``config.exact_fidelity``) and
+    ``lidar`` and ``lidar_for`` (their exact sweeps, with ``lidar_source`` world; else the sweeps come from the
+    graph's depth). A variant's images and sweep share one ray-cast world; each pool's table is read once."""
+    if scene.world is None:
         return {}
+    worlds = variant_renderer(scene)
     pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
-    by_pool = {p: appearance_lidar(scene, pool_asset_of(Pool(p))) for p in pools}
-    return {"lidar": world_lidar(scene),
-            "lidar_for": lambda v: by_pool[v["pool"]](v) if v.get("pool") in by_pool else None}
+    placed = {p: appearance_renderer(scene, pool_asset_of(Pool(p))) for p in pools}
+
+    def per_pool(make):
+        by_pool = {p: make(scene, None, renderer) for p, renderer in placed.items()}
+        return lambda v: by_pool[v["pool"]](v) if v.get("pool") in by_pool else None
+
+    out = {}
+    if config.exact_fidelity:
+        out.update(reference=world_reference(scene, worlds), reference_for=per_pool(appearance_reference))
+    if config.lidar_source == "world":
+        out.update(lidar=world_lidar(scene, worlds), lidar_for=per_pool(appearance_lidar))
+    return out
 
 
 def variant_verdicts(rows: dict) -> dict[str, dict]:
@@ -189,14 +199,5 @@ def appearance_composer(graph, repaired: tuple | None = None):
         resolve = model_resolver(pool, node_model_resolver(base)) if pool else node_model_resolver(base)
         return compose_variant(base, variant, resolve)
     return compose
-
-
-def appearance_references(scene, variants: list[dict]):
-    """``variant -> Reference`` (exact images) of a procedural scene's appearance variants, else None."""
-    pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
-    if scene.world is None or not pools:
-        return None
-    by_pool = {p: appearance_reference(scene, pool_asset_of(Pool(p))) for p in pools}
-    return lambda variant: by_pool[variant["pool"]](variant) if variant.get("pool") in by_pool else None
 
 

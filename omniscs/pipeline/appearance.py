@@ -21,8 +21,8 @@ from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.edit import node_model_resolver
 from omniscs.pipeline import layout
 from omniscs.pipeline.closedloop import newest_checkpoint
-from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, pool_asset_of,
-                                        world_description)
+from omniscs.pipeline.procedural import (appearance_lidar, appearance_reference, appearance_renderer,
+                                        pool_asset_of, world_description)
 from omniscs.pipeline.records import StageRecord
 from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
@@ -185,12 +185,12 @@ def render_appearance_set(scene, graph, variants: list[dict], out: Path, pool=No
     with the world's exact images. Returns the variants' summaries."""
     composite = composite or CompositeConfig()
     resolve = model_resolver(pool, node_model_resolver(graph)) if pool is not None else node_model_resolver(graph)
-    asset_of = pool_asset_of(Pool(pool) if pool is not None else None)
+    worlds = appearance_renderer(scene, pool_asset_of(Pool(pool) if pool is not None else None))
     atomic_write_json(out / "variants.json", variants)
     results = annotate_variants(graph, scene, variants, out / SCENES, describe=world_description(scene),
                                 progress=progress, compose=lambda v: compose_variant(graph, v, resolve, composite),
-                                reference_for=appearance_reference(scene, asset_of),
-                                lidar_for=appearance_lidar(scene, asset_of))
+                                reference_for=appearance_reference(scene, None, worlds),
+                                lidar_for=appearance_lidar(scene, None, worlds))
     samples = [s for r in results for s in r.samples]
     annotations = [a for r in results for a in r.annotations]
     if samples:

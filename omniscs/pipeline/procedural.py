@@ -93,42 +93,47 @@ def variant_world(world, vf):
     return edited.replace(ego_poses=ego)
 
 
-def world_reference(scene):
-    """For a procedural scene, the exact image of any rendered variant frame (``annotate.variant.Reference``):
-    ``variant_world`` ray-cast; None for recorded logs (their fidelity is the viewpoint proxy only). One renderer
-    is kept, for the variant rendered last."""
+def variant_renderer(scene):
+    """For a procedural scene, ``vf -> WorldRenderer`` of ``variant_world`` for a rendered variant's frames, keeping
+    the one for the variant asked for last (its frames' ray-casting scenes are built once for every sensor that
+    shares it); None for recorded logs."""
     world = scene.world
     if world is None:
         return None
-
     held: list = []
 
-    def reference(vf, camera: str, t: int):
+    def renderer(vf) -> WorldRenderer:
         if not held or held[0] is not vf:
             held[:] = [vf, WorldRenderer(variant_world(world, vf))]
-        r = held[1].render_camera(int(vf.scene_frames[t]), camera)
+        return held[1]
+
+    return renderer
+
+
+def world_reference(scene, renderer=None):
+    """For a procedural scene, the exact image of any rendered variant frame (``annotate.variant.Reference``):
+    ``variant_world`` ray-cast (through ``renderer``, a ``variant_renderer`` to share); None for recorded logs
+    (their fidelity is the viewpoint proxy only)."""
+    renderer = renderer or variant_renderer(scene)
+    if renderer is None:
+        return None
+
+    def reference(vf, camera: str, t: int):
+        r = renderer(vf).render_camera(int(vf.scene_frames[t]), camera)
         return r.rgb, r.instance
 
     return reference
 
 
-def world_lidar(scene):
+def world_lidar(scene, renderer=None):
     """For a procedural scene, the exact LiDAR sweep of any rendered variant frame (``annotate.variant.Sweep``):
-    ``variant_world`` ray-cast with the world's own spinning sensor (``omniscs.world.model.LidarSpec``), points in the
-    ego frame; None for recorded logs (their variants' sweeps come from the scene graph's depth). One renderer is
-    kept, for the variant swept last."""
-    world = scene.world
-    if world is None:
+    ``variant_world`` ray-cast with the world's own spinning sensor (``omniscs.world.model.LidarSpec``; through
+    ``renderer``, a ``variant_renderer`` to share), points in the ego frame; None for recorded logs (their
+    variants' sweeps come from the scene graph's depth)."""
+    renderer = renderer or variant_renderer(scene)
+    if renderer is None:
         return None
-
-    held: list = []
-
-    def sweep(vf, t: int) -> np.ndarray:  # -> float32 [N, 4] ego frame (x, y, z, intensity)
-        if not held or held[0] is not vf:
-            held[:] = [vf, WorldRenderer(variant_world(world, vf))]
-        return held[1].lidar_scan(int(vf.scene_frames[t]))
-
-    return sweep
+    return lambda vf, t: renderer(vf).lidar_scan(int(vf.scene_frames[t]))
 
 
 def world_description(scene):
@@ -164,37 +169,58 @@ def appearance_world(world, variant: dict, asset_of):
     return apply_edits(world, edits)
 
 
-def _appearance_renderers(scene, asset_of, sensor):
-    """``variant -> sensor(WorldRenderer of appearance_world)`` for a procedural scene; None for recorded logs, and a
-    variant whose object has no asset of the library gets None."""
+def appearance_renderer(scene, asset_of):
+    """For a procedural scene, ``variant -> WorldRenderer`` of ``appearance_world`` (None for a variant whose object
+    has no asset of the library), keeping the one for the variant asked for last so that its exact images and its
+    LiDAR share it; None for recorded logs."""
     world = scene.world
     if world is None:
         return None
+    held: list = []
+
+    def renderer(variant: dict) -> WorldRenderer | None:
+        if not held or held[0] is not variant:
+            edited = appearance_world(world, variant, asset_of)
+            held[:] = [variant, None if edited is None else WorldRenderer(edited)]
+        return held[1]
+
+    return renderer
+
+
+def appearance_reference(scene, asset_of, renderer=None):
+    """For a procedural scene, ``variant -> Reference`` of appearance variants: ``appearance_world`` ray-cast
+    (through ``renderer``, an ``appearance_renderer`` to share); None for recorded logs, and a variant whose object
+    has no asset of the library gets no reference."""
+    renderer = renderer or appearance_renderer(scene, asset_of)
+    if renderer is None:
+        return None
 
     def for_variant(variant: dict):
-        edited = appearance_world(world, variant, asset_of)
-        return None if edited is None else sensor(WorldRenderer(edited))
+        world = renderer(variant)
+        if world is None:
+            return None
+
+        def reference(vf, name: str, t: int):
+            r = world.render_camera(int(vf.scene_frames[t]), name)
+            return r.rgb, r.instance
+        return reference
 
     return for_variant
 
 
-def appearance_reference(scene, asset_of):
-    """For a procedural scene, ``variant -> Reference`` of appearance variants: ``appearance_world`` ray-cast; None
-    for recorded logs, and a variant whose object has no asset of the library gets no reference."""
-    def camera(renderer):
-        def reference(vf, name: str, t: int):
-            r = renderer.render_camera(int(vf.scene_frames[t]), name)
-            return r.rgb, r.instance
-        return reference
-
-    return _appearance_renderers(scene, asset_of, camera)
-
-
-def appearance_lidar(scene, asset_of):
+def appearance_lidar(scene, asset_of, renderer=None):
     """For a procedural scene, ``variant -> Sweep`` of appearance variants: ``appearance_world`` ray-cast with the
-    world's own sensor; None for recorded logs, and a variant whose object has no asset of the library gets none."""
-    return _appearance_renderers(scene, asset_of,
-                                 lambda renderer: lambda vf, t: renderer.lidar_scan(int(vf.scene_frames[t])))
+    world's own sensor (through ``renderer``, an ``appearance_renderer`` to share); None for recorded logs, and a
+    variant whose object has no asset of the library gets none."""
+    renderer = renderer or appearance_renderer(scene, asset_of)
+    if renderer is None:
+        return None
+
+    def for_variant(variant: dict):
+        world = renderer(variant)
+        return None if world is None else (lambda vf, t: world.lidar_scan(int(vf.scene_frames[t])))
+
+    return for_variant
 
 
 def pool_asset_of(pool):

@@ -15,7 +15,7 @@ from omniscs.closedloop.policies import DRIVEARENA_CAMERAS, DRIVEARENA_SIZE, Dri
 from omniscs.closedloop.run import run_episode
 from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
 from omniscs.errors import OmniscsError
-from omniscs.server.hugsim import start_in_thread
+from omniscs.server.transport import start_in_thread
 
 CAMERA = "CAM_FRONT"
 

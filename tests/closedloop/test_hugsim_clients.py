@@ -12,7 +12,8 @@ import pytest
 from annotate_fixtures import logged_variant
 from omniscs.closedloop.scenario import variant_scenario
 from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
-from omniscs.server.hugsim import create_app, start_in_thread
+from omniscs.server.hugsim import create_app
+from omniscs.server.transport import start_in_thread
 
 CAMERA = "CAM_FRONT"
 #: HUGSIM's clients' map from its world's OpenCV axes to the IMU's (their constant, restated).

@@ -14,7 +14,8 @@ from annotate_fixtures import logged_variant
 from omniscs.closedloop.scenario import variant_scenario
 from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
 from omniscs.errors import ValidationError
-from omniscs.server.hugsim import ServerConfig, create_app, start_in_thread
+from omniscs.server.hugsim import ServerConfig, create_app
+from omniscs.server.transport import start_in_thread
 
 CAMERA = "CAM_FRONT"
 RENDER = ClosedLoopConfig(cameras=(CAMERA,), width=64)

@@ -15,7 +15,8 @@ import pytest
 import requests
 
 from omniscs.errors import ValidationError
-from omniscs.server.hugsim import ServerConfig, TurnLock, create_app, parse_plan, start_in_thread
+from omniscs.server.hugsim import ServerConfig, TurnLock, create_app, parse_plan
+from omniscs.server.transport import start_in_thread
 
 PLAN = [[0.0, 0.5 * k] for k in range(1, 7)]  # [6, 2] planning frame: 1 m/s straight ahead
 GOOD_PLAN_TRAJ = json.dumps({"data": PLAN, "shape": [6, 2], "dtype": "float32"})
