@@ -313,9 +313,9 @@ class Simulator:
     def info(self) -> dict:
         """JSON-able facts of the current step. HUGSIM's keys in HUGSIM's conventions (``hugsim_frames``: ego_pos and
         ego_rot in its OpenCV-axes world, cam_params with intrinsic {fovx, fovy, H, W, cx, cy}, l2c and v2c), and
-        ego_velo, ego_steer, accelerate, steer_rate, timestamp, command, ego_box and obj_boxes as [x, y, z, w, l, h,
-        yaw], collision, rc; plus ours (ego_xyz, ego_yaw, world_from_ego in our z-up world, velocity, boxes with ids,
-        offroad, reason)."""
+        ego_velo, ego_steer, accelerate, steer_rate, timestamp, command, ego_box and obj_boxes in HUGSIM's layout
+        [x, y, z, w, l, h, yaw] (box centres), collision, rc; plus ours (ego_xyz, ego_yaw, world_from_ego in our z-up
+        world, velocity, boxes with ids, offroad, reason)."""
         ep = self._episode()
         sc, s = ep.scenario, ep.state
         centre = self.ego_centre()
