@@ -293,3 +293,47 @@ def test_track_velocity_differences_forward_then_backward_where_the_next_step_is
     vel = e.track_velocity(poses, 0.1)
     assert vel[0, :3, 0] == pytest.approx([10.0, 20.0, 20.0]) and np.isnan(vel[0, 3]).all()
     assert e.path_speed(poses[0, :3], 0.1) == pytest.approx([10.0, 15.0, 20.0])
+
+
+# ----------------------------------------------------------------------------- catalog
+def test_closed_loop_runs_written_before_epdms_still_read_with_a_null_epdms(tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from omniscs import catalog
+
+    row = dict(eval_id="cl-1", scenario_id="s/log", scene_id="s", kind="log", model_id="m", policy="rule",
+               reactive=False, status="ok", pdms=0.9, hd_score=0.5)
+    catalog.write_rows(tmp_path, "runs", "old", [dict(flow="closed_loop_eval", status="completed", started_at_us=0,
+                                                      finished_at_us=1, n_scenes=1, config_json="{}",
+                                                      omniscs_version="test")], writer="run")
+    old_schema = pa.schema([f for f in catalog.SCHEMAS["closed_loop_runs"] if f.name != "epdms"])
+    folder = tmp_path / "closed_loop_runs" / "run_id=old"
+    folder.mkdir(parents=True)
+    pq.write_table(pa.Table.from_pylist([row], schema=old_schema),
+                   folder / "task-0000000000000001-000000000001.parquet")
+    catalog.write_rows(tmp_path, "closed_loop_runs", "new", [dict(row, eval_id="cl-2", epdms=0.8)])
+    got = catalog.query(tmp_path, "SELECT eval_id, pdms, epdms FROM closed_loop_runs_raw ORDER BY eval_id").to_pylist()
+    assert got == [{"eval_id": "cl-1", "pdms": 0.9, "epdms": None}, {"eval_id": "cl-2", "pdms": 0.9, "epdms": 0.8}]
+
+
+# ----------------------------------------------------------------------------- closed-loop runs
+def test_a_run_scores_epdms_with_the_log_as_human_reference_and_a_variant_without_one(world, tmp_path):
+    from closedloop_fixtures import stopping_variant
+    from omniscs.closedloop.policies import make_policy
+    from omniscs.closedloop.run import RUN_JSON, STEPS_JSON, run_episode
+    from omniscs.closedloop.scenario import variant_scenario
+    from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator
+
+    scene, graph, log = world
+    sim = Simulator(graph, scene, ClosedLoopConfig(outputs=("rgb",)))
+    replay = run_episode(sim, make_policy("replay"), log, out_dir=tmp_path / "log")
+    assert replay.trace.reference_ego is not None and len(replay.trace.lane_centrelines) > 0
+    s = replay.scores.epdms
+    assert s.has_lanes and s.human_filter and s.epdms_mean == pytest.approx(1.0, abs=0.02)
+    summary = json.loads((replay.folder / RUN_JSON).read_text())
+    assert summary["scores"]["epdms"] == pytest.approx(s.epdms_mean)
+    assert "epdms" in json.loads((replay.folder / STEPS_JSON).read_text())[0]
+    hit = run_episode(sim, make_policy("replay"), variant_scenario(scene, stopping_variant(scene), log))
+    assert hit.trace.reference_ego is None and not hit.scores.epdms.human_filter  # a synthetic world: no filter
+    assert hit.scores.epdms.values["nc"].min() == 0.0 and hit.scores.epdms.epdms_mean < 0.5
