@@ -153,8 +153,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                        columns=("mAP", "NDS", "AP.bus", "AP.car", "AP.construction_vehicle", "AP.trailer",
                                 "AP.truck")))),
     Benchmark("closedloop", "Closed loop", "omniscs bench closedloop",
-              "Steps per second, the shipped policies' PDMS, EPDMS and HD-Score on logs and behaviour-SCS variants, and 20 "
-              "HUGSIM clients at once.",
+              "Steps per second, the shipped policies' PDMS, EPDMS and HD-Score on logs and behaviour-SCS variants, "
+              "and 20 HUGSIM clients at once.",
               (Section("Speed", "speed"),
                Section("Scores per policy", "summary",
                        columns=tuple(f"{kind}.{k}" for kind in ("log", "behavior")

@@ -11,7 +11,7 @@ from omniscs.closedloop import epdms as e
 from omniscs.closedloop.epdms import EPDMSConfig
 from omniscs.closedloop.metrics import score_run
 from omniscs.errors import ValidationError
-from test_metrics import DT, WIDE_ROAD, Rectangle, agent_track, make_trace, straight, uniad_plans
+from test_metrics import DT, Rectangle, agent_track, make_trace, straight, uniad_plans
 
 LANE_Y = -1.75  # the ego's lane (eastbound, +x); the oncoming lane runs westbound at +1.75
 LANES = (np.array([[-100.0, LANE_Y], [1000.0, LANE_Y]]), np.array([[1000.0, -LANE_Y], [-100.0, -LANE_Y]]))
@@ -242,8 +242,9 @@ def test_navsim_ttc_ignores_agents_already_touching_at_the_window_s_start():
 
 # ----------------------------------------------------------------------------- extremes
 def test_an_empty_run_scores_no_epdms_and_stays_plain_json():
-    scores = score_run(make_trace(np.zeros((0, 3)), np.zeros(0), reference=np.zeros(0),
-                                  reference_ego=np.zeros((0, 3)), lane_centrelines=LANES), epdms=EPDMSConfig(ttc="navsim"))
+    empty = make_trace(np.zeros((0, 3)), np.zeros(0), reference=np.zeros(0), reference_ego=np.zeros((0, 3)),
+                       lane_centrelines=LANES)
+    scores = score_run(empty, epdms=EPDMSConfig(ttc="navsim"))
     d = scores.to_dict()
     assert d["epdms"] is None and d["epdms_scores"]["lk_mean"] is None and d["per_step"]["epdms"] == []
     assert_clean(scores)
