@@ -161,9 +161,8 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                                      for k in ("n", "pdms", "epdms", "epdms_navsim_ttc", "hd_score",
                                                "route_completion", "collision_rate"))
                        + ("scs_penalty.pdms", "scs_penalty.epdms", "scs_penalty.hd_score")),
-               Section("EPDMS sub-scores per policy", "summary", per_key=True,
-                       columns=tuple(f"epdms_sub_scores.{n}" for n in ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk",
-                                                                        "hc", "ec")) + ("with_lanes", "n")),
+               Section("EPDMS sub-scores per policy", "epdms_sub_scores", per_key=True,
+                       columns=("n", "nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc", "ec", "with_lanes")),
                Section("Load", "load"))),
     Benchmark("scaleout", "Scale-out", "omniscs bench scaleout",
               "generate_dataset on 8 scenes with 1 and 2 Dask workers, a worker killed mid-fit, a projection.",

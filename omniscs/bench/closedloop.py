@@ -264,7 +264,8 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
         for key in ("scene_path", "checkpoint", "variants_path"):
             e[key] = str(e[key])
     result = {"config": asdict(config), "scenes": entries, "speed": speed, "scores": scores,
-              "summary": summarise(scores), "load": load, "machine": finish(machine)}
+              "summary": summarise(scores), "epdms_sub_scores": summarise_epdms(scores), "load": load,
+              "machine": finish(machine)}
     write_report(out_dir, "closedloop", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
@@ -283,14 +284,29 @@ def summarise(scores: list[dict]) -> dict:
             out[policy][kind] = {"n": len(rows), "pdms": mean("pdms"), "epdms": mean("epdms"),
                                  "epdms_navsim_ttc": mean("epdms_navsim_ttc"), "hd_score": mean("hd_score"),
                                  "route_completion": mean("route_completion"),
-                                 "collision_rate": statistics.fmean(float(r["collision"]) for r in rows),
-                                 "epdms_sub_scores": {name: mean(f"epdms_{name}") for name in EPDMS_SUB_SCORES},
-                                 "filtered": {name: mean(f"filtered_{name}") for name in EPDMS_SUB_SCORES},
-                                 "with_lanes": sum(bool(r["has_lanes"]) for r in rows)}
+                                 "collision_rate": statistics.fmean(float(r["collision"]) for r in rows)}
         log_, scs = out[policy].get("log"), out[policy].get("behavior")
         if log_ and scs:
             out[policy]["scs_penalty"] = {k: (None if log_[k] is None or scs[k] is None else log_[k] - scs[k])
                                           for k in ("pdms", "epdms", "hd_score")}
+    return out
+
+
+def summarise_epdms(scores: list[dict]) -> dict:
+    """Per policy and scenario kind: the mean of each EPDMS sub-score (each run's mean over steps, after the human
+    filter), the mean share of steps the filter set each to 1, and how many runs had a lane map."""
+    out: dict = {}
+    for policy in sorted({r["policy"] for r in scores}):
+        out[policy] = {}
+        for kind in ("log", "behavior"):
+            rows = [r for r in scores if r["policy"] == policy and r["kind"] == kind]
+            if not rows:
+                continue
+            mean = (lambda key: statistics.fmean(float(r[key]) for r in rows if r[key] is not None)  # noqa: E731
+                    if any(r[key] is not None for r in rows) else None)
+            out[policy][kind] = {"n": len(rows), **{name: mean(f"epdms_{name}") for name in EPDMS_SUB_SCORES},
+                                 "filtered": {name: mean(f"filtered_{name}") for name in EPDMS_SUB_SCORES},
+                                 "with_lanes": sum(bool(r["has_lanes"]) for r in rows)}
     return out
 
 
@@ -336,14 +352,14 @@ def markdown(result: dict) -> str:
                   "in brackets the share of steps the filter set to 1):", "",
               "| policy | scenarios | " + " | ".join(n.upper() for n in EPDMS_SUB_SCORES) + " | runs with lanes |",
               "|---|---|" + "---:|" * (len(EPDMS_SUB_SCORES) + 1)]
-    for policy, kinds in result["summary"].items():
+    for policy, kinds in result.get("epdms_sub_scores", {}).items():
         for kind in ("log", "behavior"):
             s = kinds.get(kind)
-            if s and "epdms_sub_scores" in s:
+            if s:
                 cells = []
                 for name in EPDMS_SUB_SCORES:
                     f = s["filtered"].get(name)
-                    cells.append(_num(s["epdms_sub_scores"][name]) + (f" ({100 * f:.0f} %)" if f else ""))
+                    cells.append(_num(s[name]) + (f" ({100 * f:.0f} %)" if f else ""))
                 lines.append(f"| {policy} | {'log' if kind == 'log' else 'behaviour-SCS'} | " + " | ".join(cells)
                              + f" | {s['with_lanes']} of {s['n']} |")
     lines += ["", f"EPDMS = NC DAC DDC TLC (5 EP + 5 TTC + 2 LK + 2 HC + 2 EC) / 16 (NAVSIM v2), scored on the same "
