@@ -1,5 +1,6 @@
 """Closed-loop driving scores of one run: NAVSIM's PDM score (PDMS), HUGSIM's HD-Score, and the instantaneous
-checks (contacts, off-road, time to collision, route completion) the simulator runs each step."""
+checks (contacts, off-road, time to collision, route completion) the simulator runs each step. NAVSIM v2's EPDMS,
+scored beside PDMS on the same windows, lives in ``omniscs.closedloop.epdms``."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -692,7 +693,8 @@ def _hd_scores(trace: RunTrace, step: int, points: int) -> tuple[float, float, f
 
 def score_run(trace: RunTrace, horizon_s: float = 4.0, epdms=None) -> RunScores:
     """Score a closed-loop run with NAVSIM's PDMS and HUGSIM's HD-Score, and NAVSIM v2's EPDMS beside them
-    (``omniscs.closedloop.epdms.score_epdms`` with the config ``epdms``, default ``EPDMSConfig()``).
+    (``omniscs.closedloop.epdms.score_epdms`` with the config ``epdms``, default ``EPDMSConfig()``; in
+    ``RunScores.epdms``). The EPDMS does not change any PDMS or HD-Score figure.
 
     PDMS (Dauner et al., NAVSIM, NeurIPS 2024), per step t, over the window of steps t .. t + horizon_s / dt (cut
     at the run's end). NAVSIM simulates the issued plan for 4 s (LQR tracking on a kinematic bicycle) against
