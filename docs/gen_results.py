@@ -153,9 +153,17 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                        columns=("mAP", "NDS", "AP.bus", "AP.car", "AP.construction_vehicle", "AP.trailer",
                                 "AP.truck")))),
     Benchmark("closedloop", "Closed loop", "omniscs bench closedloop",
-              "Steps per second, the shipped policies' PDMS and HD-Score on logs and behaviour-SCS variants, and 20 "
-              "HUGSIM clients at once.",
-              (Section("Speed", "speed"), Section("Scores per policy", "summary"), Section("Load", "load"))),
+              "Steps per second, the shipped policies' PDMS, EPDMS and HD-Score on logs and behaviour-SCS variants, "
+              "and 20 HUGSIM clients at once.",
+              (Section("Speed", "speed"),
+               Section("Scores per policy", "summary",
+                       columns=tuple(f"{kind}.{k}" for kind in ("log", "behavior")
+                                     for k in ("n", "pdms", "epdms", "epdms_navsim_ttc", "hd_score",
+                                               "route_completion", "collision_rate"))
+                       + ("scs_penalty.pdms", "scs_penalty.epdms", "scs_penalty.hd_score")),
+               Section("EPDMS sub-scores per policy", "epdms_sub_scores", per_key=True,
+                       columns=("n", "nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc", "ec", "with_lanes")),
+               Section("Load", "load"))),
     Benchmark("scaleout", "Scale-out", "omniscs bench scaleout",
               "generate_dataset on 8 scenes with 1 and 2 Dask workers, a worker killed mid-fit, a projection.",
               (Section("Runs", "runs", columns=("workers", "killed", "wall_s", "scenes", "failed", "scenes_per_hour")),
