@@ -64,20 +64,25 @@ class RoadNetwork:
     """"procedural" (exact, from the world's layout) or "road_map" (from a RoadMap's lane centrelines)."""
 
 
+def road_source_id(scene: Scene) -> str:
+    """The scene whose roads a store drives on: a variant's source scene, else the store's own id."""
+    return str(scene.manifest.get("source_scene_id") or scene.scene_id)
+
+
 def road_network_of(scene: Scene) -> RoadNetwork:
-    """The road network of a scene: exact for procedural worlds, from the RoadMap otherwise; an OmniscsError for a
-    scene that has neither."""
+    """The road network of a scene (named after its source scene, so the variants of one scene share it): exact for
+    procedural worlds, from the RoadMap otherwise; an OmniscsError for a scene that has neither."""
     world = scene.world
     if world is not None:
         from omniscs.world.layouts import layout_for
 
-        return procedural_network(layout_for(world), name=scene.scene_id)
+        return procedural_network(layout_for(world), name=road_source_id(scene))
     road_map = scene.road_map
     if road_map is None:
         raise OmniscsError(f"scene {scene.scene_id} has no road map (a recorded log's store carries none), so no "
                            "OpenDRIVE road network can be written for it; export procedural scenes or scenes whose "
                            "store has a road map")
-    return road_map_network(road_map, name=scene.scene_id)
+    return road_map_network(road_map, name=road_source_id(scene))
 
 
 # ----------------------------------------------------------------------------- procedural layouts

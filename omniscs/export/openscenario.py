@@ -41,7 +41,7 @@ from typing import Callable
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.export.opendrive import RoadNetwork, road_network_of
+from omniscs.export.opendrive import RoadNetwork, road_network_of, road_source_id
 from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
 from omniscs.untrusted import read_json
@@ -335,8 +335,7 @@ def write_openscenario(scenes: list[Scene], root: Path, progress: Callable[[int,
         network = road_network_of(scene)
         entities = scenario_entities(scene, config)
         check_on_network(entities, network, f"scene {scene.scene_id}", config.road_tolerance_m)
-        key = str(scene.manifest.get("source_scene_id") or scene.scene_id)
-        prepared.append((scene, network, entities, roads.name_for(key, network.xodr)))
+        prepared.append((scene, network, entities, roads.name_for(road_source_id(scene), network.xodr)))
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     for name, xodr in roads.files.values():

@@ -1,0 +1,344 @@
+"""OpenSCENARIO + OpenDRIVE export: the trajectories, entities and boxes read back from the .xosc equal the variant
+stores' (within 1 cm), the .xodr lanes lie exactly on the procedural layout's lanes, ASAM's checkers find no error
+in either file, and bad input (an agent leaving the roads, a scene without roads, a damaged variant file) is one
+clear error with nothing written."""
+import json
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from omniscs.errors import OmniscsError
+from omniscs.export import export_scenes
+from omniscs.export.asam_checks import check_file, checker_versions
+from omniscs.export.opendrive import bezier_controls, procedural_network, road_map_network
+from omniscs.export.openscenario import (
+    INDEX_JSON,
+    OSC_CATEGORIES,
+    OpenScenarioConfig,
+    angle_error,
+    hpr_from_matrix,
+    read_scenario,
+    road_file_of,
+)
+from omniscs.geometry import rotmat_from_euler, yaw_from_matrix
+from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
+from omniscs.roadmap import RoadMap
+from omniscs.scene import SceneWriter, SyntheticSource, load_scene, write_synthetic_scene
+from omniscs.world.layouts import build_layout
+from tests.conftest import write_tiny_scene
+from tests.dataset_fixtures import leftovers
+
+#: The round trip's tolerance on positions (the issue's 1 cm) and on angles (radians).
+ROUND_TRIP_M = 0.01
+ROUND_TRIP_RAD = 1e-6
+#: A 4-way intersection (junction paths, both arms), six frames, one thumbnail camera: renders in about a second.
+SOURCE = SyntheticSource(template="intersection", seed=1, n_frames=6, n_cameras=1, width=32, height=18)
+#: The track id of the object the appearance variant inserts.
+INSERTED_TRACK = 900
+
+
+def variant_store(scene, out: Path, store_id: str, boxes: pd.DataFrame, variant: dict | None,
+                  world: bool = True) -> Path:
+    """A variant store of ``scene``: its frames, camera and procedural world, the given boxes, ``variant`` as its
+    variant.json (as the annotate stage writes it), flat images."""
+    camera = scene.camera(scene.camera_names[0])
+    with SceneWriter(out, store_id, {"kind": "variant", "scene_id": scene.scene_id}) as writer:
+        writer.set_frames(scene.frames["timestamp_us"].to_numpy(np.int64), scene.world_from_ego_all)
+        writer.set_cameras([camera])
+        writer.set_boxes(boxes)
+        writer.set_extra(source_scene_id=scene.scene_id)
+        if world:
+            writer.write_world_json((scene.path / "world.json").read_text())
+        for f in range(scene.n_frames):
+            writer.write_image(camera.name, f, np.full((camera.height, camera.width, 3), 90, np.uint8))
+        if variant is not None:
+            (writer.tmp / "variant.json").write_text(json.dumps({"variant": variant}))
+    return out
+
+
+def adversarial_boxes(scene, track: int, metres_per_frame: float) -> pd.DataFrame:
+    """The log's boxes with ``track`` drifting sideways (to its left) by ``metres_per_frame`` every frame."""
+    boxes = scene.boxes.copy()
+    rows = boxes.track_id == track
+    yaw = boxes.loc[rows, "yaw"].to_numpy()
+    step = boxes.loc[rows, "frame_idx"].to_numpy() * metres_per_frame
+    boxes.loc[rows, "cx"] -= np.sin(yaw) * step
+    boxes.loc[rows, "cy"] += np.cos(yaw) * step
+    return boxes
+
+
+def inserted_boxes(scene) -> pd.DataFrame:
+    """The log's boxes plus an overturned truck standing still 25 m ahead of the first ego pose."""
+    pose = scene.world_from_ego(0)
+    yaw = float(yaw_from_matrix(pose[:3, :3])) + 0.4
+    q = rotmat_to_quat(rotmat_from_euler(math.pi, 0.0, yaw))
+    centre = pose[:3, 3] + pose[:3, 0] * 25.0 + np.array([0.0, 0.0, 1.4])
+    rows = [dict(frame_idx=f, track_id=INSERTED_TRACK, category="truck", source_category="truck", cx=centre[0],
+                 cy=centre[1], cz=centre[2], length=8.0, width=2.5, height=2.8, yaw=yaw, qw=q[0], qx=q[1], qy=q[2],
+                 qz=q[3], num_lidar_points=-1, visible_pixels=-1) for f in range(scene.n_frames)]
+    return pd.concat([scene.boxes, pd.DataFrame(rows)], ignore_index=True)
+
+
+def moving_track(scene) -> int:
+    """A track that moves (the adversary of the behaviour variant)."""
+    speed = scene.boxes.groupby("track_id").apply(lambda g: np.ptp(g.cx.to_numpy()) + np.ptp(g.cy.to_numpy()))
+    return int(speed.idxmax())
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(write_synthetic_scene(SOURCE, tmp_path_factory.mktemp("xosc-source") / "store"))
+
+
+@pytest.fixture(scope="module")
+def variants(scene, tmp_path_factory) -> list[Path]:
+    """A behaviour variant (one agent cut sideways) and an appearance variant (an overturned truck inserted)."""
+    root = tmp_path_factory.mktemp("xosc-variants")
+    adversary = moving_track(scene)
+    behaviour = variant_store(scene, root / "scenes" / "beh-v000", "beh-v000",
+                              adversarial_boxes(scene, adversary, 0.1),
+                              {"variant_id": "v000", "scene_id": scene.scene_id, "adversary": adversary})
+    appearance = variant_store(scene, root / "scenes" / "app-v000", "app-v000", inserted_boxes(scene),
+                               {"variant_id": "a000", "scene_id": scene.scene_id, "kind": "appearance",
+                                "placement": "insert", "track_id": INSERTED_TRACK, "adversary": INSERTED_TRACK,
+                                "pose": {"static": True, "roll_deg": 180.0}})
+    return [behaviour, appearance]
+
+
+@pytest.fixture(scope="module")
+def exported(variants, tmp_path_factory) -> Path:
+    return export_scenes(variants, "openscenario", tmp_path_factory.mktemp("xosc-out") / "xosc")
+
+
+def test_every_variant_gets_a_scenario_and_they_share_the_scene_road_network(exported, variants, scene):
+    index = json.loads((exported / INDEX_JSON).read_text())
+    assert [s["scene_id"] for s in index["scenarios"]] == ["beh-v000", "app-v000"]
+    assert {road_file_of(exported / s["scenario"]) for s in index["scenarios"]} == {f"{scene.scene_id}.xodr"}
+    assert (exported / f"{scene.scene_id}.xodr").is_file()
+    assert all(s["roads"] == "procedural" for s in index["scenarios"])
+
+
+def test_trajectories_read_back_equal_the_stores_within_a_centimetre(exported, variants):
+    for store in variants:
+        scene = load_scene(store)
+        read = read_scenario(exported / f"{scene.scene_id}.xosc")
+        times = (scene.frames["timestamp_us"].to_numpy(np.int64) - scene.frames["timestamp_us"].iloc[0]) / 1e6
+        ego = read["ego"]
+        assert ego.timing == "absolute"
+        np.testing.assert_allclose(ego.times_s, times, atol=1e-9)
+        poses = scene.world_from_ego_all
+        assert np.abs(ego.poses[:, :3] - poses[:, :3, 3]).max() < ROUND_TRIP_M
+        assert angle_error(ego.poses[:, 3], yaw_from_matrix(poses[:, :3, :3])).max() < ROUND_TRIP_RAD
+        assert len(read) == 1 + scene.boxes.track_id.nunique()
+        for track_id, rows in scene.boxes.groupby("track_id"):
+            rows = rows.sort_values("frame_idx")
+            entity = next(e for e in read.values() if e.name.endswith(f"_{track_id}"))
+            size = rows[["length", "width", "height"]].to_numpy()[0]
+            np.testing.assert_allclose(entity.size, size, atol=1e-9)
+            centres = rows[["cx", "cy", "cz"]].to_numpy()
+            R_store = quat_to_rotmat(rows[["qw", "qx", "qy", "qz"]].to_numpy())
+            if len(entity.times_s):  # a moving entity: every vertex, at its frame's time
+                np.testing.assert_allclose(entity.times_s, times[rows.frame_idx.to_numpy()], atol=1e-9)
+                poses = entity.poses
+            else:  # standing still: its initial position is every pose
+                assert np.ptp(centres, axis=0).max() < 1e-6
+                poses = np.repeat(entity.initial[None], len(rows), axis=0)
+            R_read = np.stack([rotmat_from_euler(r, p, h) for h, p, r in poses[:, 3:]])
+            centre_read = poses[:, :3] + R_read @ entity.centre  # the reference point and its box Center
+            assert np.abs(centre_read - centres).max() < ROUND_TRIP_M, entity.name
+            assert np.abs(R_read - R_store).max() < ROUND_TRIP_RAD, entity.name
+            np.testing.assert_allclose(entity.initial, poses[0], atol=1e-9)
+
+
+def test_entities_carry_their_opendrive_category_and_the_inserted_object_is_an_overturned_misc_object(exported):
+    behaviour = read_scenario(exported / "beh-v000.xosc")
+    for entity in behaviour.values():
+        if entity.name == "ego":
+            assert (entity.object_type, entity.category) == ("Vehicle", "car")
+            continue
+        category = entity.name.rsplit("_", 1)[0]
+        assert (entity.object_type, entity.category) == OSC_CATEGORIES[category]
+    appearance = read_scenario(exported / "app-v000.xosc")
+    truck = appearance[f"object_{INSERTED_TRACK}"]
+    assert (truck.object_type, truck.category) == ("MiscObject", "obstacle")
+    assert len(truck.times_s) == 0  # standing still: placed once, no trajectory
+    assert angle_error(truck.initial[5], math.pi) < 1e-9  # overturned: roll 180 degrees
+    np.testing.assert_allclose(truck.size, [8.0, 2.5, 2.8])
+    np.testing.assert_allclose(truck.centre, [0.0, 0.0, 1.4])
+
+
+def test_the_ego_box_matches_the_behaviour_model_and_the_placement_ego():
+    from omniscs.scs.appearance.placement.config import EGO_HEIGHT_M
+    from omniscs.scs.behavior.tracks import EgoBox
+
+    config, box = OpenScenarioConfig(), EgoBox()
+    assert (config.ego_length, config.ego_width, config.ego_centre_ahead_m) == (box.length, box.width,
+                                                                                box.centre_ahead_m)
+    assert config.ego_height == EGO_HEIGHT_M
+
+
+def test_asam_checkers_find_no_error_in_the_scenarios_or_the_road_network(exported):
+    versions = checker_versions()
+    assert set(versions) == {"asam-qc-openscenarioxml", "asam-qc-opendrive"}
+    files = sorted(p for p in exported.iterdir() if p.suffix in (".xosc", ".xodr"))
+    assert len(files) == 3
+    for path in files:
+        report = check_file(path)
+        assert report.passed, (path.name, report.to_dict())
+        assert report.issues["error"] == 0 and report.schema_checked
+        assert report.checkers["completed"] >= 15  # the schema, reference and semantic rules ran, not skipped
+
+
+def test_the_checkers_do_find_errors_in_a_broken_scenario(exported, tmp_path):
+    text = (exported / "beh-v000.xosc").read_text()
+    broken = tmp_path / "broken.xosc"
+    broken.write_text(text.replace('entityRef="ego"', 'entityRef="nobody"', 1))
+    (tmp_path / road_file_of(exported / "beh-v000.xosc")).write_bytes(
+        (exported / road_file_of(exported / "beh-v000.xosc")).read_bytes())
+    report = check_file(broken)
+    assert not report.passed and report.issues["error"] >= 1
+    bad_road = tmp_path / "bad.xodr"
+    bad_road.write_text((exported / road_file_of(exported / "beh-v000.xosc")).read_text()
+                        .replace('type="driving"', 'type="highway"', 1))
+    assert not check_file(bad_road).passed
+
+
+@pytest.mark.parametrize("template,seed", [("straight", 0), ("t_junction", 1), ("intersection", 3)])
+def test_opendrive_lanes_lie_exactly_on_the_layout_lanes(template, seed):
+    layout = build_layout(template, seed)
+    root = ET.fromstring(procedural_network(layout).xodr)
+    centre_lines = [line for road in root.iter("road") for line in _lane_centre_lines(road)]
+    for lane in layout.lanes.values():
+        samples = np.asarray(lane.centreline, np.float64)
+        if lane.kind == "lane":  # straight: its end points and middle on a lane centre line of its road
+            samples = np.stack([samples[0] + (samples[-1] - samples[0]) * f for f in (0.0, 0.37, 1.0)])
+        best = min(np.abs(_distances(samples, line)).max() for line in centre_lines)
+        assert best < 1e-6, (lane.lane_id, best)
+
+
+def _lane_centre_lines(road: ET.Element) -> list[np.ndarray]:
+    """[K, 2] centre line samples of every driving lane of a road (dense, in the world frame)."""
+    geometry = road.find("planView/geometry")
+    x0, y0, hdg, length = (float(geometry.get(k)) for k in ("x", "y", "hdg", "length"))
+    poly = geometry.find("paramPoly3")
+    p = np.linspace(0.0, 1.0, 2001)
+    if poly is None:
+        u, v = p * length, 0 * p
+    else:
+        c = {k: float(poly.get(k)) for k in ("aU", "bU", "cU", "dU", "aV", "bV", "cV", "dV")}
+        u = c["aU"] + c["bU"] * p + c["cU"] * p ** 2 + c["dU"] * p ** 3
+        v = c["aV"] + c["bV"] * p + c["cV"] * p ** 2 + c["dV"] * p ** 3
+    ref = np.stack([x0 + u * math.cos(hdg) - v * math.sin(hdg), y0 + u * math.sin(hdg) + v * math.cos(hdg)], 1)
+    tangent = np.gradient(ref, axis=0)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) / np.linalg.norm(tangent, axis=1, keepdims=True)
+    offset = road.find("lanes/laneOffset")
+    base = 0.0 if offset is None else float(offset.get("a"))
+    out = []
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        lanes = sorted(road.findall(f"lanes/laneSection/{side}/lane"), key=lambda e: abs(int(e.get("id"))))
+        edge = 0.0
+        for lane in lanes:
+            width = float(lane.find("width").get("a"))
+            if lane.get("type") == "driving":
+                out.append(ref + normal * (base + sign * (edge + width / 2)))
+            edge += width
+    return out
+
+
+def _distances(points: np.ndarray, line: np.ndarray) -> np.ndarray:  # [N, 2], dense [K, 2] -> [N] to the polyline
+    a, b = line[:-1], line[1:]
+    ab = b - a
+    t = np.clip(np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.einsum("kd,kd->k", ab, ab), 0, 1)
+    return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1)
+
+
+def test_junction_paths_are_refused_when_they_are_not_cubic_beziers():
+    t = np.linspace(0, 1, 16)
+    circle = np.stack([np.cos(t * np.pi / 2), np.sin(t * np.pi / 2)], 1) * 10.0
+    with pytest.raises(OmniscsError, match="not a cubic Bezier"):
+        bezier_controls(circle)
+
+
+def test_a_road_map_becomes_one_checked_road_per_lane(tmp_path):
+    arc = np.stack([30 * np.sin(np.linspace(0, 1, 12)), 30 * (1 - np.cos(np.linspace(0, 1, 12)))], 1)
+    road_map = RoadMap(drivable_polygons=(np.array([[-5.0, -5], [40, -5], [40, 30], [-5, 30]]),),
+                       lane_centrelines=(np.array([[0.0, 0.0], [20.0, 0.0]]), arc),
+                       extent_min=np.array([-5.0, -5]), extent_max=np.array([40.0, 30]))
+    network = road_map_network(road_map)
+    path = tmp_path / "map.xodr"
+    path.write_bytes(network.xodr)
+    assert check_file(path).passed
+    roads = ET.fromstring(network.xodr).findall("road")
+    assert len(roads) == 2 and network.source == "road_map"
+    lengths = [float(r.get("length")) for r in roads]
+    assert lengths[0] == pytest.approx(20.0) and lengths[1] == pytest.approx(30.0, rel=1e-3)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-math.pi, math.pi), st.floats(-math.pi / 2, math.pi / 2), st.floats(-math.pi, math.pi))
+def test_heading_pitch_roll_give_back_the_rotation(h, p, r):
+    R = rotmat_from_euler(r, p, h)
+    angles = hpr_from_matrix(R)
+    assert np.isfinite(angles).all()
+    back = rotmat_from_euler(angles[2], angles[1], angles[0])
+    assert np.abs(back - R).max() < 1e-9
+
+
+def test_an_agent_leaving_the_roads_is_refused_naming_it_and_the_time(scene, tmp_path):
+    adversary = moving_track(scene)
+    store = variant_store(scene, tmp_path / "scenes" / "off-v000", "off-v000",
+                          adversarial_boxes(scene, adversary, 30.0), None)
+    out = tmp_path / "xosc"
+    category = str(scene.boxes[scene.boxes.track_id == adversary].category.iloc[0])
+    with pytest.raises(OmniscsError, match=rf"{category}_{adversary} leaves the road network at t = 0\.[1-5]0 s"):
+        export_scenes([store], "openscenario", out)
+    assert not out.exists() and leftovers(tmp_path) == []
+
+
+def test_a_scene_without_a_road_map_is_refused_and_nothing_is_written(tmp_path):
+    store = write_tiny_scene(tmp_path / "tiny")
+    out = tmp_path / "xosc"
+    with pytest.raises(OmniscsError, match="has no road map"):
+        export_scenes([store], "openscenario", out)
+    assert not out.exists() and leftovers(tmp_path) == []
+
+
+def test_a_damaged_variant_file_is_one_clear_error(scene, tmp_path):
+    store = variant_store(scene, tmp_path / "bad-v000", "bad-v000", scene.boxes, None)
+    variant = store / "variant.json"
+    variant.write_text("{not json")
+    out = tmp_path / "xosc"
+    with pytest.raises(OmniscsError, match="variant.json"):
+        export_scenes([store], "openscenario", out)
+    assert not out.exists()
+
+
+def run_cli(args: list[str]):
+    from typer.testing import CliRunner
+
+    from omniscs.cli import app
+
+    return CliRunner().invoke(app, args)
+
+
+def test_the_cli_exports_a_variants_folder_and_refuses_options_of_other_formats(variants, tmp_path):
+    folder = variants[0].parent.parent
+    out = tmp_path / "cli"
+    result = run_cli(["dataset", "export", str(folder), "--format", "openscenario", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.glob("*.xosc")) == ["app-v000.xosc", "beh-v000.xosc"]
+    bad = run_cli(["dataset", "export", str(folder), "--format", "openscenario", "--out", str(tmp_path / "x"),
+                   "--keep-unseen"])
+    assert isinstance(bad.exception, OmniscsError) and "apply to --format nuscenes and uniad only" in str(bad.exception)
+    empty = tmp_path / "variants-only"
+    empty.mkdir()
+    (empty / "variants.json").write_text("[]")
+    unrendered = run_cli(["dataset", "export", str(empty), "--format", "openscenario", "--out", str(tmp_path / "y")])
+    assert isinstance(unrendered.exception, OmniscsError) and "never rendered" in str(unrendered.exception)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
