@@ -8,7 +8,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -27,88 +26,28 @@ from omniscs.export.openscenario import (
     road_file_of,
 )
 from omniscs.geometry import rotmat_from_euler, yaw_from_matrix
-from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
+from omniscs.quaternions import quat_to_rotmat
 from omniscs.roadmap import RoadMap
-from omniscs.scene import SceneWriter, SyntheticSource, load_scene, write_synthetic_scene
+from omniscs.scene import load_scene
 from omniscs.world.layouts import build_layout
 from tests.conftest import write_tiny_scene
 from tests.dataset_fixtures import leftovers
+from tests.export.openscenario_fixtures import (INSERTED_TRACK, adversarial_boxes, moving_track, source_scene,
+                                                variant_store, variant_stores)
 
 #: The round trip's tolerance on positions (the issue's 1 cm) and on angles (radians).
 ROUND_TRIP_M = 0.01
 ROUND_TRIP_RAD = 1e-6
-#: A 4-way intersection (junction paths, both arms), six frames, one thumbnail camera: renders in about a second.
-SOURCE = SyntheticSource(template="intersection", seed=1, n_frames=6, n_cameras=1, width=32, height=18)
-#: The track id of the object the appearance variant inserts.
-INSERTED_TRACK = 900
-
-
-def variant_store(scene, out: Path, store_id: str, boxes: pd.DataFrame, variant: dict | None,
-                  world: bool = True) -> Path:
-    """A variant store of ``scene``: its frames, camera and procedural world, the given boxes, ``variant`` as its
-    variant.json (as the annotate stage writes it), flat images."""
-    camera = scene.camera(scene.camera_names[0])
-    with SceneWriter(out, store_id, {"kind": "variant", "scene_id": scene.scene_id}) as writer:
-        writer.set_frames(scene.frames["timestamp_us"].to_numpy(np.int64), scene.world_from_ego_all)
-        writer.set_cameras([camera])
-        writer.set_boxes(boxes)
-        writer.set_extra(source_scene_id=scene.scene_id)
-        if world:
-            writer.write_world_json((scene.path / "world.json").read_text())
-        for f in range(scene.n_frames):
-            writer.write_image(camera.name, f, np.full((camera.height, camera.width, 3), 90, np.uint8))
-        if variant is not None:
-            (writer.tmp / "variant.json").write_text(json.dumps({"variant": variant}))
-    return out
-
-
-def adversarial_boxes(scene, track: int, metres_per_frame: float) -> pd.DataFrame:
-    """The log's boxes with ``track`` drifting sideways (to its left) by ``metres_per_frame`` every frame."""
-    boxes = scene.boxes.copy()
-    rows = boxes.track_id == track
-    yaw = boxes.loc[rows, "yaw"].to_numpy()
-    step = boxes.loc[rows, "frame_idx"].to_numpy() * metres_per_frame
-    boxes.loc[rows, "cx"] -= np.sin(yaw) * step
-    boxes.loc[rows, "cy"] += np.cos(yaw) * step
-    return boxes
-
-
-def inserted_boxes(scene) -> pd.DataFrame:
-    """The log's boxes plus an overturned truck standing still 25 m ahead of the first ego pose."""
-    pose = scene.world_from_ego(0)
-    yaw = float(yaw_from_matrix(pose[:3, :3])) + 0.4
-    q = rotmat_to_quat(rotmat_from_euler(math.pi, 0.0, yaw))
-    centre = pose[:3, 3] + pose[:3, 0] * 25.0 + np.array([0.0, 0.0, 1.4])
-    rows = [dict(frame_idx=f, track_id=INSERTED_TRACK, category="truck", source_category="truck", cx=centre[0],
-                 cy=centre[1], cz=centre[2], length=8.0, width=2.5, height=2.8, yaw=yaw, qw=q[0], qx=q[1], qy=q[2],
-                 qz=q[3], num_lidar_points=-1, visible_pixels=-1) for f in range(scene.n_frames)]
-    return pd.concat([scene.boxes, pd.DataFrame(rows)], ignore_index=True)
-
-
-def moving_track(scene) -> int:
-    """A track that moves (the adversary of the behaviour variant)."""
-    speed = scene.boxes.groupby("track_id").apply(lambda g: np.ptp(g.cx.to_numpy()) + np.ptp(g.cy.to_numpy()))
-    return int(speed.idxmax())
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    return load_scene(write_synthetic_scene(SOURCE, tmp_path_factory.mktemp("xosc-source") / "store"))
+    return source_scene(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
-def variants(scene, tmp_path_factory) -> list[Path]:
-    """A behaviour variant (one agent cut sideways) and an appearance variant (an overturned truck inserted)."""
-    root = tmp_path_factory.mktemp("xosc-variants")
-    adversary = moving_track(scene)
-    behaviour = variant_store(scene, root / "scenes" / "beh-v000", "beh-v000",
-                              adversarial_boxes(scene, adversary, 0.1),
-                              {"variant_id": "v000", "scene_id": scene.scene_id, "adversary": adversary})
-    appearance = variant_store(scene, root / "scenes" / "app-v000", "app-v000", inserted_boxes(scene),
-                               {"variant_id": "a000", "scene_id": scene.scene_id, "kind": "appearance",
-                                "placement": "insert", "track_id": INSERTED_TRACK, "adversary": INSERTED_TRACK,
-                                "pose": {"static": True, "roll_deg": 180.0}})
-    return [behaviour, appearance]
+def variants(tmp_path_factory) -> list[Path]:
+    return variant_stores(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -342,3 +281,4 @@ def test_the_cli_exports_a_variants_folder_and_refuses_options_of_other_formats(
     unrendered = run_cli(["dataset", "export", str(empty), "--format", "openscenario", "--out", str(tmp_path / "y")])
     assert isinstance(unrendered.exception, OmniscsError) and "never rendered" in str(unrendered.exception)
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
