@@ -104,9 +104,10 @@ def markdown(result: dict) -> str:
     versions = ", ".join(f"{k.removesuffix(' version')} {v}" for k, v in s.items() if k.endswith(" version"))
     lines = ["# OpenSCENARIO + OpenDRIVE export of the benchmark's variants", "",
              f"{s['variants']} variant(s), {s['refused']} refused by the exporter -> {s['xosc_files']} .xosc and "
-             f"{s['xodr_files']} .xodr file(s); checked with {versions}: {s['files_passed']} of {s['files']} file(s) pass (no ERROR issue, no failed check, "
-             f"schema checked); {s['errors']} error(s), {s['warnings']} warning(s), {s['information']} "
-             "information issue(s) in all.", "",
+             f"{s['xodr_files']} .xodr file(s); checked with {versions}: {s['files_passed']} of {s['files']} "
+             "file(s) pass (no ERROR issue, no failed check, schema checked); "
+             f"{s['errors']} error(s), {s['warnings']} warning(s), {s['information']} information issue(s) in all.",
+             "",
              f"Round trip (box centres read back from the .xosc against the stores): largest difference "
              f"{s['round_trip_max_position_m']} m; holds within {ROUND_TRIP_M} m: {s['round_trip_holds']}.", "",
              "| file | checker | passed | errors | warnings | information | checks run | skipped | failed |",
