@@ -107,6 +107,9 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
            keep_unseen: bool = typer.Option(False, help="Also label boxes no sensor captured (no LiDAR point, no "
                                                         "visible pixel) before an object is first seen or after it "
                                                         "is last seen, and objects never seen."),
+           nuscenes_maps: Optional[Path] = typer.Option(None, help="openscenario: a nuScenes dataroot whose "
+                                                                   "maps/expansion give variants of recorded nuScenes "
+                                                                   "logs their roads."),
            workspace: Optional[Path] = workspace_option()) -> None:
     """Export every variant store of a dataset as one nuScenes dataroot (with map expansion), for UniAD, or as one
     OpenSCENARIO scenario per variant on its scene's OpenDRIVE road network."""
@@ -124,7 +127,12 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
     if format == "openscenario":
         if location != "boston-seaport" or keep_unseen:
             raise OmniscsError("--location and --keep-unseen apply to --format nuscenes and uniad only")
-        options = {}
+        if nuscenes_maps is not None and not (nuscenes_maps / "maps" / "expansion").is_dir():
+            raise OmniscsError(f"--nuscenes-maps {nuscenes_maps} has no maps/expansion folder; name the nuScenes "
+                               "dataroot the logs were read from")
+        options = {"nuscenes_maps": nuscenes_maps}
+    elif nuscenes_maps is not None:
+        raise OmniscsError("--nuscenes-maps applies to --format openscenario only")
     with progress_bars() as bars:
         export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"), **options)
     console.print(f"{len(stores)} variant store(s) of {path.name} exported as {format} to {out}")

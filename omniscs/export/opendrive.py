@@ -27,12 +27,23 @@ driving lane (``DEFAULT_LANE_WIDTH_M`` wide, centred on the line) whose referenc
 the centreline as G1-continuous circular arcs and straight pieces (``nuscenes_map.arcline_paths``): exact at the
 vertices, approximate between them. Lanes are not linked (a RoadMap records no topology).
 
-A scene with neither raises an OmniscsError: recorded logs carry no map in their stores.
+**Recorded nuScenes logs: from the map expansion.** A store whose manifest names a nuScenes location gets its roads
+from that location's map expansion (``<dataroot>/maps/expansion/<location>.json``: the log's own dataroot, which its
+manifest records, or one given as ``nuscenes_maps``, which a variant store needs). Every lane and lane connector
+whose path (the chords of its arcline pieces) comes within ``EXPANSION_MARGIN_M`` of the box around the scene's ego
+poses and boxes becomes a road of one driving
+lane: its reference line is the lane's ``arcline_path_3`` (circular arcs and straight pieces, which OpenDRIVE states
+exactly, moved from the global frame into the scene's world frame by the log's ``global_from_world``: its heading
+about z; the expansion is flat), its width the lane polygon's area over its length. The area entities must stay in
+is the expansion's drivable area. Lanes are not linked (no junctions are built from the connectivity table).
+
+A scene with none of these raises an OmniscsError naming what to give.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -50,6 +61,12 @@ ARC_LENGTH_NODES, ARC_LENGTH_PIECES = 32, 64
 #: Largest distance between the layout's junction path samples and the Bezier fitted through them (metres); more
 #: means the layout's paths are no longer cubic Beziers and the export would not be exact.
 BEZIER_FIT_TOLERANCE_M = 1e-6
+#: Map-expansion lanes within this of the scene's ego poses and boxes are exported (metres).
+EXPANSION_MARGIN_M = 50.0
+#: Largest map-expansion file read (the largest nuScenes expansion is about 150 MB).
+MAX_EXPANSION_BYTES = 512 * 2**20
+#: Lane widths estimated from a map-expansion lane polygon are clamped to this range (metres).
+LANE_WIDTH_RANGE_M = (2.0, 6.0)
 
 
 @dataclass(frozen=True)
@@ -58,8 +75,8 @@ class RoadNetwork:
 
     xodr: bytes
     """The ``.xodr`` document (UTF-8)."""
-    area: tuple[np.ndarray, ...]
-    """Polygons [K, 2] (world xy) whose union is where the network's lanes are: drivable area and sidewalks."""
+    area: object
+    """Where the network's lanes are (drivable area and sidewalks): a shapely geometry in world xy (metres)."""
     source: str
     """"procedural" (exact, from the world's layout) or "road_map" (from a RoadMap's lane centrelines)."""
 
@@ -69,20 +86,42 @@ def road_source_id(scene: Scene) -> str:
     return str(scene.manifest.get("source_scene_id") or scene.scene_id)
 
 
-def road_network_of(scene: Scene) -> RoadNetwork:
+def road_network_of(scene: Scene, nuscenes_maps: str | Path | None = None) -> RoadNetwork:
     """The road network of a scene (named after its source scene, so the variants of one scene share it): exact for
-    procedural worlds, from the RoadMap otherwise; an OmniscsError for a scene that has neither."""
+    procedural worlds, from the nuScenes map expansion for recorded nuScenes logs (``nuscenes_maps``: a dataroot
+    holding ``maps/expansion``; default the log's own), from the RoadMap otherwise; an OmniscsError for a scene that
+    has none of these."""
     world = scene.world
     if world is not None:
         from omniscs.world.layouts import layout_for
 
         return procedural_network(layout_for(world), name=road_source_id(scene))
+    expansion = expansion_path(scene, nuscenes_maps)
+    if expansion is not None:
+        return expansion_network(expansion, scene, name=road_source_id(scene))
     road_map = scene.road_map
     if road_map is None:
-        raise OmniscsError(f"scene {scene.scene_id} has no road map (a recorded log's store carries none), so no "
-                           "OpenDRIVE road network can be written for it; export procedural scenes or scenes whose "
-                           "store has a road map")
+        where = f" in {nuscenes_maps}" if nuscenes_maps is not None else ""
+        raise OmniscsError(f"scene {scene.scene_id} has no road map (no procedural world, no nuScenes map "
+                           f"expansion{where} for its location {scene.manifest.get('location')!r}), so no OpenDRIVE "
+                           "road network can be written for it; for a recorded nuScenes log give its dataroot's maps "
+                           "(--nuscenes-maps DATAROOT), else export procedural scenes")
     return road_map_network(road_map, name=road_source_id(scene))
+
+
+def expansion_path(scene: Scene, nuscenes_maps: str | Path | None = None) -> Path | None:
+    """The nuScenes map expansion of a store's location: under ``nuscenes_maps`` when given, else under the dataroot
+    the store was read from; None when the store names no location or the file is not there."""
+    location = scene.manifest.get("location")
+    if not isinstance(location, str) or scene.manifest.get("global_from_world") is None:
+        return None
+    source = scene.manifest.get("source") or {}
+    root = nuscenes_maps if nuscenes_maps is not None else (
+        source.get("dataroot") if source.get("kind") == "nuscenes" else None)
+    if root is None:
+        return None
+    path = Path(root) / "maps" / "expansion" / f"{location}.json"
+    return path if path.is_file() else None
 
 
 # ----------------------------------------------------------------------------- procedural layouts
@@ -265,8 +304,7 @@ def procedural_network(layout, name: str = "omniscs") -> RoadNetwork:
         odr.add_junction(junction)
     for road_id in sorted(built):
         odr.add_road(built[road_id])
-    area = tuple(np.asarray(p, np.float64) for p in (*layout.drivable_polygons, *layout.sidewalk_polygons))
-    return RoadNetwork(_document(odr), area, "procedural")
+    return RoadNetwork(_document(odr), _union([*layout.drivable_polygons, *layout.sidewalk_polygons]), "procedural")
 
 
 # ----------------------------------------------------------------------------- road maps
@@ -302,8 +340,109 @@ def road_map_network(road_map: RoadMap, name: str = "omniscs") -> RoadNetwork:
     if road_id == 0:
         raise OmniscsError("the scene's road map has no lane centreline, so no OpenDRIVE road can be written; "
                            "export scenes whose road map has lanes")
-    area = tuple(np.asarray(p, np.float64) for p in road_map.drivable_polygons)
-    return RoadNetwork(_document(odr), area, "road_map")
+    return RoadNetwork(_document(odr), _union(road_map.drivable_polygons), "road_map")
+
+
+# ----------------------------------------------------------------------------- nuScenes map expansions
+def _expansion_xy(expansion: dict, world_from_global: np.ndarray):
+    """(node token -> world xy [2]) of a map expansion, moved by the planar part of ``world_from_global``."""
+    nodes = {n["token"]: (float(n["x"]), float(n["y"])) for n in expansion.get("node", [])}
+    R, t = world_from_global[:2, :2], world_from_global[:2, 3]
+    return lambda token: R @ np.asarray(nodes[token]) + t
+
+
+def _arcline_segments(path: dict) -> list[tuple[float, float]]:  # -> [(curvature 1/m, length m)] of one record
+    radius = float(path["radius"])
+    out = []
+    for letter, length in zip(path["shape"], path["segment_length"]):
+        if float(length) > 1e-9:
+            out.append((0.0 if letter == "S" else (1.0 if letter == "L" else -1.0) / radius, float(length)))
+    return out
+
+
+def expansion_network(path: str | Path, scene: Scene, name: str = "omniscs") -> RoadNetwork:
+    """An OpenDRIVE network from a nuScenes map expansion, around ``scene`` (see the module docstring)."""
+    from scenariogeneration import xodr
+    from shapely.geometry import LineString, Polygon
+    from shapely.geometry import box as shapely_box
+
+    from omniscs.geometry import invert_transform
+    from omniscs.scene.sources.common import global_from_world_of
+    from omniscs.untrusted import read_json
+
+    expansion = read_json(path, "give the map expansion of the log's nuScenes dataroot", expect=dict,
+                          max_bytes=MAX_EXPANSION_BYTES, what="nuScenes map expansion")
+    world_from_global = invert_transform(global_from_world_of(scene))
+    turn = math.atan2(world_from_global[1, 0], world_from_global[0, 0])
+    def to_world(xy) -> np.ndarray:  # global xy [2] -> world xy [2]
+        return world_from_global[:2, :2] @ np.asarray(xy, np.float64) + world_from_global[:2, 3]
+
+    try:
+        xy_of = _expansion_xy(expansion, world_from_global)
+        polygons = {p["token"]: p for p in expansion.get("polygon", [])}
+
+        def ring(token: str) -> Polygon:
+            record = polygons[token]
+            return Polygon([xy_of(n) for n in record["exterior_node_tokens"]],
+                           [[xy_of(n) for n in hole["node_tokens"]] for hole in record.get("holes", [])])
+
+        reach = [scene.world_from_ego_all[:, :2, 3]]
+        if len(scene.boxes):
+            reach.append(scene.boxes[["cx", "cy"]].to_numpy(np.float64))
+        reach = np.concatenate(reach)
+        region = shapely_box(*(reach.min(0) - EXPANSION_MARGIN_M), *(reach.max(0) + EXPANSION_MARGIN_M))
+        odr = xodr.OpenDrive(name, revMajor=str(ODR_MAJOR), revMinor=str(ODR_MINOR))
+        lanes_by_token = {r["token"]: r for r in [*expansion.get("lane", []), *expansion.get("lane_connector", [])]}
+        road_id = 0
+        for token, paths in sorted(expansion.get("arcline_path_3", {}).items()):
+            chords = [LineString([to_world(p["start_pose"][:2]), to_world(p["end_pose"][:2])]) for p in paths]
+            if not any(chord.intersects(region) for chord in chords):
+                continue
+            plan, s_total = xodr.PlanView(), 0.0
+            for p in paths:
+                x, y = to_world(p["start_pose"][:2])
+                heading = float(p["start_pose"][2]) + turn
+                for curvature, length in _arcline_segments(p):
+                    geometry = xodr.Line(length) if curvature == 0.0 else xodr.Arc(curvature, length=length)
+                    plan.add_fixed_geometry(geometry, float(x), float(y), heading, s=s_total)
+                    s_total += length
+                    if curvature == 0.0:
+                        x, y = x + length * math.cos(heading), y + length * math.sin(heading)
+                    else:
+                        end = heading + curvature * length
+                        x += (math.sin(end) - math.sin(heading)) / curvature
+                        y += (math.cos(heading) - math.cos(end)) / curvature
+                        heading = end
+            if s_total <= 0.0:
+                continue
+            width = DEFAULT_LANE_WIDTH_M
+            lane = lanes_by_token.get(token)
+            if lane is not None and lane.get("polygon_token") in polygons:
+                width = float(np.clip(ring(lane["polygon_token"]).area / s_total, *LANE_WIDTH_RANGE_M))
+            road_id += 1
+            centre = xodr.Lane(lane_type=xodr.LaneType.none)
+            section = xodr.LaneSection(0, centre)
+            section.add_right_lane(xodr.Lane(lane_type=xodr.LaneType.driving, a=width))
+            lanes = xodr.Lanes()
+            lanes.add_laneoffset(xodr.LaneOffset(0, width / 2))
+            lanes.add_lanesection(section)
+            odr.add_road(xodr.Road(road_id, plan, lanes, name=f"nuScenes lane {token}"))
+        area = [ring(token) for record in expansion.get("drivable_area", [])
+                for token in record.get("polygon_tokens", [])]
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise OmniscsError(f"{path} is not a readable nuScenes map expansion ({type(exc).__name__}: {exc}); give "
+                           "the map expansion of the log's nuScenes dataroot") from None
+    if road_id == 0:
+        raise OmniscsError(f"the map expansion {path} has no lane within {EXPANSION_MARGIN_M:g} m of scene "
+                           f"{scene.scene_id}; give the expansion of the location the log was recorded in")
+    return RoadNetwork(_document(odr), _union(area), "nuscenes_expansion")
+
+
+def _union(polygons) -> object:  # [[K, 2] arrays or shapely polygons] -> one shapely geometry
+    from shapely.geometry import Polygon
+    from shapely.ops import unary_union
+
+    return unary_union([p if hasattr(p, "geom_type") else Polygon(np.asarray(p, np.float64)) for p in polygons])
 
 
 def _document(odr) -> bytes:

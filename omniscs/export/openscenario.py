@@ -211,10 +211,8 @@ def check_on_network(entities: list[ScenarioEntity], network: RoadNetwork, what:
                      tolerance_m: float) -> None:
     """An OmniscsError naming the first entity and time whose box centre leaves the network's area."""
     import shapely
-    from shapely.geometry import Polygon
-    from shapely.ops import unary_union
 
-    area = unary_union([Polygon(p) for p in network.area]).buffer(tolerance_m)
+    area = network.area.buffer(tolerance_m)
     for entity in entities:
         xy = box_centres(entity)[:, :2]
         inside = shapely.contains_xy(area, xy[:, 0], xy[:, 1])
@@ -324,15 +322,17 @@ class _RoadFiles:
 
 
 def write_openscenario(scenes: list[Scene], root: Path, progress: Callable[[int, int], None] | None = None,
-                       config: OpenScenarioConfig = OpenScenarioConfig()) -> dict:
+                       config: OpenScenarioConfig = OpenScenarioConfig(),
+                       nuscenes_maps: str | Path | None = None) -> dict:
     """Write every scene store as ``<scene id>.xosc`` into ``root`` (an export's temporary folder) beside the road
     network of its source scene (``<source scene id>.xodr``, one per road network) and ``index.json``. Every scene
-    is checked (its road network exists, its entities stay on it) before anything is written."""
+    is checked (its road network exists, its entities stay on it) before anything is written. ``nuscenes_maps``: a
+    nuScenes dataroot whose map expansions give recorded nuScenes logs their roads (``opendrive.road_network_of``)."""
     import json
 
     prepared, roads = [], _RoadFiles()
     for scene in scenes:
-        network = road_network_of(scene)
+        network = road_network_of(scene, nuscenes_maps)
         entities = scenario_entities(scene, config)
         check_on_network(entities, network, f"scene {scene.scene_id}", config.road_tolerance_m)
         prepared.append((scene, network, entities, roads.name_for(road_source_id(scene), network.xodr)))

@@ -161,19 +161,30 @@ def test_opendrive_lanes_lie_exactly_on_the_layout_lanes(template, seed):
         assert best < 1e-6, (lane.lane_id, best)
 
 
+def _reference_line(road: ET.Element, samples: int = 2001) -> np.ndarray:  # -> [K, 2] dense, world frame
+    """A road's reference line from its planView (line, arc and paramPoly3 geometries, as OpenDRIVE defines them)."""
+    points = []
+    for geometry in road.findall("planView/geometry"):
+        x0, y0, hdg, length = (float(geometry.get(k)) for k in ("x", "y", "hdg", "length"))
+        p = np.linspace(0.0, 1.0, samples)
+        poly, arc = geometry.find("paramPoly3"), geometry.find("arc")
+        if poly is not None:
+            c = {k: float(poly.get(k)) for k in ("aU", "bU", "cU", "dU", "aV", "bV", "cV", "dV")}
+            u = c["aU"] + c["bU"] * p + c["cU"] * p ** 2 + c["dU"] * p ** 3
+            v = c["aV"] + c["bV"] * p + c["cV"] * p ** 2 + c["dV"] * p ** 3
+        elif arc is not None:
+            k, s = float(arc.get("curvature")), p * length
+            u, v = np.sin(k * s) / k, (1 - np.cos(k * s)) / k
+        else:
+            u, v = p * length, 0 * p
+        points.append(np.stack([x0 + u * math.cos(hdg) - v * math.sin(hdg),
+                                y0 + u * math.sin(hdg) + v * math.cos(hdg)], 1))
+    return np.concatenate(points)
+
+
 def _lane_centre_lines(road: ET.Element) -> list[np.ndarray]:
     """[K, 2] centre line samples of every driving lane of a road (dense, in the world frame)."""
-    geometry = road.find("planView/geometry")
-    x0, y0, hdg, length = (float(geometry.get(k)) for k in ("x", "y", "hdg", "length"))
-    poly = geometry.find("paramPoly3")
-    p = np.linspace(0.0, 1.0, 2001)
-    if poly is None:
-        u, v = p * length, 0 * p
-    else:
-        c = {k: float(poly.get(k)) for k in ("aU", "bU", "cU", "dU", "aV", "bV", "cV", "dV")}
-        u = c["aU"] + c["bU"] * p + c["cU"] * p ** 2 + c["dU"] * p ** 3
-        v = c["aV"] + c["bV"] * p + c["cV"] * p ** 2 + c["dV"] * p ** 3
-    ref = np.stack([x0 + u * math.cos(hdg) - v * math.sin(hdg), y0 + u * math.sin(hdg) + v * math.cos(hdg)], 1)
+    ref = _reference_line(road)
     tangent = np.gradient(ref, axis=0)
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], 1) / np.linalg.norm(tangent, axis=1, keepdims=True)
     offset = road.find("lanes/laneOffset")
@@ -193,7 +204,8 @@ def _lane_centre_lines(road: ET.Element) -> list[np.ndarray]:
 def _distances(points: np.ndarray, line: np.ndarray) -> np.ndarray:  # [N, 2], dense [K, 2] -> [N] to the polyline
     a, b = line[:-1], line[1:]
     ab = b - a
-    t = np.clip(np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.einsum("kd,kd->k", ab, ab), 0, 1)
+    t = np.einsum("nkd,kd->nk", points[:, None] - a[None], ab) / np.maximum(np.einsum("kd,kd->k", ab, ab), 1e-18)
+    t = np.clip(t, 0, 1)
     return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1)
 
 
@@ -282,3 +294,37 @@ def test_the_cli_exports_a_variants_folder_and_refuses_options_of_other_formats(
     assert isinstance(unrendered.exception, OmniscsError) and "never rendered" in str(unrendered.exception)
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
+
+
+def test_a_recorded_nuscenes_log_gets_its_roads_from_the_map_expansion(scene, tmp_path):
+    """The intersection exported as nuScenes (with its map expansion), read back as a recorded log: the scenario's
+    roads come from the expansion, the checkers pass, and every lane vertex of the world lies on a road."""
+    from shapely.geometry import LineString
+    from shapely.geometry import box as shapely_box
+
+    from omniscs.export.opendrive import EXPANSION_MARGIN_M
+    from omniscs.scene import parse_source, write_source_scene
+
+    dataroot = export_scenes([scene.path], "nuscenes", tmp_path / "nusc", version="v1.0-mini")
+    source = parse_source(f"nuscenes:{dataroot}/v1.0-mini")
+    log = load_scene(write_source_scene(source, tmp_path / "log"))
+    assert log.world is None and log.manifest["location"]
+    out = export_scenes([log.path], "openscenario", tmp_path / "xosc")
+    (entry,) = json.loads((out / INDEX_JSON).read_text())["scenarios"]
+    assert entry["roads"] == "nuscenes_expansion"
+    for path in sorted(out.glob("*.xo*")):
+        assert check_file(path).passed, path.name
+    road = ET.fromstring((out / entry["road_network"]).read_bytes())
+    lines = [_reference_line(r) for r in road.iter("road")]
+    layout = build_layout(scene.world.template, scene.world.seed)
+    reach = np.concatenate([log.world_from_ego_all[:, :2, 3], log.boxes[["cx", "cy"]].to_numpy()])
+    region = shapely_box(*(reach.min(0) - EXPANSION_MARGIN_M), *(reach.max(0) + EXPANSION_MARGIN_M))
+    near = [lane for lane in layout.lanes.values() if LineString(lane.centreline).intersects(region)]
+    assert near and len(lines) == len(near)  # every lane near the log, and only those, is a road
+    for lane in near:  # arcs through the centreline vertices: exact at every vertex
+        best = min(_distances(np.asarray(lane.centreline, np.float64), line).max() for line in lines)
+        assert best < 1e-3, (lane.lane_id, best)
+    moved = tmp_path / "elsewhere"
+    (moved / "maps").mkdir(parents=True)
+    with pytest.raises(OmniscsError, match="has no road map"):  # the variant of a log needs --nuscenes-maps
+        export_scenes([log.path], "openscenario", tmp_path / "x2", nuscenes_maps=moved)
