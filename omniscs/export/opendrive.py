@@ -18,9 +18,11 @@ paths, both of which OpenDRIVE represents exactly:
   (``laneOffset`` of half a lane). Lane links name the layout's lane successors; the junction's connections say
   which incoming lane feeds which path.
 
-Not modelled: kerb heights (all lanes lie at z = 0; sidewalks are 12-18 cm higher in the world), road marks other
-than the centre line and the lane separators, and the T-junction's sidewalk across the junction mouth on the side
-without an arm (the junction holds driving paths only).
+Sidewalk lanes carry the kerb height as their lane ``height`` (the roads themselves lie at z = 0, as the world's).
+Road marks: the centre line as the world paints it (main road: double solid, dashed or solid; arms: dashed; yellow
+or white), broken lines between lanes of one direction, a solid edge line. Not modelled: where the world breaks its
+marks (junction mouths, crosswalks), crosswalks and stop lines, and the T-junction's sidewalk across the junction
+mouth on the side without an arm (the junction holds driving paths only).
 
 **Road maps (scenes that carry a RoadMap but no procedural world).** Each lane centreline becomes a road of one
 driving lane (``DEFAULT_LANE_WIDTH_M`` wide, centred on the line) whose reference line runs through every vertex of
@@ -61,6 +63,8 @@ ARC_LENGTH_NODES, ARC_LENGTH_PIECES = 32, 64
 #: Largest distance between the layout's junction path samples and the Bezier fitted through them (metres); more
 #: means the layout's paths are no longer cubic Beziers and the export would not be exact.
 BEZIER_FIT_TOLERANCE_M = 1e-6
+#: Width of painted lines (metres; the world paints 13 cm lines).
+MARK_WIDTH_M = 0.13
 #: Map-expansion lanes within this of the scene's ego poses and boxes are exported (metres).
 EXPANSION_MARGIN_M = 50.0
 #: Largest map-expansion file read (the largest nuScenes expansion is about 150 MB).
@@ -241,21 +245,29 @@ def procedural_network(layout, name: str = "omniscs") -> RoadNetwork:
     from scenariogeneration import xodr
 
     roads = _layout_roads(layout)
+    kerb = layout.params["kerb_height"]
+    centre_mark = {"double_solid": xodr.RoadMarkType.solid_solid, "dashed": xodr.RoadMarkType.broken,
+                   "solid": xodr.RoadMarkType.solid}[layout.params["centre_line"]]
+    centre_colour = xodr.RoadMarkColor.yellow if layout.params["centre_yellow"] else xodr.RoadMarkColor.white
     odr = xodr.OpenDrive(name, revMajor=str(ODR_MAJOR), revMinor=str(ODR_MINOR))
     built = {}
     for road in roads:
         plan = xodr.PlanView()
         plan.add_fixed_geometry(xodr.Line(road.length), float(road.start[0]), float(road.start[1]), road.heading)
         centre = xodr.Lane(lane_type=xodr.LaneType.none)
-        centre.add_roadmark(xodr.RoadMark(xodr.RoadMarkType.solid, 0.13))
+        arm = road.road_id > 2  # the world dashes the cross arms' centre lines
+        centre.add_roadmark(xodr.RoadMark(xodr.RoadMarkType.broken if arm else centre_mark, MARK_WIDTH_M,
+                                          color=centre_colour))
         section = xodr.LaneSection(0, centre)
         for side, lanes in ((1, road.left), (-1, road.right)):
             for k, (kind, width) in enumerate(lanes):
                 lane = xodr.Lane(lane_type=getattr(xodr.LaneType, kind), a=float(width))
+                if kind == "sidewalk":  # the slab stands on its kerb
+                    lane.add_height(float(kerb), float(kerb))
                 next_kind = lanes[k + 1][0] if k + 1 < len(lanes) else None
                 if kind == "driving":
                     mark = xodr.RoadMarkType.broken if next_kind == "driving" else xodr.RoadMarkType.solid
-                    lane.add_roadmark(xodr.RoadMark(mark, 0.13))
+                    lane.add_roadmark(xodr.RoadMark(mark, MARK_WIDTH_M, color=xodr.RoadMarkColor.white))
                 (section.add_left_lane if side > 0 else section.add_right_lane)(lane)
         lanes = xodr.Lanes()
         lanes.add_lanesection(section)
