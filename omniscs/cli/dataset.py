@@ -87,7 +87,8 @@ def variant_stores(dataset: str, workspace: Optional[Path]) -> tuple[Path, list[
         return folder, stores
     if not (folder / CARD_JSON).is_file() and (folder / "variants.json").is_file():
         raise OmniscsError(f"{folder} holds behaviour variants that were never rendered (variants.json, no "
-                           f"{SCENES}/): build a dataset of them (`omniscs dataset build`) and export that")
+                           f"{SCENES}/): export them with --format openscenario --scene STORE (the scene store they "
+                           "were made from), or build a dataset of them (`omniscs dataset build`) and export that")
     path = dataset_path(dataset, workspace)
     return path, sorted(p for p in (path / SCENES).iterdir() if p.is_dir())
 
@@ -110,6 +111,9 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
            nuscenes_maps: Optional[Path] = typer.Option(None, help="openscenario: a nuScenes dataroot whose "
                                                                    "maps/expansion give variants of recorded nuScenes "
                                                                    "logs their roads."),
+           scene: Optional[Path] = typer.Option(None, help="openscenario, a folder of behaviour variants never "
+                                                           "rendered (variants.json of `omniscs scs behavior`): the "
+                                                           "scene store they were made from."),
            workspace: Optional[Path] = workspace_option()) -> None:
     """Export every variant store of a dataset as one nuScenes dataroot (with map expansion), for UniAD, or as one
     OpenSCENARIO scenario per variant on its scene's OpenDRIVE road network."""
@@ -117,6 +121,17 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
 
     if format not in ("nuscenes", "uniad", "openscenario") or format not in WRITERS:
         raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes, uniad or openscenario")
+    if scene is not None:
+        if format != "openscenario" or not (Path(dataset) / "variants.json").is_file():
+            raise OmniscsError("--scene applies to --format openscenario of a folder of behaviour variants "
+                               "(variants.json) only")
+        from omniscs.export.openscenario import export_behaviour_variants
+
+        check_out(out, overwrite)
+        export_behaviour_variants(Path(dataset) / "variants.json", scene, out, overwrite=overwrite,
+                                  nuscenes_maps=nuscenes_maps)
+        console.print(f"the behaviour variants of {dataset} exported as openscenario to {out}")
+        return
     path, stores = variant_stores(dataset, workspace)
     check_out(out, overwrite)
     options = {"location": location, "keep_unseen": keep_unseen}

@@ -24,6 +24,10 @@ first pose until its first time, and stays at its last pose after it; the scenar
 Vehicle performance and axles are nominal (``OpenScenarioConfig``): players that follow trajectories by position
 do not use them.
 
+**Behaviour variants never rendered** (``variants.json`` of ``omniscs scs behavior``: planar box centres and yaws
+per step) are written the same way on the scene store they were made from, which gives each track's category and
+height and the heights above ground (``behaviour_variant_entities``).
+
 **Road network check.** Every pose of every entity (its box centre) must lie on the scene's road network (drivable
 area or sidewalk, within ``road_tolerance_m``); a variant whose trajectory leaves it is refused with the entity and
 time.
@@ -198,6 +202,141 @@ def scenario_entities(scene: Scene, config: OpenScenarioConfig = OpenScenarioCon
                                        np.array([0.0, 0.0, height / 2]),
                                        times[rows.frame_idx.to_numpy(np.int64)], poses, moves))
     return entities
+
+
+def _spec_rows(rows, what: str) -> tuple[np.ndarray, np.ndarray]:  # -> xy yaw [S, 3] (NaN where absent), present
+    if not isinstance(rows, list):
+        raise OmniscsError(f"{what} is not a list of [x, y, yaw] rows")
+    out = np.full((len(rows), 3), np.nan)
+    for i, row in enumerate(rows):
+        if row is None:
+            continue
+        if not isinstance(row, list) or len(row) != 3 or not all(isinstance(v, (int, float)) and
+                                                                 not isinstance(v, bool) for v in row):
+            raise OmniscsError(f"{what}: step {i} is {row!r}, not [x, y, yaw] or null")
+        out[i] = row
+    return out, np.isfinite(out).all(axis=1)
+
+
+def behaviour_variant_entities(spec: dict, scene: Scene, config: OpenScenarioConfig = OpenScenarioConfig()
+                               ) -> list[ScenarioEntity]:
+    """The entities of a behaviour variant that was never rendered (one ``variants.json`` entry of ``omniscs scs
+    behavior``: box centres and yaws per step, planar) on its source scene store, which gives each track's category
+    and height and every height above the ground (at the variant's source frames; the track's median where the
+    variant was resampled). The ego's rows are its box centres ``ego_centre_ahead_of_origin_m`` ahead of its
+    reference point."""
+    vid = spec.get("variant_id") if isinstance(spec, dict) else None
+    what = f"behaviour variant {vid!r}"
+    try:
+        stamps = np.asarray(spec["timestamps_us"], np.int64)
+        ahead = float(spec.get("ego_centre_ahead_of_origin_m", config.ego_centre_ahead_m))
+        agents, sizes = spec["agents"], spec["sizes"]
+        frames = spec.get("source_frames")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise OmniscsError(f"{what} lacks a readable {exc} field; write the variants again with `omniscs scs "
+                           "behavior`") from None
+    if spec.get("scene_id") != scene.scene_id:
+        raise OmniscsError(f"{what} belongs to scene {spec.get('scene_id')!r}, not to {scene.scene_id}; give the "
+                           "scene store the variants were made from")
+    if len(stamps) == 0 or np.any(np.diff(stamps) <= 0):
+        raise OmniscsError(f"{what}: timestamps_us must be strictly increasing and not empty")
+    times = (stamps - stamps[0]) / 1e6
+    frames = None if frames is None else np.asarray(frames, np.int64)
+    if frames is not None and (len(frames) != len(stamps) or frames.min() < 0 or frames.max() >= scene.n_frames):
+        raise OmniscsError(f"{what}: source_frames do not name frames of {scene.scene_id}")
+    ego_rows, ego_present = _spec_rows(spec.get("ego"), f"{what} ego")
+    if len(ego_rows) != len(stamps) or not ego_present.all():
+        raise OmniscsError(f"{what}: the ego needs one [x, y, yaw] row per timestamp")
+    ego_z = scene.world_from_ego_all[frames, 2, 3] if frames is not None else \
+        np.full(len(stamps), float(np.median(scene.world_from_ego_all[:, 2, 3])))
+    yaw = ego_rows[:, 2]
+    ego_poses = np.stack([ego_rows[:, 0] - ahead * np.cos(yaw), ego_rows[:, 1] - ahead * np.sin(yaw), ego_z, yaw,
+                          0 * yaw, 0 * yaw], axis=1)
+    entities = [ScenarioEntity("ego", -1, "Vehicle", "car",
+                               np.array([config.ego_length, config.ego_width, config.ego_height]),
+                               np.array([ahead, 0.0, config.ego_height / 2]), times, _unwrapped(ego_poses),
+                               len(times) > 1)]
+    boxes = scene.boxes
+    for key in sorted(agents, key=lambda k: int(k) if str(k).lstrip("-").isdigit() else 0):
+        if not str(key).lstrip("-").isdigit():
+            raise OmniscsError(f"{what}: agent key {key!r} is not a track id")
+        track_id = int(key)
+        rows = boxes[boxes.track_id == track_id].sort_values("frame_idx")
+        if rows.empty:
+            raise OmniscsError(f"{what}: track {track_id} is not in scene {scene.scene_id}; give the scene store "
+                               "the variants were made from")
+        xyyaw, present = _spec_rows(agents[key], f"{what} track {track_id}")
+        if len(xyyaw) != len(stamps):
+            raise OmniscsError(f"{what}: track {track_id} has {len(xyyaw)} rows for {len(stamps)} timestamps")
+        if not present.any():
+            continue
+        category = str(rows.category.iloc[0])
+        if category not in OSC_CATEGORIES:
+            raise OmniscsError(f"scene {scene.scene_id}: track {track_id} has category {category!r}, which has no "
+                               f"OpenSCENARIO counterpart here; known: {sorted(OSC_CATEGORIES)}")
+        height = float(rows.height.iloc[0])
+        length, width = (float(v) for v in sizes.get(str(key), rows[["length", "width"]].iloc[0].tolist()))
+        bottom = rows.cz.to_numpy(np.float64) - height / 2
+        by_frame = dict(zip(rows.frame_idx.to_numpy(np.int64), bottom))
+        z = np.array([by_frame.get(int(f), float(np.median(bottom))) for f in frames]) if frames is not None else \
+            np.full(len(stamps), float(np.median(bottom)))
+        poses = np.stack([xyyaw[:, 0], xyyaw[:, 1], z, xyyaw[:, 2], 0 * z, 0 * z], axis=1)[present]
+        poses = _unwrapped(poses)
+        object_type, osc_category = OSC_CATEGORIES[category]
+        moves = bool(len(poses) > 1 and (np.abs(poses - poses[0]).max(axis=0) > config.still_tolerance_m).any())
+        entities.append(ScenarioEntity(f"{category}_{track_id}", track_id, object_type, osc_category,
+                                       np.array([length, width, height]), np.array([0.0, 0.0, height / 2]),
+                                       times[present], poses, moves))
+    return entities
+
+
+def write_behaviour_variants(specs: list, scene: Scene, root: Path, config: OpenScenarioConfig = OpenScenarioConfig(),
+                             nuscenes_maps: str | Path | None = None) -> dict:
+    """Write every behaviour variant of ``specs`` (a ``variants.json``) made from ``scene`` as
+    ``<scene id>-<variant id>.xosc`` into ``root`` (an export's temporary folder) beside the scene's road network and
+    ``index.json``; every variant is checked before anything is written."""
+    import json
+
+    if not isinstance(specs, list) or not specs:
+        raise OmniscsError("variants.json holds no variant (a list of variants is expected); write the variants "
+                           "again with `omniscs scs behavior`")
+    network = road_network_of(scene, nuscenes_maps)
+    road_file = f"{road_source_id(scene)}.xodr"
+    prepared = []
+    for spec in specs:
+        entities = behaviour_variant_entities(spec, scene, config)
+        name = f"{scene.scene_id}-{spec['variant_id']}"
+        check_on_network(entities, network, f"variant {name}", config.road_tolerance_m)
+        prepared.append((name, spec, entities))
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    (root / road_file).write_bytes(network.xodr)
+    index = []
+    for name, spec, entities in prepared:
+        (root / f"{name}.xosc").write_bytes(scenario_document(entities, road_file, f"omniscs variant {name}", config,
+                                                              int(spec["timestamps_us"][0])))
+        index.append({"scene_id": name, "scenario": f"{name}.xosc", "road_network": road_file,
+                      "roads": network.source, "entities": len(entities), "moving": sum(e.moves for e in entities),
+                      "misc_objects": 0, "duration_s": float(entities[0].times_s[-1])})
+    (root / INDEX_JSON).write_text(json.dumps({"openscenario": f"{OSC_MAJOR}.{OSC_MINOR}", "scenarios": index},
+                                              indent=1))
+    return {"scenarios": index}
+
+
+def export_behaviour_variants(variants_json: str | Path, scene_path: str | Path, out: str | Path,
+                              overwrite: bool = False, config: OpenScenarioConfig = OpenScenarioConfig(),
+                              nuscenes_maps: str | Path | None = None) -> Path:
+    """The behaviour variants of a ``variants.json`` (never rendered) as OpenSCENARIO at ``out``, on the road network
+    of ``scene_path`` (the store they were made from); nothing is left at ``out`` on failure."""
+    from omniscs.scene.store import load_scene
+    from omniscs.storage import atomic_directory
+
+    specs = read_json(variants_json, "write the variants again with `omniscs scs behavior`", expect=list,
+                      what="behaviour variants")
+    scene = load_scene(scene_path)
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        write_behaviour_variants(specs, scene, tmp, config, nuscenes_maps)
+    return Path(out)
 
 
 def box_centres(entity: ScenarioEntity) -> np.ndarray:  # -> [T, 3] world box centre at every pose

@@ -328,3 +328,57 @@ def test_a_recorded_nuscenes_log_gets_its_roads_from_the_map_expansion(scene, tm
     (moved / "maps").mkdir(parents=True)
     with pytest.raises(OmniscsError, match="has no road map"):  # the variant of a log needs --nuscenes-maps
         export_scenes([log.path], "openscenario", tmp_path / "x2", nuscenes_maps=moved)
+
+
+def behaviour_spec(scene, drift: float = 0.05) -> dict:
+    """A variants.json entry as `omniscs scs behavior` writes it: the log replayed (box centres, yaws), the most moving
+    track drifting sideways by ``drift`` metres a step."""
+    adversary = moving_track(scene)
+    frames = list(range(scene.n_frames))
+    agents, sizes = {}, {}
+    for tid, g in scene.boxes.groupby("track_id"):
+        g = g.set_index("frame_idx")
+        shift = drift if int(tid) == adversary else 0.0
+        agents[str(tid)] = [[float(g.loc[f].cx) - shift * f * math.sin(g.loc[f].yaw),
+                             float(g.loc[f].cy) + shift * f * math.cos(g.loc[f].yaw), float(g.loc[f].yaw)]
+                            if f in g.index else None for f in frames]
+        sizes[str(tid)] = [float(g.length.iloc[0]), float(g.width.iloc[0])]
+    ego = scene.world_from_ego_all
+    yaw = yaw_from_matrix(ego[:, :3, :3])
+    rows = [[float(ego[f, 0, 3] + 1.3 * np.cos(yaw[f])), float(ego[f, 1, 3] + 1.3 * np.sin(yaw[f])), float(yaw[f])]
+            for f in frames]
+    return {"variant_id": "v000", "scene_id": scene.scene_id, "ego": rows, "agents": agents, "sizes": sizes,
+            "adversary": adversary, "ego_centre_ahead_of_origin_m": 1.3, "dt": 0.1, "source_frames": frames,
+            "timestamps_us": scene.frames["timestamp_us"].astype(int).tolist()}
+
+
+def test_behaviour_variants_never_rendered_export_on_their_scene_store(scene, tmp_path):
+    folder = tmp_path / "behavior"
+    folder.mkdir()
+    spec = behaviour_spec(scene)
+    (folder / "variants.json").write_text(json.dumps([spec]))
+    out = tmp_path / "xosc"
+    unnamed = run_cli(["dataset", "export", str(folder), "--format", "openscenario", "--out", str(out)])
+    assert isinstance(unnamed.exception, OmniscsError) and "--scene STORE" in str(unnamed.exception)
+    result = run_cli(["dataset", "export", str(folder), "--format", "openscenario", "--out", str(out),
+                      "--scene", str(scene.path)])
+    assert result.exit_code == 0, result.output
+    xosc = out / f"{scene.scene_id}-v000.xosc"
+    for path in (xosc, out / road_file_of(xosc)):
+        assert check_file(path).passed, path.name
+    read = read_scenario(xosc)
+    assert np.abs(read["ego"].poses[:, :2] - scene.world_from_ego_all[:, :2, 3]).max() < ROUND_TRIP_M
+    for tid, rows in spec["agents"].items():
+        track = scene.boxes[scene.boxes.track_id == int(tid)].sort_values("frame_idx")
+        entity = read[f"{track.category.iloc[0]}_{tid}"]
+        present = np.array([r for r in rows if r is not None])
+        poses = entity.poses if len(entity.times_s) else entity.initial[None].repeat(len(present), 0)
+        assert np.abs(poses[:, :2] - present[:, :2]).max() < ROUND_TRIP_M  # planar: centre = reference point
+        assert np.abs(poses[:, 2] - (track.cz.to_numpy() - track.height.to_numpy() / 2)).max() < ROUND_TRIP_M
+        assert angle_error(poses[:, 3], present[:, 2]).max() < ROUND_TRIP_RAD
+    other = dict(spec, scene_id="syn-other")
+    (folder / "variants.json").write_text(json.dumps([other]))
+    wrong = run_cli(["dataset", "export", str(folder), "--format", "openscenario", "--out", str(tmp_path / "w"),
+                     "--scene", str(scene.path)])
+    assert isinstance(wrong.exception, OmniscsError) and "belongs to scene 'syn-other'" in str(wrong.exception)
+    assert not (tmp_path / "w").exists() and leftovers(tmp_path) == []
