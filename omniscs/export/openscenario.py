@@ -9,9 +9,10 @@ Headings along a trajectory are unwrapped (no jump of 2 pi between vertices, so 
 Times are seconds since the scene's first frame: (timestamp_us - first timestamp_us) / 1e6.
 
 **Reference points.** OpenSCENARIO places an entity by its reference point and puts its BoundingBox ``Center``
-relative to it in the entity's frame. The ego's reference point is our ego frame's origin (the rear axle on the
-ground, as OpenSCENARIO's vehicle convention has it); its box centre lies ``ego_centre_ahead_m`` ahead and half its
-height up. Every other entity's reference point is its box centre moved half the box height down its own z axis
+relative to it in the entity's frame. The ego's reference point is our ego frame's origin, the rear axle on the
+ground (OpenSCENARIO puts a vehicle's reference point at its rear axle's centre; players such as esmini take it on
+the ground, their catalogues' BoundingBox Center z being half the height); its box centre lies
+``ego_centre_ahead_m`` ahead and half its height up. Every other entity's reference point is its box centre moved half the box height down its own z axis
 (the middle of the box's bottom face); its Center is (0, 0, height / 2).
 
 **Entities.** The ego, and one ScenarioObject per track of the store: Vehicles (car, truck, bus, trailer,
@@ -50,7 +51,7 @@ from omniscs.quaternions import quat_to_rotmat
 from omniscs.scene.store import Scene
 from omniscs.untrusted import read_json
 
-#: OpenSCENARIO version written (1.2: read by esmini and ASAM's checker; Timing and override need >= 1.1 / 1.2).
+#: OpenSCENARIO version written (1.2: esmini and ASAM's checker read it; Priority override needs 1.2).
 OSC_MAJOR, OSC_MINOR = 1, 2
 #: The variant description a variant store holds beside its tables (``omniscs.annotate.variant``).
 VARIANT_JSON = "variant.json"

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from omniscs.errors import OmniscsError
@@ -233,6 +233,9 @@ def test_a_road_map_becomes_one_checked_road_per_lane(tmp_path):
 
 @settings(max_examples=200, deadline=None)
 @given(st.floats(-math.pi, math.pi), st.floats(-math.pi / 2, math.pi / 2), st.floats(-math.pi, math.pi))
+@example(0.3, math.pi / 2, 0.7)  # gimbal lock: nose straight down / up
+@example(0.3, -math.pi / 2, 0.7)
+@example(2.0, 0.0, math.pi)  # overturned
 def test_heading_pitch_roll_give_back_the_rotation(h, p, r):
     R = rotmat_from_euler(r, p, h)
     angles = hpr_from_matrix(R)
