@@ -117,7 +117,7 @@ class ScenarioEntity:
     category: str
     """The OpenSCENARIO category of that type (VehicleCategory, PedestrianCategory, MiscObjectCategory)."""
     size: np.ndarray
-    """[3] length, width, height of the BoundingBox, metres."""
+    """[3] length, width, height of the BoundingBox, metres (a track's first box: recorded sizes vary a little)."""
     centre: np.ndarray
     """[3] the BoundingBox Center in the entity's frame relative to its reference point, metres."""
     times_s: np.ndarray
