@@ -21,8 +21,8 @@ paths, both of which OpenDRIVE represents exactly:
 Sidewalk lanes carry the kerb height as their lane ``height`` (the roads themselves lie at z = 0, as the world's).
 Road marks: the centre line as the world paints it (main road: double solid, dashed or solid; arms: dashed; yellow
 or white), broken lines between lanes of one direction, a solid edge line. Not modelled: where the world breaks its
-marks (junction mouths, crosswalks), crosswalks and stop lines, and the T-junction's sidewalk across the junction
-mouth on the side without an arm (the junction holds driving paths only).
+marks (junction mouths, crosswalks), crosswalks and stop lines. A T-junction's sidewalk runs on across the junction
+mouth on the side without an arm, as a sidewalk connecting road in the junction.
 
 **Road maps (scenes that carry a RoadMap but no procedural world).** Each lane centreline becomes a road of one
 driving lane (``DEFAULT_LANE_WIDTH_M`` wide, centred on the line) whose reference line runs through every vertex of
@@ -312,6 +312,36 @@ def procedural_network(layout, name: str = "omniscs") -> RoadNetwork:
             built[road_id] = path
             connection = xodr.Connection(src_road.road_id, road_id, xodr.ContactPoint.start)
             connection.add_lanelink(src_lane, -1)
+            junction.add_connection(connection)
+        west, east = roads[0], roads[1]
+        for side in (1, -1):  # a side without an arm keeps its sidewalk across the junction mouth
+            if side in layout.params["arms"]:
+                continue
+            section = west.left if side > 0 else west.right
+            kind, width = section[-1]
+            offset = sum(w for _, w in section[:-1]) + width / 2  # from the reference line to the sidewalk's middle
+            start = west.start + np.array([west.length, side * offset])
+            road_id = 101 + len(connectors) + (0 if side > 0 else 1)
+            plan = xodr.PlanView()
+            plan.add_fixed_geometry(xodr.Line(float(east.start[0] - start[0])), float(start[0]), float(start[1]),
+                                    0.0)
+            walk = xodr.Lane(lane_type=xodr.LaneType.sidewalk, a=float(width))
+            walk.add_height(float(kerb), float(kerb))
+            lane_id = side * len(section)
+            walk.add_link("predecessor", lane_id)
+            walk.add_link("successor", lane_id)
+            section_xodr = xodr.LaneSection(0, xodr.Lane(lane_type=xodr.LaneType.none))
+            section_xodr.add_right_lane(walk)
+            lanes = xodr.Lanes()
+            lanes.add_laneoffset(xodr.LaneOffset(0, float(width) / 2))
+            lanes.add_lanesection(section_xodr)
+            path = xodr.Road(road_id, plan, lanes, road_type=junction_id,
+                             name=f"sidewalk {'left' if side > 0 else 'right'}")
+            path.add_predecessor(xodr.ElementType.road, west.road_id, xodr.ContactPoint.end)
+            path.add_successor(xodr.ElementType.road, east.road_id, xodr.ContactPoint.start)
+            built[road_id] = path
+            connection = xodr.Connection(west.road_id, road_id, xodr.ContactPoint.start)
+            connection.add_lanelink(lane_id, -1)
             junction.add_connection(connection)
         odr.add_junction(junction)
     for road_id in sorted(built):

@@ -209,6 +209,44 @@ def _distances(points: np.ndarray, line: np.ndarray) -> np.ndarray:  # [N, 2], d
     return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1)
 
 
+@pytest.mark.parametrize("template,seed", [("straight", 0), ("t_junction", 1), ("intersection", 3)])
+def test_opendrive_lanes_cover_exactly_the_layout_roads_and_sidewalks(template, seed):
+    """Driving and parking lanes of the straight roads tile the drivable area outside the junction box; sidewalk
+    lanes (the junction mouth's included) tile the sidewalks."""
+    from shapely.geometry import Polygon
+    from shapely.ops import unary_union
+
+    layout = build_layout(template, seed)
+    root = ET.fromstring(procedural_network(layout).xodr)
+    pieces = {"road": [], "sidewalk": []}
+    for road in root.iter("road"):
+        geometries = road.findall("planView/geometry")
+        if len(geometries) != 1 or geometries[0].find("line") is None:
+            continue  # junction paths: curves, checked by the lane centre line test
+        g = geometries[0]
+        x0, y0, hdg, length = (float(g.get(k)) for k in ("x", "y", "hdg", "length"))
+        along, left = np.array([math.cos(hdg), math.sin(hdg)]), np.array([-math.sin(hdg), math.cos(hdg)])
+        offset = road.find("lanes/laneOffset")
+        base = 0.0 if offset is None else float(offset.get("a"))
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            edge = base
+            for lane in sorted(road.findall(f"lanes/laneSection/{side}/lane"), key=lambda e: abs(int(e.get("id")))):
+                width = float(lane.find("width").get("a"))
+                inner, outer = edge, edge + sign * width
+                start = np.array([x0, y0])
+                ring = [start + left * inner, start + along * length + left * inner,
+                        start + along * length + left * outer, start + left * outer]
+                pieces["sidewalk" if lane.get("type") == "sidewalk" else "road"].append(Polygon(ring))
+                edge = outer
+    drivable = unary_union([Polygon(p) for p in layout.drivable_polygons])
+    if layout.junction_polygon is not None:
+        drivable = drivable.difference(Polygon(layout.junction_polygon))
+    sidewalks = unary_union([Polygon(p) for p in layout.sidewalk_polygons])
+    for name, truth in (("road", drivable), ("sidewalk", sidewalks)):
+        exported = unary_union(pieces[name])
+        assert exported.symmetric_difference(truth).area < 1e-6, (name, exported.symmetric_difference(truth).area)
+
+
 def test_junction_paths_are_refused_when_they_are_not_cubic_beziers():
     t = np.linspace(0, 1, 16)
     circle = np.stack([np.cos(t * np.pi / 2), np.sin(t * np.pi / 2)], 1) * 10.0
