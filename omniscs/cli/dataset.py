@@ -121,6 +121,11 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
 
     if format not in ("nuscenes", "uniad", "openscenario") or format not in WRITERS:
         raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes, uniad or openscenario")
+    if nuscenes_maps is not None and format != "openscenario":
+        raise OmniscsError("--nuscenes-maps applies to --format openscenario only")
+    if nuscenes_maps is not None and not (nuscenes_maps / "maps" / "expansion").is_dir():
+        raise OmniscsError(f"--nuscenes-maps {nuscenes_maps} has no maps/expansion folder; name the nuScenes dataroot "
+                           "the logs were read from")
     if scene is not None:
         if format != "openscenario" or not (Path(dataset) / "variants.json").is_file():
             raise OmniscsError("--scene applies to --format openscenario of a folder of behaviour variants "
@@ -142,12 +147,7 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a v
     if format == "openscenario":
         if location != "boston-seaport" or keep_unseen:
             raise OmniscsError("--location and --keep-unseen apply to --format nuscenes and uniad only")
-        if nuscenes_maps is not None and not (nuscenes_maps / "maps" / "expansion").is_dir():
-            raise OmniscsError(f"--nuscenes-maps {nuscenes_maps} has no maps/expansion folder; name the nuScenes "
-                               "dataroot the logs were read from")
         options = {"nuscenes_maps": nuscenes_maps}
-    elif nuscenes_maps is not None:
-        raise OmniscsError("--nuscenes-maps applies to --format openscenario only")
     with progress_bars() as bars:
         export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"), **options)
     console.print(f"{len(stores)} variant store(s) of {path.name} exported as {format} to {out}")

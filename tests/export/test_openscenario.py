@@ -112,6 +112,12 @@ def test_entities_carry_their_opendrive_category_and_the_inserted_object_is_an_o
     np.testing.assert_allclose(truck.centre, [0.0, 0.0, 1.4])
 
 
+def test_every_category_of_the_taxonomy_has_an_openscenario_counterpart():
+    from omniscs.taxonomy import CATEGORIES
+
+    assert set(OSC_CATEGORIES) == set(CATEGORIES)
+
+
 def test_the_ego_box_matches_the_behaviour_model_and_the_placement_ego():
     from omniscs.scs.appearance.placement.config import EGO_HEIGHT_M
     from omniscs.scs.behavior.tracks import EgoBox
