@@ -146,7 +146,7 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                        columns=("file", "checker", "passed", "errors", "warnings", "information",
                                 "checks_completed", "checks_skipped", "checks_failed")),
                Section("Round trip per variant (openscenario.json)", "variants", part="openscenario",
-                       columns=("store", "refused", "position_m", "angle_rad", "time_s")))),
+                       columns=("store", "refused", "position_m", "rotation", "time_s")))),
     Benchmark("downstream", "Downstream models", "omniscs bench downstream  /  omniscs bench downstream --detection",
               "The planning protocol (report.json) and the detection protocol (detection.json) with the proxy "
               "planner and detector: base against fine-tuned with SCS data.",

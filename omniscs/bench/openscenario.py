@@ -1,10 +1,10 @@
 """The OpenSCENARIO step of ``omniscs bench dataset``: every variant store the benchmark annotated is exported as
 ``.xosc`` + ``.xodr`` (``omniscs.export.openscenario``), ASAM's checkers run on every file (their versions and issue
-counts reported), and each scenario is read back and compared with its store (the round trip: largest box-centre
-and angle difference over every entity and vertex). Written as ``reports/dataset/openscenario.json`` and ``.md``."""
+counts reported), and each scenario is read back and compared with its store (the round trip: largest box-centre,
+rotation and time difference over every track and frame). Written as ``reports/dataset/openscenario.json`` and
+``.md``."""
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +14,8 @@ from omniscs.errors import OmniscsError
 from omniscs.export import export_scenes
 from omniscs.export.asam_checks import check_file, checker_versions
 from omniscs.export.opendrive import road_network_of
-from omniscs.export.openscenario import (OpenScenarioConfig, angle_error, box_centres, check_on_network,
-                                         read_scenario, scenario_entities)
+from omniscs.export.openscenario import OpenScenarioConfig, check_on_network, read_scenario, scenario_entities
+from omniscs.geometry import rotmat_from_euler
 from omniscs.scene import load_scene
 
 #: The part of the dataset benchmark's report folder this step writes.
@@ -25,29 +25,49 @@ ROUND_TRIP_M = 0.01
 
 
 def round_trip(store: Path, xosc: Path, config: OpenScenarioConfig = OpenScenarioConfig()) -> dict:
-    """How far the scenario read back from ``xosc`` lies from the store it was written from: entities missing or
-    extra, and the largest box-centre (metres), angle (radians) and time (seconds) difference at any vertex."""
+    """How far the scenario read back from ``xosc`` (with xml.etree) lies from the store it was written from:
+    entities missing or extra, and over every track and frame the largest difference of the box centre (the read
+    reference point plus its BoundingBox Center, turned by the read h, p, r; metres) and rotation (largest element of
+    the rotation matrices' difference) from the store's boxes, and of time from the store's timestamps; the ego's
+    reference point against the store's ego poses."""
+    from omniscs.quaternions import quat_to_rotmat
+
     scene = load_scene(store)
-    expected = {e.name: e for e in scenario_entities(scene, config)}
+    names = {e.track_id: e.name for e in scenario_entities(scene, config)}
     read = read_scenario(xosc)
-    position = angle = time = 0.0
-    for name, entity in expected.items():
-        if name not in read:
+    ts = scene.frames["timestamp_us"].to_numpy(np.int64)
+    frame_times = (ts - ts[0]) / 1e6
+
+    def track_poses(entity, n: int) -> tuple[np.ndarray, np.ndarray]:  # -> times [n], poses [n, 6] as read
+        if len(entity.times_s):
+            return entity.times_s, entity.poses
+        return None, np.repeat(entity.initial[None], n, axis=0)  # standing still: placed once
+
+    missing = sorted(set(names.values()) - set(read))
+    position = rotation = time = 0.0
+    ego = read.get("ego")
+    if ego is not None:
+        times, poses = track_poses(ego, len(ts))
+        position = float(np.abs(poses[:, :3] - scene.world_from_ego_all[:, :3, 3]).max())
+        time = 0.0 if times is None else float(np.abs(times - frame_times).max())
+    for track_id, rows in scene.boxes.groupby("track_id"):
+        entity = read.get(names[int(track_id)])
+        if entity is None:
             continue
-        got = read[name]
-        if entity.moves:
-            times, poses = got.times_s, got.poses
-        else:
-            times, poses = entity.times_s, np.repeat(got.initial[None], len(entity.times_s), axis=0)
-        if len(times) != len(entity.times_s):
-            return {"missing": [], "extra": [], "vertex_count_mismatch": name, "position_m": None,
-                    "angle_rad": None, "time_s": None}
-        back = replace(entity, poses=poses, centre=got.centre)
-        position = max(position, float(np.abs(box_centres(back) - box_centres(entity)).max()))
-        angle = max(angle, float(angle_error(poses[:, 3:], entity.poses[:, 3:]).max()))
-        time = max(time, float(np.abs(times - entity.times_s).max()))
-    return {"missing": sorted(set(expected) - set(read)), "extra": sorted(set(read) - set(expected)),
-            "position_m": position, "angle_rad": angle, "time_s": time}
+        rows = rows.sort_values("frame_idx")
+        times, poses = track_poses(entity, len(rows))
+        if len(poses) != len(rows):
+            return {"missing": missing, "extra": [], "vertex_count_mismatch": entity.name, "position_m": None,
+                    "rotation": None, "time_s": None}
+        R_read = np.stack([rotmat_from_euler(r, p, h) for h, p, r in poses[:, 3:]])
+        centres = poses[:, :3] + R_read @ entity.centre
+        R_store = quat_to_rotmat(rows[["qw", "qx", "qy", "qz"]].to_numpy(np.float64))
+        position = max(position, float(np.abs(centres - rows[["cx", "cy", "cz"]].to_numpy(np.float64)).max()))
+        rotation = max(rotation, float(np.abs(R_read - R_store).max()))
+        if times is not None:
+            time = max(time, float(np.abs(times - frame_times[rows.frame_idx.to_numpy(np.int64)]).max()))
+    return {"missing": missing, "extra": sorted(set(read) - set(names.values())), "position_m": position,
+            "rotation": rotation, "time_s": time}
 
 
 def openscenario_step(stores: list[Path], export_dir: Path, config: OpenScenarioConfig = OpenScenarioConfig()
@@ -115,10 +135,10 @@ def markdown(result: dict) -> str:
     for f in result["files"]:
         lines.append(f"| {f['file']} | {f['checker']} | {f['passed']} | {f['errors']} | {f['warnings']} | "
                      f"{f['information']} | {f['checks_completed']} | {f['checks_skipped']} | {f['checks_failed']} |")
-    lines += ["", "| store | position error (m) | angle error (rad) | time error (s) | missing | extra | refused |",
+    lines += ["", "| store | position error (m) | rotation error | time error (s) | missing | extra | refused |",
               "|---|---|---|---|---|---|---|"]
     for v in result["variants"]:
-        lines.append(f"| {v['store']} | {v.get('position_m')} | {v.get('angle_rad')} | {v.get('time_s')} | "
+        lines.append(f"| {v['store']} | {v.get('position_m')} | {v.get('rotation')} | {v.get('time_s')} | "
                      f"{', '.join(v['missing']) or '-'} | {', '.join(v['extra']) or '-'} | {v['refused'] or '-'} |")
     return "\n".join(lines) + "\n"
 

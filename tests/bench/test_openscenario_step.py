@@ -34,3 +34,19 @@ def test_the_benchmark_step_reports_checker_versions_counts_and_the_round_trip(v
     assert "| beh-v000 |" in (report / "openscenario.md").read_text()
     clean = write_openscenario_report(tmp_path / "reports", variants, tmp_path / "export")["summary"]
     assert clean["all_passed"] and clean["round_trip_holds"]
+
+
+def test_the_round_trip_sees_a_moved_vertex(variants, tmp_path):
+    """The round trip compares the file with the store's boxes: a vertex moved by 5 cm in the file is 5 cm off."""
+    from omniscs.bench.openscenario import round_trip
+    from omniscs.export import export_scenes
+
+    out = export_scenes(variants[:1], "openscenario", tmp_path / "x")
+    xosc = out / "beh-v000.xosc"
+    assert round_trip(variants[0], xosc)["position_m"] < 1e-9
+    text = xosc.read_text()
+    i = text.index("<Vertex", text.index('name="ego_trajectory"'))
+    j = text.index('x="', i) + 3
+    k = text.index('"', j)
+    xosc.write_text(text[:j] + repr(float(text[j:k]) + 0.05) + text[k:])
+    assert abs(round_trip(variants[0], xosc)["position_m"] - 0.05) < 1e-9
