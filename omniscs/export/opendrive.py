@@ -82,7 +82,8 @@ class RoadNetwork:
     area: object
     """Where the network's lanes are (drivable area and sidewalks): a shapely geometry in world xy (metres)."""
     source: str
-    """"procedural" (exact, from the world's layout) or "road_map" (from a RoadMap's lane centrelines)."""
+    """"procedural" (exact, from the world's layout), "nuscenes_expansion" (a recorded nuScenes log's map expansion)
+    or "road_map" (from a RoadMap's lane centrelines)."""
 
 
 def road_source_id(scene: Scene) -> str:
