@@ -429,3 +429,21 @@ def test_behaviour_variants_never_rendered_export_on_their_scene_store(scene, tm
                      "--scene", str(scene.path)])
     assert isinstance(wrong.exception, OmniscsError) and "belongs to scene 'syn-other'" in str(wrong.exception)
     assert not (tmp_path / "w").exists() and leftovers(tmp_path) == []
+
+
+def test_damaged_or_off_road_behaviour_variants_are_one_error_with_nothing_written(scene, tmp_path):
+    from omniscs.export.openscenario import export_behaviour_variants
+
+    variants_json = tmp_path / "variants.json"
+    variants_json.write_text('[{"variant_id": "v000", ')
+    with pytest.raises(OmniscsError, match="variants.json"):
+        export_behaviour_variants(variants_json, scene.path, tmp_path / "a")
+    spec = behaviour_spec(scene, drift=20.0)  # the adversary drifts 20 m a step: off the road at once
+    variants_json.write_text(json.dumps([spec]))
+    with pytest.raises(OmniscsError, match=r"leaves the road network at t = 0\.10 s"):
+        export_behaviour_variants(variants_json, scene.path, tmp_path / "b")
+    spec["ego"][2] = [1.0, 2.0]
+    variants_json.write_text(json.dumps([spec]))
+    with pytest.raises(OmniscsError, match=r"ego: step 2 is \[1\.0, 2\.0\], not \[x, y, yaw\]"):
+        export_behaviour_variants(variants_json, scene.path, tmp_path / "c")
+    assert not any((tmp_path / name).exists() for name in "abc") and leftovers(tmp_path) == []
