@@ -215,6 +215,41 @@ def _distances(points: np.ndarray, line: np.ndarray) -> np.ndarray:  # [N, 2], d
     return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1)
 
 
+@pytest.mark.parametrize("template,seed", [("t_junction", 1), ("intersection", 3)])
+def test_asams_own_geometry_code_puts_every_driving_lane_on_a_world_lane(template, seed, tmp_path):
+    """The lane middle points that asam-qc-opendrive's geometry code computes from the .xodr (its reading of
+    headings, paramPoly3, lane offsets and widths, not ours) lie on the world's lane centrelines."""
+    from qc_opendrive.base import utils
+
+    layout = build_layout(template, seed)
+    path = tmp_path / "roads.xodr"
+    path.write_bytes(procedural_network(layout).xodr)
+    root = utils.get_root_without_default_namespace(str(path))
+    dense = [_resampled(np.asarray(lane.centreline, np.float64)) for lane in layout.lanes.values()]
+    checked = 0
+    for road in utils.get_roads(root):
+        length = utils.get_road_length(road)
+        for section in utils.get_lane_sections(road):
+            for lane in utils.get_left_and_right_lanes_from_lane_section(section):
+                if lane.get("type") != "driving":
+                    continue
+                for s in np.linspace(0.0, length, 7)[1:-1]:
+                    point = utils.get_middle_point_xyz_at_height_zero_from_lane_by_s(road, section, lane, s)
+                    xy = np.array([[point.x, point.y]])
+                    assert min(_distances(xy, line)[0] for line in dense) < 1e-4, (road.get("id"), lane.get("id"), s)
+                    checked += 1
+    assert checked > 20
+
+
+def _resampled(line: np.ndarray) -> np.ndarray:  # [N, 2] -> dense [K, 2] along the world's lane
+    """A straight lane as it is; a junction path (samples of a cubic Bezier) as the Bezier through them, densely."""
+    if len(line) <= 2:
+        return line
+    p0, c0, c1, p1 = bezier_controls(line)
+    t = np.linspace(0.0, 1.0, 4001)[:, None]
+    return (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * c0 + 3 * (1 - t) * t ** 2 * c1 + t ** 3 * p1
+
+
 @pytest.mark.parametrize("template,seed", [("straight", 0), ("t_junction", 1), ("intersection", 3)])
 def test_opendrive_lanes_cover_exactly_the_layout_roads_and_sidewalks(template, seed):
     """Driving and parking lanes of the straight roads tile the drivable area outside the junction box; sidewalk
