@@ -23,7 +23,8 @@ FollowTrajectoryAction (following mode position) along a Polyline of its logged 
 poses with a time per vertex, Timing absolute (scale 1, offset 0). A track absent at the first frame waits at its
 first pose until its first time, and stays at its last pose after it; the scenario stops after the last frame.
 Vehicle performance and axles are nominal (``OpenScenarioConfig``): players that follow trajectories by position
-do not use them.
+do not use them. The ego's Vehicle carries the property ``type = ego_vehicle``, by which CARLA's ScenarioRunner
+tells the ego from the other actors.
 
 **Behaviour variants never rendered** (``variants.json`` of ``omniscs scs behavior``: planar box centres and yaws
 per step) are written the same way on the scene store they were made from, which gives each track's category and
@@ -384,8 +385,11 @@ def _scenario_object(entity: ScenarioEntity, config: OpenScenarioConfig):
         wheel = min(config.wheel_diameter_m, height)
         front = xosc.Axle(0.5, wheel, width, rear_x + 2 * half_base, wheel / 2)
         rear = xosc.Axle(0.0, wheel, width, rear_x, wheel / 2)
-        return xosc.Vehicle(entity.name, getattr(xosc.VehicleCategory, entity.category), box, front, rear,
-                            config.max_speed_mps, config.max_acceleration_mps2, config.max_deceleration_mps2)
+        vehicle = xosc.Vehicle(entity.name, getattr(xosc.VehicleCategory, entity.category), box, front, rear,
+                               config.max_speed_mps, config.max_acceleration_mps2, config.max_deceleration_mps2)
+        if entity.track_id < 0:  # CARLA's ScenarioRunner takes the vehicle with this property as the ego
+            vehicle.add_property("type", "ego_vehicle")
+        return vehicle
     if entity.object_type == "Pedestrian":
         return xosc.Pedestrian(entity.name, config.pedestrian_mass_kg,
                                getattr(xosc.PedestrianCategory, entity.category), box)

@@ -482,3 +482,10 @@ def test_damaged_or_off_road_behaviour_variants_are_one_error_with_nothing_writt
     with pytest.raises(OmniscsError, match=r"ego: step 2 is \[1\.0, 2\.0\], not \[x, y, yaw\]"):
         export_behaviour_variants(variants_json, scene.path, tmp_path / "c")
     assert not any((tmp_path / name).exists() for name in "abc") and leftovers(tmp_path) == []
+
+
+def test_the_ego_is_marked_as_carlas_scenario_runner_finds_it(exported):
+    root = ET.parse(exported / "beh-v000.xosc").getroot()
+    marked = [obj.get("name") for obj in root.iter("ScenarioObject")
+              if any(p.get("name") == "type" and p.get("value") == "ego_vehicle" for p in obj.iter("Property"))]
+    assert marked == ["ego"]
