@@ -4,7 +4,7 @@ thresholds live in one config (``EPDMSConfig``, NAVSIM's values)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -168,6 +168,14 @@ def _json_float(value) -> float | None:
 
 
 # ----------------------------------------------------------------------------- scoring
+def score_with_epdms(trace: "metrics.RunTrace", horizon_s: float = 4.0,
+                     config: EPDMSConfig | None = None) -> "metrics.RunScores":
+    """PDMS and HD-Score (``metrics.score_run``) with NAVSIM v2's EPDMS on the same windows in ``.epdms``
+    (config default ``EPDMSConfig()``); the EPDMS does not change any PDMS or HD-Score figure."""
+    scores = metrics.score_run(trace, horizon_s)
+    return replace(scores, epdms=score_epdms(trace, scores, config if config is not None else EPDMSConfig()))
+
+
 def score_epdms(trace: "metrics.RunTrace", pdms: "metrics.RunScores",
                 config: EPDMSConfig = EPDMSConfig()) -> EPDMSScores:
     """EPDMS of a run over the same per-step windows as its PDMS (``pdms``, from ``metrics.score_run``).

@@ -3,7 +3,7 @@ checks (contacts, off-road, time to collision, route completion) the simulator r
 scored beside PDMS on the same windows, lives in ``omniscs.closedloop.epdms``."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -691,10 +691,9 @@ def _hd_scores(trace: RunTrace, step: int, points: int) -> tuple[float, float, f
     return nc, dac, ttc, comfort
 
 
-def score_run(trace: RunTrace, horizon_s: float = 4.0, epdms=None) -> RunScores:
-    """Score a closed-loop run with NAVSIM's PDMS and HUGSIM's HD-Score, and NAVSIM v2's EPDMS beside them
-    (``omniscs.closedloop.epdms.score_epdms`` with the config ``epdms``, default ``EPDMSConfig()``; in
-    ``RunScores.epdms``). The EPDMS does not change any PDMS or HD-Score figure.
+def score_run(trace: RunTrace, horizon_s: float = 4.0) -> RunScores:
+    """Score a closed-loop run with NAVSIM's PDMS and HUGSIM's HD-Score (``RunScores.epdms`` stays None:
+    ``omniscs.closedloop.epdms.score_with_epdms`` adds NAVSIM v2's EPDMS beside them, on the same windows).
 
     PDMS (Dauner et al., NAVSIM, NeurIPS 2024), per step t, over the window of steps t .. t + horizon_s / dt (cut
     at the run's end). NAVSIM simulates the issued plan for 4 s (LQR tracking on a kinematic bicycle) against
@@ -777,6 +776,4 @@ def score_run(trace: RunTrace, horizon_s: float = 4.0, epdms=None) -> RunScores:
         route_completion=final_rc, any_collision=any(bool(c) for c in contacts),
         at_fault_collisions=int(sum(any(c.at_fault for c in found) for found in contacts)),
         offroad_fraction=_mean(off_now.astype(np.float64)), has_map=has_map, horizon_s=horizon_s)
-    from omniscs.closedloop.epdms import EPDMSConfig, score_epdms  # epdms builds on this module's checks
-
-    return replace(scores, epdms=score_epdms(trace, scores, epdms if epdms is not None else EPDMSConfig()))
+    return scores

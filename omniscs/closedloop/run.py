@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.closedloop import metrics
-from omniscs.closedloop.epdms import EPDMSConfig
+from omniscs.closedloop.epdms import EPDMSConfig, score_with_epdms
 from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.simulator import Simulator
 from omniscs.errors import ValidationError
@@ -72,7 +72,7 @@ def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps:
     if reason is None:
         sim.stop("max_steps")
     trace = scored_trace(sim)
-    scores = metrics.score_run(trace, epdms=epdms)
+    scores = score_with_epdms(trace, config=epdms)
     summary = run_summary(sim, scores, getattr(policy, "name", type(policy).__name__),
                           time.perf_counter() - started, policy_s)
     folder = None

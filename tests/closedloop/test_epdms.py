@@ -9,7 +9,7 @@ import pytest
 
 from omniscs.closedloop import epdms as e
 from omniscs.closedloop.epdms import EPDMSConfig
-from omniscs.closedloop.metrics import score_run
+from omniscs.closedloop.epdms import score_with_epdms as score_run
 from omniscs.errors import ValidationError
 from test_metrics import DT, Rectangle, agent_track, make_trace, straight, uniad_plans
 
@@ -32,7 +32,7 @@ def at(ego, y):
 
 
 def epdms_of(trace, **config):
-    return score_run(trace, epdms=EPDMSConfig(**config)).epdms
+    return score_run(trace, config=EPDMSConfig(**config)).epdms
 
 
 def assert_clean(scores):
@@ -215,7 +215,7 @@ def test_navsim_ttc_checks_a_creeping_ego_that_ours_counts_as_stopped():
     ego, v = straight(0.02, steps)  # 0.02 m/s: over NAVSIM's 0.005, under our 0.05
     oncoming = agent_track(9.25, -10.0, steps) + ("vehicle", (4.5, 2.0))  # reaches the ego's front at 0.5 s
     trace = make_trace(ego, v, [oncoming], reference=np.zeros(steps))
-    ours, navsim = score_run(trace), score_run(trace, epdms=EPDMSConfig(ttc="navsim"))
+    ours, navsim = score_run(trace), score_run(trace, config=EPDMSConfig(ttc="navsim"))
     assert ours.epdms.values["ttc"][0] == 1.0 and navsim.epdms.values["ttc"][0] == 0.0
     assert np.array_equal(ours.ttc, navsim.ttc) and ours.pdms_mean == navsim.pdms_mean  # PDMS keeps its own TTC
     assert navsim.to_dict()["epdms_scores"]["ttc_mode"] == "navsim"
@@ -244,7 +244,7 @@ def test_navsim_ttc_ignores_agents_already_touching_at_the_window_s_start():
 def test_an_empty_run_scores_no_epdms_and_stays_plain_json():
     empty = make_trace(np.zeros((0, 3)), np.zeros(0), reference=np.zeros(0), reference_ego=np.zeros((0, 3)),
                        lane_centrelines=LANES)
-    scores = score_run(empty, epdms=EPDMSConfig(ttc="navsim"))
+    scores = score_run(empty, config=EPDMSConfig(ttc="navsim"))
     d = scores.to_dict()
     assert d["epdms"] is None and d["epdms_scores"]["lk_mean"] is None and d["per_step"]["epdms"] == []
     assert_clean(scores)
@@ -261,14 +261,14 @@ def test_far_agents_far_lanes_and_degenerate_routes_and_lanes_never_give_nan_or_
     for mode in ("ours", "navsim"):
         scores = score_run(make_trace(ego, v, [far], route=route, lane_centrelines=lanes, reference_ego=ego,
                                       reference_agents=far[0][None], plans=uniad_plans(ego, v)),
-                           epdms=EPDMSConfig(ttc=mode))
+                           config=EPDMSConfig(ttc=mode))
         s = scores.epdms
         assert_clean(scores)
         assert np.all(np.isfinite(s.epdms)) and s.epdms.min() == pytest.approx(1.0) and s.lane_keeping_scored
     huge, hv = straight(1e6, 21, x0=1e7)
     scores = score_run(make_trace(huge, hv, plans=uniad_plans(huge, hv), lane_centrelines=LANES,
                                   reference_ego=huge, drivable=Rectangle(-1e12, 1e12, -10.0, 10.0)),
-                       epdms=EPDMSConfig(ttc="navsim"))
+                       config=EPDMSConfig(ttc="navsim"))
     assert_clean(scores)
     assert np.all(np.isfinite(scores.epdms.epdms))
 
