@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from kornia.filters import get_gaussian_kernel1d
 from kornia.metrics import ssim as kornia_ssim
 from torch import Tensor
 
@@ -27,6 +29,13 @@ MAX_PSNR_DB = 100.0
 
 #: SSIM window (pixels), the usual 11x11 Gaussian window.
 SSIM_WINDOW = 11
+
+#: Standard deviation (pixels) of the SSIM window's Gaussian, kornia's and the SSIM paper's.
+SSIM_SIGMA = 1.5
+#: SSIM's stabilising constants, as fractions of the data range (SSIM paper: K1, K2).
+SSIM_K1, SSIM_K2 = 0.01, 0.03
+#: Added to SSIM's denominator (kornia's default), so two flat black images score 1, not NaN.
+SSIM_EPS = 1e-12
 
 #: The scale of 8-bit images, to pass as ``data_range``.
 UINT8_RANGE = 255.0
@@ -95,6 +104,35 @@ def ssim_map(rendered: Image, target: Image,  # [H, W, 3] float or uint8
     image clipped to ``[0, data_range]`` as for PSNR."""
     r, g = _pair(rendered, target)
     return kornia_ssim(_chw(r.clamp(0, data_range)), _chw(g), SSIM_WINDOW, max_val=data_range)[0].mean(0)
+
+
+def ssim_loss(rendered: Tensor,  # [B, C, H, W], differentiable
+              target: Tensor,    # [B, C, H, W]
+              window: int,       # odd, less than twice the smaller side
+              data_range: float = 1.0) -> Tensor:  # -> [] mean of clamp((1 - SSIM) / 2, 0, 1)
+    """The structural dissimilarity a fit trains with: kornia's ``ssim_loss`` (reflect padding, a Gaussian window
+    of sigma ``SSIM_SIGMA``), the same value, with gradients equal to rounding. kornia pads and filters each of the
+    five moments (x, y, x², y², xy) on its own; here each image is padded once and the five moments are filtered
+    by one grouped separable convolution: a fit step's SSIM forward+backward is 1.6x (120x68) to 2.4x (240x135)
+    faster on the CPU."""
+    if window < 1 or window % 2 == 0:
+        raise OmniscsError(f"ssim_loss: the window must be a positive odd number of pixels, got {window}")
+    channels = rendered.shape[1]
+    kernel = get_gaussian_kernel1d(window, SSIM_SIGMA, device=rendered.device, dtype=rendered.dtype)[0]  # [k]
+    pad = window // 2
+    x = F.pad(rendered, (pad, pad, pad, pad), mode="reflect")
+    y = F.pad(target.to(rendered.dtype), (pad, pad, pad, pad), mode="reflect")
+    moments = torch.cat([x, y, x * x, y * y, x * y], 1)                 # [B, 5C, H + 2 pad, W + 2 pad]
+    n = moments.shape[1]
+    filtered = F.conv2d(moments, kernel.view(1, 1, 1, window).expand(n, 1, 1, window), groups=n)
+    filtered = F.conv2d(filtered, kernel.view(1, 1, window, 1).expand(n, 1, window, 1), groups=n)
+    mu_x, mu_y, e_xx, e_yy, e_xy = filtered.split(channels, 1)          # [B, C, H, W] each
+    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    numerator = (2.0 * mu_xy + c1) * (2.0 * (e_xy - mu_xy) + c2)
+    denominator = (mu_xx + mu_yy + c1) * ((e_xx - mu_xx) + (e_yy - mu_yy) + c2)
+    similarity = numerator / (denominator + SSIM_EPS)
+    return torch.clamp((1.0 - similarity) / 2.0, 0.0, 1.0).mean()
 
 
 def ssim(rendered: Image, target: Image,  # [H, W, 3] float or uint8

@@ -53,14 +53,17 @@ class DensifyStrategy:
 
 
 class OptimisedGaussians:
-    """A node's raw parameters as leaf tensors, one Adam per parameter (so rows can be added and removed),
-    and the gradient statistics the strategy accumulates between refinements."""
+    """A node's raw parameters as leaf tensors, their Adam (a parameter group each, so rows can be added and
+    removed), and the gradient statistics the strategy accumulates between refinements."""
 
     def __init__(self, params: GaussianParams, learning_rates: dict[str, float]) -> None:
         self.params: dict[str, Tensor] = {k: v.detach().clone().requires_grad_(True)
                                           for k, v in params.as_dict().items()}
-        self.optimizers = {k: torch.optim.Adam([self.params[k]], lr=learning_rates[k], eps=1e-15)
-                           for k in PARAM_NAMES}
+        # one Adam with a group per parameter: the same update as one Adam each (state is per tensor), in one
+        # step() call per node instead of six (a fit step's Python overhead)
+        self.optimizer = torch.optim.Adam([{"params": [self.params[k]], "lr": learning_rates[k], "name": k}
+                                           for k in PARAM_NAMES], eps=1e-15)
+        self._group = {k: i for i, k in enumerate(PARAM_NAMES)}
         self.device = params.device
         self.grad2d = torch.zeros(len(params), device=self.device)
         self.count = torch.zeros(len(params), device=self.device)
@@ -76,13 +79,11 @@ class OptimisedGaussians:
         return GaussianParams.from_dict({k: v.detach().clone() for k, v in self.params.items()})
 
     def step(self) -> None:
-        for opt in self.optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
 
     def set_lr(self, name: str, lr: float) -> None:
-        for group in self.optimizers[name].param_groups:
-            group["lr"] = lr
+        self.optimizer.param_groups[self._group[name]]["lr"] = lr
 
     def is_finite(self) -> bool:
         return all(bool(torch.isfinite(v).all()) for v in self.params.values())
@@ -97,9 +98,9 @@ class OptimisedGaussians:
             if n_new:
                 data = torch.cat([data, new_rows[name].to(data.dtype)])
             fresh = data.clone().requires_grad_(True)
-            opt = self.optimizers[name]
+            opt = self.optimizer
             state = opt.state.pop(old, None)
-            opt.param_groups[0]["params"] = [fresh]
+            opt.param_groups[self._group[name]]["params"] = [fresh]
             if state is not None:
                 for buf in ADAM_BUFFERS:
                     if buf in state:
@@ -113,7 +114,7 @@ class OptimisedGaussians:
         self.count = torch.cat([self.count[keep], torch.zeros(n_new, device=self.device)])
 
     def reset_moments(self, name: str) -> None:
-        state = self.optimizers[name].state.get(self.params[name])
+        state = self.optimizer.state.get(self.params[name])
         if state:
             for buf in ADAM_BUFFERS:
                 if buf in state:

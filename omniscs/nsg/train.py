@@ -11,7 +11,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 import torch
-from kornia.losses import ssim_loss
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
@@ -20,7 +19,7 @@ from omniscs.nsg.config import FitConfig
 from omniscs.gaussians import GaussianParams, concat_params
 from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key, render_view
 from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_graph, node_budgets
-from omniscs.quality import psnr, ssim
+from omniscs.quality import psnr, ssim, ssim_loss
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
 from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities
@@ -87,7 +86,7 @@ def photometric_loss(rendered: Tensor, target: Tensor,  # [H, W, 3]
         return l1
     a, b = rendered.permute(2, 0, 1)[None].contiguous(), target.permute(2, 0, 1)[None].contiguous()
     window = min(config.loss.ssim_window, 2 * (min(target.shape[:2]) // 2) - 1)
-    dssim = 2.0 * ssim_loss(a, b, max(window, 1))  # kornia returns (1 - SSIM) / 2
+    dssim = 2.0 * ssim_loss(a, b, max(window, 1))  # (1 - SSIM) / 2, as kornia's
     return (1 - config.loss.ssim_weight) * l1 + config.loss.ssim_weight * dssim
 
 

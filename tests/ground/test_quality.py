@@ -8,7 +8,7 @@ import torch
 from kornia.metrics import ssim as kornia_ssim
 
 from omniscs.errors import OmniscsError
-from omniscs.quality import MAX_PSNR_DB, UINT8_RANGE, psnr, psnr_from_mse, ssim, ssim_map
+from omniscs.quality import MAX_PSNR_DB, UINT8_RANGE, psnr, psnr_from_mse, ssim, ssim_loss, ssim_map
 
 
 def _images(seed: int, shape=(24, 32, 3)):
@@ -107,3 +107,32 @@ def test_psnr_stays_finite_at_the_extremes_and_refuses_non_finite_pixels():
         psnr(black, np.zeros((8, 9, 3)))
     with pytest.raises(OmniscsError, match="mask"):
         psnr(black, white, np.ones((8, 9), bool))
+
+
+@pytest.mark.parametrize("size, window, dtype", [((68, 120), 11, torch.float32), ((135, 240), 11, torch.float32),
+                                                 ((7, 9), 5, torch.float32), ((3, 5), 3, torch.float64),
+                                                 ((40, 30), 11, torch.float64)])
+def test_the_fits_ssim_loss_is_kornias_value_and_gradient(size, window, dtype):
+    from kornia.losses import ssim_loss as kornia_ssim_loss
+
+    g = torch.Generator().manual_seed(sum(size))
+    rendered = torch.rand(1, 3, *size, generator=g, dtype=dtype)
+    target = (0.7 * rendered + 0.3 * torch.rand(1, 3, *size, generator=g, dtype=dtype)).clamp(0, 1)
+    ours_in, theirs_in = rendered.clone().requires_grad_(True), rendered.clone().requires_grad_(True)
+    ours, theirs = ssim_loss(ours_in, target, window), kornia_ssim_loss(theirs_in, target, window)
+    ours.backward()
+    theirs.backward()
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert abs(ours.item() - theirs.item()) <= tol
+    scale = theirs_in.grad.abs().max().item()
+    assert scale > 0 and (ours_in.grad - theirs_in.grad).abs().max().item() <= tol * scale * 10
+
+
+def test_the_ssim_loss_of_identical_flat_black_images_is_zero_not_nan_and_even_windows_are_refused():
+    black = torch.zeros(1, 3, 16, 16, requires_grad=True)
+    loss = ssim_loss(black, torch.zeros(1, 3, 16, 16), 11)
+    loss.backward()
+    # SSIM_EPS in the denominator leaves 1e-12 / (c1 c2) / 2 = 5.6e-6 for flat black images, as kornia does
+    assert loss.item() == pytest.approx(1e-12 / (1e-4 * 9e-4) / 2, rel=1e-2) and torch.isfinite(black.grad).all()
+    with pytest.raises(OmniscsError, match="odd"):
+        ssim_loss(black, black.detach(), 4)

@@ -92,8 +92,8 @@ def test_densify_clones_small_splits_large_and_respects_the_budget():
     counts = refine(strategy, node, 100, scene_scale=1.0, budget=10_000, generator=torch.Generator())
     assert counts == {"cloned": 50, "split": 50, "pruned": 0}
     assert len(node) == 300
-    for opt in node.optimizers.values():
-        assert opt.param_groups[0]["params"][0].shape[0] == 300
+    for group in node.optimizer.param_groups:
+        assert group["params"][0].shape[0] == 300 and group["params"][0] is node.params[group["name"]]
     capped = _synthetic_node(200)
     accumulate_gradients(strategy, capped, torch.ones(200, 2), torch.ones(200, 2, dtype=torch.int32), 10, 10)
     refine(strategy, capped, 100, scene_scale=1.0, budget=230, generator=torch.Generator())
