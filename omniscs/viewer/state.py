@@ -1,0 +1,257 @@
+"""What the viewer draws, as plain arrays built from a fitted scene graph or a scene store (no viser here): the splats
+of each node in its own frame, where each node stands at a frame, agent boxes, the ego and its camera frustums,
+trajectories and LiDAR points; and the selected camera's view with the boxes drawn on it."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from omniscs.errors import OmniscsError
+from omniscs.gaussians import activate
+from omniscs.geometry import invert_transform
+from omniscs.nsg.graph import BACKGROUND, SceneGraph, agent_key
+from omniscs.preview import box_pose, draw_box_wireframes
+from omniscs.quaternions import rotmats_from_unit_quats
+from omniscs.render.sh import colors_from_sh
+from omniscs.scene.store import CameraRecord, Scene
+from omniscs.taxonomy import CATEGORIES
+
+#: Box and trajectory colour (RGB) per category: vehicles warm, people and two-wheelers cool, static objects grey.
+CATEGORY_COLOURS: dict[str, tuple[int, int, int]] = {
+    "car": (255, 140, 0), "truck": (230, 60, 40), "bus": (200, 30, 120), "trailer": (170, 90, 40),
+    "construction_vehicle": (240, 200, 0), "pedestrian": (30, 144, 255), "motorcycle": (0, 200, 200),
+    "bicycle": (60, 200, 90), "traffic_cone": (255, 90, 200), "barrier": (150, 150, 150), "debris": (110, 110, 110),
+}
+assert set(CATEGORY_COLOURS) == set(CATEGORIES), "every taxonomy category needs a viewer colour"
+#: Colour of a category outside the taxonomy (a reader's raw label) and of the ego's path and frustums.
+OTHER_COLOUR = (200, 200, 200)
+EGO_COLOUR = (20, 20, 20)
+
+
+def category_colour(category: str) -> tuple[int, int, int]:
+    return CATEGORY_COLOURS.get(category, OTHER_COLOUR)
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """How much the viewer sends to the browser and how it plays."""
+
+    splat_budget: int = 200_000
+    """Most Gaussians drawn as splats; beyond it the most opaque are kept (the faint ones add least to the picture),
+    counted over all nodes together. 500k splats in software WebGL redraw at a few frames per second."""
+    lidar_budget: int = 60_000
+    """Most LiDAR points drawn per frame for a scene store; beyond it every k-th point is kept."""
+    play_fps: float = 10.0
+    """Frames per second of the play button (the logs are 10 Hz)."""
+    frustum_scale_m: float = 1.0
+    """Drawn depth of a camera frustum (metres)."""
+
+    def __post_init__(self) -> None:
+        for name in ("splat_budget", "lidar_budget"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise OmniscsError(f"{name} must be a positive whole number; got {value!r}")
+        for name in ("play_fps", "frustum_scale_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise OmniscsError(f"{name} must be a positive number; got {value!r}")
+
+
+# ----------------------------------------------------------------------------- splats
+@dataclass(frozen=True)
+class Splats:
+    """Gaussians as viser's splat node takes them (``scene.add_gaussian_splats``), in the frame of their node."""
+
+    centers: np.ndarray      # [N, 3] float32 metres
+    covariances: np.ndarray  # [N, 3, 3] float32 metres²
+    rgbs: np.ndarray         # [N, 3] float32 in [0, 1]: the view-independent (band-0) colour
+    opacities: np.ndarray    # [N, 1] float32 in (0, 1)
+
+    def __len__(self) -> int:
+        return self.centers.shape[0]
+
+
+def splat_layers(graph: SceneGraph, budget: int) -> dict[str, Splats]:
+    """{node key (``BACKGROUND``, ``agent_key(track)``): its Gaussians as splats in the node's frame}, activated once
+    (``gaussians.activate``) and cut to the ``budget`` most opaque over all nodes (ties: the earlier Gaussian).
+    Colours are band 0 of the SH: viser's splats are not view-dependent. Agents with relight data show the colours
+    their Gaussians hold (unlit), as the PLY export does."""
+    nodes = {BACKGROUND: graph.background, **{agent_key(a.track_id): a.gaussians for a in graph.agents}}
+    activated = {key: activate(params.detached().to("cpu")) for key, params in nodes.items()}
+    opacity = torch.cat([g.opacities for g in activated.values()]).numpy()
+    keep = np.ones(len(opacity), dtype=bool)
+    if len(opacity) > budget:
+        keep[:] = False
+        keep[np.argsort(-opacity, kind="stable")[:budget]] = True
+    out, start = {}, 0
+    for key, g in activated.items():
+        mask = torch.from_numpy(keep[start:start + len(g)])
+        start += len(g)
+        rotation = rotmats_from_unit_quats(g.quats[mask])             # [n, 3, 3]
+        scales = g.scales[mask]                                        # [n, 3]
+        covariances = rotation @ torch.diag_embed(scales ** 2) @ rotation.transpose(1, 2)
+        rgb = colors_from_sh(0, g.sh[mask], torch.zeros(1, int(mask.sum()), 3))[0].clamp(0.0, 1.0)
+        out[key] = Splats(g.means[mask].numpy().astype(np.float32), covariances.numpy().astype(np.float32),
+                          rgb.numpy().astype(np.float32), g.opacities[mask].numpy().astype(np.float32)[:, None])
+    return out
+
+
+# ----------------------------------------------------------------------------- one frame
+@dataclass(frozen=True)
+class NodePlacement:
+    """Where a node's splat layer stands at a frame."""
+
+    key: str                     # BACKGROUND or agent_key(track_id)
+    world_from_node: np.ndarray  # [4, 4] float64
+
+
+@dataclass(frozen=True)
+class AgentBox:
+    """An agent's (or a logged track's) box at a frame."""
+
+    track_id: int
+    category: str
+    world_from_box: np.ndarray  # [4, 4] float64: box centre, x along the heading
+    size: np.ndarray            # [3] float64 (length, width, height) metres
+    colour: tuple[int, int, int]  # RGB of the category
+
+    @property
+    def label(self) -> str:
+        return f"{self.category} {self.track_id}"
+
+
+@dataclass(frozen=True)
+class Frustum:
+    """A camera of the ego's rig at a frame (OpenCV axes: x right, y down, z forward, as viser's frustums)."""
+
+    camera: str
+    world_from_camera: np.ndarray  # [4, 4] float64
+    fov_y: float                   # vertical field of view, radians
+    aspect: float                  # width / height
+
+
+@dataclass(frozen=True)
+class FrameState:
+    """Everything the 3D view shows at one frame."""
+
+    frame: int
+    world_from_ego: np.ndarray           # [4, 4] float64
+    nodes: tuple[NodePlacement, ...]     # splat layers shown and their poses (a fitted graph; empty for a store)
+    boxes: tuple[AgentBox, ...]          # agents present, by track id
+    frustums: tuple[Frustum, ...]        # the rig's cameras
+    points: np.ndarray | None = None     # [M, 3] float32 world LiDAR points (a scene store), else None
+
+
+def frustum(camera: CameraRecord, world_from_ego: np.ndarray) -> Frustum:
+    fy = float(camera.K[1, 1])
+    return Frustum(camera.name, world_from_ego @ camera.ego_from_camera, 2.0 * float(np.arctan2(0.5 * camera.height, fy)),
+                   camera.width / camera.height)
+
+
+def graph_frame(graph: SceneGraph, frame: int) -> FrameState:
+    """The graph at ``frame``: the background where it was fitted, each agent present at its pose, its box, and the
+    logged rig on the logged ego pose."""
+    f = graph.check_frame(frame)
+    ego = graph.world_from_ego[f]
+    nodes = [NodePlacement(BACKGROUND, np.eye(4))]
+    boxes = []
+    for a in graph.agents:
+        if not a.present[f]:
+            continue
+        nodes.append(NodePlacement(agent_key(a.track_id), a.world_from_agent[f].copy()))
+        boxes.append(AgentBox(a.track_id, a.category, a.world_from_agent[f].copy(), np.array(a.size, np.float64),
+                              category_colour(a.category)))
+    return FrameState(f, ego.copy(), tuple(nodes), tuple(boxes), tuple(frustum(c, ego) for c in graph.cameras))
+
+
+def store_boxes(scene: Scene, frame: int) -> tuple[AgentBox, ...]:
+    """The store's logged boxes at ``frame``, by track id."""
+    return tuple(AgentBox(int(row.track_id), row.category, box_pose(row),
+                          np.array([row.length, row.width, row.height], np.float64), category_colour(row.category))
+                 for row in scene.boxes_at(frame).sort_values("track_id").itertuples())
+
+
+def store_frame(scene: Scene, frame: int, lidar_budget: int) -> FrameState:
+    """The store at ``frame``: its logged boxes, the rig on the ego pose and the frame's LiDAR sweep in the world
+    frame (every k-th point when the sweep holds more than ``lidar_budget``)."""
+    f = scene.check_frame(frame)
+    ego = scene.world_from_ego(f)
+    boxes = store_boxes(scene, f)
+    points = None
+    if scene.has_lidar:
+        sweep = scene.lidar(f)[:, :3].astype(np.float64)       # [N, 3] ego frame
+        stride = max(1, -(-len(sweep) // lidar_budget))
+        sweep = sweep[::stride]
+        points = (sweep @ ego[:3, :3].T + ego[:3, 3]).astype(np.float32)
+    return FrameState(f, ego, (), boxes, tuple(frustum(scene.camera(c), ego) for c in scene.camera_names), points)
+
+
+# ----------------------------------------------------------------------------- trajectories
+@dataclass(frozen=True)
+class Trajectory:
+    """A path over the log: an agent's box centres, or the ego's origin (``track_id`` None)."""
+
+    track_id: int | None
+    category: str          # "ego" for the ego
+    positions: np.ndarray  # [M, 3] float64 world, at the frames where the track is present
+    frames: np.ndarray     # [M] int64
+
+    @property
+    def colour(self) -> tuple[int, int, int]:
+        return EGO_COLOUR if self.track_id is None else category_colour(self.category)
+
+
+def graph_trajectories(graph: SceneGraph) -> tuple[Trajectory, ...]:
+    """The ego's logged path, then each agent node's path (as edited, for an edited graph)."""
+    frames = np.arange(graph.n_frames)
+    out = [Trajectory(None, "ego", graph.world_from_ego[:, :3, 3].copy(), frames)]
+    for a in graph.agents:
+        out.append(Trajectory(a.track_id, a.category, a.world_from_agent[a.present, :3, 3].copy(), frames[a.present]))
+    return tuple(out)
+
+
+def store_trajectories(scene: Scene) -> tuple[Trajectory, ...]:
+    """The ego's logged path, then each logged track's box centres."""
+    out = [Trajectory(None, "ego", scene.world_from_ego_all[:, :3, 3].copy(), np.arange(scene.n_frames))]
+    for tid, rows in scene.boxes.sort_values(["track_id", "frame_idx"]).groupby("track_id", sort=True):
+        out.append(Trajectory(int(tid), str(rows["category"].iloc[0]), rows[["cx", "cy", "cz"]].to_numpy(np.float64),
+                              rows["frame_idx"].to_numpy(np.int64)))
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------- the camera view
+def rendered_image(graph: SceneGraph, camera: str, frame: int) -> np.ndarray:  # -> uint8 [H, W, 3] RGB
+    """The logged camera at ``frame`` through the scene graph's renderer, as ``omniscs render`` writes it."""
+    result = graph.render(graph.view(camera, frame))
+    return (result.rgb.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+
+
+def with_boxes(image: np.ndarray,     # uint8 [H, W, 3]
+               camera: CameraRecord, world_from_ego: np.ndarray,  # [4, 4]
+               boxes: tuple[AgentBox, ...], highlight: int | None = None) -> np.ndarray:
+    """``image`` with ``boxes`` drawn as projected wireframes in their category colours (track ``highlight`` in
+    white)."""
+    cam_from_world = invert_transform(world_from_ego @ camera.ego_from_camera)
+    drawn = [(b.world_from_box, b.size, b.label, (255, 255, 255) if b.track_id == highlight else b.colour)
+             for b in boxes]
+    return draw_box_wireframes(image, camera.K, cam_from_world, drawn)
+
+
+def graph_camera_image(graph: SceneGraph, camera: str, frame: int, boxes: bool = True,
+                       highlight: int | None = None) -> np.ndarray:  # -> uint8 [H, W, 3]
+    """The camera view of a fitted graph: rendered, with the agents' boxes drawn when ``boxes``."""
+    image = rendered_image(graph, camera, frame)
+    if not boxes:
+        return image
+    state = graph_frame(graph, frame)
+    return with_boxes(image, graph.camera(camera), state.world_from_ego, state.boxes, highlight)
+
+
+def store_camera_image(scene: Scene, camera: str, frame: int, boxes: bool = True) -> np.ndarray:  # uint8 [H, W, 3]
+    """The camera view of a scene store: the logged image, with the logged boxes drawn when ``boxes``."""
+    image = scene.image(camera, frame)
+    if not boxes:
+        return image
+    return with_boxes(image, scene.camera(camera), scene.world_from_ego(frame), store_boxes(scene, frame))
