@@ -1,0 +1,420 @@
+"""The viewer's targets (what a path holds) and their wiring to a viser server: the 3D scene, the panel and its
+handlers. The handlers call ``state`` and ``session``; nothing here decides what is drawn or what an edit means."""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from omniscs.errors import OmniscsError
+from omniscs.geometry import make_transform
+from omniscs.nsg.graph import BACKGROUND
+from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
+from omniscs.viewer.session import EditSession
+from omniscs.viewer.state import (EGO_COLOUR, FrameState, Splats, Trajectory, ViewerConfig, graph_camera_image,
+                                  graph_frame, graph_trajectories, splat_layers, store_camera_image, store_frame,
+                                  store_trajectories)
+
+#: Progress callback: (steps done, steps in all, what is happening).
+Progress = Callable[[int, int, str], None]
+
+
+# ----------------------------------------------------------------------------- targets
+class GraphTarget:
+    """A fitted scene-graph checkpoint: splats, agent boxes, the rig, and edits of its agents."""
+
+    kind = "fitted scene graph"
+    editable = True
+
+    def __init__(self, path: Path, graph, config: ViewerConfig, progress: Progress | None = None) -> None:
+        self.path = path
+        self.session = EditSession(graph)
+        if progress:
+            progress(1, 2, f"{graph.n_gaussians:,} Gaussians: activating, keeping {min(graph.n_gaussians, config.splat_budget):,}")
+        # translate/rotate/remove edits move or drop nodes, never change their Gaussians: the layers are made once
+        self.layers: dict[str, Splats] = splat_layers(graph, config.splat_budget)
+        self.n_gaussians = graph.n_gaussians
+        self.scene_id = graph.scene_id
+        self.n_frames = graph.n_frames
+        self.camera_names = [c.name for c in graph.cameras]
+
+    def frame_state(self, frame: int) -> FrameState:
+        return graph_frame(self.session.graph, frame)
+
+    def trajectories(self) -> tuple[Trajectory, ...]:
+        return graph_trajectories(self.session.graph)
+
+    def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
+        return graph_camera_image(self.session.graph, camera, frame, boxes, highlight)
+
+    def summary(self) -> str:
+        n_shown = sum(len(s) for s in self.layers.values())
+        return (f"**{self.scene_id}** ({self.kind}): {self.n_frames} frames, {len(self.session.base.agents)} agent "
+                f"nodes, {n_shown:,} of {self.n_gaussians:,} Gaussians drawn (the most opaque)")
+
+
+class StoreTarget:
+    """A scene store without a fit: LiDAR points, logged boxes, the rig and the logged camera images."""
+
+    kind = "scene store"
+    editable = False
+
+    def __init__(self, path: Path, scene, config: ViewerConfig) -> None:
+        self.path = path
+        self.scene = scene
+        self.config = config
+        self.layers: dict[str, Splats] = {}
+        self.scene_id = scene.scene_id
+        self.n_frames = scene.n_frames
+        self.camera_names = list(scene.camera_names)
+
+    def frame_state(self, frame: int) -> FrameState:
+        return store_frame(self.scene, frame, self.config.lidar_budget)
+
+    def trajectories(self) -> tuple[Trajectory, ...]:
+        return store_trajectories(self.scene)
+
+    def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
+        return store_camera_image(self.scene, camera, frame, boxes)
+
+    def summary(self) -> str:
+        lidar = "LiDAR points" if self.scene.has_lidar else "no LiDAR"
+        return (f"**{self.scene_id}** ({self.kind}, no fit): {self.n_frames} frames, "
+                f"{self.scene.boxes.track_id.nunique()} tracks, {lidar}")
+
+
+def open_target(path: str | Path, config: ViewerConfig | None = None,
+                progress: Progress | None = None) -> GraphTarget | StoreTarget:
+    """What ``path`` holds, opened for viewing: a scene-graph checkpoint (``omniscs fit --out``) or a scene store
+    (``omniscs ingest``, ``omniscs world make``); anything else is one OmniscsError."""
+    from omniscs.nsg.checkpoint import GRAPH_JSON, load_graph
+    from omniscs.scene.store import MANIFEST, load_scene
+
+    config = config or ViewerConfig()
+    path = Path(path)
+    if not path.exists():
+        raise OmniscsError(f"{path} does not exist; give a scene-graph checkpoint folder (omniscs fit --out) or a "
+                           "scene store (omniscs ingest, omniscs world make)")
+    if path.is_dir() and (path / GRAPH_JSON).is_file():
+        if progress:
+            progress(0, 2, f"reading the scene graph {path}")
+        graph = load_graph(path)
+        target = GraphTarget(path, graph, config, progress)
+        if progress:
+            progress(2, 2, "ready")
+        return target
+    if path.is_dir() and (path / MANIFEST).is_file():
+        if progress:
+            progress(0, 1, f"opening the scene store {path}")
+        target = StoreTarget(path, load_scene(path), config)
+        if progress:
+            progress(1, 1, "ready")
+        return target
+    raise OmniscsError(f"{path} is neither a scene-graph checkpoint (a folder with {GRAPH_JSON}: omniscs fit --out) "
+                       f"nor a scene store (a folder with {MANIFEST}); omniscs view opens those two")
+
+
+# ----------------------------------------------------------------------------- viser wiring
+def pose_args(T: np.ndarray) -> dict:  # [4, 4] -> viser's wxyz/position keywords
+    return {"wxyz": rotmat_to_quat(T[:3, :3]), "position": np.asarray(T[:3, 3], dtype=np.float64)}
+
+
+def pose_from_gizmo(wxyz, position) -> np.ndarray:  # viser's (w, x, y, z), (x, y, z) -> [4, 4] float64
+    return make_transform(quat_to_rotmat(np.asarray(wxyz, dtype=np.float64)), np.asarray(position, dtype=np.float64))
+
+
+#: Entry of the agent list when no agent is selected.
+NO_AGENT = "(none)"
+
+
+class ViewerApp:
+    """One target served by one viser server: builds the scene and panel and keeps them in step with the frame,
+    the camera and the edits. Every handler takes the lock: viser runs them on a thread pool."""
+
+    def __init__(self, server, target: GraphTarget | StoreTarget, frame: int = 0,
+                 config: ViewerConfig | None = None, edits_out: Path | None = None) -> None:
+        self.server = server
+        self.target = target
+        self.config = config or ViewerConfig()
+        self.lock = threading.RLock()
+        self.selected: int | None = None
+        self._boxes: dict[int, object] = {}
+        self._splats: dict[str, object] = {}
+        self._frustums: dict[str, object] = {}
+        self._gizmo = None
+        self._stop = threading.Event()
+        start = int(frame)
+        if not 0 <= start < target.n_frames:
+            raise OmniscsError(f"--frame {frame} is out of range: {target.scene_id} has frames 0 to "
+                               f"{target.n_frames - 1}")
+        self._build_panel(start, edits_out or Path(f"{target.scene_id}-edits.json"))
+        self._build_scene(start)
+        self._player = threading.Thread(target=self._play_loop, name="omniscs-view-play", daemon=True)
+        self._player.start()
+
+    # -- panel ------------------------------------------------------------------------------
+    def _build_panel(self, frame: int, edits_out: Path) -> None:
+        gui = self.server.gui
+        t = self.target
+        gui.add_markdown(t.summary())
+        with gui.add_folder("Time"):
+            self.frame_slider = gui.add_slider("Frame", min=0, max=max(t.n_frames - 1, 1), step=1, initial_value=frame,
+                                               disabled=t.n_frames < 2)
+            self.play = gui.add_checkbox("Play", False, disabled=t.n_frames < 2)
+        with gui.add_folder("Camera view"):
+            self.camera = gui.add_dropdown("Camera", t.camera_names, initial_value=t.camera_names[0])
+            self.draw_boxes = gui.add_checkbox("Boxes on image", True)
+            self.image = gui.add_image(np.zeros((2, 2, 3), np.uint8), label="camera view", format="jpeg")
+        self.frame_slider.on_update(lambda _: self.refresh())
+        self.camera.on_update(lambda _: self.refresh_image())
+        self.draw_boxes.on_update(lambda _: self.refresh_image())
+        if not t.editable:
+            return
+        with gui.add_folder("Edit agents"):
+            self.agent_list = gui.add_dropdown("Agent", [NO_AGENT] + self._agent_labels(), initial_value=NO_AGENT)
+            self.remove_button = gui.add_button("Remove agent", disabled=True)
+            self.reset_button = gui.add_button("Reset agent", disabled=True)
+            self.edits_path = gui.add_text("Save to", str(edits_out))
+            self.save_button = gui.add_button("Save edits")
+            self.status = gui.add_markdown("No edits yet. Pick an agent, drag or turn its gizmo.")
+        self.agent_list.on_update(lambda _: self.select(self._track_of(self.agent_list.value)))
+        self.remove_button.on_click(lambda _: self.remove_selected())
+        self.reset_button.on_click(lambda _: self.reset_selected())
+        self.save_button.on_click(lambda _: self.save())
+
+    def _agent_labels(self) -> list[str]:
+        return [f"{a.track_id} {a.category}" for a in self.target.session.base.agents]
+
+    @staticmethod
+    def _track_of(label: str) -> int | None:
+        return None if label == NO_AGENT else int(label.split(" ", 1)[0])
+
+    # -- scene ------------------------------------------------------------------------------
+    def _build_scene(self, frame: int) -> None:
+        scene = self.server.scene
+        for key, splats in self.target.layers.items():
+            if len(splats):
+                self._splats[key] = scene.add_gaussian_splats(f"/splats/{key}", centers=splats.centers,
+                                                              covariances=splats.covariances, rgbs=splats.rgbs,
+                                                              opacities=splats.opacities, visible=key == BACKGROUND)
+        ego = self.target.frame_state(frame).world_from_ego
+        # behind and above the ego, looking down the road: the view a driver knows
+        self.server.initial_camera.position = tuple(ego[:3, :3] @ np.array([-14.0, 0.0, 9.0]) + ego[:3, 3])
+        self.server.initial_camera.look_at = tuple(ego[:3, :3] @ np.array([12.0, 0.0, 0.0]) + ego[:3, 3])
+        self.refresh_trajectories()
+        self.refresh()
+
+    def refresh_trajectories(self) -> None:
+        """The paths as line segments between consecutive present frames, in their track's colour."""
+        segments, colours = [], []
+        for traj in self.target.trajectories():
+            p = traj.positions
+            if len(p) < 2:
+                continue
+            segments.append(np.stack([p[:-1], p[1:]], 1))
+            colours.append(np.tile(np.array(traj.colour, np.uint8), (len(p) - 1, 2, 1)))
+        if segments:
+            self.server.scene.add_line_segments("/trajectories", np.concatenate(segments).astype(np.float32),
+                                                np.concatenate(colours), thickness=2.0, thickness_units="screen")
+        else:
+            self.server.scene.remove_by_name("/trajectories")
+
+    def refresh(self) -> None:
+        """The 3D scene and the camera view at the slider's frame."""
+        with self.lock:
+            frame = int(self.frame_slider.value)
+            state = self.target.frame_state(frame)
+            with self.server.atomic():
+                self._place_nodes(state)
+                self._place_boxes(state)
+                self._place_rig(state)
+                if state.points is not None:
+                    self.server.scene.add_point_cloud("/lidar", state.points, _height_colours(state.points),
+                                                      point_size=0.06)
+                self._place_gizmo(state)
+            self.refresh_image()
+
+    def refresh_image(self) -> None:
+        with self.lock:
+            self.image.image = self.target.camera_image(self.camera.value, int(self.frame_slider.value),
+                                                        bool(self.draw_boxes.value), self.selected)
+
+    def _place_nodes(self, state: FrameState) -> None:
+        shown = {n.key: n.world_from_node for n in state.nodes}
+        for key, handle in self._splats.items():
+            if key in shown:
+                pose = pose_args(shown[key])
+                handle.wxyz, handle.position = pose["wxyz"], pose["position"]
+            handle.visible = key in shown
+
+    def _place_boxes(self, state: FrameState) -> None:
+        shown = set()
+        for box in state.boxes:
+            shown.add(box.track_id)
+            colour = (255, 255, 255) if box.track_id == self.selected else box.colour
+            handle = self._boxes.get(box.track_id)
+            if handle is None:
+                handle = self.server.scene.add_box(f"/boxes/{box.track_id}", color=colour,
+                                                   dimensions=tuple(box.size), wireframe=True, **pose_args(box.world_from_box))
+                self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label,
+                                            position=(0.0, 0.0, 0.5 * float(box.size[2]) + 0.3))
+                handle.on_click(lambda event, tid=box.track_id: self.select(tid))
+                self._boxes[box.track_id] = handle
+            else:
+                pose = pose_args(box.world_from_box)
+                handle.wxyz, handle.position = pose["wxyz"], pose["position"]
+                handle.color, handle.dimensions = colour, tuple(box.size)
+            handle.visible = True
+        for tid, handle in self._boxes.items():
+            if tid not in shown:
+                handle.visible = False
+
+    def _place_rig(self, state: FrameState) -> None:
+        ego = pose_args(state.world_from_ego)
+        if "/ego" not in self._frustums:
+            self._frustums["/ego"] = self.server.scene.add_frame("/ego", axes_length=1.5, axes_radius=0.05, **ego)
+        for f in state.frustums:
+            pose = pose_args(f.world_from_camera)
+            if f.camera not in self._frustums:
+                self._frustums[f.camera] = self.server.scene.add_camera_frustum(
+                    f"/cameras/{f.camera}", fov=f.fov_y, aspect=f.aspect, scale=self.config.frustum_scale_m,
+                    color=EGO_COLOUR, **pose)
+        for name, handle in self._frustums.items():
+            pose = ego if name == "/ego" else pose_args(next(f.world_from_camera for f in state.frustums
+                                                              if f.camera == name))
+            handle.wxyz, handle.position = pose["wxyz"], pose["position"]
+
+    # -- edits ------------------------------------------------------------------------------
+    def select(self, track_id: int | None) -> None:
+        """Make ``track_id`` the selected agent (None: none): its gizmo appears, its box turns white."""
+        with self.lock:
+            if not self.target.editable:
+                return
+            self.selected = track_id if track_id is not None and self.target.session.editable(track_id) else None
+            label = NO_AGENT if self.selected is None else next(
+                (l for l in self.agent_list.options if self._track_of(l) == self.selected), NO_AGENT)
+            if self.agent_list.value != label:
+                self.agent_list.value = label  # calls select again, with the same track: harmless
+            self.remove_button.disabled = self.reset_button.disabled = self.selected is None
+            self.refresh()
+
+    def _place_gizmo(self, state: FrameState) -> None:
+        box = next((b for b in state.boxes if b.track_id == self.selected), None) if self.target.editable else None
+        if box is None:
+            if self._gizmo is not None:
+                self._gizmo.remove()
+                self._gizmo = None
+            return
+        pose = pose_args(box.world_from_box)
+        if self._gizmo is None:
+            self._gizmo = self.server.scene.add_transform_controls("/gizmo", scale=max(2.0, float(box.size.max())),
+                                                                   depth_test=False, **pose)
+            self._gizmo.on_update(self._on_gizmo)
+        else:
+            self._gizmo.wxyz, self._gizmo.position = pose["wxyz"], pose["position"]
+
+    def _on_gizmo(self, event) -> None:
+        """While dragging, the agent's splats and box follow the gizmo; at release the move becomes an edit."""
+        gizmo = event.target
+        with self.lock:
+            if self.selected is None:
+                return
+            pose = pose_from_gizmo(gizmo.wxyz, gizmo.position)
+            key = f"agent.{self.selected}"
+            live = pose_args(pose)
+            for handle in (self._splats.get(key), self._boxes.get(self.selected)):
+                if handle is not None:
+                    handle.wxyz, handle.position = live["wxyz"], live["position"]
+            if event.phase == "end":
+                self.move_selected(pose)
+
+    def move_selected(self, world_from_box: np.ndarray) -> None:
+        """The selected agent put at ``world_from_box`` at the current frame (the handler of a gizmo release)."""
+        with self.lock:
+            try:
+                self.target.session.move(self.selected, int(self.frame_slider.value), world_from_box)
+            except OmniscsError as exc:
+                self.refresh()  # the agent and its gizmo go back where the session has them
+                self.status.content = f"Move refused: {exc}"
+                return
+            self._edited()
+
+    def remove_selected(self) -> None:
+        with self.lock:
+            if self.selected is None:
+                return
+            self.target.session.remove(self.selected)
+            self.selected = None
+            self.agent_list.value = NO_AGENT
+            self.remove_button.disabled = self.reset_button.disabled = True
+            self._edited()
+
+    def reset_selected(self) -> None:
+        with self.lock:
+            if self.selected is not None:
+                self.target.session.reset(self.selected)
+                self._edited()
+
+    def save(self) -> Path | None:
+        """Write the session's spec to the path in the panel; the panel says where, or why not."""
+        with self.lock:
+            try:
+                path = self.target.session.save(Path(self.edits_path.value))
+            except OmniscsError as exc:
+                self.status.content = f"Not saved: {exc}"
+                return None
+            n = len(self.target.session.edits())
+            self.status.content = f"Saved {n} edit(s) to `{path}`. Render them: `omniscs render {self.target.path} " \
+                                  f"--edit @{path} --out edited.png`"
+            return path
+
+    def _edited(self) -> None:
+        n = len(self.target.session.edits())
+        self.status.content = f"{n} edit(s), not saved yet." if n else "No edits."
+        self.refresh_trajectories()
+        self.refresh()
+
+    # -- play -------------------------------------------------------------------------------
+    def _play_loop(self) -> None:
+        while not self._stop.wait(1.0 / self.config.play_fps):
+            if self.play.value and self.target.n_frames > 1:
+                try:
+                    self.frame_slider.value = (int(self.frame_slider.value) + 1) % self.target.n_frames
+                except Exception:  # noqa: BLE001 - a client gone mid-update must not end playback for the others
+                    continue
+
+    def close(self) -> None:
+        self._stop.set()
+        self._player.join(timeout=2.0)
+
+
+def _height_colours(points: np.ndarray) -> np.ndarray:  # [M, 3] world -> uint8 [M, 3]
+    """LiDAR points coloured by height above the lowest return: blue (ground) to yellow (4 m up)."""
+    h = np.clip((points[:, 2] - points[:, 2].min()) / 4.0, 0.0, 1.0)[:, None] if len(points) else np.zeros((0, 1))
+    low, high = np.array([40, 90, 200]), np.array([250, 220, 40])
+    return (low + h * (high - low)).astype(np.uint8)
+
+
+def serve(target: GraphTarget | StoreTarget, host: str = "127.0.0.1", port: int = 8080, frame: int = 0,
+          config: ViewerConfig | None = None, edits_out: Path | None = None,
+          ready: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> None:
+    """Serve ``target`` at http://host:port until Ctrl-C (KeyboardInterrupt), ``stop`` is set, or a stage's
+    ``Stopped``; the server is closed on the way out. ``ready`` gets the URL once the viewer is up."""
+    import viser
+
+    server = viser.ViserServer(host=host, port=port, label=f"omniscs view {target.scene_id}", verbose=False)
+    app = None
+    try:
+        app = ViewerApp(server, target, frame, config, edits_out)
+        if ready:
+            ready(f"http://{host}:{server.get_port()}")
+        stop = stop or threading.Event()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        if app is not None:
+            app.close()
+        server.stop()
