@@ -22,6 +22,8 @@ def view(
                                                "viewer to the network, without a password."),
     frame: int = typer.Option(0, min=0, help="Frame shown first."),
     splats: int = typer.Option(200_000, min=1, help="Most Gaussians drawn (the most opaque are kept)."),
+    scene: Optional[Path] = typer.Option(None, help="With a checkpoint: the scene store it was fitted to (logged "
+                                                    "images beside rendered ones, the road map)."),
     edits_out: Optional[Path] = typer.Option(None, help="Where 'Save edits' writes the edit spec (default "
                                                         "<scene id>-edits.json here); changeable in the panel."),
 ) -> None:
@@ -38,7 +40,7 @@ def view(
                     "this machine (no password); use the default --host 127.0.0.1 and an SSH tunnel to stay private",
                     label="warning", style="yellow")
     with progress_bars() as bars:
-        opened = open_target(target, config, progress=bars.sink("loading"))
+        opened = open_target(target, config, progress=bars.sink("loading"), scene=scene)
     try:
         serve(opened, host=host, port=port, frame=frame, config=config, edits_out=edits_out,
               ready=lambda url: console.print(f"omniscs view: {opened.scene_id} ({opened.kind}) at {url}  "

@@ -3,7 +3,6 @@ handlers. The handlers call ``state`` and ``session``; nothing here decides what
 from __future__ import annotations
 
 import threading
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -15,8 +14,8 @@ from omniscs.nsg.graph import BACKGROUND
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
 from omniscs.viewer.session import EditSession
 from omniscs.viewer.state import (EGO_COLOUR, FrameState, Splats, Trajectory, ViewerConfig, graph_camera_image,
-                                  graph_frame, graph_trajectories, splat_layers, store_camera_image, store_frame,
-                                  store_trajectories)
+                                  graph_frame, graph_trajectories, ground_height, road_lines, splat_layers,
+                                  store_camera_image, store_frame, store_trajectories)
 
 #: Progress callback: (steps done, steps in all, what is happening).
 Progress = Callable[[int, int, str], None]
@@ -29,11 +28,14 @@ class GraphTarget:
     kind = "fitted scene graph"
     editable = True
 
-    def __init__(self, path: Path, graph, config: ViewerConfig, progress: Progress | None = None) -> None:
+    def __init__(self, path: Path, graph, config: ViewerConfig, progress: Progress | None = None,
+                 scene=None) -> None:
         self.path = path
+        self.scene = scene  # the store it was fitted to, when given: logged images and the road map
         self.session = EditSession(graph)
         if progress:
-            progress(1, 2, f"{graph.n_gaussians:,} Gaussians: activating, keeping {min(graph.n_gaussians, config.splat_budget):,}")
+            kept = min(graph.n_gaussians, config.splat_budget)
+            progress(1, 2, f"{graph.n_gaussians:,} Gaussians: activating, keeping {kept:,}")
         # translate/rotate/remove edits move or drop nodes, never change their Gaussians: the layers are made once
         self.layers: dict[str, Splats] = splat_layers(graph, config.splat_budget)
         self.n_gaussians = graph.n_gaussians
@@ -48,7 +50,12 @@ class GraphTarget:
         return graph_trajectories(self.session.graph)
 
     def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
-        return graph_camera_image(self.session.graph, camera, frame, boxes, highlight)
+        return graph_camera_image(self.session.graph, camera, frame, boxes, highlight, self.scene)
+
+    def road(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self.scene is None or self.scene.road_map is None:
+            return None
+        return road_lines(self.scene.road_map, ground_height(self.session.base.world_from_ego))
 
     def summary(self) -> str:
         n_shown = sum(len(s) for s in self.layers.values())
@@ -80,17 +87,23 @@ class StoreTarget:
     def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
         return store_camera_image(self.scene, camera, frame, boxes)
 
+    def road(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self.scene.road_map is None:
+            return None
+        return road_lines(self.scene.road_map, ground_height(self.scene.world_from_ego_all))
+
     def summary(self) -> str:
         lidar = "LiDAR points" if self.scene.has_lidar else "no LiDAR"
         return (f"**{self.scene_id}** ({self.kind}, no fit): {self.n_frames} frames, "
                 f"{self.scene.boxes.track_id.nunique()} tracks, {lidar}")
 
 
-def open_target(path: str | Path, config: ViewerConfig | None = None,
-                progress: Progress | None = None) -> GraphTarget | StoreTarget:
-    """What ``path`` holds, opened for viewing: a scene-graph checkpoint (``omniscs fit --out``) or a scene store
+def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
+                scene: str | Path | None = None) -> GraphTarget | StoreTarget:
+    """What ``path`` holds, opened for viewing: a scene-graph checkpoint (``omniscs fit --out``), optionally with the
+    ``scene`` store it was fitted to (logged images beside rendered ones, its road map), or a scene store
     (``omniscs ingest``, ``omniscs world make``); anything else is one OmniscsError."""
-    from omniscs.nsg.checkpoint import GRAPH_JSON, load_graph
+    from omniscs.nsg.checkpoint import GRAPH_JSON, check_same_scene, load_graph
     from omniscs.scene.store import MANIFEST, load_scene
 
     config = config or ViewerConfig()
@@ -102,11 +115,18 @@ def open_target(path: str | Path, config: ViewerConfig | None = None,
         if progress:
             progress(0, 2, f"reading the scene graph {path}")
         graph = load_graph(path)
-        target = GraphTarget(path, graph, config, progress)
+        store = None
+        if scene is not None:
+            store = load_scene(scene)
+            check_same_scene(graph, store, path)
+        target = GraphTarget(path, graph, config, progress, store)
         if progress:
             progress(2, 2, "ready")
         return target
     if path.is_dir() and (path / MANIFEST).is_file():
+        if scene is not None:
+            raise OmniscsError(f"{path} is a scene store; --scene goes with a scene-graph checkpoint (the store it "
+                               "was fitted to)")
         if progress:
             progress(0, 1, f"opening the scene store {path}")
         target = StoreTarget(path, load_scene(path), config)
@@ -204,6 +224,10 @@ class ViewerApp:
         # behind and above the ego, looking down the road: the view a driver knows
         self.server.initial_camera.position = tuple(ego[:3, :3] @ np.array([-14.0, 0.0, 9.0]) + ego[:3, 3])
         self.server.initial_camera.look_at = tuple(ego[:3, :3] @ np.array([12.0, 0.0, 0.0]) + ego[:3, 3])
+        road = self.target.road()
+        if road is not None and len(road[0]):
+            scene.add_line_segments("/road", road[0].astype(np.float32), road[1], thickness=1.5,
+                                    thickness_units="screen")
         self.refresh_trajectories()
         self.refresh()
 
@@ -257,8 +281,8 @@ class ViewerApp:
             colour = (255, 255, 255) if box.track_id == self.selected else box.colour
             handle = self._boxes.get(box.track_id)
             if handle is None:
-                handle = self.server.scene.add_box(f"/boxes/{box.track_id}", color=colour,
-                                                   dimensions=tuple(box.size), wireframe=True, **pose_args(box.world_from_box))
+                handle = self.server.scene.add_box(f"/boxes/{box.track_id}", color=colour, dimensions=tuple(box.size),
+                                                   wireframe=True, **pose_args(box.world_from_box))
                 self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label,
                                             position=(0.0, 0.0, 0.5 * float(box.size[2]) + 0.3))
                 handle.on_click(lambda event, tid=box.track_id: self.select(tid))

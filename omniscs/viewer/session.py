@@ -90,7 +90,8 @@ class EditSession:
     def reset(self, track_id: int) -> SceneGraph:
         """Undo every edit of agent ``track_id`` (moves and removal)."""
         tid = int(track_id)
-        return self._commit({k: v for k, v in self._motions.items() if k != tid}, [t for t in self._removed if t != tid])
+        return self._commit({k: v for k, v in self._motions.items() if k != tid},
+                            [t for t in self._removed if t != tid])
 
     def _commit(self, motions: dict, removed: list[int]) -> SceneGraph:
         old = (self._motions, self._removed)

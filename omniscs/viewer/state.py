@@ -146,8 +146,8 @@ class FrameState:
 
 def frustum(camera: CameraRecord, world_from_ego: np.ndarray) -> Frustum:
     fy = float(camera.K[1, 1])
-    return Frustum(camera.name, world_from_ego @ camera.ego_from_camera, 2.0 * float(np.arctan2(0.5 * camera.height, fy)),
-                   camera.width / camera.height)
+    fov_y = 2.0 * float(np.arctan2(0.5 * camera.height, fy))
+    return Frustum(camera.name, world_from_ego @ camera.ego_from_camera, fov_y, camera.width / camera.height)
 
 
 def graph_frame(graph: SceneGraph, frame: int) -> FrameState:
@@ -221,6 +221,38 @@ def store_trajectories(scene: Scene) -> tuple[Trajectory, ...]:
     return tuple(out)
 
 
+# ----------------------------------------------------------------------------- the road map
+#: Colours of lane centrelines and of the drivable area's outline.
+LANE_COLOUR = (250, 250, 250)
+DRIVABLE_COLOUR = (90, 90, 90)
+
+
+def road_lines(road_map, ground_z: float,
+               ) -> tuple[np.ndarray, np.ndarray]:  # segments [S, 2, 3] world, uint8 colours [S, 2, 3]
+    """A road map (``omniscs.roadmap.RoadMap``, 2D) as line segments at height ``ground_z``: every lane centreline
+    and the outline of every drivable polygon (their union is the drivable area)."""
+    segments, colours = [], []
+    for lines, closed, colour in ((road_map.lane_centrelines, False, LANE_COLOUR),
+                                  (road_map.drivable_polygons, True, DRIVABLE_COLOUR)):
+        for line in lines:
+            xy = np.asarray(line, dtype=np.float64).reshape(-1, 2)
+            if closed and len(xy) > 2:
+                xy = np.concatenate([xy, xy[:1]])
+            if len(xy) < 2:
+                continue
+            xyz = np.concatenate([xy, np.full((len(xy), 1), float(ground_z))], 1)
+            segments.append(np.stack([xyz[:-1], xyz[1:]], 1))
+            colours.append(np.tile(np.array(colour, np.uint8), (len(xy) - 1, 2, 1)))
+    if not segments:
+        return np.zeros((0, 2, 3)), np.zeros((0, 2, 3), np.uint8)
+    return np.concatenate(segments), np.concatenate(colours)
+
+
+def ground_height(world_from_ego: np.ndarray) -> float:  # [F, 4, 4] -> metres
+    """Height of the road under the log: the ego frame's origin lies on the ground (DESIGN.md), so its median."""
+    return float(np.median(world_from_ego[:, 2, 3]))
+
+
 # ----------------------------------------------------------------------------- the camera view
 def rendered_image(graph: SceneGraph, camera: str, frame: int) -> np.ndarray:  # -> uint8 [H, W, 3] RGB
     """The logged camera at ``frame`` through the scene graph's renderer, as ``omniscs render`` writes it."""
@@ -240,13 +272,21 @@ def with_boxes(image: np.ndarray,     # uint8 [H, W, 3]
 
 
 def graph_camera_image(graph: SceneGraph, camera: str, frame: int, boxes: bool = True,
-                       highlight: int | None = None) -> np.ndarray:  # -> uint8 [H, W, 3]
-    """The camera view of a fitted graph: rendered, with the agents' boxes drawn when ``boxes``."""
+                       highlight: int | None = None, scene: Scene | None = None) -> np.ndarray:  # uint8 [H, W(*2), 3]
+    """The camera view of a fitted graph: rendered, with the agents' boxes drawn when ``boxes``; with the ``scene``
+    it was fitted to, the logged image (its logged boxes drawn) to the left of the rendered one."""
     image = rendered_image(graph, camera, frame)
-    if not boxes:
+    if boxes:
+        state = graph_frame(graph, frame)
+        image = with_boxes(image, graph.camera(camera), state.world_from_ego, state.boxes, highlight)
+    if scene is None or camera not in scene.camera_names:
         return image
-    state = graph_frame(graph, frame)
-    return with_boxes(image, graph.camera(camera), state.world_from_ego, state.boxes, highlight)
+    logged = store_camera_image(scene, camera, frame, boxes)
+    if logged.shape != image.shape:  # the rig was rendered at another size than it was logged
+        import cv2
+
+        logged = cv2.resize(logged, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_AREA)
+    return np.concatenate([logged, image], axis=1)
 
 
 def store_camera_image(scene: Scene, camera: str, frame: int, boxes: bool = True) -> np.ndarray:  # uint8 [H, W, 3]

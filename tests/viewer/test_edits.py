@@ -95,7 +95,8 @@ def test_the_saved_spec_round_trips_and_renders_as_omniscs_render_does(app, fitt
     spec = app.save()
     assert read_edits(f"@{spec}") == parse_edits(app.target.session.spec()) == app.target.session.edits()
     out = tmp_path / "edited.png"
-    result = CliRunner().invoke(cli, ["render", str(checkpoint), "--frame", "2", "--edit", f"@{spec}", "--out", str(out)])
+    result = CliRunner().invoke(cli, ["render", str(checkpoint), "--frame", "2", "--edit", f"@{spec}",
+                                      "--out", str(out)])
     assert result.exit_code == 0, result.output
     shown = rendered_image(app.target.session.graph, "CAM_FRONT", 2)
     assert np.array_equal(shown, np.asarray(Image.open(out).convert("RGB")))
@@ -149,6 +150,17 @@ def test_targets_open_by_what_the_folder_holds_and_anything_else_is_one_error(fi
         with pytest.raises(OmniscsError, match=says) as info:
             open_target(bad)
         assert "\n" not in str(info.value)
+
+
+def test_a_checkpoint_opens_with_its_scene_store_and_a_store_refuses_one(fitted, checkpoint):
+    scene, _ = fitted
+    target = open_target(checkpoint, scene=scene.path)
+    segments, _ = target.road()
+    assert target.scene.scene_id == scene.scene_id and len(segments) > 0
+    assert len(open_target(scene.path).road()[0]) == len(segments)  # the store's own map, the same lines
+    assert open_target(checkpoint).road() is None
+    with pytest.raises(OmniscsError, match="--scene goes with a scene-graph checkpoint"):
+        open_target(scene.path, scene=scene.path)
 
 
 def test_omniscs_view_of_a_bad_target_is_one_line_and_another_host_is_warned(tmp_path):

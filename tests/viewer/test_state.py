@@ -136,3 +136,26 @@ def test_a_stores_camera_view_is_its_logged_image_with_its_boxes(fitted):
 def test_a_bad_viewer_setting_is_one_error(field, value):
     with pytest.raises(OmniscsError, match=field):
         ViewerConfig(**{field: value})
+
+
+def test_the_road_map_is_drawn_as_lane_centrelines_and_drivable_outlines_on_the_ground():
+    from omniscs.roadmap import RoadMap
+    from omniscs.viewer.state import DRIVABLE_COLOUR, LANE_COLOUR, road_lines
+
+    square = np.array([[0.0, -4.0], [50.0, -4.0], [50.0, 4.0], [0.0, 4.0]])
+    road = RoadMap((square,), (np.array([[0.0, 0.0], [25.0, 0.0], [50.0, 0.0]]),), np.array([0.0, -4.0]),
+                   np.array([50.0, 4.0]))
+    segments, colours = road_lines(road, ground_z=-0.3)
+    assert segments.shape == (2 + 4, 2, 3) and np.all(segments[..., 2] == -0.3)
+    assert np.array_equal(segments[1], [[25.0, 0.0, -0.3], [50.0, 0.0, -0.3]])
+    assert np.array_equal(segments[-1, 1, :2], square[0])  # the outline closes
+    assert [tuple(c[0]) for c in colours] == [LANE_COLOUR] * 2 + [DRIVABLE_COLOUR] * 4
+
+
+def test_with_its_scene_the_camera_view_puts_the_logged_image_left_of_the_rendered_one(fitted):
+    scene, graph = fitted
+    both = graph_camera_image(graph, "CAM_FRONT", 1, scene=scene)
+    width = graph.camera("CAM_FRONT").width
+    assert both.shape[1] == 2 * width
+    assert np.array_equal(both[:, :width], store_camera_image(scene, "CAM_FRONT", 1))
+    assert np.array_equal(both[:, width:], graph_camera_image(graph, "CAM_FRONT", 1))
