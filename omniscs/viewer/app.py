@@ -39,6 +39,13 @@ class GraphTarget:
         # translate/rotate/remove edits move or drop nodes, never change their Gaussians: the layers are made once
         self.layers: dict[str, Splats] = splat_layers(graph, config.splat_budget)
         self.n_gaussians = graph.n_gaussians
+        self.placement = None
+        if scene is not None:
+            from omniscs.viewer.placement import LivePlacement
+
+            if progress:
+                progress(1, 2, "gathering the log's road, ground and boxes for the placement checks")
+            self.placement = LivePlacement(scene)
         self.scene_id = graph.scene_id
         self.n_frames = graph.n_frames
         self.camera_names = [c.name for c in graph.cameras]
@@ -51,6 +58,15 @@ class GraphTarget:
 
     def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
         return graph_camera_image(self.session.graph, camera, frame, boxes, highlight, self.scene)
+
+    def placement_verdict(self, track_id: int) -> str | None:
+        """One line on the placement checks of agent ``track_id`` as edited (None without the scene store)."""
+        if self.placement is None:
+            return None
+        result = self.placement.check(self.session.graph, track_id, self.session.removed)
+        if result.ok:
+            return f"Placement of agent {track_id}: on the road, clear of every box, seen by a camera."
+        return f"Placement of agent {track_id}: " + "; ".join(result.failures) + "."
 
     def road(self) -> tuple[np.ndarray, np.ndarray] | None:
         if self.scene is None or self.scene.road_map is None:
@@ -365,6 +381,9 @@ class ViewerApp:
                 self.status.content = f"Move refused: {exc}"
                 return
             self._edited()
+            verdict = self.target.placement_verdict(self.selected)
+            if verdict:
+                self.status.content += f"\n\n{verdict}"
 
     def remove_selected(self) -> None:
         with self.lock:

@@ -56,6 +56,11 @@ class EditSession:
         """``edits()`` in their JSON form (what ``save`` writes)."""
         return [edit_to_dict(e) for e in self.edits()]
 
+    @property
+    def removed(self) -> tuple[int, ...]:
+        """Tracks removed in this session, in the order they were removed."""
+        return tuple(self._removed)
+
     def editable(self, track_id: int) -> bool:
         return int(track_id) in self._graph.agent_ids
 

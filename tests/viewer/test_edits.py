@@ -163,6 +163,29 @@ def test_a_checkpoint_opens_with_its_scene_store_and_a_store_refuses_one(fitted,
         open_target(scene.path, scene=scene.path)
 
 
+def test_with_its_scene_a_move_is_checked_like_an_appearance_placement(fitted, checkpoint, port):
+    import viser
+
+    scene, graph = fitted
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    app = ViewerApp(server, open_target(checkpoint, scene=scene.path), frame=2)
+    try:
+        app.select(2)
+        app.move_selected(graph.agent(1).world_from_agent[2])  # onto car 1
+        assert "overlaps track 1 at frames 1-3" in app.status.content
+        app.move_selected(graph.agent(1).world_from_agent[2] @ make_transform(np.eye(3), [0.0, 40.0, 0.0]))
+        assert "leaves the drivable area" in app.status.content
+        app.reset_selected()
+        app.select(1)
+        app.remove_selected()
+        app.select(2)
+        app.move_selected(graph.agent(1).world_from_agent[2])  # where car 1 was: free now that it is removed
+        assert "Placement of agent 2: on the road, clear of every box" in app.status.content
+    finally:
+        app.close()
+        server.stop()
+
+
 def test_omniscs_view_of_a_bad_target_is_one_line_and_another_host_is_warned(tmp_path):
     import subprocess
     import sys
