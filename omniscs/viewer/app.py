@@ -441,6 +441,24 @@ def _height_colours(points: np.ndarray) -> np.ndarray:  # [M, 3] world -> uint8 
     return (low + h * (high - low)).astype(np.uint8)
 
 
+def check_host(host: str) -> None:
+    """Refuse an address this machine cannot listen on (viser waits forever for one), in one line."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise OmniscsError(f"--host {host} does not resolve ({exc.strerror}); give an address of this machine, e.g. "
+                           "127.0.0.1") from None
+    family, kind, proto, _, address = infos[0]
+    try:
+        with socket.socket(family, kind, proto) as probe:
+            probe.bind(address)
+    except OSError as exc:
+        raise OmniscsError(f"cannot listen on {host} ({exc.strerror or exc}); give an address of this machine, e.g. "
+                           "127.0.0.1") from None
+
+
 def serve(target: GraphTarget | StoreTarget, host: str = "127.0.0.1", port: int = 8080, frame: int = 0,
           config: ViewerConfig | None = None, edits_out: Path | None = None,
           ready: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> None:
@@ -448,6 +466,7 @@ def serve(target: GraphTarget | StoreTarget, host: str = "127.0.0.1", port: int 
     ``Stopped``; the server is closed on the way out. ``ready`` gets the URL once the viewer is up."""
     import viser
 
+    check_host(host)
     server = viser.ViserServer(host=host, port=port, label=f"omniscs view {target.scene_id}", verbose=False)
     app = None
     try:

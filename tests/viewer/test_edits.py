@@ -198,6 +198,18 @@ def test_omniscs_view_of_a_bad_target_is_one_line_and_another_host_is_warned(tmp
     assert "does not exist" in lines[-1]
 
 
+@pytest.mark.parametrize("host,says", [("10.255.255.1", "cannot listen on 10.255.255.1"),
+                                       ("no-such-host.invalid", "does not resolve")])
+def test_serving_on_an_address_this_machine_lacks_is_one_error_not_a_hang(checkpoint, host, says):
+    with pytest.raises(OmniscsError, match=says):
+        serve(open_target(checkpoint), host=host, port=8080)
+
+
+def test_a_first_frame_out_of_range_is_one_error(checkpoint, port):
+    with pytest.raises(OmniscsError, match="--frame 9 is out of range: nsg-test has frames 0 to 3"):
+        serve(open_target(checkpoint), port=port, frame=9)
+
+
 def test_serve_announces_its_url_and_stops_cleanly(checkpoint, port):
     import socket
 
