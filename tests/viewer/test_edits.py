@@ -222,10 +222,13 @@ def test_serve_announces_its_url_and_stops_cleanly(checkpoint, port):
             if urls:
                 break
             worker.join(0.1)
-        assert urls == [f"http://127.0.0.1:{port}"]
+        # the port asked for, or the next free one when another process took it meanwhile
+        assert len(urls) == 1 and urls[0].startswith("http://127.0.0.1:")
+        served = int(urls[0].rsplit(":", 1)[1])
+        assert port <= served < port + 10
     finally:
         stop.set()
         worker.join(10)
     assert not worker.is_alive()
     with socket.socket() as s:  # the port is free again
-        s.bind(("127.0.0.1", port))
+        s.bind(("127.0.0.1", served))
