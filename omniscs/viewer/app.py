@@ -9,13 +9,13 @@ from typing import Callable
 import numpy as np
 
 from omniscs.errors import OmniscsError
-from omniscs.geometry import make_transform
+from omniscs.geometry import make_transform, yaw_from_matrix
 from omniscs.nsg.graph import BACKGROUND
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
 from omniscs.viewer.session import EditSession
 from omniscs.viewer.state import (EGO_COLOUR, FrameState, Splats, Trajectory, ViewerConfig, graph_camera_image,
-                                  graph_frame, graph_trajectories, ground_height, road_lines, splat_layers,
-                                  store_camera_image, store_frame, store_trajectories)
+                                  graph_frame, graph_trajectories, ground_height, ray_ground_point, road_lines,
+                                  splat_layers, store_camera_image, store_frame, store_trajectories)
 
 #: Progress callback: (steps done, steps in all, what is happening).
 Progress = Callable[[int, int, str], None]
@@ -29,15 +29,26 @@ class GraphTarget:
     editable = True
 
     def __init__(self, path: Path, graph, config: ViewerConfig, progress: Progress | None = None,
-                 scene=None) -> None:
+                 scene=None, pool: Path | None = None) -> None:
+        from omniscs.nsg.edit import node_model_resolver
+
         self.path = path
         self.scene = scene  # the store it was fitted to, when given: logged images and the road map
-        self.session = EditSession(graph)
+        self.pool = pool    # a model pool whose models can replace agents or be inserted
+        resolve = node_model_resolver(graph)
+        if pool is not None:
+            from omniscs.agents.pool import model_resolver
+
+            resolve = model_resolver(pool, resolve)
+        background_tracks = () if scene is None else scene.boxes.track_id.unique()
+        self.session = EditSession(graph, resolve, reserved_ids=background_tracks)
+        self.config = config
         if progress:
             kept = min(graph.n_gaussians, config.splat_budget)
             progress(1, 2, f"{graph.n_gaussians:,} Gaussians: activating, keeping {kept:,}")
-        # translate/rotate/remove edits move or drop nodes, never change their Gaussians: the layers are made once
+        # moves and removals never change a node's Gaussians: layers are made again only when a model changes
         self.layers: dict[str, Splats] = splat_layers(graph, config.splat_budget)
+        self._layer_sources = self._sources(graph)
         self.n_gaussians = graph.n_gaussians
         self.placement = None
         if scene is not None:
@@ -58,6 +69,58 @@ class GraphTarget:
 
     def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
         return graph_camera_image(self.session.graph, camera, frame, boxes, highlight, self.scene)
+
+    @staticmethod
+    def _sources(graph) -> dict[str, int]:
+        return {BACKGROUND: id(graph.background), **{f"agent.{a.track_id}": id(a.gaussians) for a in graph.agents}}
+
+    def changed_layers(self) -> set[str]:
+        """After an edit: the splat layers made again because a node's model changed or a node came or went (their
+        keys; a removed node's layer is empty)."""
+        sources = self._sources(self.session.graph)
+        if sources == self._layer_sources:
+            return set()
+        old = self.layers
+        self.layers = splat_layers(self.session.graph, self.config.splat_budget)
+        changed = {k for k in set(sources) | set(self._layer_sources)
+                   if sources.get(k) != self._layer_sources.get(k)
+                   or len(self.layers.get(k, ())) != len(old.get(k, ()))}
+        for key in changed - set(self.layers):
+            self.layers[key] = Splats(*(np.zeros(shape, np.float32) for shape in ((0, 3), (0, 3, 3), (0, 3), (0, 1))))
+        self._layer_sources = sources
+        self.n_gaussians = self.session.graph.n_gaussians
+        return changed
+
+    def models(self) -> list[tuple[str, str]]:
+        """(model id, category) of every model an agent can take: the pool's, then this graph's own agent nodes."""
+        out = []
+        if self.pool is not None:
+            from omniscs.agents.pool import Pool
+
+            table = Pool(self.pool).table()
+            out += [(str(r.model_id), str(r.category)) for r in table.itertuples()]
+        out += [(f"nsg:{a.track_id}", a.category) for a in self.session.base.agents]
+        return out
+
+    def ground_point(self, ray_origin, ray_direction, frame: int) -> tuple[float, float, float] | None:
+        """Where a click's ray meets the road (x, y, ground z), or None when it points above the horizon: the
+        road's height there from the log (with ``scene``), else the plane under the ego's logged path."""
+        z = ground_height(self.session.base.world_from_ego)
+        hit = ray_ground_point(ray_origin, ray_direction, z)
+        if hit is None:
+            return None
+        if self.placement is not None:  # refine on the log's ground height under the hit point
+            z = float(self.placement.logged.ground_z(hit[None, :2])[0])
+            hit = ray_ground_point(ray_origin, ray_direction, z)
+        return None if hit is None else (float(hit[0]), float(hit[1]), z)
+
+    def heading_at(self, x: float, y: float, frame: int) -> float:
+        """The heading an inserted object takes: the nearest lane's (with ``scene``), else the ego's at ``frame``."""
+        if self.placement is not None and self.placement.logged.lane_direction is not None:
+            yaw, found = self.placement.logged.lane_direction(np.array([[x, y]]))
+            if found[0]:
+                return float(yaw[0])
+        return float(yaw_from_matrix(self.session.base.world_from_ego[frame][:3, :3]))
 
     def placement_verdict(self, track_id: int) -> str | None:
         """One line on the placement checks of agent ``track_id`` as edited (None without the scene store)."""
@@ -115,9 +178,10 @@ class StoreTarget:
 
 
 def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
-                scene: str | Path | None = None) -> GraphTarget | StoreTarget:
+                scene: str | Path | None = None, pool: str | Path | None = None) -> GraphTarget | StoreTarget:
     """What ``path`` holds, opened for viewing: a scene-graph checkpoint (``omniscs fit --out``), optionally with the
-    ``scene`` store it was fitted to (logged images beside rendered ones, its road map), or a scene store
+    ``scene`` store it was fitted to (logged images beside rendered ones, its road map) and a model ``pool``
+    (models to replace agents with or insert), or a scene store
     (``omniscs ingest``, ``omniscs world make``); anything else is one OmniscsError."""
     from omniscs.nsg.checkpoint import GRAPH_JSON, check_same_scene, load_graph
     from omniscs.scene.store import MANIFEST, load_scene
@@ -135,14 +199,16 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
         if scene is not None:
             store = load_scene(scene)
             check_same_scene(graph, store, path)
-        target = GraphTarget(path, graph, config, progress, store)
+        if pool is not None and not Path(pool).is_dir():
+            raise OmniscsError(f"--pool {pool} is not a folder; give a model pool (omniscs pool build)")
+        target = GraphTarget(path, graph, config, progress, store, None if pool is None else Path(pool))
         if progress:
             progress(2, 2, "ready")
         return target
     if path.is_dir() and (path / MANIFEST).is_file():
-        if scene is not None:
-            raise OmniscsError(f"{path} is a scene store; --scene goes with a scene-graph checkpoint (the store it "
-                               "was fitted to)")
+        if scene is not None or pool is not None:
+            raise OmniscsError(f"{path} is a scene store; --scene and --pool go with a scene-graph checkpoint "
+                               "(edits need a fit)")
         if progress:
             progress(0, 1, f"opening the scene store {path}")
         target = StoreTarget(path, load_scene(path), config)
@@ -164,6 +230,8 @@ def pose_from_gizmo(wxyz, position) -> np.ndarray:  # viser's (w, x, y, z), (x, 
 
 #: Entry of the agent list when no agent is selected.
 NO_AGENT = "(none)"
+#: How an inserted model lies: its roll about its own forward axis (degrees), resting on the ground.
+LIE_ROLL_DEG = {"upright": 0.0, "on its side": 90.0, "overturned": 180.0}
 
 
 class ViewerApp:
@@ -178,6 +246,7 @@ class ViewerApp:
         self.lock = threading.RLock()
         self.selected: int | None = None
         self._boxes: dict[int, object] = {}
+        self._labels: dict[int, tuple[str, float]] = {}
         self._splats: dict[str, object] = {}
         self._frustums: dict[str, object] = {}
         self._gizmo = None
@@ -220,9 +289,17 @@ class ViewerApp:
         self.remove_button.on_click(lambda _: self.remove_selected())
         self.reset_button.on_click(lambda _: self.reset_selected())
         self.save_button.on_click(lambda _: self.save())
+        self._models = {f"{model_id} {category}": (model_id, category) for model_id, category in t.models()}
+        with gui.add_folder("Models", expand_by_default=False):
+            self.model_list = gui.add_dropdown("Model", list(self._models), initial_value=next(iter(self._models)))
+            self.lie = gui.add_dropdown("Lies", list(LIE_ROLL_DEG), initial_value="upright")
+            self.replace_button = gui.add_button("Give the agent this model", disabled=True)
+            self.insert_button = gui.add_button("Insert: click the road")
+        self.replace_button.on_click(lambda _: self.replace_selected())
+        self.insert_button.on_click(lambda _: self.arm_insert())
 
     def _agent_labels(self) -> list[str]:
-        return [f"{a.track_id} {a.category}" for a in self.target.session.base.agents]
+        return [f"{a.track_id} {a.category}" for a in self.target.session.graph.agents]
 
     @staticmethod
     def _track_of(label: str) -> int | None:
@@ -299,14 +376,16 @@ class ViewerApp:
             if handle is None:
                 handle = self.server.scene.add_box(f"/boxes/{box.track_id}", color=colour, dimensions=tuple(box.size),
                                                    wireframe=True, **pose_args(box.world_from_box))
-                self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label,
-                                            position=(0.0, 0.0, 0.5 * float(box.size[2]) + 0.3))
                 handle.on_click(lambda event, tid=box.track_id: self.select(tid))
                 self._boxes[box.track_id] = handle
             else:
                 pose = pose_args(box.world_from_box)
                 handle.wxyz, handle.position = pose["wxyz"], pose["position"]
                 handle.color, handle.dimensions = colour, tuple(box.size)
+            if self._labels.get(box.track_id) != (box.label, float(box.size[2])):  # new, or a new model or size
+                self._labels[box.track_id] = (box.label, float(box.size[2]))
+                self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label,
+                                            position=(0.0, 0.0, 0.5 * float(box.size[2]) + 0.3))
             handle.visible = True
         for tid, handle in self._boxes.items():
             if tid not in shown:
@@ -339,6 +418,7 @@ class ViewerApp:
             if self.agent_list.value != label:
                 self.agent_list.value = label  # calls select again, with the same track: harmless
             self.remove_button.disabled = self.reset_button.disabled = self.selected is None
+            self.replace_button.disabled = self.selected is None
             self.refresh()
 
     def _place_gizmo(self, state: FrameState) -> None:
@@ -392,7 +472,7 @@ class ViewerApp:
             self.target.session.remove(self.selected)
             self.selected = None
             self.agent_list.value = NO_AGENT
-            self.remove_button.disabled = self.reset_button.disabled = True
+            self.remove_button.disabled = self.reset_button.disabled = self.replace_button.disabled = True
             self._edited()
 
     def reset_selected(self) -> None:
@@ -400,6 +480,49 @@ class ViewerApp:
             if self.selected is not None:
                 self.target.session.reset(self.selected)
                 self._edited()
+
+    def replace_selected(self) -> None:
+        """The selected agent gets the model picked in the panel (scaled to its box)."""
+        with self.lock:
+            if self.selected is None:
+                return
+            model_id, _ = self._models[self.model_list.value]
+            try:
+                self.target.session.replace_model(self.selected, model_id)
+            except OmniscsError as exc:
+                self.status.content = f"Model not changed: {exc}"
+                return
+            self._edited()
+
+    def arm_insert(self) -> None:
+        """The next click on the road inserts the model picked in the panel there."""
+        def clicked(event) -> None:
+            self.server.scene.remove_click_callback(clicked)
+            point = self.target.ground_point(event.ray_origin, event.ray_direction, int(self.frame_slider.value))
+            if point is None:
+                self.status.content = "That click missed the road (it points above the horizon); insert again."
+                return
+            self.insert_at(*point)
+
+        self.server.scene.on_click()(clicked)
+        self.status.content = "Click the road where the model should stand."
+
+    def insert_at(self, x: float, y: float, ground_z: float) -> int | None:
+        """Insert the model picked in the panel standing at (x, y) on the ground at ``ground_z``, lying as picked,
+        headed along the lane (or the ego); it becomes the selected agent. Returns its track id."""
+        with self.lock:
+            model_id, category = self._models[self.model_list.value]
+            frame = int(self.frame_slider.value)
+            try:
+                heading = self.target.heading_at(x, y, frame)
+                tid = self.target.session.insert(model_id, category, x, y, ground_z, heading,
+                                                 LIE_ROLL_DEG[self.lie.value])
+            except OmniscsError as exc:
+                self.status.content = f"Not inserted: {exc}"
+                return None
+            self._edited()
+            self.select(tid)
+            return tid
 
     def save(self) -> Path | None:
         """Write the session's spec to the path in the panel; the panel says where, or why not."""
@@ -417,6 +540,18 @@ class ViewerApp:
     def _edited(self) -> None:
         n = len(self.target.session.edits())
         self.status.content = f"{n} edit(s), not saved yet." if n else "No edits."
+        for key in self.target.changed_layers():  # a model changed, or an agent came or went
+            splats = self.target.layers[key]
+            old = self._splats.pop(key, None)
+            if old is not None:
+                old.remove()
+            if len(splats):
+                self._splats[key] = self.server.scene.add_gaussian_splats(
+                    f"/splats/{key}", centers=splats.centers, covariances=splats.covariances, rgbs=splats.rgbs,
+                    opacities=splats.opacities, visible=False)
+        options = [NO_AGENT] + self._agent_labels()
+        if tuple(self.agent_list.options) != tuple(options):
+            self.agent_list.options = options
         self.refresh_trajectories()
         self.refresh()
 

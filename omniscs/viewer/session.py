@@ -6,18 +6,24 @@ motion onto every pose of the agent, that drag is the motion ``inv(T_now) @ T_ne
 at every frame. The moves of one agent compose into one motion, written as a ``translate`` followed by a ``rotate``
 (the rotate turns the agent about its moved centre), so a session of many drags saves a short spec. Amounts are
 rounded (``TRANSLATE_DECIMALS``, ``ROTATE_DECIMALS``) and the session's graph is always the one its saved spec gives,
-so what the viewer shows is what ``omniscs render --edit @spec.json`` renders."""
+so what the viewer shows is what ``omniscs render --edit @spec.json`` renders.
+
+An agent can also get another model (``replace_model``, scaled to its box) and new agents can be inserted from a model
+(``insert``, standing at a ground point, upright or tilted); an inserted agent is then moved like any other, its
+moves written after its insert."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from omniscs.edits import Edit, Remove, Rotate, Translate, edit_to_dict, local_motion, parse_edits
+from omniscs.edits import (Edit, Insert, Remove, ReplaceModel, Rotate, Translate, edit_to_dict, local_motion,
+                           parse_edits)
 from omniscs.errors import OmniscsError
 from omniscs.geometry import euler_from_rotmat, invert_transform, is_rigid
-from omniscs.nsg.edit import apply_graph_edits
+from omniscs.nsg.edit import ModelResolver, apply_graph_edits, node_model_resolver
 from omniscs.nsg.graph import SceneGraph
 from omniscs.storage import atomic_write_text, check_output
 
@@ -27,13 +33,39 @@ TRANSLATE_DECIMALS = 4
 ROTATE_DECIMALS = 3
 
 
-class EditSession:
-    """Moves and removals of a graph's agents; ``edits`` is their spec, ``graph`` the graph it gives."""
+@dataclass(frozen=True)
+class TrackEdits:
+    """Everything the session did to one track, in the order the spec applies it."""
 
-    def __init__(self, graph: SceneGraph) -> None:
+    track_id: int
+    insert: Insert | None = None          # the track is new: made from a model at a pose
+    replace: ReplaceModel | None = None   # its model swapped (an inserted track changes its insert instead)
+    translate: Translate | None = None    # its composed moves: translate, then rotate about the moved centre
+    rotate: Rotate | None = None
+
+    def edits(self) -> list[Edit]:
+        out: list[Edit] = [e for e in (self.insert, self.replace) if e is not None]
+        if self.translate is not None and (self.translate.longitudinal, self.translate.lateral,
+                                           self.translate.vertical) != (0.0, 0.0, 0.0):
+            out.append(self.translate)
+        if self.rotate is not None and (self.rotate.yaw_deg, self.rotate.pitch_deg,
+                                        self.rotate.roll_deg) != (0.0, 0.0, 0.0):
+            out.append(self.rotate)
+        return out
+
+
+class EditSession:
+    """Edits of a graph's agents made in the viewer; ``edits`` is their spec, ``graph`` the graph it gives.
+    ``resolve`` turns model ids into models (``omniscs.agents.pool.model_resolver`` for a pool's ``pm-...``; by
+    default the graph's own ``nsg:<track>`` nodes); ``reserved_ids`` are track ids an inserted agent may not take
+    (the log's tracks left in the background)."""
+
+    def __init__(self, graph: SceneGraph, resolve: ModelResolver | None = None, reserved_ids=()) -> None:
         self.base = graph
-        self._motions: dict[int, tuple[Translate, Rotate]] = {}  # track id -> its composed move, by first move
-        self._removed: list[int] = []                            # in the order they were removed
+        self.resolve = resolve or node_model_resolver(graph)
+        self.reserved_ids = frozenset(int(t) for t in reserved_ids)
+        self._tracks: dict[int, TrackEdits] = {}  # by the track's first edit
+        self._removed: list[int] = []             # logged agents removed, in the order they were removed
         self._graph = graph
 
     @property
@@ -42,15 +74,10 @@ class EditSession:
         return self._graph
 
     def edits(self) -> list[Edit]:
-        """The session as an edit list: each moved agent's translate then rotate (zero amounts left out), then the
-        removals. Edits of different agents commute, so this order changes nothing but readability."""
-        out: list[Edit] = []
-        for translate, rotate in self._motions.values():
-            if (translate.longitudinal, translate.lateral, translate.vertical) != (0.0, 0.0, 0.0):
-                out.append(translate)
-            if (rotate.yaw_deg, rotate.pitch_deg, rotate.roll_deg) != (0.0, 0.0, 0.0):
-                out.append(rotate)
-        return out + [Remove(tid) for tid in self._removed]
+        """The session as an edit list: per track its insert, model replacement, translate and rotate (zero amounts
+        left out), then the removals. Edits of different tracks commute, so the order across tracks changes nothing
+        but readability."""
+        return [e for t in self._tracks.values() for e in t.edits()] + [Remove(tid) for tid in self._removed]
 
     def spec(self) -> list[dict]:
         """``edits()`` in their JSON form (what ``save`` writes)."""
@@ -77,40 +104,72 @@ class EditSession:
         if target.shape != (4, 4) or not np.all(np.isfinite(target)) or not is_rigid(target, tol=1e-5):
             raise OmniscsError(f"the new pose of agent {tid} must be a finite rigid 4x4 transform")
         step = invert_transform(node.world_from_agent[f]) @ target  # agent_from_moved_agent
-        previous = self._motions.get(tid, (Translate(tid), Rotate(tid)))
-        total = local_motion(previous[0]) @ local_motion(previous[1]) @ step
+        track = self._tracks.get(tid, TrackEdits(tid))
+        total = local_motion(track.translate or Translate(tid)) @ local_motion(track.rotate or Rotate(tid)) @ step
         roll, pitch, yaw = np.degrees(euler_from_rotmat(total[:3, :3]))
         x, y, z = (round(float(v), TRANSLATE_DECIMALS) + 0.0 for v in total[:3, 3])  # + 0.0: no "-0.0" in a spec
         translate, rotate = parse_edits([Translate(tid, x, y, z), Rotate(tid, *(round(float(v), ROTATE_DECIMALS) + 0.0
                                                                                    for v in (yaw, pitch, roll)))])
-        return self._commit({**self._motions, tid: (translate, rotate)}, self._removed)
+        return self._commit({**self._tracks, tid: replace(track, translate=translate, rotate=rotate)}, self._removed)
 
-    def remove(self, track_id: int) -> SceneGraph:
-        """Take agent ``track_id`` out of every frame (its moves go with it)."""
+    def replace_model(self, track_id: int, asset_id: str) -> SceneGraph:
+        """Give agent ``track_id`` the model ``asset_id``, scaled to its box; its motion is kept."""
         tid = int(track_id)
         self._graph.agent(tid)
-        motions = {k: v for k, v in self._motions.items() if k != tid}
-        return self._commit(motions, [*self._removed, tid])
+        track = self._tracks.get(tid, TrackEdits(tid))
+        if track.insert is not None:
+            track = replace(track, insert=replace(track.insert, asset_id=asset_id))
+        else:
+            track = replace(track, replace=ReplaceModel(tid, asset_id))
+        return self._commit({**self._tracks, tid: track}, self._removed)
+
+    def insert(self, asset_id: str, category: str, x: float, y: float, ground_z: float, yaw: float = 0.0,
+               roll_deg: float = 0.0) -> int:
+        """A new agent from model ``asset_id`` at its own size, standing on the ground (``ground_z``, metres) at
+        (x, y) with heading ``yaw`` (radians), tilted by ``roll_deg`` (90: on its side, 180: overturned) and resting
+        on the ground; present in every frame. Returns its track id (the next one free of the graph's nodes, the
+        session's inserts and ``reserved_ids``)."""
+        model = self.resolve(asset_id)
+        size = np.asarray(model.size, dtype=np.float64)
+        taken = set(self.base.agent_ids) | set(self._tracks) | set(self.reserved_ids)
+        tid = max(taken, default=0) + 1
+        pose = (round(float(x), TRANSLATE_DECIMALS), round(float(y), TRANSLATE_DECIMALS),
+                round(float(ground_z) + 0.5 * float(size[2]), TRANSLATE_DECIMALS), round(float(yaw), 6))
+        insert = parse_edits([Insert(tid, asset_id, category, pose=pose, roll_deg=float(roll_deg))])[0]
+        self._commit({**self._tracks, tid: TrackEdits(tid, insert=insert)}, self._removed)
+        return tid
+
+    def remove(self, track_id: int) -> SceneGraph:
+        """Take agent ``track_id`` out of every frame (its other edits go with it; an inserted agent is simply
+        not inserted)."""
+        tid = int(track_id)
+        self._graph.agent(tid)
+        inserted = tid in self._tracks and self._tracks[tid].insert is not None
+        tracks = {k: v for k, v in self._tracks.items() if k != tid}
+        return self._commit(tracks, self._removed if inserted else [*self._removed, tid])
 
     def reset(self, track_id: int) -> SceneGraph:
-        """Undo every edit of agent ``track_id`` (moves and removal)."""
+        """Undo every edit of agent ``track_id`` (moves, model, removal; an inserted agent keeps its insert)."""
         tid = int(track_id)
-        return self._commit({k: v for k, v in self._motions.items() if k != tid},
-                            [t for t in self._removed if t != tid])
+        track = self._tracks.get(tid)
+        tracks = {k: v for k, v in self._tracks.items() if k != tid}
+        if track is not None and track.insert is not None:
+            tracks[tid] = TrackEdits(tid, insert=track.insert)
+        return self._commit(tracks, [t for t in self._removed if t != tid])
 
-    def _commit(self, motions: dict, removed: list[int]) -> SceneGraph:
-        old = (self._motions, self._removed)
-        self._motions, self._removed = motions, removed
+    def _commit(self, tracks: dict[int, TrackEdits], removed: list[int]) -> SceneGraph:
+        old = (self._tracks, self._removed)
+        self._tracks, self._removed = tracks, removed
         try:
-            self._graph = apply_graph_edits(self.base, self.edits())
+            self._graph = apply_graph_edits(self.base, self.edits(), self.resolve)
         except BaseException:
-            self._motions, self._removed = old
+            self._tracks, self._removed = old
             raise
         return self._graph
 
     def save(self, path: str | Path) -> Path:
         """Write the spec as a JSON list that ``omniscs render --edit @path`` (and fit, generate, scs appearance)
-        reads; written atomically."""
+        reads (with ``--pool`` when it names pool models); written atomically."""
         path = check_output(path, what="the edit spec")
         if path.suffix.lower() != ".json":
             raise OmniscsError(f"an edit spec is a .json file; got {path}")

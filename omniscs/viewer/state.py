@@ -248,6 +248,16 @@ def road_lines(road_map, ground_z: float,
     return np.concatenate(segments), np.concatenate(colours)
 
 
+def ray_ground_point(origin, direction, ground_z: float) -> np.ndarray | None:  # [3], [3] world -> [3] or None
+    """Where the ray ``origin + s direction`` (s > 0) meets the plane z = ``ground_z``; None when it never does
+    (it points level or up, away from the plane)."""
+    o, d = np.asarray(origin, dtype=np.float64), np.asarray(direction, dtype=np.float64)
+    if abs(d[2]) < 1e-9:
+        return None
+    s = (float(ground_z) - o[2]) / d[2]
+    return o + s * d if s > 0 else None
+
+
 def ground_height(world_from_ego: np.ndarray) -> float:  # [F, 4, 4] -> metres
     """Height of the road under the log: the ego frame's origin lies on the ground (DESIGN.md), so its median."""
     return float(np.median(world_from_ego[:, 2, 3]))
