@@ -24,12 +24,14 @@ def view(
     splats: int = typer.Option(200_000, min=1, help="Most Gaussians drawn (the most opaque are kept)."),
     scene: Optional[Path] = typer.Option(None, help="With a checkpoint: the scene store it was fitted to (logged "
                                                     "images beside rendered ones, the road map)."),
+    pool: Optional[Path] = typer.Option(None, help="With a checkpoint: a model pool whose models can replace agents "
+                                                   "or be inserted (render the saved spec with the same --pool)."),
     edits_out: Optional[Path] = typer.Option(None, help="Where 'Save edits' writes the edit spec (default "
                                                         "<scene id>-edits.json here); changeable in the panel."),
 ) -> None:
     """Open TARGET in a browser viewer at http://HOST:PORT: splats or LiDAR, boxes, trajectories, the rig, the
-    camera view through our renderer; move, turn and remove agents of a fitted graph and save the edits as a spec
-    that `omniscs render --edit @spec.json` takes. Serves until Ctrl-C."""
+    camera view through our renderer; move, turn, remove, re-model and insert agents of a fitted graph and save the
+    edits as a spec that `omniscs render --edit @spec.json` takes. Serves until Ctrl-C."""
     from omniscs.progress import Stopped
     from omniscs.viewer.app import open_target, serve
     from omniscs.viewer.state import ViewerConfig
@@ -40,7 +42,7 @@ def view(
                     "this machine (no password); use the default --host 127.0.0.1 and an SSH tunnel to stay private",
                     label="warning", style="yellow")
     with progress_bars() as bars:
-        opened = open_target(target, config, progress=bars.sink("loading"), scene=scene)
+        opened = open_target(target, config, progress=bars.sink("loading"), scene=scene, pool=pool)
     try:
         serve(opened, host=host, port=port, frame=frame, config=config, edits_out=edits_out,
               ready=lambda url: console.print(f"omniscs view: {opened.scene_id} ({opened.kind}) at {url}  "

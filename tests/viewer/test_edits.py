@@ -232,3 +232,82 @@ def test_serve_announces_its_url_and_stops_cleanly(checkpoint, port):
     assert not worker.is_alive()
     with socket.socket() as s:  # the port is free again
         s.bind(("127.0.0.1", served))
+
+
+def test_a_click_ray_meets_the_road_in_front_of_the_camera_only():
+    from omniscs.viewer.state import ray_ground_point
+
+    assert np.allclose(ray_ground_point([0, 0, 10], [1, 0, -1], 0.5), [9.5, 0.0, 0.5])
+    assert ray_ground_point([0, 0, 10], [1, 0, 0], 0.0) is None      # level: never
+    assert ray_ground_point([0, 0, 10], [1, 0, 0.2], 0.0) is None    # above the horizon: behind the camera only
+
+
+def test_an_inserted_overturned_model_is_the_spec_saved_and_renders_as_omniscs_render_does(app, fitted, checkpoint,
+                                                                                          tmp_path):
+    from omniscs.cli import app as cli
+
+    _, graph = fitted
+    app.model_list.value = "nsg:1 car"
+    app.lie.value = "overturned"
+    ego = graph.world_from_ego[2]
+    tid = app.insert_at(ego[0, 3] + 16.0, ego[1, 3] - 3.0, 0.0)
+    assert tid == 3 and app.selected == 3 and "agent.3" in app.target.layers and "agent.3" in app._splats
+    assert [b.track_id for b in app.target.frame_state(0).boxes] == [1, 3]  # car 2 appears in frame 1
+    spec = json.loads(app.save().read_text())
+    assert len(spec) == 1 and spec[0]["op"] == "insert" and spec[0]["roll_deg"] == 180.0
+    assert spec[0]["asset_id"] == "nsg:1" and spec[0]["category"] == "car"
+    x, y, z, yaw = spec[0]["pose"]
+    assert (x, y) == pytest.approx((ego[0, 3] + 16.0, ego[1, 3] - 3.0))
+    assert z == pytest.approx(graph.agent(1).size[2] / 2)  # the upright box's centre; the insert rests it on its roof
+    assert yaw == pytest.approx(0.0, abs=1e-6)  # the ego's heading: no scene, no lanes
+    box = app.target.session.graph.agent(3).world_from_agent[2]
+    assert box[2, 2] == pytest.approx(-1.0)  # on its roof
+    out = tmp_path / "inserted.png"
+    result = CliRunner().invoke(cli, ["render", str(checkpoint), "--frame", "2", "--edit", f"@{tmp_path / 'spec.json'}",
+                                      "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    shown = rendered_image(app.target.session.graph, "CAM_FRONT", 2)
+    assert np.array_equal(shown, np.asarray(Image.open(out).convert("RGB")))
+    assert not np.array_equal(shown, rendered_image(graph, "CAM_FRONT", 2))
+    app.remove_selected()  # an inserted agent removed is simply not inserted
+    assert app.target.session.edits() == [] and "agent.3" not in app._splats
+
+
+def test_giving_an_agent_another_model_swaps_its_splats_and_keeps_its_motion(app, fitted):
+    _, graph = fitted
+    app.select(1)
+    app.model_list.value = "nsg:2 car"
+    app.replace_selected()
+    assert app.target.session.spec() == [{"op": "replace_model", "track_id": 1, "asset_id": "nsg:2", "size": None}]
+    edited = app.target.session.graph.agent(1)
+    assert np.array_equal(edited.world_from_agent, graph.agent(1).world_from_agent)  # same box, same motion
+    assert len(app.target.layers["agent.1"]) == len(graph.agent(2).gaussians)
+
+
+def test_a_pool_model_inserted_in_the_viewer_renders_with_the_same_pool(fitted, checkpoint, port, tmp_path):
+    import viser
+    from appearance_fixtures import small_pool
+
+    from omniscs.cli import app as cli
+
+    _, graph = fitted
+    pool = small_pool(tmp_path / "pool", assets=("box_truck-0020",), gaussians=600)
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    app = ViewerApp(server, open_target(checkpoint, pool=pool.root), frame=2, edits_out=tmp_path / "truck.json")
+    try:
+        truck = next(label for label in app._models if label.startswith("pm-") and label.endswith(" truck"))
+        app.model_list.value = truck
+        app.lie.value = "on its side"
+        ego = graph.world_from_ego[2]
+        app.insert_at(ego[0, 3] + 18.0, ego[1, 3] + 3.0, 0.0)
+        spec = app.save()
+    finally:
+        app.close()
+        server.stop()
+    assert json.loads(spec.read_text())[0]["asset_id"] == truck.split(" ")[0]
+    out = tmp_path / "truck.png"
+    result = CliRunner().invoke(cli, ["render", str(checkpoint), "--frame", "2", "--edit", f"@{spec}", "--pool",
+                                      str(pool.root), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(rendered_image(app.target.session.graph, "CAM_FRONT", 2),
+                          np.asarray(Image.open(out).convert("RGB")))
