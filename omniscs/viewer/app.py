@@ -246,7 +246,7 @@ class ViewerApp:
         self.lock = threading.RLock()
         self.selected: int | None = None
         self._boxes: dict[int, object] = {}
-        self._labels: dict[int, tuple[str, float]] = {}
+        self._labels: dict[int, tuple[str, tuple]] = {}
         self._splats: dict[str, object] = {}
         self._frustums: dict[str, object] = {}
         self._gizmo = None
@@ -382,10 +382,12 @@ class ViewerApp:
                 pose = pose_args(box.world_from_box)
                 handle.wxyz, handle.position = pose["wxyz"], pose["position"]
                 handle.color, handle.dimensions = colour, tuple(box.size)
-            if self._labels.get(box.track_id) != (box.label, float(box.size[2])):  # new, or a new model or size
-                self._labels[box.track_id] = (box.label, float(box.size[2]))
-                self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label,
-                                            position=(0.0, 0.0, 0.5 * float(box.size[2]) + 0.3))
+            # the label floats above the box whichever way the box lies: world up, in the box's frame
+            above = box.world_from_box[:3, :3].T @ np.array([0.0, 0.0, 0.5 * float(box.size.max()) + 0.3])
+            label = (box.label, tuple(np.round(above, 2)))
+            if self._labels.get(box.track_id) != label:  # new, or a new model, size or tilt
+                self._labels[box.track_id] = label
+                self.server.scene.add_label(f"/boxes/{box.track_id}/label", box.label, position=label[1])
             handle.visible = True
         for tid, handle in self._boxes.items():
             if tid not in shown:
@@ -461,9 +463,12 @@ class ViewerApp:
                 self.status.content = f"Move refused: {exc}"
                 return
             self._edited()
-            verdict = self.target.placement_verdict(self.selected)
-            if verdict:
-                self.status.content += f"\n\n{verdict}"
+            self._say_placement(self.selected)
+
+    def _say_placement(self, track_id: int) -> None:
+        verdict = self.target.placement_verdict(track_id)
+        if verdict:
+            self.status.content += f"\n\n{verdict}"
 
     def remove_selected(self) -> None:
         with self.lock:
@@ -493,6 +498,7 @@ class ViewerApp:
                 self.status.content = f"Model not changed: {exc}"
                 return
             self._edited()
+            self._say_placement(self.selected)
 
     def arm_insert(self) -> None:
         """The next click on the road inserts the model picked in the panel there."""
@@ -522,6 +528,7 @@ class ViewerApp:
                 return None
             self._edited()
             self.select(tid)
+            self._say_placement(tid)
             return tid
 
     def save(self) -> Path | None:
@@ -533,8 +540,9 @@ class ViewerApp:
                 self.status.content = f"Not saved: {exc}"
                 return None
             n = len(self.target.session.edits())
+            pool = f" --pool {self.target.pool}" if self.target.pool is not None else ""
             self.status.content = f"Saved {n} edit(s) to `{path}`. Render them: `omniscs render {self.target.path} " \
-                                  f"--edit @{path} --out edited.png`"
+                                  f"--edit @{path}{pool} --out edited.png`"
             return path
 
     def _edited(self) -> None:

@@ -181,6 +181,10 @@ def test_with_its_scene_a_move_is_checked_like_an_appearance_placement(fitted, c
         app.select(2)
         app.move_selected(graph.agent(1).world_from_agent[2])  # where car 1 was: free now that it is removed
         assert "Placement of agent 2: on the road, clear of every box" in app.status.content
+        app.model_list.value = "nsg:2 car"
+        ego = graph.world_from_ego[2]
+        tid = app.insert_at(ego[0, 3] + 11.0, ego[1, 3] + 0.0, 0.0)  # onto car 2, where it now stands
+        assert f"Placement of agent {tid}: overlaps track 2" in app.status.content
     finally:
         app.close()
         server.stop()
@@ -301,6 +305,7 @@ def test_a_pool_model_inserted_in_the_viewer_renders_with_the_same_pool(fitted, 
         ego = graph.world_from_ego[2]
         app.insert_at(ego[0, 3] + 18.0, ego[1, 3] + 3.0, 0.0)
         spec = app.save()
+        assert f"--pool {pool.root}" in app.status.content  # the render hint names the pool the spec needs
     finally:
         app.close()
         server.stop()
