@@ -250,6 +250,8 @@ class ViewerApp:
         self._splats: dict[str, object] = {}
         self._frustums: dict[str, object] = {}
         self._gizmo = None
+        self._path_handles: list = []             # control points of the selected agent's path, while drawn
+        self._path_frames = np.zeros(0, np.int64)  # their frames
         self._stop = threading.Event()
         start = int(frame)
         if not 0 <= start < target.n_frames:
@@ -281,12 +283,16 @@ class ViewerApp:
         with gui.add_folder("Edit agents"):
             self.agent_list = gui.add_dropdown("Agent", [NO_AGENT] + self._agent_labels(), initial_value=NO_AGENT)
             self.remove_button = gui.add_button("Remove agent", disabled=True)
+            self.path_toggle = gui.add_checkbox("Draw its path", False, disabled=True,
+                                                hint="Drag the points of its path (a cut-in: move the later ones "
+                                                     "into the ego's lane)")
             self.reset_button = gui.add_button("Reset agent", disabled=True)
             self.edits_path = gui.add_text("Save to", str(edits_out))
             self.save_button = gui.add_button("Save edits")
             self.status = gui.add_markdown("No edits yet. Pick an agent, drag or turn its gizmo.")
         self.agent_list.on_update(lambda _: self.select(self._track_of(self.agent_list.value)))
         self.remove_button.on_click(lambda _: self.remove_selected())
+        self.path_toggle.on_update(lambda _: self.show_path(bool(self.path_toggle.value)))
         self.reset_button.on_click(lambda _: self.reset_selected())
         self.save_button.on_click(lambda _: self.save())
         self._models = {f"{model_id} {category}": (model_id, category) for model_id, category in t.models()}
@@ -420,7 +426,9 @@ class ViewerApp:
             if self.agent_list.value != label:
                 self.agent_list.value = label  # calls select again, with the same track: harmless
             self.remove_button.disabled = self.reset_button.disabled = self.selected is None
-            self.replace_button.disabled = self.selected is None
+            self.replace_button.disabled = self.path_toggle.disabled = self.selected is None
+            self.path_toggle.value = False  # a new selection starts without its path's handles
+            self.show_path(False)
             self.refresh()
 
     def _place_gizmo(self, state: FrameState) -> None:
@@ -437,6 +445,47 @@ class ViewerApp:
             self._gizmo.on_update(self._on_gizmo)
         else:
             self._gizmo.wxyz, self._gizmo.position = pose["wxyz"], pose["position"]
+
+    def show_path(self, on: bool) -> None:
+        """Show (or hide) the selected agent's path as draggable control points, on the ground plane of its
+        poses; a release gives the agent the path through them (``set_path``)."""
+        from omniscs.viewer.paths import control_frames
+
+        with self.lock:
+            for handle in self._path_handles:
+                handle.remove()
+            self._path_handles = []
+            if not on or self.selected is None:
+                return
+            node = self.target.session.graph.agent(self.selected)
+            self._path_frames = control_frames(node.present)
+            for k, f in enumerate(self._path_frames):
+                handle = self.server.scene.add_transform_controls(
+                    f"/path/{k}", scale=1.2, active_axes=(True, True, False), disable_rotations=True,
+                    depth_test=False, position=tuple(node.world_from_agent[f, :3, 3]))
+                handle.on_update(self._on_path_point)
+                self._path_handles.append(handle)
+
+    def _on_path_point(self, event) -> None:
+        if event.phase == "end":
+            self.draw_path(np.array([h.position[:2] for h in self._path_handles], dtype=np.float64))
+
+    def draw_path(self, control_xy: np.ndarray) -> None:  # [K, 2] world, one per control frame
+        """The selected agent follows the path through ``control_xy`` (the handler of a control point's release)."""
+        from omniscs.viewer.paths import path_waypoints
+
+        with self.lock:
+            if self.selected is None:
+                return
+            node = self.target.session.graph.agent(self.selected)
+            try:
+                waypoints = path_waypoints(node.world_from_agent, node.present, self._path_frames, control_xy)
+                self.target.session.set_path(self.selected, waypoints)
+            except OmniscsError as exc:
+                self.status.content = f"Path refused: {exc}"
+                return
+            self._edited()
+            self._say_placement(self.selected)
 
     def _on_gizmo(self, event) -> None:
         """While dragging, the agent's splats and box follow the gizmo; at release the move becomes an edit."""
@@ -456,6 +505,8 @@ class ViewerApp:
     def move_selected(self, world_from_box: np.ndarray) -> None:
         """The selected agent put at ``world_from_box`` at the current frame (the handler of a gizmo release)."""
         with self.lock:
+            if self.path_toggle.value:
+                self.path_toggle.value = False  # the path moves with the agent: its points are drawn again
             try:
                 self.target.session.move(self.selected, int(self.frame_slider.value), world_from_box)
             except OmniscsError as exc:

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omniscs.edits import (Edit, Insert, Remove, ReplaceModel, Rotate, Translate, edit_to_dict, local_motion,
-                           parse_edits)
+from omniscs.edits import (Edit, Insert, Remove, ReplaceModel, Rotate, SetTrajectory, Translate, edit_to_dict,
+                           local_motion, parse_edits)
 from omniscs.errors import OmniscsError
 from omniscs.geometry import euler_from_rotmat, invert_transform, is_rigid
 from omniscs.nsg.edit import ModelResolver, apply_graph_edits, node_model_resolver
@@ -40,11 +40,12 @@ class TrackEdits:
     track_id: int
     insert: Insert | None = None          # the track is new: made from a model at a pose
     replace: ReplaceModel | None = None   # its model swapped (an inserted track changes its insert instead)
-    translate: Translate | None = None    # its composed moves: translate, then rotate about the moved centre
+    trajectory: SetTrajectory | None = None  # a path drawn for it (an inserted track's insert takes the waypoints)
+    translate: Translate | None = None    # its composed moves since: translate, then rotate about the moved centre
     rotate: Rotate | None = None
 
     def edits(self) -> list[Edit]:
-        out: list[Edit] = [e for e in (self.insert, self.replace) if e is not None]
+        out: list[Edit] = [e for e in (self.insert, self.replace, self.trajectory) if e is not None]
         if self.translate is not None and (self.translate.longitudinal, self.translate.lateral,
                                            self.translate.vertical) != (0.0, 0.0, 0.0):
             out.append(self.translate)
@@ -138,6 +139,30 @@ class EditSession:
         insert = parse_edits([Insert(tid, asset_id, category, pose=pose, roll_deg=float(roll_deg))])[0]
         self._commit({**self._tracks, tid: TrackEdits(tid, insert=insert)}, self._removed)
         return tid
+
+    def set_path(self, track_id: int, waypoints) -> SceneGraph:
+        """Give agent ``track_id`` a new path: one (x, y, z, yaw) per frame or None where absent
+        (``omniscs.viewer.paths.path_waypoints``). Its earlier moves are part of the path, so they are dropped; a
+        tilted agent (on its side, overturned) cannot take a path, which is upright."""
+        from omniscs.viewer.paths import is_upright
+
+        tid = int(track_id)
+        node = self._graph.agent(tid)
+        if not is_upright(node.world_from_agent, node.present):
+            raise OmniscsError(f"agent {tid} is tilted (on its side or overturned); a drawn path is upright: move it "
+                               "with its gizmo instead")
+        rounded = tuple(None if w is None else (round(w[0], TRANSLATE_DECIMALS) + 0.0,
+                                                round(w[1], TRANSLATE_DECIMALS) + 0.0,
+                                                round(w[2], TRANSLATE_DECIMALS) + 0.0, round(w[3], 6) + 0.0)
+                        for w in waypoints)
+        track = self._tracks.get(tid, TrackEdits(tid))
+        if track.insert is not None:
+            insert = parse_edits([replace(track.insert, pose=None, waypoints=rounded)])[0]
+            track = TrackEdits(tid, insert=insert)
+        else:
+            trajectory = parse_edits([SetTrajectory(tid, rounded)])[0]
+            track = TrackEdits(tid, replace=track.replace, trajectory=trajectory)
+        return self._commit({**self._tracks, tid: track}, self._removed)
 
     def remove(self, track_id: int) -> SceneGraph:
         """Take agent ``track_id`` out of every frame (its other edits go with it; an inserted agent is simply
