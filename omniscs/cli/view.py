@@ -33,7 +33,8 @@ def view(
     camera view through our renderer; move, turn, remove, re-model and insert agents of a fitted graph and save the
     edits as a spec that `omniscs render --edit @spec.json` takes. Serves until Ctrl-C."""
     from omniscs.progress import Stopped
-    from omniscs.viewer.app import open_target, serve
+    from omniscs.viewer.app import serve
+    from omniscs.viewer.targets import open_target
     from omniscs.viewer.state import ViewerConfig
 
     config = ViewerConfig(splat_budget=splats)

@@ -62,7 +62,8 @@ def test_the_viewer_draws_splats_follows_the_slider_and_saves_gui_edits(checkpoi
     playwright = pytest.importorskip("playwright.sync_api")
     import viser
 
-    from omniscs.viewer.app import ViewerApp, open_target
+    from omniscs.viewer.app import ViewerApp
+    from omniscs.viewer.targets import open_target
 
     spec = tmp_path / "gui-spec.json"
     target = open_target(checkpoint)

@@ -14,7 +14,8 @@ from omniscs.edits import Remove, Rotate, Translate, parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, rotmat_from_euler
 from omniscs.nsg.edit import apply_graph_edits
-from omniscs.viewer.app import GraphTarget, StoreTarget, ViewerApp, open_target, pose_from_gizmo, pose_args, serve
+from omniscs.viewer.app import ViewerApp, pose_args, pose_from_gizmo, serve
+from omniscs.viewer.targets import GraphTarget, StoreTarget, open_target
 from omniscs.viewer.session import EditSession
 from omniscs.viewer.state import ViewerConfig, rendered_image
 

@@ -76,7 +76,8 @@ def test_a_cut_in_drawn_in_the_viewer_is_the_spec_saved_and_renders_as_omniscs_r
     import viser
 
     from omniscs.cli import app as cli
-    from omniscs.viewer.app import ViewerApp, open_target
+    from omniscs.viewer.app import ViewerApp
+    from omniscs.viewer.targets import open_target
 
     _, graph = fitted
     server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
