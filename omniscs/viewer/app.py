@@ -63,7 +63,7 @@ class ViewerApp:
     def _build_panel(self, frame: int, edits_out: Path) -> None:
         gui = self.server.gui
         t = self.target
-        gui.add_markdown(t.summary())
+        self.summary = gui.add_markdown(t.summary())
         with gui.add_folder("Time"):
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(t.n_frames - 1, 1), step=1, initial_value=frame,
                                                disabled=t.n_frames < 2)
@@ -72,6 +72,12 @@ class ViewerApp:
             self.camera = gui.add_dropdown("Camera", t.camera_names, initial_value=t.camera_names[0])
             self.draw_boxes = gui.add_checkbox("Boxes on image", True)
             self.image = gui.add_image(np.zeros((2, 2, 3), np.uint8), label="camera view", format="jpeg")
+        if t.layers:
+            share = max(1, min(100, round(100 * t.config.splat_budget / max(t.n_gaussians, 1))))
+            with gui.add_folder("Splats", expand_by_default=False):
+                self.splat_share = gui.add_slider("Drawn (%)", min=1, max=100, step=1, initial_value=share,
+                                                  hint="The most opaque Gaussians are kept; fewer redraw faster")
+            self.splat_share.on_update(lambda _: self.set_splat_share(int(self.splat_share.value)))
         self.frame_slider.on_update(lambda _: self.refresh())
         self.camera.on_update(lambda _: self.refresh_image())
         self.draw_boxes.on_update(lambda _: self.refresh_image())
@@ -393,10 +399,17 @@ class ViewerApp:
                                   f"--edit @{path}{pool} --out edited.png`"
             return path
 
-    def _edited(self) -> None:
-        n = len(self.target.session.edits())
-        self.status.content = f"{n} edit(s), not saved yet." if n else "No edits."
-        for key in self.target.changed_layers():  # a model changed, or an agent came or went
+    def set_splat_share(self, percent: int) -> None:
+        """Draw ``percent`` % of the graph's Gaussians, the most opaque (the level-of-detail control)."""
+        with self.lock:
+            budget = max(1, round(self.target.n_gaussians * percent / 100))
+            self._send_layers(self.target.set_budget(budget))
+            self.summary.content = self.target.summary()
+            self.refresh()
+
+    def _send_layers(self, keys) -> None:
+        """(Re)send the splat layers ``keys`` (a new model, a new agent, a new budget); an empty layer is removed."""
+        for key in keys:
             splats = self.target.layers[key]
             old = self._splats.pop(key, None)
             if old is not None:
@@ -404,7 +417,12 @@ class ViewerApp:
             if len(splats):
                 self._splats[key] = self.server.scene.add_gaussian_splats(
                     f"/splats/{key}", centers=splats.centers, covariances=splats.covariances, rgbs=splats.rgbs,
-                    opacities=splats.opacities, visible=False)
+                    opacities=splats.opacities, visible=False)  # refresh() shows and places it
+
+    def _edited(self) -> None:
+        n = len(self.target.session.edits())
+        self.status.content = f"{n} edit(s), not saved yet." if n else "No edits."
+        self._send_layers(self.target.changed_layers())  # a model changed, or an agent came or went
         options = [NO_AGENT] + self._agent_labels()
         if tuple(self.agent_list.options) != tuple(options):
             self.agent_list.options = options

@@ -71,6 +71,15 @@ class GraphTarget:
     def _sources(graph) -> dict[str, int]:
         return {BACKGROUND: id(graph.background), **{f"agent.{a.track_id}": id(a.gaussians) for a in graph.agents}}
 
+    def set_budget(self, budget: int) -> set[str]:
+        """Draw at most ``budget`` Gaussians from now on (the most opaque); returns the keys of the layers made
+        again (all of them)."""
+        import dataclasses
+
+        self.config = dataclasses.replace(self.config, splat_budget=int(budget))  # checked by ViewerConfig
+        self._layer_sources = {}
+        return self.changed_layers()
+
     def changed_layers(self) -> set[str]:
         """After an edit: the splat layers made again because a node's model changed or a node came or went (their
         keys; a removed node's layer is empty)."""

@@ -17,7 +17,7 @@ from omniscs.nsg.edit import apply_graph_edits
 from omniscs.viewer.app import ViewerApp, pose_args, pose_from_gizmo, serve
 from omniscs.viewer.targets import GraphTarget, StoreTarget, open_target
 from omniscs.viewer.session import EditSession
-from omniscs.viewer.state import ViewerConfig, rendered_image
+from omniscs.viewer.state import ViewerConfig, rendered_image, splat_layers
 
 #: The gizmo drag of the tests: 2 m ahead, 1 m to the right, turned 30° left (in the car's own frame).
 DRAG = make_transform(rotmat_from_euler(yaw=np.radians(30.0)), [2.0, -1.0, 0.0])
@@ -317,3 +317,15 @@ def test_a_pool_model_inserted_in_the_viewer_renders_with_the_same_pool(fitted, 
     assert result.exit_code == 0, result.output
     assert np.array_equal(rendered_image(app.target.session.graph, "CAM_FRONT", 2),
                           np.asarray(Image.open(out).convert("RGB")))
+
+
+def test_the_splat_share_control_redraws_the_most_opaque_part_of_the_graph(app, fitted):
+    _, graph = fitted
+    app.set_splat_share(25)
+    kept = round(graph.n_gaussians * 0.25)
+    assert sum(len(s) for s in app.target.layers.values()) == kept
+    assert sum(len(s) for s in splat_layers(graph, kept).values()) == kept
+    assert f"{kept:,} of {graph.n_gaussians:,} Gaussians drawn" in app.summary.content
+    assert set(app._splats) == {k for k, s in app.target.layers.items() if len(s)}
+    app.set_splat_share(100)
+    assert sum(len(s) for s in app.target.layers.values()) == graph.n_gaussians
