@@ -26,6 +26,8 @@ def view(
                                                     "images beside rendered ones, the road map)."),
     pool: Optional[Path] = typer.Option(None, help="With a checkpoint: a model pool whose models can replace agents "
                                                    "or be inserted (render the saved spec with the same --pool)."),
+    variants: Optional[Path] = typer.Option(None, help="With a checkpoint: a variants.json of the behaviour or "
+                                                       "appearance stage (or its folder) to pick variants from."),
     edits_out: Optional[Path] = typer.Option(None, help="Where 'Save edits' writes the edit spec (default "
                                                         "<scene id>-edits.json here); changeable in the panel."),
 ) -> None:
@@ -43,7 +45,8 @@ def view(
                     "this machine (no password); use the default --host 127.0.0.1 and an SSH tunnel to stay private",
                     label="warning", style="yellow")
     with progress_bars() as bars:
-        opened = open_target(target, config, progress=bars.sink("loading"), scene=scene, pool=pool)
+        opened = open_target(target, config, progress=bars.sink("loading"), scene=scene, pool=pool,
+                             variants=variants)
     try:
         serve(opened, host=host, port=port, frame=frame, config=config, edits_out=edits_out,
               ready=lambda url: console.print(f"omniscs view: {opened.scene_id} ({opened.kind}) at {url}  "

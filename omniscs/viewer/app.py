@@ -12,7 +12,7 @@ from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform
 from omniscs.nsg.graph import BACKGROUND
 from omniscs.quaternions import quat_to_rotmat, rotmat_to_quat
-from omniscs.viewer.state import EGO_COLOUR, FrameState, ViewerConfig
+from omniscs.viewer.state import EGO_COLOUR, FrameState, ViewerConfig, box_colour
 from omniscs.viewer.targets import GraphTarget, StoreTarget
 
 
@@ -27,6 +27,8 @@ def pose_from_gizmo(wxyz, position) -> np.ndarray:  # viser's (w, x, y, z), (x, 
 
 #: Entry of the agent list when no agent is selected.
 NO_AGENT = "(none)"
+#: Entry of the variant list that shows the log.
+NO_VARIANT = "(the log)"
 #: How an inserted model lies: its roll about its own forward axis (degrees), resting on the ground.
 LIE_ROLL_DEG = {"upright": 0.0, "on its side": 90.0, "overturned": 180.0}
 
@@ -83,6 +85,12 @@ class ViewerApp:
         self.draw_boxes.on_update(lambda _: self.refresh_image())
         if not t.editable:
             return
+        if t.variants:
+            with gui.add_folder("Variants"):
+                ids = [str(v["variant_id"]) for v in t.variants]
+                self.variant_list = gui.add_dropdown("Variant", [NO_VARIANT] + ids, initial_value=NO_VARIANT)
+                self.variant_figures = gui.add_markdown("The log as recorded.")
+            self.variant_list.on_update(lambda _: self.pick_variant(self.variant_list.value))
         with gui.add_folder("Edit agents"):
             self.agent_list = gui.add_dropdown("Agent", [NO_AGENT] + self._agent_labels(), initial_value=NO_AGENT)
             self.remove_button = gui.add_button("Remove agent", disabled=True)
@@ -180,7 +188,7 @@ class ViewerApp:
         shown = set()
         for box in state.boxes:
             shown.add(box.track_id)
-            colour = (255, 255, 255) if box.track_id == self.selected else box.colour
+            colour = box_colour(box, self.selected, getattr(self.target, "adversary", None))
             handle = self._boxes.get(box.track_id)
             if handle is None:
                 handle = self.server.scene.add_box(f"/boxes/{box.track_id}", color=colour, dimensions=tuple(box.size),
@@ -398,6 +406,25 @@ class ViewerApp:
             self.status.content = f"Saved {n} edit(s) to `{path}`. Render them: `omniscs render {self.target.path} " \
                                   f"--edit @{path}{pool} --out edited.png`"
             return path
+
+    def pick_variant(self, variant_id: str) -> None:
+        """Show the variant ``variant_id`` (``NO_VARIANT``: the log): its agents, its ego, its adversary in red, the
+        log's paths in grey beneath its own; edits made before are dropped, later ones add to the variant's."""
+        from omniscs.viewer.variants import variant_summary
+
+        with self.lock:
+            ids = [str(v["variant_id"]) for v in self.target.variants]
+            index = None if variant_id == NO_VARIANT else ids.index(variant_id)
+            try:
+                self.target.pick_variant(index)
+            except OmniscsError as exc:
+                self.variant_figures.content = f"Cannot show {variant_id}: {exc}"
+                return
+            self.variant_figures.content = "The log as recorded." if index is None else \
+                variant_summary(self.target.variants[index])
+            self.selected = None
+            self.agent_list.value = NO_AGENT
+            self._edited()
 
     def set_splat_share(self, percent: int) -> None:
         """Draw ``percent`` % of the graph's Gaussians, the most opaque (the level-of-detail control)."""

@@ -61,13 +61,15 @@ class EditSession:
     default the graph's own ``nsg:<track>`` nodes); ``reserved_ids`` are track ids an inserted agent may not take
     (the log's tracks left in the background)."""
 
-    def __init__(self, graph: SceneGraph, resolve: ModelResolver | None = None, reserved_ids=()) -> None:
+    def __init__(self, graph: SceneGraph, resolve: ModelResolver | None = None, reserved_ids=(),
+                 prefix=()) -> None:
         self.base = graph
         self.resolve = resolve or node_model_resolver(graph)
         self.reserved_ids = frozenset(int(t) for t in reserved_ids)
+        self.prefix: list[Edit] = parse_edits(list(prefix))  # edits made before the session (a variant's)
         self._tracks: dict[int, TrackEdits] = {}  # by the track's first edit
         self._removed: list[int] = []             # logged agents removed, in the order they were removed
-        self._graph = graph
+        self._graph = apply_graph_edits(graph, self.prefix, self.resolve) if self.prefix else graph
 
     @property
     def graph(self) -> SceneGraph:
@@ -75,10 +77,11 @@ class EditSession:
         return self._graph
 
     def edits(self) -> list[Edit]:
-        """The session as an edit list: per track its insert, model replacement, translate and rotate (zero amounts
-        left out), then the removals. Edits of different tracks commute, so the order across tracks changes nothing
-        but readability."""
-        return [e for t in self._tracks.values() for e in t.edits()] + [Remove(tid) for tid in self._removed]
+        """The session as an edit list: the ``prefix`` (a variant's edits), then per track its insert, model
+        replacement, path, translate and rotate (zero amounts left out), then the removals. Edits of different
+        tracks commute, so the order across tracks changes nothing but readability."""
+        return [*self.prefix, *(e for t in self._tracks.values() for e in t.edits()),
+                *(Remove(tid) for tid in self._removed)]
 
     def spec(self) -> list[dict]:
         """``edits()`` in their JSON form (what ``save`` writes)."""
@@ -132,7 +135,7 @@ class EditSession:
         session's inserts and ``reserved_ids``)."""
         model = self.resolve(asset_id)
         size = np.asarray(model.size, dtype=np.float64)
-        taken = set(self.base.agent_ids) | set(self._tracks) | set(self.reserved_ids)
+        taken = set(self.base.agent_ids) | set(self._graph.agent_ids) | set(self._tracks) | set(self.reserved_ids)
         tid = max(taken, default=0) + 1
         pose = (round(float(x), TRANSLATE_DECIMALS), round(float(y), TRANSLATE_DECIMALS),
                 round(float(ground_z) + 0.5 * float(size[2]), TRANSLATE_DECIMALS), round(float(yaw), 6))

@@ -150,11 +150,11 @@ def frustum(camera: CameraRecord, world_from_ego: np.ndarray) -> Frustum:
     return Frustum(camera.name, world_from_ego @ camera.ego_from_camera, fov_y, camera.width / camera.height)
 
 
-def graph_frame(graph: SceneGraph, frame: int) -> FrameState:
+def graph_frame(graph: SceneGraph, frame: int, world_from_ego: np.ndarray | None = None) -> FrameState:
     """The graph at ``frame``: the background where it was fitted, each agent present at its pose, its box, and the
-    logged rig on the logged ego pose."""
+    logged rig on the logged ego pose (or on ``world_from_ego[frame]``, [F, 4, 4]: a variant's ego)."""
     f = graph.check_frame(frame)
-    ego = graph.world_from_ego[f]
+    ego = graph.world_from_ego[f] if world_from_ego is None else np.asarray(world_from_ego, np.float64)[f]
     nodes = [NodePlacement(BACKGROUND, np.eye(4))]
     boxes = []
     for a in graph.agents:
@@ -197,16 +197,21 @@ class Trajectory:
     category: str          # "ego" for the ego
     positions: np.ndarray  # [M, 3] float64 world, at the frames where the track is present
     frames: np.ndarray     # [M] int64
+    tint: tuple[int, int, int] | None = None  # a colour of its own (e.g. a variant's original paths), else by kind
 
     @property
     def colour(self) -> tuple[int, int, int]:
+        if self.tint is not None:
+            return self.tint
         return EGO_COLOUR if self.track_id is None else category_colour(self.category)
 
 
-def graph_trajectories(graph: SceneGraph) -> tuple[Trajectory, ...]:
-    """The ego's logged path, then each agent node's path (as edited, for an edited graph)."""
+def graph_trajectories(graph: SceneGraph, world_from_ego: np.ndarray | None = None) -> tuple[Trajectory, ...]:
+    """The ego's path (logged, or ``world_from_ego`` [F, 4, 4]), then each agent node's path (as edited, for an
+    edited graph)."""
     frames = np.arange(graph.n_frames)
-    out = [Trajectory(None, "ego", graph.world_from_ego[:, :3, 3].copy(), frames)]
+    ego = graph.world_from_ego if world_from_ego is None else np.asarray(world_from_ego, np.float64)
+    out = [Trajectory(None, "ego", ego[:, :3, 3].copy(), frames)]
     for a in graph.agents:
         out.append(Trajectory(a.track_id, a.category, a.world_from_agent[a.present, :3, 3].copy(), frames[a.present]))
     return tuple(out)
@@ -264,31 +269,47 @@ def ground_height(world_from_ego: np.ndarray) -> float:  # [F, 4, 4] -> metres
 
 
 # ----------------------------------------------------------------------------- the camera view
-def rendered_image(graph: SceneGraph, camera: str, frame: int) -> np.ndarray:  # -> uint8 [H, W, 3] RGB
-    """The logged camera at ``frame`` through the scene graph's renderer, as ``omniscs render`` writes it."""
-    result = graph.render(graph.view(camera, frame))
+def rendered_image(graph: SceneGraph, camera: str, frame: int,
+                   world_from_ego: np.ndarray | None = None) -> np.ndarray:  # -> uint8 [H, W, 3] RGB
+    """The logged camera at ``frame`` through the scene graph's renderer, as ``omniscs render`` writes it (on the
+    ego pose ``world_from_ego[frame]`` when given, [F, 4, 4])."""
+    ego = None if world_from_ego is None else np.asarray(world_from_ego, np.float64)[frame]
+    result = graph.render(graph.view(camera, frame, ego))
     return (result.rgb.detach().cpu().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+
+
+#: Box colours of the selected agent and of a variant's adversary.
+SELECTED_COLOUR = (255, 255, 255)
+ADVERSARY_COLOUR = (255, 0, 0)
+
+
+def box_colour(box: AgentBox, selected: int | None = None, adversary: int | None = None) -> tuple[int, int, int]:
+    if box.track_id == selected:
+        return SELECTED_COLOUR
+    return ADVERSARY_COLOUR if box.track_id == adversary else box.colour
 
 
 def with_boxes(image: np.ndarray,     # uint8 [H, W, 3]
                camera: CameraRecord, world_from_ego: np.ndarray,  # [4, 4]
-               boxes: tuple[AgentBox, ...], highlight: int | None = None) -> np.ndarray:
+               boxes: tuple[AgentBox, ...], highlight: int | None = None, adversary: int | None = None,
+               ) -> np.ndarray:
     """``image`` with ``boxes`` drawn as projected wireframes in their category colours (track ``highlight`` in
-    white)."""
+    white, a variant's ``adversary`` in red)."""
     cam_from_world = invert_transform(world_from_ego @ camera.ego_from_camera)
-    drawn = [(b.world_from_box, b.size, b.label, (255, 255, 255) if b.track_id == highlight else b.colour)
-             for b in boxes]
+    drawn = [(b.world_from_box, b.size, b.label, box_colour(b, highlight, adversary)) for b in boxes]
     return draw_box_wireframes(image, camera.K, cam_from_world, drawn)
 
 
 def graph_camera_image(graph: SceneGraph, camera: str, frame: int, boxes: bool = True,
-                       highlight: int | None = None, scene: Scene | None = None) -> np.ndarray:  # uint8 [H, W(*2), 3]
+                       highlight: int | None = None, scene: Scene | None = None,
+                       world_from_ego: np.ndarray | None = None,  # [F, 4, 4] a variant's ego, else the logged one
+                       adversary: int | None = None) -> np.ndarray:  # -> uint8 [H, W (x2 with scene), 3]
     """The camera view of a fitted graph: rendered, with the agents' boxes drawn when ``boxes``; with the ``scene``
     it was fitted to, the logged image (its logged boxes drawn) to the left of the rendered one."""
-    image = rendered_image(graph, camera, frame)
+    image = rendered_image(graph, camera, frame, world_from_ego)
     if boxes:
-        state = graph_frame(graph, frame)
-        image = with_boxes(image, graph.camera(camera), state.world_from_ego, state.boxes, highlight)
+        state = graph_frame(graph, frame, world_from_ego)
+        image = with_boxes(image, graph.camera(camera), state.world_from_ego, state.boxes, highlight, adversary)
     if scene is None or camera not in scene.camera_names:
         return image
     logged = store_camera_image(scene, camera, frame, boxes)

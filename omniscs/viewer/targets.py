@@ -15,6 +15,8 @@ from omniscs.viewer.state import (FrameState, Splats, Trajectory, ViewerConfig, 
                                   graph_trajectories, ground_height, ray_ground_point, road_lines, splat_layers,
                                   store_camera_image, store_frame, store_trajectories)
 
+#: Colour of the log's paths under a variant's (the original trajectories, overlaid).
+ORIGINAL_COLOUR = (150, 150, 150)
 #: Progress callback: (steps done, steps in all, what is happening).
 Progress = Callable[[int, int, str], None]
 
@@ -37,8 +39,12 @@ class GraphTarget:
             from omniscs.agents.pool import model_resolver
 
             resolve = model_resolver(pool, resolve)
-        background_tracks = () if scene is None else scene.boxes.track_id.unique()
-        self.session = EditSession(graph, resolve, reserved_ids=background_tracks)
+        self._resolve = resolve
+        self._reserved = () if scene is None else tuple(int(t) for t in scene.boxes.track_id.unique())
+        self.session = EditSession(graph, resolve, reserved_ids=self._reserved)
+        self.variants: list[dict] = []  # a stage's variants to pick from (open_target's ``variants``)
+        self.variant: dict | None = None
+        self.ego: np.ndarray | None = None  # [F, 4, 4] the picked variant's ego, else None (the logged one)
         self.config = config
         if progress:
             kept = min(graph.n_gaussians, config.splat_budget)
@@ -58,14 +64,41 @@ class GraphTarget:
         self.n_frames = graph.n_frames
         self.camera_names = [c.name for c in graph.cameras]
 
+    @property
+    def adversary(self) -> int | None:
+        """The picked variant's adversary (drawn red), else None."""
+        return None if self.variant is None or self.variant.get("adversary") is None else int(self.variant["adversary"])
+
+    def pick_variant(self, index: int | None) -> None:
+        """Show ``variants[index]`` (None: the log): a new session whose edits start with the variant's, the ego on
+        its plan; edits made before are dropped."""
+        from omniscs.viewer.variants import variant_edits, variant_ego
+
+        variant = None if index is None else self.variants[index]
+        prefix = [] if variant is None else variant_edits(self.session.base, variant)
+        self.session = EditSession(self.session.base, self._resolve, self._reserved, prefix)
+        self.variant = variant
+        self.ego = None if variant is None else variant_ego(self.session.base, variant)
+
     def frame_state(self, frame: int) -> FrameState:
-        return graph_frame(self.session.graph, frame)
+        return graph_frame(self.session.graph, frame, self.ego)
 
     def trajectories(self) -> tuple[Trajectory, ...]:
-        return graph_trajectories(self.session.graph)
+        """The paths as edited; with a variant picked, the log's paths too (grey) where the variant changed them."""
+        edited = graph_trajectories(self.session.graph, self.ego)
+        if self.variant is None:
+            return edited
+        logged = {t.track_id: t for t in graph_trajectories(self.session.base)}
+        originals = tuple(Trajectory(t.track_id, t.category, logged[t.track_id].positions,
+                                     logged[t.track_id].frames, tint=ORIGINAL_COLOUR)
+                          for t in edited if t.track_id in logged and (
+                              len(t.positions) != len(logged[t.track_id].positions)
+                              or not np.allclose(t.positions, logged[t.track_id].positions, atol=1e-3)))
+        return edited + originals
 
     def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
-        return graph_camera_image(self.session.graph, camera, frame, boxes, highlight, self.scene)
+        return graph_camera_image(self.session.graph, camera, frame, boxes, highlight, self.scene, self.ego,
+                                  self.adversary)
 
     @staticmethod
     def _sources(graph) -> dict[str, int]:
@@ -184,10 +217,12 @@ class StoreTarget:
 
 
 def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
-                scene: str | Path | None = None, pool: str | Path | None = None) -> GraphTarget | StoreTarget:
+                scene: str | Path | None = None, pool: str | Path | None = None,
+                variants: str | Path | None = None) -> GraphTarget | StoreTarget:
     """What ``path`` holds, opened for viewing: a scene-graph checkpoint (``omniscs fit --out``), optionally with the
     ``scene`` store it was fitted to (logged images beside rendered ones, its road map) and a model ``pool``
-    (models to replace agents with or insert), or a scene store
+    (models to replace agents with or insert) and a stage's ``variants`` (a variants.json, or its folder) to pick
+    from, or a scene store
     (``omniscs ingest``, ``omniscs world make``); anything else is one OmniscsError."""
     from omniscs.nsg.checkpoint import GRAPH_JSON, check_same_scene, load_graph
     from omniscs.scene.store import MANIFEST, load_scene
@@ -208,13 +243,21 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
         if pool is not None and not Path(pool).is_dir():
             raise OmniscsError(f"--pool {pool} is not a folder; give a model pool (omniscs pool build)")
         target = GraphTarget(path, graph, config, progress, store, None if pool is None else Path(pool))
+        if variants is not None:
+            from omniscs.viewer.variants import read_variants
+
+            target.variants = read_variants(variants)
+            others = sorted({str(v.get("scene_id")) for v in target.variants} - {graph.scene_id, "None"})
+            if others:
+                raise OmniscsError(f"{variants} holds variants of {others}, not of {graph.scene_id}; give that scene's "
+                                   "variants")
         if progress:
             progress(2, 2, "ready")
         return target
     if path.is_dir() and (path / MANIFEST).is_file():
-        if scene is not None or pool is not None:
-            raise OmniscsError(f"{path} is a scene store; --scene and --pool go with a scene-graph checkpoint "
-                               "(edits need a fit)")
+        if scene is not None or pool is not None or variants is not None:
+            raise OmniscsError(f"{path} is a scene store; --scene, --pool and --variants go with a scene-graph "
+                               "checkpoint (edits need a fit)")
         if progress:
             progress(0, 1, f"opening the scene store {path}")
         target = StoreTarget(path, load_scene(path), config)

@@ -160,7 +160,7 @@ def test_a_checkpoint_opens_with_its_scene_store_and_a_store_refuses_one(fitted,
     assert target.scene.scene_id == scene.scene_id and len(segments) > 0
     assert len(open_target(scene.path).road()[0]) == len(segments)  # the store's own map, the same lines
     assert open_target(checkpoint).road() is None
-    with pytest.raises(OmniscsError, match="--scene and --pool go with a scene-graph checkpoint"):
+    with pytest.raises(OmniscsError, match="--scene, --pool and --variants go with a scene-graph"):
         open_target(scene.path, scene=scene.path)
 
 
