@@ -66,6 +66,12 @@ class ViewerApp:
         gui = self.server.gui
         t = self.target
         self.summary = gui.add_markdown(t.summary())
+        if getattr(t, "samples", None):
+            with gui.add_folder("Samples"):
+                self.sample_list = gui.add_dropdown("Variant store", [r["store_id"] for r in t.samples],
+                                                    initial_value=t.samples[0]["store_id"])
+                self.sample_figures = gui.add_markdown(t.sample_summary())
+            self.sample_list.on_update(lambda _: self.pick_sample(self.sample_list.value))
         with gui.add_folder("Time"):
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(t.n_frames - 1, 1), step=1, initial_value=frame,
                                                disabled=t.n_frames < 2)
@@ -406,6 +412,33 @@ class ViewerApp:
             self.status.content = f"Saved {n} edit(s) to `{path}`. Render them: `omniscs render {self.target.path} " \
                                   f"--edit @{path}{pool} --out edited.png`"
             return path
+
+    def pick_sample(self, store_id: str) -> None:
+        """Show the dataset's variant store ``store_id``: its frames, cameras, boxes, LiDAR and images."""
+        with self.lock:
+            ids = [r["store_id"] for r in self.target.samples]
+            self.target.pick(ids.index(store_id))
+            self.sample_figures.content = self.target.sample_summary()
+            for handle in self._boxes.values():  # another store: other tracks
+                handle.remove()
+            self._boxes.clear()
+            self._labels.clear()
+            for handle in self._frustums.values():
+                handle.remove()
+            self._frustums.clear()
+            last = max(self.target.n_frames - 1, 1)
+            if int(self.frame_slider.value) > last:
+                self.frame_slider.value = 0
+            self.frame_slider.max = last
+            self.camera.options = self.target.camera_names  # the picked camera stays when the store has it
+            road = self.target.road()
+            if road is not None and len(road[0]):
+                self.server.scene.add_line_segments("/road", road[0].astype(np.float32), road[1], thickness=1.5,
+                                                    thickness_units="screen")
+            else:
+                self.server.scene.remove_by_name("/road")
+            self.refresh_trajectories()
+            self.refresh()
 
     def pick_variant(self, variant_id: str) -> None:
         """Show the variant ``variant_id`` (``NO_VARIANT``: the log): its agents, its ego, its adversary in red, the

@@ -216,6 +216,52 @@ class StoreTarget:
                 f"{self.scene.boxes.track_id.nunique()} tracks, {lidar}")
 
 
+class DatasetTarget(StoreTarget):
+    """A dataset (``omniscs dataset build``): its variant stores, one at a time (``pick``), each shown as a scene
+    store: the rendered images with their 3D annotation boxes, the LiDAR, the rig."""
+
+    kind = "dataset"
+
+    def __init__(self, path: Path, card: dict, config: ViewerConfig) -> None:
+        from omniscs.annotate.dataset import SCENES
+        from omniscs.scene.store import load_scene
+
+        self.card = card
+        rows = card.get("variants") if isinstance(card, dict) else None
+        self.samples = [r for r in (rows if isinstance(rows, list) else [])
+                        if isinstance(r, dict) and isinstance(r.get("store_id"), str)
+                        and (path / SCENES / r["store_id"]).is_dir()]
+        if not self.samples:
+            raise OmniscsError(f"dataset {path} lists no variant store under {SCENES}/; build it again "
+                               "(omniscs dataset build)")
+        self._stores = [path / SCENES / r["store_id"] for r in self.samples]
+        self._load = load_scene
+        super().__init__(path, load_scene(self._stores[0]), config)
+        self.sample = 0
+
+    def pick(self, index: int) -> None:
+        """Show the dataset's ``index``-th variant store."""
+        self.scene = self._load(self._stores[index])
+        self.sample = index
+        self.scene_id = self.scene.scene_id
+        self.n_frames = self.scene.n_frames
+        self.camera_names = list(self.scene.camera_names)
+
+    def sample_summary(self) -> str:
+        """The picked variant's row of the dataset card, as one Markdown line."""
+        r = self.samples[self.sample]
+        psnr = r.get("fidelity_psnr")
+        return (f"**{r['store_id']}** ({r.get('level', 'behaviour')} variant {r.get('variant_id')} of "
+                f"{r.get('scene_id')}): {r.get('n_frames')} frames, {r.get('n_images')} images, "
+                f"{r.get('n_annotations')} annotations; gates {'passed' if r.get('passed_gates') else 'FAILED'}"
+                + ("" if psnr is None else f"; fidelity {float(psnr):.1f} dB PSNR"))
+
+    def summary(self) -> str:
+        counts = self.card.get("counts", {})
+        return (f"**{self.card.get('dataset_id', self.path.name)}** ({self.kind}): {len(self.samples)} variant "
+                f"stores, {counts.get('images', '?')} images, {counts.get('annotations', '?')} annotations")
+
+
 def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
                 scene: str | Path | None = None, pool: str | Path | None = None,
                 variants: str | Path | None = None) -> GraphTarget | StoreTarget:
@@ -254,6 +300,16 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
         if progress:
             progress(2, 2, "ready")
         return target
+    from omniscs.annotate.dataset import CARD_JSON
+
+    if path.is_dir() and (path / CARD_JSON).is_file() and not (path / MANIFEST).is_file():
+        if scene is not None or pool is not None or variants is not None:
+            raise OmniscsError(f"{path} is a dataset; --scene, --pool and --variants go with a scene-graph "
+                               "checkpoint")
+        from omniscs.untrusted import read_json
+
+        card = read_json(path / CARD_JSON, "build the dataset again (omniscs dataset build)", what="dataset card")
+        return DatasetTarget(path, card, config)
     if path.is_dir() and (path / MANIFEST).is_file():
         if scene is not None or pool is not None or variants is not None:
             raise OmniscsError(f"{path} is a scene store; --scene, --pool and --variants go with a scene-graph "
@@ -264,5 +320,6 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
         if progress:
             progress(1, 1, "ready")
         return target
-    raise OmniscsError(f"{path} is neither a scene-graph checkpoint (a folder with {GRAPH_JSON}: omniscs fit --out) "
-                       f"nor a scene store (a folder with {MANIFEST}); omniscs view opens those two")
+    raise OmniscsError(f"{path} is neither a scene-graph checkpoint (a folder with {GRAPH_JSON}: omniscs fit --out), "
+                       f"a scene store (a folder with {MANIFEST}) nor a dataset (a folder with {CARD_JSON}); omniscs "
+                       "view opens those")
