@@ -112,12 +112,17 @@ class ViewerApp:
         self.path_toggle.on_update(lambda _: self.show_path(bool(self.path_toggle.value)))
         self.reset_button.on_click(lambda _: self.reset_selected())
         self.save_button.on_click(lambda _: self.save())
+        # the controls that act on the selected agent, enabled while one is
+        self._per_agent = [self.remove_button, self.reset_button, self.path_toggle]
         self._models = {f"{model_id} {category}": (model_id, category) for model_id, category in t.models()}
+        if not self._models:  # a graph without agent nodes, and no --pool
+            return
         with gui.add_folder("Models", expand_by_default=False):
             self.model_list = gui.add_dropdown("Model", list(self._models), initial_value=next(iter(self._models)))
             self.lie = gui.add_dropdown("Lies", list(LIE_ROLL_DEG), initial_value="upright")
             self.replace_button = gui.add_button("Give the agent this model", disabled=True)
             self.insert_button = gui.add_button("Insert: click the road")
+        self._per_agent.append(self.replace_button)
         self.replace_button.on_click(lambda _: self.replace_selected())
         self.insert_button.on_click(lambda _: self.arm_insert())
 
@@ -242,8 +247,8 @@ class ViewerApp:
                 (l for l in self.agent_list.options if self._track_of(l) == self.selected), NO_AGENT)
             if self.agent_list.value != label:
                 self.agent_list.value = label  # calls select again, with the same track: harmless
-            self.remove_button.disabled = self.reset_button.disabled = self.selected is None
-            self.replace_button.disabled = self.path_toggle.disabled = self.selected is None
+            for control in self._per_agent:
+                control.disabled = self.selected is None
             self.path_toggle.value = False  # a new selection starts without its path's handles
             self.show_path(False)
             self.refresh()
@@ -345,7 +350,8 @@ class ViewerApp:
             self.target.session.remove(self.selected)
             self.selected = None
             self.agent_list.value = NO_AGENT
-            self.remove_button.disabled = self.reset_button.disabled = self.replace_button.disabled = True
+            for control in self._per_agent:
+                control.disabled = True
             self._edited()
 
     def reset_selected(self) -> None:

@@ -14,7 +14,7 @@ from omniscs.edits import Remove, Rotate, Translate, parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.geometry import make_transform, rotmat_from_euler
 from omniscs.nsg.edit import apply_graph_edits
-from omniscs.viewer.app import ViewerApp, pose_args, pose_from_gizmo, serve
+from omniscs.viewer.app import NO_AGENT, ViewerApp, pose_args, pose_from_gizmo, serve
 from omniscs.viewer.targets import GraphTarget, StoreTarget, open_target
 from omniscs.viewer.session import EditSession
 from omniscs.viewer.state import ViewerConfig, rendered_image, splat_layers
@@ -329,3 +329,20 @@ def test_the_splat_share_control_redraws_the_most_opaque_part_of_the_graph(app, 
     assert set(app._splats) == {k for k, s in app.target.layers.items() if len(s)}
     app.set_splat_share(100)
     assert sum(len(s) for s in app.target.layers.values()) == graph.n_gaussians
+
+
+def test_a_graph_without_agent_nodes_opens_with_nothing_to_pick(tmp_path, port):
+    import viser
+    from annotate_fixtures import fitted_scene
+
+    fitted_scene(tmp_path, agents=(), n_frames=2, n_cameras=1, iterations=20)
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    app = ViewerApp(server, open_target(tmp_path / "graph"), frame=1, edits_out=tmp_path / "none.json")
+    try:
+        assert app.agent_list.options == (NO_AGENT,) and app._models == {}
+        assert app.target.frame_state(1).boxes == () and app.image.image.shape[:2] == (54, 96)
+        app.select(None)
+        assert app.save() is not None and app.target.session.spec() == []
+    finally:
+        app.close()
+        server.stop()
