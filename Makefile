@@ -38,6 +38,7 @@ $(STAMP): pyproject.toml constraints.txt | system-deps
 	$(VENV)/bin/python -m pip install -q -c constraints.txt torch==2.13.0
 	$(VENV)/bin/python -m pip install -q -c constraints.txt -e '.[test,docs]'
 	$(VENV)/bin/python -m pip install -q -c constraints.txt --no-deps nuscenes-devkit==1.2.0
+	$(VENV)/bin/python -m pip install -q -c constraints.txt --no-deps asam-qc-opendrive==1.0.0
 	@touch $(STAMP)
 
 demo: setup

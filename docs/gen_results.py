@@ -135,10 +135,18 @@ BENCHMARKS: tuple[Benchmark, ...] = (
               (Section("Per case and arm", "summary"), Section("Targets", "targets"),
                Section("Sampler rejections", "rejections"))),
     Benchmark("dataset", "Render + annotate throughput", "omniscs bench dataset",
-              "Annotated variants per hour after fitting, with and without fidelity measurement.",
+              "Annotated variants per hour after fitting, with and without fidelity measurement; then every variant "
+              "exported as OpenSCENARIO + OpenDRIVE and checked with ASAM's checkers.",
               (Section("Summary", "summary"),
                Section("Scenes", "scenes", columns=("scene", "scene_id", "fit_seconds", "heldout_psnr",
-                                                     "behavior_seconds", "variants", "replay_seconds")))),
+                                                     "behavior_seconds", "variants", "replay_seconds")),
+               Section("OpenSCENARIO + OpenDRIVE export, ASAM checkers (openscenario.json)", "summary",
+                       part="openscenario"),
+               Section("ASAM checker results per file (openscenario.json)", "files", part="openscenario",
+                       columns=("file", "checker", "passed", "errors", "warnings", "information",
+                                "checks_completed", "checks_skipped", "checks_failed")),
+               Section("Round trip per variant (openscenario.json)", "variants", part="openscenario",
+                       columns=("store", "refused", "position_m", "rotation", "time_s")))),
     Benchmark("downstream", "Downstream models", "omniscs bench downstream  /  omniscs bench downstream --detection",
               "The planning protocol (report.json) and the detection protocol (detection.json) with the proxy "
               "planner and detector: base against fine-tuned with SCS data.",
@@ -153,9 +161,17 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                        columns=("mAP", "NDS", "AP.bus", "AP.car", "AP.construction_vehicle", "AP.trailer",
                                 "AP.truck")))),
     Benchmark("closedloop", "Closed loop", "omniscs bench closedloop",
-              "Steps per second, the shipped policies' PDMS and HD-Score on logs and behaviour-SCS variants, and 20 "
-              "HUGSIM clients at once.",
-              (Section("Speed", "speed"), Section("Scores per policy", "summary"), Section("Load", "load"))),
+              "Steps per second, the shipped policies' PDMS, EPDMS and HD-Score on logs and behaviour-SCS variants, "
+              "and 20 HUGSIM clients at once.",
+              (Section("Speed", "speed"),
+               Section("Scores per policy", "summary",
+                       columns=tuple(f"{kind}.{k}" for kind in ("log", "behavior")
+                                     for k in ("n", "pdms", "epdms", "epdms_navsim_ttc", "hd_score",
+                                               "route_completion", "collision_rate"))
+                       + ("scs_penalty.pdms", "scs_penalty.epdms", "scs_penalty.hd_score")),
+               Section("EPDMS sub-scores per policy", "epdms_sub_scores", per_key=True,
+                       columns=("n", "nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc", "ec", "with_lanes")),
+               Section("Load", "load"))),
     Benchmark("scaleout", "Scale-out", "omniscs bench scaleout",
               "generate_dataset on 8 scenes with 1 and 2 Dask workers, a worker killed mid-fit, a projection.",
               (Section("Runs", "runs", columns=("workers", "killed", "wall_s", "scenes", "failed", "scenes_per_hour")),

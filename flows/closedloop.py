@@ -1,11 +1,12 @@
 """The ``closed_loop_eval`` flow: a driving policy tested inside edited worlds. Each scenario (a scene's log or a
-behaviour variant) is driven by the policy in its scene's fitted graph and scored (PDMS, HD-Score); one
+behaviour variant) is driven by the policy in its scene's fitted graph and scored (PDMS, EPDMS, HD-Score); one
 ``closed_loop_runs`` row per scenario and a ``runs`` row for the evaluation. A scenario that fails is recorded failed
 and the others still run; the flow then ends failed."""
 from __future__ import annotations
 
 from prefect import flow, get_run_logger, unmapped
 
+from omniscs.closedloop.epdms import EPDMSConfig
 from omniscs.closedloop.simulator import ClosedLoopConfig
 from omniscs.errors import OmniscsError, ValidationError
 from omniscs.pipeline import closedloop as c
@@ -24,18 +25,19 @@ def closed_loop_eval(scenarios: list[str], policy: str = "rule", workspace: str 
                      run_id: str | None = None, reactive: bool = False, max_steps: int | None = None,
                      cameras: list[str] | None = None, width: int | None = None,
                      out_dir: str | None = None, task_runner: str = "threads", workers: int | None = 1,
-                     dask_address: str | None = None) -> dict:
+                     dask_address: str | None = None, ttc: str = "ours") -> dict:
     """Drive ``scenarios`` (``SCENE_ID/log`` or ``SCENE_ID/VARIANT_ID``) with ``policy`` (replay, rule, proxy,
     proxy:PATH or a DriveArena driver's http://HOST:PORT); ``reactive``: agents brake for the ego; ``cameras`` and
     ``width``: what is rendered (default: the fitted rig at its size); ``out_dir``: where the run folders go
     (default: the workspace's ``closedloop/<eval id>/``). Scenarios run on ``task_runner`` (``threads``: ``workers``
-    at once, default one; ``dask``: a local cluster or ``dask_address``; see flows/runners.py)."""
+    at once, default one; ``dask``: a local cluster or ``dask_address``; see flows/runners.py). ``ttc``: how EPDMS
+    scores time to collision, "ours" (PDMS's check) or "navsim" (NAVSIM's; see omniscs.closedloop.epdms)."""
     ws = str(workspace_root(workspace))
     run_id = check_run_id(run_id) or new_run_id()
     started = _now_us()
     settings = {"scenarios": scenarios, "policy": policy, "reactive": reactive, "max_steps": max_steps,
                 "cameras": cameras, "width": width, "out_dir": out_dir, "task_runner": task_runner,
-                "workers": workers, "dask_address": dask_address}
+                "workers": workers, "dask_address": dask_address, "ttc": ttc}
     try:
         if not scenarios:
             raise ValidationError("name at least one scenario (SCENE_ID/log or SCENE_ID/VARIANT_ID)")
@@ -44,12 +46,16 @@ def closed_loop_eval(scenarios: list[str], policy: str = "rule", workspace: str 
         check_runner(task_runner, workers, dask_address)
         config = ClosedLoopConfig(cameras=tuple(cameras) if cameras else None, width=width, reactive=reactive,
                                   outputs=("rgb", "depth"))
-        eval_id = c.eval_id_of(policy, scenarios, c.settings_of(config, max_steps))
+        epdms = EPDMSConfig(ttc=ttc)
+        evaluated = c.settings_of(config, max_steps)
+        if ttc != "ours":  # the default keeps the evaluation ids it had before EPDMS
+            evaluated["ttc"] = ttc
+        eval_id = c.eval_id_of(policy, scenarios, evaluated)
         with scene_task_runner(task_runner, workers, dask_address) as runner:
             futures = runner.map(t.run_scenario, {"workspace": unmapped(ws), "scenario": list(scenarios),
                                                   "policy": unmapped(policy), "eval_id": unmapped(eval_id),
                                                   "config": unmapped(config), "max_steps": unmapped(max_steps),
-                                                  "out_dir": unmapped(out_dir)})
+                                                  "out_dir": unmapped(out_dir), "epdms": unmapped(epdms)})
             records = [f.result() for f in futures]
         td.catalog(run_id, ws, records, writer="closedloop")
     except BaseException as exc:

@@ -338,6 +338,8 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("simulated_s", pa.float64()),
         pa.field("pdms", pa.float64()),                           # NAVSIM's PDM score (mean over steps)
         pa.field("hd_score", pa.float64()),                       # HUGSIM's HD-Score
+        pa.field("epdms", pa.float64()),                          # NAVSIM v2's EPDMS (mean over steps); null in
+                                                                  # partitions written before it was scored
         pa.field("route_completion", pa.float64()),
         pa.field("no_collision", pa.float64()),                   # mean NC (NAVSIM rule)
         pa.field("drivable_compliance", pa.float64()),            # mean DAC

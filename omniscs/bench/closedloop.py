@@ -4,7 +4,8 @@
    640x360 camera (the target: >= 10 steps/s on 2 cores) and at six 800x450 cameras (HUGSIM's size), with colour and
    depth (what a driving stack reads) and with all four outputs (instance and semantic masks cost label channels).
 2. Scores: the shipped policies (replay, rule, proxy) on each held-out scene's log and on its behaviour-SCS variants:
-   PDMS, HD-Score, route completion and collisions, and how much harder the SCS scenarios are.
+   PDMS, EPDMS (NAVSIM v2, with its sub-scores; TTC scored ours and NAVSIM's way), HD-Score, route completion and
+   collisions, and how much harder the SCS scenarios are.
 3. Load: 20 HUGSIM clients (the published hugsim-client) on loopback, one session each, stepping for a bounded time
    against one server: errors, latency percentiles and the process's memory.
 Scenes are procedural logs on held-out seeds (no other benchmark or test uses them), fitted with the fast preset
@@ -23,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from omniscs.bench.harness import finish, load_line, machine_info, status_bytes, write_report
+from omniscs.closedloop.epdms import SUB_SCORES as EPDMS_SUB_SCORES
+from omniscs.closedloop.epdms import TLC_NOTE, EPDMSConfig, score_epdms
 from omniscs.closedloop.policies import make_policy
 from omniscs.closedloop.run import run_episode
 from omniscs.closedloop.scenario import log_scenario, variant_scenario
@@ -142,13 +145,25 @@ def score_policies(scene, graph, log_sc, variants, config: ClosedLoopBenchConfig
             progress(0, None, f"scores: {sc.scenario_id} with {name}")
             r = run_episode(sim, make_policy(name), sc)
             s = r.scores
+            navsim = score_epdms(r.trace, s, EPDMSConfig(ttc="navsim"))  # the same run, NAVSIM's TTC
             rows.append({"scenario_id": sc.scenario_id, "kind": sc.kind, "policy": name, "steps": r.summary["steps"],
-                         "reason": r.summary["reason"], "pdms": s.pdms_mean, "hd_score": s.hd_score,
+                         "reason": r.summary["reason"], "pdms": s.pdms_mean, "epdms": s.epdms.epdms_mean,
+                         "epdms_navsim_ttc": navsim.epdms_mean, "hd_score": s.hd_score,
                          "route_completion": s.route_completion, "collision": bool(s.any_collision),
                          "at_fault": int(s.at_fault_collisions) > 0,
                          "collided_with_adversary": sc.adversary is not None
-                         and sc.adversary in r.summary["collided_with"]})
+                         and sc.adversary in r.summary["collided_with"], **epdms_columns(s.epdms)})
     return rows
+
+
+def epdms_columns(scores) -> dict:
+    """A run's EPDMS sub-scores for the report: the mean of each (after the human filter), the fraction of steps each
+    was filtered, and whether lanes and a human reference were there."""
+    d = scores.to_dict()
+    out = {f"epdms_{name}": d[f"{name}_mean"] for name in EPDMS_SUB_SCORES}
+    out.update({f"filtered_{name}": d["filtered_fraction"][name] for name in EPDMS_SUB_SCORES})
+    out.update(has_lanes=d["has_lanes"], human_filter=d["human_filter"], ec_compared_steps=d["ec_compared_steps"])
+    return out
 
 
 def _rss_mb() -> float:
@@ -249,7 +264,8 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
         for key in ("scene_path", "checkpoint", "variants_path"):
             e[key] = str(e[key])
     result = {"config": asdict(config), "scenes": entries, "speed": speed, "scores": scores,
-              "summary": summarise(scores), "load": load, "machine": finish(machine)}
+              "summary": summarise(scores), "epdms_sub_scores": summarise_epdms(scores), "load": load,
+              "machine": finish(machine)}
     write_report(out_dir, "closedloop", result, markdown(result), {"": lambda f: _plot(result, f)})
     return result
 
@@ -265,13 +281,32 @@ def summarise(scores: list[dict]) -> dict:
                 continue
             mean = (lambda key: statistics.fmean(float(r[key]) for r in rows if r[key] is not None)  # noqa: E731
                     if any(r[key] is not None for r in rows) else None)
-            out[policy][kind] = {"n": len(rows), "pdms": mean("pdms"), "hd_score": mean("hd_score"),
+            out[policy][kind] = {"n": len(rows), "pdms": mean("pdms"), "epdms": mean("epdms"),
+                                 "epdms_navsim_ttc": mean("epdms_navsim_ttc"), "hd_score": mean("hd_score"),
                                  "route_completion": mean("route_completion"),
                                  "collision_rate": statistics.fmean(float(r["collision"]) for r in rows)}
         log_, scs = out[policy].get("log"), out[policy].get("behavior")
         if log_ and scs:
             out[policy]["scs_penalty"] = {k: (None if log_[k] is None or scs[k] is None else log_[k] - scs[k])
-                                          for k in ("pdms", "hd_score")}
+                                          for k in ("pdms", "epdms", "hd_score")}
+    return out
+
+
+def summarise_epdms(scores: list[dict]) -> dict:
+    """Per policy and scenario kind: the mean of each EPDMS sub-score (each run's mean over steps, after the human
+    filter), the mean share of steps the filter set each to 1, and how many runs had a lane map."""
+    out: dict = {}
+    for policy in sorted({r["policy"] for r in scores}):
+        out[policy] = {}
+        for kind in ("log", "behavior"):
+            rows = [r for r in scores if r["policy"] == policy and r["kind"] == kind]
+            if not rows:
+                continue
+            mean = (lambda key: statistics.fmean(float(r[key]) for r in rows if r[key] is not None)  # noqa: E731
+                    if any(r[key] is not None for r in rows) else None)
+            out[policy][kind] = {"n": len(rows), **{name: mean(f"epdms_{name}") for name in EPDMS_SUB_SCORES},
+                                 "filtered": {name: mean(f"filtered_{name}") for name in EPDMS_SUB_SCORES},
+                                 "with_lanes": sum(bool(r["has_lanes"]) for r in rows)}
     return out
 
 
@@ -303,25 +338,50 @@ def markdown(result: dict) -> str:
                       f"{one[0]['steps_per_s']:.1f} steps/s, {'met' if ok else 'NOT met'}. No CUDA machine was at "
                       "hand for this run (the gsplat backend is used automatically when the graph is on CUDA)."]
     lines += ["", "## Scores of the shipped policies (mean over scenarios)", "",
-              "| policy | scenarios | n | PDMS | HD-Score | route completion | collision rate |", "|---|---|---:|---:|---:|---:|---:|"]
+              "| policy | scenarios | n | PDMS | EPDMS | EPDMS (NAVSIM TTC) | HD-Score | route completion | "
+              "collision rate |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for policy, kinds in result["summary"].items():
         for kind in ("log", "behavior"):
             s = kinds.get(kind)
             if s:
                 lines.append(f"| {policy} | {'log' if kind == 'log' else 'behaviour-SCS'} | {s['n']} | {_num(s['pdms'])} "
+                             f"| {_num(s.get('epdms'))} | {_num(s.get('epdms_navsim_ttc'))} "
                              f"| {_num(s['hd_score'])} | {_num(s['route_completion'])} | "
                              f"{100 * s['collision_rate']:.0f} % |")
+    lines += ["", "EPDMS sub-scores (mean over scenarios of each run's mean over steps, after the human-agent filter; "
+                  "in brackets the share of steps the filter set to 1):", "",
+              "| policy | scenarios | " + " | ".join(n.upper() for n in EPDMS_SUB_SCORES) + " | runs with lanes |",
+              "|---|---|" + "---:|" * (len(EPDMS_SUB_SCORES) + 1)]
+    for policy, kinds in result.get("epdms_sub_scores", {}).items():
+        for kind in ("log", "behavior"):
+            s = kinds.get(kind)
+            if s:
+                cells = []
+                for name in EPDMS_SUB_SCORES:
+                    f = s["filtered"].get(name)
+                    cells.append(_num(s[name]) + (f" ({100 * f:.0f} %)" if f else ""))
+                lines.append(f"| {policy} | {'log' if kind == 'log' else 'behaviour-SCS'} | " + " | ".join(cells)
+                             + f" | {s['with_lanes']} of {s['n']} |")
+    lines += ["", f"EPDMS = NC DAC DDC TLC (5 EP + 5 TTC + 2 LK + 2 HC + 2 EC) / 16 (NAVSIM v2), scored on the same "
+                  f"executed 4 s windows as PDMS. TLC: {TLC_NOTE} (the procedural intersections have none). The "
+                  "human-agent filter uses the logged ego on log scenarios only (a behaviour variant was never driven "
+                  "by a human; NAVSIM filters its original scenes only). EC compares plans issued 0.5 s apart: "
+                  "policies that give direct controls have no plans, and their EC is 1. \"EPDMS (NAVSIM TTC)\" "
+                  "rescores the same runs with NAVSIM's TTC (only the ego moves; agents at their recorded positions "
+                  "0 / 0.3 / 0.6 / 0.9 s on)."]
     lines += ["", "How much harder the behaviour-SCS scenarios are (log minus SCS):", ""]
     for policy, kinds in result["summary"].items():
         p = kinds.get("scs_penalty")
         if p:
-            lines.append(f"- {policy}: PDMS {_num(p['pdms'], '{:+.3f}')}, HD-Score {_num(p['hd_score'], '{:+.3f}')}")
-    lines += ["", "Per scenario:", "", "| scenario | policy | steps | ended | PDMS | HD-Score | RC | contact |",
-              "|---|---|---:|---|---:|---:|---:|---|"]
+            lines.append(f"- {policy}: PDMS {_num(p['pdms'], '{:+.3f}')}, EPDMS {_num(p.get('epdms'), '{:+.3f}')}, "
+                         f"HD-Score {_num(p['hd_score'], '{:+.3f}')}")
+    lines += ["", "Per scenario:", "",
+              "| scenario | policy | steps | ended | PDMS | EPDMS | HD-Score | RC | contact |",
+              "|---|---|---:|---|---:|---:|---:|---:|---|"]
     for r in result["scores"]:
         contact = ("adversary" if r["collided_with_adversary"] else "yes") if r["collision"] else ""
         lines.append(f"| {r['scenario_id']} | {r['policy']} | {r['steps']} | {r['reason']} | {_num(r['pdms'])} | "
-                     f"{_num(r['hd_score'])} | {_num(r['route_completion'])} | {contact} |")
+                     f"{_num(r.get('epdms'))} | {_num(r['hd_score'])} | {_num(r['route_completion'])} | {contact} |")
     ld = result.get("load")
     if ld:
         lat = ld["latency_ms"]
@@ -352,10 +412,10 @@ def _plot(result: dict, f) -> None:
     policies = list(result["summary"])
     x = np.arange(len(policies))
     for j, (kind, label) in enumerate((("log", "log"), ("behavior", "behaviour-SCS"))):
-        for k, (metric, hatch) in enumerate((("pdms", ""), ("hd_score", "//"))):
+        for k, (metric, hatch) in enumerate((("pdms", ""), ("epdms", ".."), ("hd_score", "//"))):
             vals = [(result["summary"][p].get(kind) or {}).get(metric) or 0.0 for p in policies]
-            a.bar(x + (2 * j + k - 1.5) * 0.2, vals, 0.2, label=f"{('PDMS', 'HD-Score')[k]} {label}",
-                  hatch=hatch, color=("tab:blue", "tab:red")[j], alpha=0.8 if k == 0 else 0.5)
+            a.bar(x + (3 * j + k - 2.5) * 0.13, vals, 0.13, label=f"{('PDMS', 'EPDMS', 'HD-Score')[k]} {label}",
+                  hatch=hatch, color=("tab:blue", "tab:red")[j], alpha=(0.8, 0.65, 0.5)[k])
     a.set_xticks(x, policies)
     a.set_ylim(0, 1.3)
     a.set_title("Scores by policy: log vs behaviour-SCS")

@@ -6,7 +6,9 @@ and reported both apart and counted against the scene's variants), then the rend
 solution, rendering, annotation (masks, boxes, visibility, own-alpha renders, simulated LiDAR), writing, and the
 fidelity measures. Three set-ups price the fidelity knob: the default (exact comparison with the world's render plus
 the proxies), the proxies only (what a recorded log costs; the headline number) and none; then, for throughput at
-the nuScenes size, one variant through a 6-camera 1600x900 rig (the graph renders any camera; no fidelity there)."""
+the nuScenes size, one variant through a 6-camera 1600x900 rig (the graph renders any camera; no fidelity there).
+Last, every annotated variant is exported as OpenSCENARIO + OpenDRIVE and checked with ASAM's checkers
+(``omniscs.bench.openscenario``: ``openscenario.json`` / ``.md`` beside the report)."""
 from __future__ import annotations
 
 import json
@@ -23,13 +25,14 @@ from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.scene import read_rows
 from omniscs.annotate.variant import write_annotated_variant
 from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.bench.openscenario import write_openscenario_report
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.pipeline.request import SceneRequest
 from omniscs.pipeline.stages import (annotate_stage, behavior_stage, fit_stage, ingest_stage, load_plan, plan_stage,
                                      replay_stage)
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import SyntheticSource, load_scene
-from omniscs.scene.store import CameraRecord
+from omniscs.scene.store import MANIFEST, CameraRecord
 from omniscs.storage import workspace_root
 from omniscs.world import camera_rig
 
@@ -78,7 +81,7 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
     ws = workspace_root(workspace)
     request = SceneRequest(fit_preset=config.fit_preset, behavior_variants=config.variants,
                            behavior_preset=config.behavior_preset, annotate=True, previews=False)
-    scenes = []
+    scenes, variant_stores = [], []
     for template, seed in config.scenes:
         source = SyntheticSource(template=template, seed=seed, n_frames=config.n_frames, n_cameras=config.n_cameras,
                                  width=config.width, height=config.height)
@@ -132,9 +135,13 @@ def run_dataset_benchmark(out_dir: str | Path, workspace: str | Path | None = No
                                       config=AnnotateConfig(frame_every=config.big_frame_every, fidelity_every=0))
         row["nuscenes size"] = _per_image(big.summary)
         scenes.append(row)
+        variant_stores += sorted(p for p in Path(rec.path).iterdir() if (p / MANIFEST).is_file())
     result = {"config": asdict(config), "scenes": scenes, "machine": finish(machine)}
     result["summary"] = summarise(scenes, config)
     write_report(out_dir, "dataset", result, markdown(result), {"": lambda f: _plot(result, f)})
+    progress(0, None, f"OpenSCENARIO export of {len(variant_stores)} variant(s) and ASAM's checkers")
+    result["openscenario"] = write_openscenario_report(out_dir, variant_stores,
+                                                       ws / "bench-dataset" / "openscenario")["summary"]
     return result
 
 

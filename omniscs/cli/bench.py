@@ -202,18 +202,34 @@ class RenderOptions:
     """Timed repeats per cell (median reported)."""
     reference_budget_s: float = 60.0
     """Skip reference cells expected to take longer."""
+    baseline: Optional[str] = None
+    """A git revision of the project (branch, tag, hash) whose rasteriser is timed beside the current one, in turns,
+    for every resolution and count: the report gives the speed-ups."""
+    baseline_rounds: int = 3
+    """Alternating turns per side and cell with --baseline."""
+    workspace: Optional[Path] = None
+    """Where the baseline revision is extracted (and reused)."""
 
 
 def run_render(o: RenderOptions, out: Path, bars: Bars) -> Path:
+    from omniscs.bench.baseline import baseline_tree
     from omniscs.bench.render import run_render_benchmark
+    from omniscs.storage import workspace_path
 
     sizes = comma_list(o.resolutions, lambda r: tuple(int(v) for v in r.lower().split("x")), "--resolutions",
                        "640x360,1280x720")
     ns = comma_list(o.counts, int, "--counts", "10000,100000")
     if not sizes or any(len(s) != 2 or min(s) < 1 for s in sizes) or not ns or min(ns) < 1:
         raise OmniscsError("--resolutions is like 640x360,1280x720 and --counts like 10000,100000")
+    if o.baseline_rounds < 1:
+        raise OmniscsError("--baseline-rounds must be at least 1")
+    baseline = None
+    if o.baseline is not None:
+        commit, tree = baseline_tree(o.baseline, workspace_path(o.workspace) / "cache")
+        baseline = (o.baseline, commit, tree)
     run_render_benchmark(out, resolutions=sizes, counts=ns, repeats=o.repeats,
-                         reference_budget_s=o.reference_budget_s)
+                         reference_budget_s=o.reference_budget_s, baseline=baseline,
+                         baseline_rounds=o.baseline_rounds)
     return out / "render" / "report.md"
 
 

@@ -31,8 +31,11 @@ def run(
     task_runner: str = typer.Option("threads", help="Where scenarios run: threads or dask (see omniscs generate)."),
     workers: int = typer.Option(1, help="Scenarios at once (threads) or local Dask worker processes."),
     dask_address: Optional[str] = typer.Option(None, help="tcp://HOST:PORT of an existing Dask scheduler."),
+    ttc: str = typer.Option("ours", help="How EPDMS scores time to collision: ours (PDMS's check: every agent at "
+                                         "constant velocity) or navsim (NAVSIM's: only the ego moves, agents at "
+                                         "their recorded positions)."),
 ) -> None:
-    """Drive each scenario with the policy, score it (PDMS, HD-Score, route completion) and write a run folder
+    """Drive each scenario with the policy, score it (PDMS, EPDMS, HD-Score, route completion) and write a run folder
     (run.json, steps.json, bev.png, frames.png, replay.gif) and a closed_loop_runs catalog row."""
     import os
 
@@ -45,6 +48,10 @@ def run(
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     if steps is not None and steps < 1:
         raise typer.BadParameter("must be >= 1", param_hint="--steps")
+    from omniscs.closedloop.epdms import TTC_MODES
+
+    if ttc not in TTC_MODES:
+        raise typer.BadParameter(f"choose one of {', '.join(TTC_MODES)}", param_hint="--ttc")
     if run_id is not None:
         check_id("run id", run_id)
     if out is not None:
@@ -66,17 +73,19 @@ def run(
         result = closed_loop_eval(list(scenarios), policy=policy, workspace=str(ws), run_id=run_id,
                                   reactive=reactive, max_steps=steps, cameras=list(camera) or None, width=width,
                                   out_dir=str(out) if out is not None else None, task_runner=task_runner,
-                                  workers=None if dask_address else workers, dask_address=dask_address)
+                                  workers=None if dask_address else workers, dask_address=dask_address,
+                                  ttc=ttc)
     from rich.table import Table
 
     table = Table(title=f"closed loop: {policy} (run {result['run_id']}, evaluation {result['eval_id']})")
-    for col in ("scenario", "ended", "PDMS", "HD-Score", "RC"):
+    for col in ("scenario", "ended", "PDMS", "EPDMS", "HD-Score", "RC"):
         table.add_column(col, justify="left" if col in ("scenario", "ended") else "right")
     for r in result["runs"]:
-        table.add_row(str(r.get("scenario_id")), str(r.get("reason")), _num(r.get("pdms")), _num(r.get("hd_score")),
-                      _num(r.get("route_completion")))
+        table.add_row(str(r.get("scenario_id")), str(r.get("reason")), _num(r.get("pdms")), _num(r.get("epdms")),
+                      _num(r.get("hd_score")), _num(r.get("route_completion")))
     console.print(table)
-    console.print(f"see: omniscs catalog query \"SELECT scenario_id, reason, pdms, hd_score, route_completion, "
+    console.print(f"EPDMS: TTC scored as {ttc}; no traffic lights in the world (TLC 1); sub-scores in each run.json")
+    console.print(f"see: omniscs catalog query \"SELECT scenario_id, reason, pdms, epdms, hd_score, route_completion, "
                   f"run_path FROM closed_loop_runs WHERE run_id = '{result['run_id']}'\"")
 
 

@@ -10,7 +10,7 @@ from omniscs.cli.common import check_out, console, progress_bars, show_dataset, 
 from omniscs.errors import OmniscsError
 
 app = typer.Typer(help="Annotated SCS datasets: build (the generate_dataset flow with render + annotate), "
-                       "inspect, export to nuScenes or UniAD.", no_args_is_help=True)
+                       "inspect, export to nuScenes, UniAD or OpenSCENARIO.", no_args_is_help=True)
 
 
 def dataset_path(dataset: str, workspace: Optional[Path]) -> Path:
@@ -72,9 +72,31 @@ def info(dataset: str = typer.Argument(..., help="Dataset folder or id."),
     show_dataset(dataset_path(dataset, workspace))
 
 
+def variant_stores(dataset: str, workspace: Optional[Path]) -> tuple[Path, list[Path]]:
+    """The variant stores to export: a dataset's (named by folder or id) or those of a variants folder that holds
+    rendered stores under ``scenes/`` (``omniscs scs appearance --out``)."""
+    from omniscs.annotate.dataset import CARD_JSON, SCENES
+    from omniscs.scene.store import MANIFEST
+
+    folder = Path(dataset)
+    if not (folder / CARD_JSON).is_file() and (folder / SCENES).is_dir():
+        stores = sorted(p for p in (folder / SCENES).iterdir() if (p / MANIFEST).is_file())
+        if not stores:
+            raise OmniscsError(f"{folder / SCENES} holds no variant store (no folder with {MANIFEST}); render the "
+                               "variants first")
+        return folder, stores
+    if not (folder / CARD_JSON).is_file() and (folder / "variants.json").is_file():
+        raise OmniscsError(f"{folder} holds behaviour variants that were never rendered (variants.json, no "
+                           f"{SCENES}/): export them with --format openscenario --scene STORE (the scene store they "
+                           "were made from), or build a dataset of them (`omniscs dataset build`) and export that")
+    path = dataset_path(dataset, workspace)
+    return path, sorted(p for p in (path / SCENES).iterdir() if p.is_dir())
+
+
 @app.command("export")
-def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
-           format: str = typer.Option(..., "--format", help="nuscenes or uniad."),
+def export(dataset: str = typer.Argument(..., help="Dataset folder or id, or a variants folder with rendered "
+                                                    "stores (scenes/)."),
+           format: str = typer.Option(..., "--format", help="nuscenes, uniad or openscenario (.xosc + .xodr)."),
            out: Path = typer.Option(..., help="Output folder."),
            overwrite: bool = typer.Option(False, help="Replace --out if omniscs wrote it."),
            location: str = typer.Option("boston-seaport", help="nuScenes map location of scenes that carry none "
@@ -86,21 +108,46 @@ def export(dataset: str = typer.Argument(..., help="Dataset folder or id."),
            keep_unseen: bool = typer.Option(False, help="Also label boxes no sensor captured (no LiDAR point, no "
                                                         "visible pixel) before an object is first seen or after it "
                                                         "is last seen, and objects never seen."),
+           nuscenes_maps: Optional[Path] = typer.Option(None, help="openscenario: a nuScenes dataroot whose "
+                                                                   "maps/expansion give variants of recorded nuScenes "
+                                                                   "logs their roads."),
+           scene: Optional[Path] = typer.Option(None, help="openscenario, a folder of behaviour variants never "
+                                                           "rendered (variants.json of `omniscs scs behavior`): the "
+                                                           "scene store they were made from."),
            workspace: Optional[Path] = workspace_option()) -> None:
-    """Export every variant store of a dataset as one nuScenes dataroot (with map expansion) or for UniAD."""
-    from omniscs.annotate.dataset import SCENES
+    """Export every variant store of a dataset as one nuScenes dataroot (with map expansion), for UniAD, or as one
+    OpenSCENARIO scenario per variant on its scene's OpenDRIVE road network."""
     from omniscs.export import WRITERS, export_scenes
 
-    if format not in ("nuscenes", "uniad") or format not in WRITERS:
-        raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes or uniad")
-    path = dataset_path(dataset, workspace)
+    if format not in ("nuscenes", "uniad", "openscenario") or format not in WRITERS:
+        raise OmniscsError(f"unknown dataset export format {format!r}; use nuscenes, uniad or openscenario")
+    if nuscenes_maps is not None and format != "openscenario":
+        raise OmniscsError("--nuscenes-maps applies to --format openscenario only")
+    if nuscenes_maps is not None and not (nuscenes_maps / "maps" / "expansion").is_dir():
+        raise OmniscsError(f"--nuscenes-maps {nuscenes_maps} has no maps/expansion folder; name the nuScenes dataroot "
+                           "the logs were read from")
+    if scene is not None:
+        if format != "openscenario" or not (Path(dataset) / "variants.json").is_file():
+            raise OmniscsError("--scene applies to --format openscenario of a folder of behaviour variants "
+                               "(variants.json) only")
+        from omniscs.export.openscenario import export_behaviour_variants
+
+        check_out(out, overwrite)
+        export_behaviour_variants(Path(dataset) / "variants.json", scene, out, overwrite=overwrite,
+                                  nuscenes_maps=nuscenes_maps)
+        console.print(f"the behaviour variants of {dataset} exported as openscenario to {out}")
+        return
+    path, stores = variant_stores(dataset, workspace)
     check_out(out, overwrite)
     options = {"location": location, "keep_unseen": keep_unseen}
     if format == "uniad":
         options.update(box_convention=box_convention, val_scenes=tuple(val_scene))
     elif box_convention != "v1" or val_scene:
         raise OmniscsError("--box-convention and --val-scene apply to --format uniad only")
-    stores = sorted(p for p in (path / SCENES).iterdir() if p.is_dir())
+    if format == "openscenario":
+        if location != "boston-seaport" or keep_unseen:
+            raise OmniscsError("--location and --keep-unseen apply to --format nuscenes and uniad only")
+        options = {"nuscenes_maps": nuscenes_maps}
     with progress_bars() as bars:
         export_scenes(stores, format, out, overwrite=overwrite, progress=bars.sink(f"export {format}"), **options)
     console.print(f"{len(stores)} variant store(s) of {path.name} exported as {format} to {out}")

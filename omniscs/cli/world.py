@@ -83,7 +83,8 @@ def world_render(
 @app.command("export")
 def world_export(
     scenes: list[Path] = typer.Argument(..., help="Scene stores to export (one dataset holds them all)."),
-    fmt: str = typer.Option(..., "--format", help="nuscenes, kitti, waymo-v2 or uniad (nuScenes + UniAD infos)."),
+    fmt: str = typer.Option(..., "--format", help="nuscenes, kitti, waymo-v2, uniad (nuScenes + UniAD infos) or "
+                                                  "openscenario (.xosc + .xodr)."),
     out: Path = typer.Option(..., help="Dataset root to write (must not exist)."),
     version: str = typer.Option("v1.0-trainval", help="nuScenes: table version folder (the one every export writes "
                                                       "unless told; eval and predict read a dataroot's only one)."),
@@ -94,14 +95,16 @@ def world_export(
                                                  "it is last seen, and objects never seen."),
     overwrite: bool = typer.Option(False, help="Replace an existing dataset at --out."),
 ) -> None:
-    """Write scene stores as a nuScenes v1.0, KITTI tracking or Waymo Open Dataset v2 dataset."""
+    """Write scene stores as a nuScenes v1.0, KITTI tracking or Waymo Open Dataset v2 dataset, or as OpenSCENARIO
+    scenarios on OpenDRIVE roads."""
     from omniscs.export import WRITERS, export_scenes
 
     if fmt not in WRITERS:
         raise OmniscsError(f"unknown --format {fmt!r}; use one of {list(WRITERS)}")
     check_out(out, overwrite)
     nuscenes = {"version": version, "keyframe_every": keyframe_every, "keep_unseen": keep_unseen}
-    options = {"nuscenes": nuscenes, "kitti": {"camera": camera}, "waymo-v2": {}, "uniad": nuscenes}[fmt]
+    options = {"nuscenes": nuscenes, "kitti": {"camera": camera}, "waymo-v2": {}, "uniad": nuscenes,
+               "openscenario": {}}[fmt]
     if keep_unseen and fmt not in ("nuscenes", "uniad"):
         raise OmniscsError("--keep-unseen applies to --format nuscenes and uniad only")
     started = time.perf_counter()

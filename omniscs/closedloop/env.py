@@ -13,6 +13,8 @@ import numpy as np
 from gymnasium import spaces
 
 from omniscs.closedloop import metrics
+from omniscs.closedloop.epdms import score_with_epdms
+from omniscs.closedloop.run import scored_trace
 from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.simulator import ClosedLoopConfig, Simulator, StepResult
 from omniscs.closedloop.vehicle import Controls
@@ -73,7 +75,7 @@ class ClosedLoopEnv(gymnasium.Env):
         terminated = res.done and res.reason in ("collision", "offroad", "route_completed", "left_fitted_area")
         truncated = res.done and not terminated
         if res.done:
-            info["scores"] = metrics.score_run(self.sim.trace()).to_dict()
+            info["scores"] = score_with_epdms(scored_trace(self.sim)).to_dict()
         return self._obs(res), float(reward), bool(terminated), bool(truncated), info
 
     def render(self):

@@ -1,5 +1,6 @@
 """Closed-loop driving scores of one run: NAVSIM's PDM score (PDMS), HUGSIM's HD-Score, and the instantaneous
-checks (contacts, off-road, time to collision, route completion) the simulator runs each step."""
+checks (contacts, off-road, time to collision, route completion) the simulator runs each step. NAVSIM v2's EPDMS,
+scored beside PDMS on the same windows, lives in ``omniscs.closedloop.epdms``."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -78,6 +79,15 @@ class RunTrace:
     """Metres the reference ego (the log) has travelled along ``route`` at each step time."""
     drivable: object | None
     """An object with ``is_drivable(xy [K, 2] world) -> bool [K]``, or None when the scene has no map."""
+    reference_ego: np.ndarray | None = None  # [T, 3] x, y, yaw world
+    """The reference (logged, human) ego's BOX CENTRE at each step's time, for EPDMS's human-agent filter; None: no
+    filter (every sub-score is held against the policy)."""
+    reference_agents: np.ndarray | None = None  # [N, T, 3] x, y, yaw world
+    """The agents as the reference ego met them (the scenario's own trajectories; NaN where absent); None: the
+    reference ego is checked against ``agents``, the agents of the run."""
+    lane_centrelines: tuple | None = None  # of [K, 2] world x, y in driving order
+    """The lane centrelines of the map, each in its driving direction (EPDMS's DDC and LK); None or empty: no lane map
+    (DDC and LK score 1)."""
 
     def __post_init__(self):
         dt, plan_dt = _positive_scalar(self.dt, "dt"), _positive_scalar(self.plan_dt, "plan_dt")
@@ -130,10 +140,32 @@ class RunTrace:
                                   f"got shape {reference.shape}")
         if self.drivable is not None and not callable(getattr(self.drivable, "is_drivable", None)):
             raise ValidationError("RunTrace.drivable must have is_drivable(xy [K, 2]) -> bool [K], or be None")
+        reference_ego = None
+        if self.reference_ego is not None:
+            reference_ego = np.asarray(self.reference_ego, dtype=np.float64)
+            if reference_ego.size == 0 and steps == 0:
+                reference_ego = reference_ego.reshape(0, 3)
+            if reference_ego.shape != (steps, 3) or not np.isfinite(reference_ego).all():
+                raise ValidationError(f"RunTrace.reference_ego has shape {reference_ego.shape} or non-finite values; "
+                                      f"pass [T={steps}, 3] finite x, y, yaw of the logged ego box centre, or None")
+        reference_agents = None
+        if self.reference_agents is not None:
+            reference_agents = np.asarray(self.reference_agents, dtype=np.float64)
+            if reference_agents.size == 0 and count == 0:
+                reference_agents = reference_agents.reshape(0, steps, 3)
+            if reference_agents.shape != (count, steps, 3):
+                raise ValidationError(f"RunTrace.reference_agents has shape {reference_agents.shape}; pass "
+                                      f"[N={count}, T={steps}, 3] logged x, y, yaw (NaN where absent), or None")
+        lanes = None
+        if self.lane_centrelines is not None:
+            lanes = tuple(np.asarray(c, dtype=np.float64).reshape(-1, 2) for c in self.lane_centrelines)
+            if any(not np.isfinite(c).all() for c in lanes):
+                raise ValidationError("RunTrace.lane_centrelines holds NaN or Inf; pass finite [K, 2] world polylines")
         for name, value in (("dt", dt), ("plan_dt", plan_dt), ("ego", ego), ("ego_speed", speed),
                             ("ego_size", size), ("agents", agents), ("agent_sizes", sizes), ("agent_kinds", kinds),
                             ("agent_velocity", velocity), ("plans", plans), ("route", route),
-                            ("reference_progress", reference)):
+                            ("reference_progress", reference), ("reference_ego", reference_ego),
+                            ("reference_agents", reference_agents), ("lane_centrelines", lanes)):
             object.__setattr__(self, name, value)
 
     @property
@@ -386,6 +418,31 @@ def _derivative(series: np.ndarray, dt: float, smooth: bool) -> np.ndarray:  # [
     return np.gradient(series, dt, edge_order=2 if n >= 3 else 1)
 
 
+def kinematics(xy: np.ndarray,    # [n, 2] world box centres at a fixed spacing
+               yaw: np.ndarray,   # [n] rad
+               dt: float,         # s between samples
+               smooth: bool = True,
+               ) -> dict[str, np.ndarray]:  # name -> [n]
+    """The ego's kinematics along a sampled trajectory, as nuPlan's comfort metrics define them (see ``comfortable``):
+    lon_speed (m/s), lon_accel (m/s²), lon_jerk (m/s³), yaw_rate (rad/s), yaw_accel (rad/s²), lat_accel (m/s²),
+    accel (|(lon_accel, lat_accel)|, m/s²) and jerk (its time derivative, m/s³). Non-finite where the input is."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
+    yaw = yaw[0] + np.concatenate([[0.0], np.cumsum(wrap_angle(np.diff(yaw)))]) if len(yaw) else yaw  # unwrapped
+    with np.errstate(over="ignore", invalid="ignore"):
+        vx, vy = _derivative(xy[:, 0], dt, smooth), _derivative(xy[:, 1], dt, smooth)
+        lon_speed = vx * np.cos(yaw) + vy * np.sin(yaw)
+        lon_accel = _derivative(lon_speed, dt, smooth)
+        lon_jerk = _derivative(lon_accel, dt, smooth)
+        yaw_rate = _derivative(yaw, dt, smooth)
+        yaw_accel = _derivative(yaw_rate, dt, smooth)
+        lat_accel = lon_speed * yaw_rate
+        accel = np.hypot(lon_accel, lat_accel)
+        jerk = _derivative(accel, dt, smooth)
+    return {"lon_speed": lon_speed, "lon_accel": lon_accel, "lon_jerk": lon_jerk, "yaw_rate": yaw_rate,
+            "yaw_accel": yaw_accel, "lat_accel": lat_accel, "accel": accel, "jerk": jerk}
+
+
 def comfortable(xy: np.ndarray,     # [n, 2] world box centres at a fixed spacing
                 yaw: np.ndarray,    # [n] rad
                 dt: float,          # s between samples
@@ -403,24 +460,14 @@ def comfortable(xy: np.ndarray,     # [n, 2] world box centres at a fixed spacin
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     if len(xy) < 4:
         return True
-    yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
-    yaw = yaw[0] + np.concatenate([[0.0], np.cumsum(wrap_angle(np.diff(yaw)))])  # unwrapped
+    k = kinematics(xy, yaw, dt, smooth)
     with np.errstate(over="ignore", invalid="ignore"):
-        vx, vy = _derivative(xy[:, 0], dt, smooth), _derivative(xy[:, 1], dt, smooth)
-        lon_speed = vx * np.cos(yaw) + vy * np.sin(yaw)
-        lon_accel = _derivative(lon_speed, dt, smooth)
-        lon_jerk = _derivative(lon_accel, dt, smooth)
-        yaw_rate = _derivative(yaw, dt, smooth)
-        yaw_accel = _derivative(yaw_rate, dt, smooth)
-        lat_accel = lon_speed * yaw_rate
-        checks = [(lon_accel >= bounds.min_lon_accel) & (lon_accel <= bounds.max_lon_accel),
-                  np.abs(lat_accel) <= bounds.max_abs_lat_accel,
-                  np.abs(yaw_rate) <= bounds.max_abs_yaw_rate]
-        optional = ((yaw_accel, bounds.max_abs_yaw_accel), (lon_jerk, bounds.max_abs_lon_jerk))
+        checks = [(k["lon_accel"] >= bounds.min_lon_accel) & (k["lon_accel"] <= bounds.max_lon_accel),
+                  np.abs(k["lat_accel"]) <= bounds.max_abs_lat_accel,
+                  np.abs(k["yaw_rate"]) <= bounds.max_abs_yaw_rate]
+        optional = ((k["yaw_accel"], bounds.max_abs_yaw_accel), (k["lon_jerk"], bounds.max_abs_lon_jerk),
+                    (k["jerk"], bounds.max_abs_jerk))
         checks += [np.abs(value) <= bound for value, bound in optional if bound is not None]
-        if bounds.max_abs_jerk is not None:
-            jerk = _derivative(np.hypot(lon_accel, lat_accel), dt, smooth)
-            checks.append(np.abs(jerk) <= bounds.max_abs_jerk)
     # comparisons with NaN are False, so a non-finite kinematic value fails the test
     return bool(all(c.all() for c in checks))
 
@@ -538,6 +585,8 @@ class RunScores:
     """Whether the trace had a drivable map (DAC is 1 throughout without one)."""
     horizon_s: float
     """Length of the executed window each PDMS step was scored on (s)."""
+    epdms: object | None = None
+    """NAVSIM v2's EPDMS on the same windows (``omniscs.closedloop.epdms.EPDMSScores``); None when not scored."""
 
     SUB_SCORES = ("nc", "dac", "ttc", "comfort", "ep", "pdms", "hd_nc", "hd_dac", "hd_ttc", "hd_comfort", "hd_step")
 
@@ -559,6 +608,18 @@ class RunScores:
         out["per_step"]["offroad"] = [bool(v) for v in self.offroad]
         out["contacts"] = [{"step": int(step), "track": c.track, "kind": c.kind, "kind_of_contact": c.kind_of_contact,
                             "at_fault": bool(c.at_fault)} for step, found in enumerate(self.contacts) for c in found]
+        if self.epdms is not None:
+            extended = self.epdms.to_dict()
+            per_step = extended.pop("per_step")
+            out["epdms"] = extended["epdms"]
+            out["epdms_scores"] = extended
+            out["per_step"]["epdms"] = per_step["epdms"]
+            for name in ("ddc", "tlc", "lk", "hc", "ec"):
+                out["per_step"][name] = per_step[name]
+            for name in ("nc", "dac", "ep", "ttc"):  # EPDMS's values after the human filter (and --ttc navsim)
+                out["per_step"][f"epdms_{name}"] = per_step[name]
+            extended["filtered_steps"] = {name: [k for k, f in enumerate(flags) if f]
+                                          for name, flags in per_step["filtered"].items()}
         return out
 
 
@@ -631,7 +692,8 @@ def _hd_scores(trace: RunTrace, step: int, points: int) -> tuple[float, float, f
 
 
 def score_run(trace: RunTrace, horizon_s: float = 4.0) -> RunScores:
-    """Score a closed-loop run with NAVSIM's PDMS and HUGSIM's HD-Score.
+    """Score a closed-loop run with NAVSIM's PDMS and HUGSIM's HD-Score (``RunScores.epdms`` stays None:
+    ``omniscs.closedloop.epdms.score_with_epdms`` adds NAVSIM v2's EPDMS beside them, on the same windows).
 
     PDMS (Dauner et al., NAVSIM, NeurIPS 2024), per step t, over the window of steps t .. t + horizon_s / dt (cut
     at the run's end). NAVSIM simulates the issued plan for 4 s (LQR tracking on a kinematic bicycle) against
@@ -707,10 +769,11 @@ def score_run(trace: RunTrace, horizon_s: float = 4.0) -> RunScores:
     w = HD_WEIGHTS
     hd_step = hd_nc * hd_dac * (w["ttc"] * hd_ttc + w["comfort"] * hd_comfort) / sum(w.values())
     final_rc = float(rc[-1]) if steps else 0.0
-    return RunScores(
+    scores = RunScores(
         nc=nc, dac=dac, ttc=ttc, comfort=comfort, ep=ep, pdms=pdms, hd_nc=hd_nc, hd_dac=hd_dac, hd_ttc=hd_ttc,
         hd_comfort=hd_comfort, hd_step=hd_step, rc=rc, offroad=off_now, contacts=tuple(contacts),
         pdms_mean=_mean(pdms), hd_score=None if not steps else float(np.mean(hd_step)) * final_rc,
         route_completion=final_rc, any_collision=any(bool(c) for c in contacts),
         at_fault_collisions=int(sum(any(c.at_fault for c in found) for found in contacts)),
         offroad_fraction=_mean(off_now.astype(np.float64)), has_map=has_map, horizon_s=horizon_s)
+    return scores

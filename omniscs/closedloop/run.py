@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from omniscs.closedloop import metrics
+from omniscs.closedloop.epdms import EPDMSConfig, score_with_epdms
 from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.simulator import Simulator
 from omniscs.errors import ValidationError
@@ -38,14 +39,16 @@ class RunResult:
     folder: Path | None
     summary: dict       # run.json's content
     scores: "metrics.RunScores"
+    trace: "metrics.RunTrace | None" = None  # what was scored (to score it again, e.g. with another EPDMS config)
 
 
 def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps: int | None = None,
                 out_dir: str | Path | None = None, camera: str | None = None, overwrite: bool = False,
-                progress: Progress = no_progress) -> RunResult:
-    """Drive ``scenario`` with ``policy`` for at most ``max_steps`` steps (default: until it ends) and score it;
-    with ``out_dir``, write run.json, steps.json and the pictures there (atomically). ``camera`` is the one shown
-    in the pictures (default: the rig's first)."""
+                progress: Progress = no_progress, epdms: "EPDMSConfig | None" = None) -> RunResult:
+    """Drive ``scenario`` with ``policy`` for at most ``max_steps`` steps (default: until it ends) and score it
+    (PDMS, HD-Score, and EPDMS with ``epdms``, default ``EPDMSConfig()``); with ``out_dir``, write run.json,
+    steps.json and the pictures there (atomically). ``camera`` is the one shown in the pictures (default: the rig's
+    first)."""
     if max_steps is not None and max_steps < 1:
         raise ValidationError(f"max_steps must be >= 1 (got {max_steps})")
     started = time.perf_counter()
@@ -68,13 +71,29 @@ def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps:
             break
     if reason is None:
         sim.stop("max_steps")
-    scores = metrics.score_run(sim.trace())
+    trace = scored_trace(sim)
+    scores = score_with_epdms(trace, config=epdms)
     summary = run_summary(sim, scores, getattr(policy, "name", type(policy).__name__),
                           time.perf_counter() - started, policy_s)
     folder = None
     if out_dir is not None:
         folder = write_run(sim, scores, summary, frames, Path(out_dir), overwrite)
-    return RunResult(folder, summary, scores)
+    return RunResult(folder, summary, scores, trace)
+
+
+def scored_trace(sim: Simulator) -> "metrics.RunTrace":
+    """The simulator's trace with what EPDMS reads from the scenario: for a log scenario, the logged ego and agents
+    (the human-agent filter); the lane centrelines of the scenario's road map (None when its map was derived from
+    the log's tracks: no lane map). A behaviour variant gets no filter: its world was never driven by a human (NAVSIM
+    filters its original scenes only, never its synthetic ones)."""
+    trace = sim.trace()
+    sc = sim.episode.scenario
+    lanes = getattr(getattr(sc.drivable, "road_map", None), "lane_centrelines", None)
+    lanes = tuple(lanes) if lanes else None
+    if sc.kind != "log":
+        return replace(trace, lane_centrelines=lanes)
+    at = np.minimum(np.arange(trace.steps), sc.n_steps - 1)  # step k of the run is step k of the scenario
+    return replace(trace, reference_ego=sc.ego[at], reference_agents=sc.agents[:, at], lane_centrelines=lanes)
 
 
 def run_summary(sim: Simulator, scores: "metrics.RunScores", policy: str, seconds: float, policy_s: float = 0.0
@@ -169,7 +188,8 @@ def bev_picture(sim: Simulator, summary: dict, out_png: Path) -> Path:
         ax.scatter(ego[hits, 0], ego[hits, 1], marker="x", color="red", s=80, label="contact")
     s = summary["scores"]
     ax.set_title(f"{sc.scenario_id} | {summary['policy']} | {summary['reason']} after {summary['simulated_s']:.1f} s | "
-                 f"PDMS {_fmt(s.get('pdms'))} HD-Score {_fmt(s.get('hd_score'))} RC {_fmt(s.get('route_completion'))}",
+                 f"PDMS {_fmt(s.get('pdms'))} EPDMS {_fmt(s.get('epdms'))} HD-Score {_fmt(s.get('hd_score'))} "
+                 f"RC {_fmt(s.get('route_completion'))}",
                  fontsize=9)
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])

@@ -159,7 +159,8 @@ def export_scenes(scene_paths: list[str | os.PathLike], fmt: str, out: str | os.
     """Write scene stores as one dataset of format ``fmt`` at ``out``; nothing is left at ``out`` on failure.
 
     ``options`` go to the format's writer (nuScenes: version, keyframe_every, location, scene_spacing_m; UniAD: those
-    and the UniADConfig fields, e.g. box_convention, val_scenes; KITTI: camera, split).
+    and the UniADConfig fields, e.g. box_convention, val_scenes; KITTI: camera, split; OpenSCENARIO: config,
+    nuscenes_maps).
     """
     from omniscs.export import WRITERS
 

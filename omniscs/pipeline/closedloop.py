@@ -116,7 +116,8 @@ def run_folder(workspace: str | Path, eval_id: str, scenario_id: str) -> Path:
 
 def closed_loop_stage(workspace: str | Path, ref: str, policy: str, eval_id: str, config=None,
                       max_steps: int | None = None, checkpoint: str | Path | None = None,
-                      out_dir: str | Path | None = None, progress: Progress = no_progress) -> StageRecord:
+                      out_dir: str | Path | None = None, progress: Progress = no_progress,
+                      epdms=None) -> StageRecord:
     """Drive scenario ``ref`` with ``policy`` (``omniscs.closedloop.policies.make_policy``) and score it; the run
     folder goes under ``out_dir`` when given, else under the workspace's ``closedloop/<eval_id>/``. A user error in
     this scenario (missing scene, graph or variant; a policy that fails) is recorded as a failed row and does not
@@ -136,7 +137,7 @@ def closed_loop_stage(workspace: str | Path, ref: str, policy: str, eval_id: str
         out = (Path(out_dir) / resolved.scenario_id.replace("/", "__") if out_dir is not None
                else run_folder(workspace, eval_id, resolved.scenario_id))
         result = run_episode(sim, pol, scenario, max_steps=max_steps, out_dir=out, overwrite=True,
-                             progress=progress)
+                             progress=progress, epdms=epdms)
     except OmniscsError as exc:
         log.error("closed-loop %s with %s failed: %s", ref, policy, exc)
         row.update(status="failed", error=str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
@@ -145,7 +146,8 @@ def closed_loop_stage(workspace: str | Path, ref: str, policy: str, eval_id: str
     s = result.summary
     sc = s["scores"]
     row.update(status="ok", reason=s["reason"], steps=int(s["steps"]), simulated_s=float(s["simulated_s"]),
-               pdms=sc.get("pdms"), hd_score=sc.get("hd_score"), route_completion=sc.get("route_completion"),
+               pdms=sc.get("pdms"), epdms=sc.get("epdms"), hd_score=sc.get("hd_score"),
+               route_completion=sc.get("route_completion"),
                no_collision=sc.get("nc_mean"), drivable_compliance=sc.get("dac_mean"),
                time_to_collision=sc.get("ttc_mean"), comfort=sc.get("comfort_mean"), ego_progress=sc.get("ep_mean"),
                collision=bool(sc.get("any_collision")), steps_per_s=float(s["steps_per_s"]),
@@ -153,6 +155,7 @@ def closed_loop_stage(workspace: str | Path, ref: str, policy: str, eval_id: str
     return StageRecord("closedloop", resolved.scene_id, str(result.folder), seconds=time.perf_counter() - started,
                        rows={"closed_loop_runs": [row]},
                        info={"status": "ok", "scenario_id": resolved.scenario_id, "pdms": row["pdms"],
+                             "epdms": row["epdms"],
                              "hd_score": row["hd_score"], "route_completion": row["route_completion"],
                              "reason": row["reason"], "run_path": row["run_path"]})
 

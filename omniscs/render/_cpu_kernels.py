@@ -1,7 +1,10 @@
 """Numba kernels of the CPU backend: tile binning, front-to-back forward, back-to-front backward, reduction.
 
-Arrays are float32 in memory; arithmetic is float64 in registers (free in scalar code, and it keeps
-the float32 path close to the float64 reference). Every parallel loop writes disjoint memory, and
+Binning and packing compute in float64 (scalar code, where it is free). The pixel loops of the forward
+and backward passes compute in the type of the arrays they are given (``records``): float32 for float32
+inputs, where a 512-bit vector holds 16 lanes, a whole tile row, against 8 float64 ones, which halves
+their instructions and the tile buffers' traffic (measured: ``omniscs bench render``); float64 for
+float64 inputs, which stay as close to the float64 reference as they can. Every parallel loop writes disjoint memory, and
 per-Gaussian gradients are summed in a fixed order, so results are bitwise reproducible.
 A pixel is skipped, in forward and backward alike, by the same tests in the same order.
 """
@@ -40,6 +43,15 @@ FUSED_CHANNELS = 4
 #: Gradient slots per intersection before the colour channels: means2d (2), conic (3), opacity (1), |means2d| (2).
 N_GEOMETRY_SLOTS = 8
 
+
+#: Constants of the pixel loops, as float32 so that they keep float32 rows in float32 (a float64 literal or
+#: an int in an expression would promote the whole row to float64: Numba follows NumPy's promotion rules);
+#: in float64 rows they promote to float64 (the values are exact or within 1e-8 of the float64 ones).
+REAL = np.float32
+_ZERO, _HALF, _ONE = REAL(0.0), REAL(0.5), REAL(1.0)
+_MAX_ALPHA, _ALPHA_THRESHOLD, _TRANSMITTANCE_STOP = REAL(MAX_ALPHA), REAL(ALPHA_THRESHOLD), REAL(TRANSMITTANCE_STOP)
+_EXP_SCALE = REAL(1.0 / (1 << EXP_SQUARINGS))
+_TAYLOR = (REAL(1.0 / 2.0), REAL(1.0 / 6.0), REAL(1.0 / 24.0), REAL(1.0 / 120.0))
 
 #: Bits per pass of the radix sort of depth keys (2^11 buckets fit in L1).
 RADIX_BITS = 11
@@ -125,8 +137,8 @@ def _pixel_boxes(means2d, conics, radii, width, height, tile):
 def _pack(packed_ids, means2d, conics, opacities, colors, boxes):
     """Rows of the drawn Gaussians in packed order: records (all the pixel loops read) and colours."""
     n = packed_ids.shape[0]
-    records = np.zeros((n, N_RECORD), dtype=np.float32)
-    packed_colors = np.empty((n, colors.shape[1]), dtype=np.float32)
+    records = np.zeros((n, N_RECORD), dtype=means2d.dtype)
+    packed_colors = np.empty((n, colors.shape[1]), dtype=colors.dtype)
     for s in range(n):
         g = packed_ids[s]
         ca = np.float64(conics[g, 0])
@@ -224,8 +236,8 @@ def bin_gaussians(
 @nb.njit(cache=True, inline="always")
 def _exp_neg(sigma):
     """exp(-sigma) for 0 <= sigma <= ~6 by scaled Taylor series and repeated squaring."""
-    t = sigma * (1.0 / (1 << EXP_SQUARINGS))
-    p = 1.0 - t * (1.0 - t * (0.5 - t * (1.0 / 6.0 - t * (1.0 / 24.0 - t * (1.0 / 120.0)))))
+    t = sigma * _EXP_SCALE
+    p = _ONE - t * (_ONE - t * (_TAYLOR[0] - t * (_TAYLOR[1] - t * (_TAYLOR[2] - t * _TAYLOR[3]))))
     # EXP_SQUARINGS squarings, written out: a loop here would stop LLVM vectorising the caller
     p = p * p
     p = p * p
@@ -244,20 +256,21 @@ def _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row):
     trip count and no branches so that LLVM vectorises it. Forward and backward both call it, so
     they take identical decisions.
     """
-    mx = np.float64(records[g, REC_X])
-    ca = np.float64(records[g, REC_A])
+    mx = records[g, REC_X]
+    ca = records[g, REC_A]
     cb_dy = records[g, REC_B] * dy
     cc_dy2 = records[g, REC_C] * dy * dy
-    opacity = np.float64(records[g, REC_OPACITY])
-    cut = np.float64(records[g, REC_CUT])
+    opacity = records[g, REC_OPACITY]
+    cut = records[g, REC_CUT]
+    left = REAL(x0) + _HALF
     for i in range(TILE_SIZE):
-        dx = mx - (x0 + i + 0.5)
-        sigma = 0.5 * (ca * dx * dx + cc_dy2) + cb_dy * dx
-        inside = (i >= first) & (i <= last) & (sigma >= 0.0) & (sigma <= cut)
-        gaussian = _exp_neg(min(max(sigma, 0.0), cut))
-        alpha = min(MAX_ALPHA, opacity * gaussian)
+        dx = mx - (left + REAL(i))
+        sigma = _HALF * (ca * dx * dx + cc_dy2) + cb_dy * dx
+        inside = (i >= first) & (i <= last) & (sigma >= _ZERO) & (sigma <= cut)
+        gaussian = _exp_neg(min(max(sigma, _ZERO), cut))
+        alpha = min(_MAX_ALPHA, opacity * gaussian)
         gaussian_row[i] = gaussian
-        alpha_row[i] = alpha if inside & (alpha >= ALPHA_THRESHOLD) else 0.0
+        alpha_row[i] = alpha if inside & (alpha >= _ALPHA_THRESHOLD) else _ZERO
 
 
 @nb.njit(cache=True, inline="always")
@@ -286,13 +299,13 @@ def rasterize_forward(
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     for job in nb.prange(n_cams * tiles_x * tiles_y):
         cam, x0, y0, tw, th = _tile_of(job, width, height)
-        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        active = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)  # 1 until the pixel stops
-        counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
-        accumulated = np.zeros((max(n_channels, FUSED_CHANNELS), TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        gaussian_row = np.empty(TILE_SIZE, dtype=np.float64)
-        alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
-        weight_row = np.empty(TILE_SIZE, dtype=np.float64)
+        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        active = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)  # 1 until the pixel stops
+        counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int32)
+        accumulated = np.zeros((max(n_channels, FUSED_CHANNELS), TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        gaussian_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        weight_row = np.empty(TILE_SIZE, dtype=records.dtype)
         live_in_row = np.zeros(TILE_SIZE, dtype=np.int64)  # pixels of each row still compositing
         live_in_row[:th] = tw
         n_done = 0
@@ -301,15 +314,15 @@ def rasterize_forward(
             g = isect_gaussians[p]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
-            row_scale = np.float64(records[g, REC_ROW_SCALE])
-            conic_det = np.float64(records[g, REC_CONIC_DET])
-            c0 = np.float64(colors[g, 0]) if n_channels > 0 else 0.0
-            c1 = np.float64(colors[g, 1]) if n_channels > 1 else 0.0
-            c2 = np.float64(colors[g, 2]) if n_channels > 2 else 0.0
-            c3 = np.float64(colors[g, 3]) if n_channels > 3 else 0.0
+            row_scale = records[g, REC_ROW_SCALE]
+            conic_det = records[g, REC_CONIC_DET]
+            c0 = colors[g, 0] if n_channels > 0 else _ZERO
+            c1 = colors[g, 1] if n_channels > 1 else _ZERO
+            c2 = colors[g, 2] if n_channels > 2 else _ZERO
+            c3 = colors[g, 3] if n_channels > 3 else _ZERO
             for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
-                dy = records[g, REC_Y] - (py + 0.5)
+                dy = records[g, REC_Y] - (REAL(py) + _HALF)
                 if live_in_row[ly] == 0 or row_scale < dy * dy * conic_det:
                     continue  # the row is finished or misses the cut-off ellipse
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
@@ -318,25 +331,25 @@ def rasterize_forward(
                 for i in range(TILE_SIZE):
                     alpha = alpha_row[i]
                     t_before = transmittance[ly, i]
-                    t_after = t_before * (1.0 - alpha)
-                    live = (alpha > 0.0) & (active[ly, i] > 0.0)
-                    go = live & (t_after > TRANSMITTANCE_STOP)
-                    stop = live & (t_after <= TRANSMITTANCE_STOP)
-                    weight = alpha * t_before if go else 0.0
+                    t_after = t_before * (_ONE - alpha)
+                    live = (alpha > _ZERO) & (active[ly, i] > _ZERO)
+                    go = live & (t_after > _TRANSMITTANCE_STOP)
+                    stop = live & (t_after <= _TRANSMITTANCE_STOP)
+                    weight = alpha * t_before if go else _ZERO
                     weight_row[i] = weight
                     accumulated[0, ly, i] += weight * c0
                     accumulated[1, ly, i] += weight * c1
                     accumulated[2, ly, i] += weight * c2
                     accumulated[3, ly, i] += weight * c3
                     transmittance[ly, i] = t_after if go else t_before
-                    counts[ly, i] = p - start + 1 if go else counts[ly, i]
-                    active[ly, i] = 0.0 if stop else active[ly, i]
+                    counts[ly, i] = np.int32(p - start + 1) if go else counts[ly, i]
+                    active[ly, i] = _ZERO if stop else active[ly, i]
                     stopped += 1 if stop else 0
                     composited += 1 if go else 0
                 if composited > 0:
                     for k in range(FUSED_CHANNELS, n_channels):
-                        color = np.float64(colors[g, k])
-                        if color == 0.0:
+                        color = colors[g, k]
+                        if color == _ZERO:
                             continue  # adds exactly nothing (weights are finite): sparse channels such as labels
                         for i in range(TILE_SIZE):
                             accumulated[k, ly, i] += weight_row[i] * color
@@ -348,7 +361,7 @@ def rasterize_forward(
             for lx in range(tw):
                 t_final = transmittance[ly, lx]
                 out_transmittance[cam, y0 + ly, x0 + lx] = t_final
-                out_alphas[cam, y0 + ly, x0 + lx, 0] = 1.0 - t_final
+                out_alphas[cam, y0 + ly, x0 + lx, 0] = _ONE - t_final
                 out_counts[cam, y0 + ly, x0 + lx] = counts[ly, lx]
                 for k in range(n_channels):
                     out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[k, ly, lx] + t_final * backgrounds[cam, k]
@@ -378,13 +391,13 @@ def rasterize_backward(
         for p in range(start, tile_offsets[job + 1]):
             for k in range(n_slots):
                 slots[p, k] = 0.0
-        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        final = np.ones((TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        grad_final = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        tile_counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int64)
+        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        final = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        grad_final = np.zeros((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        tile_counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int32)
         n_planes = max(n_channels, FUSED_CHANNELS)
-        grad_out = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=np.float64)
-        behind = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=np.float64)  # colour composited behind
+        grad_out = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        behind = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=records.dtype)  # colour composited behind
         max_count = 0
         row_max_count = np.zeros(TILE_SIZE, dtype=np.int64)  # no pixel of the row composited beyond this
         for ly in range(th):
@@ -392,7 +405,7 @@ def rasterize_backward(
                 final[ly, lx] = transmittance_final[cam, y0 + ly, x0 + lx]
                 transmittance[ly, lx] = final[ly, lx]
                 # colour = composited + T_final * background and alpha = 1 - T_final
-                grad_t = -np.float64(grad_alphas[cam, y0 + ly, x0 + lx, 0])
+                grad_t = -grad_alphas[cam, y0 + ly, x0 + lx, 0]
                 for k in range(n_channels):
                     grad_t += backgrounds[cam, k] * grad_colors[cam, y0 + ly, x0 + lx, k]
                 grad_final[ly, lx] = grad_t
@@ -401,46 +414,47 @@ def rasterize_backward(
                 row_max_count[ly] = max(row_max_count[ly], counts[cam, y0 + ly, x0 + lx])
                 for k in range(n_channels):
                     grad_out[k, ly, lx] = grad_colors[cam, y0 + ly, x0 + lx, k]
-        gaussian_row = np.empty(TILE_SIZE, dtype=np.float64)
-        alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
-        t_before_row = np.empty(TILE_SIZE, dtype=np.float64)
-        inv_keep_row = np.empty(TILE_SIZE, dtype=np.float64)
-        weight_row = np.empty(TILE_SIZE, dtype=np.float64)
-        grad_alpha_row = np.empty(TILE_SIZE, dtype=np.float64)
-        lanes = np.zeros((N_GEOMETRY_SLOTS + n_planes, TILE_SIZE), dtype=np.float64)  # back to 0 after each Gaussian
+        gaussian_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        t_before_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        inv_keep_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        weight_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        grad_alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
+        lanes = np.zeros((N_GEOMETRY_SLOTS + n_planes, TILE_SIZE), dtype=records.dtype)  # back to 0 after each Gaussian
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
             g = isect_gaussians[p]
-            mx = np.float64(records[g, REC_X])
-            ca = np.float64(records[g, REC_A])
-            cb = np.float64(records[g, REC_B])
-            cc = np.float64(records[g, REC_C])
-            opacity = np.float64(records[g, REC_OPACITY])
-            row_scale = np.float64(records[g, REC_ROW_SCALE])
-            conic_det = np.float64(records[g, REC_CONIC_DET])
+            mx = records[g, REC_X]
+            ca = records[g, REC_A]
+            cb = records[g, REC_B]
+            cc = records[g, REC_C]
+            opacity = records[g, REC_OPACITY]
+            row_scale = records[g, REC_ROW_SCALE]
+            conic_det = records[g, REC_CONIC_DET]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
-            c0 = np.float64(colors[g, 0]) if n_channels > 0 else 0.0
-            c1 = np.float64(colors[g, 1]) if n_channels > 1 else 0.0
-            c2 = np.float64(colors[g, 2]) if n_channels > 2 else 0.0
-            c3 = np.float64(colors[g, 3]) if n_channels > 3 else 0.0
+            c0 = colors[g, 0] if n_channels > 0 else _ZERO
+            c1 = colors[g, 1] if n_channels > 1 else _ZERO
+            c2 = colors[g, 2] if n_channels > 2 else _ZERO
+            c3 = colors[g, 3] if n_channels > 3 else _ZERO
+            left = REAL(x0) + _HALF
             touched = 0
             for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
-                dy = records[g, REC_Y] - (py + 0.5)
+                dy = records[g, REC_Y] - (REAL(py) + _HALF)
                 if rank >= row_max_count[ly] or row_scale < dy * dy * conic_det:
                     continue
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
                 valid_lanes = 0
                 for i in range(TILE_SIZE):
                     alpha = alpha_row[i]
-                    valid = (alpha > 0.0) & (rank < tile_counts[ly, i])
-                    inv_keep = 1.0 / (1.0 - alpha)
+                    valid = (alpha > _ZERO) & (rank < tile_counts[ly, i])
+                    inv_keep = _ONE / (_ONE - alpha)
                     t_before = transmittance[ly, i] * inv_keep
                     transmittance[ly, i] = t_before if valid else transmittance[ly, i]
                     t_before_row[i] = t_before
                     inv_keep_row[i] = inv_keep
-                    weight = alpha * t_before if valid else 0.0
+                    weight = alpha * t_before if valid else _ZERO
                     weight_row[i] = weight
                     # the first FUSED_CHANNELS colour channels, written out so the loop stays vectorised
                     g0, g1, g2, g3 = grad_out[0, ly, i], grad_out[1, ly, i], grad_out[2, ly, i], grad_out[3, ly, i]
@@ -453,7 +467,7 @@ def rasterize_backward(
                     grad_alpha += (c1 * t_before - behind[1, ly, i] * inv_keep) * g1
                     grad_alpha += (c2 * t_before - behind[2, ly, i] * inv_keep) * g2
                     grad_alpha += (c3 * t_before - behind[3, ly, i] * inv_keep) * g3
-                    grad_alpha_row[i] = grad_alpha if valid else 0.0
+                    grad_alpha_row[i] = grad_alpha if valid else _ZERO
                     behind[0, ly, i] += c0 * weight
                     behind[1, ly, i] += c1 * weight
                     behind[2, ly, i] += c2 * weight
@@ -463,27 +477,27 @@ def rasterize_backward(
                     continue
                 touched += valid_lanes
                 for k in range(FUSED_CHANNELS, n_channels):
-                    color = np.float64(colors[g, k])
+                    color = colors[g, k]
                     for i in range(TILE_SIZE):
                         g_out = grad_out[k, ly, i]
                         weight = weight_row[i]
                         lanes[N_GEOMETRY_SLOTS + k, i] += weight * g_out
                         term = (color * t_before_row[i] - behind[k, ly, i] * inv_keep_row[i]) * g_out
-                        grad_alpha_row[i] += term if weight > 0.0 else 0.0
+                        grad_alpha_row[i] += term if weight > _ZERO else _ZERO
                         behind[k, ly, i] += color * weight
                 for i in range(TILE_SIZE):
-                    dx = mx - (x0 + i + 0.5)
+                    dx = mx - (left + REAL(i))
                     raw_alpha = opacity * gaussian_row[i]
-                    unclamped = (weight_row[i] > 0.0) & (raw_alpha <= MAX_ALPHA)
-                    grad_alpha = grad_alpha_row[i] if unclamped else 0.0
+                    unclamped = (weight_row[i] > _ZERO) & (raw_alpha <= _MAX_ALPHA)
+                    grad_alpha = grad_alpha_row[i] if unclamped else _ZERO
                     grad_sigma = -raw_alpha * grad_alpha
                     gx = grad_sigma * (ca * dx + cb * dy)
                     gy = grad_sigma * (cb * dx + cc * dy)
                     lanes[0, i] += gx
                     lanes[1, i] += gy
-                    lanes[2, i] += 0.5 * grad_sigma * dx * dx
+                    lanes[2, i] += _HALF * grad_sigma * dx * dx
                     lanes[3, i] += grad_sigma * dx * dy
-                    lanes[4, i] += 0.5 * grad_sigma * dy * dy
+                    lanes[4, i] += _HALF * grad_sigma * dy * dy
                     lanes[5, i] += gaussian_row[i] * grad_alpha
                     lanes[6, i] += abs(gx)
                     lanes[7, i] += abs(gy)
@@ -493,7 +507,7 @@ def rasterize_backward(
                 total = 0.0
                 for i in range(first, last + 1):
                     total += lanes[k, i]
-                    lanes[k, i] = 0.0
+                    lanes[k, i] = _ZERO
                 slots[p, k] = total
 
 

@@ -40,8 +40,13 @@ from omniscs.render.projection import ScreenGaussians
 TILES_PER_CHUNK = 4
 
 
-def _as_float32(t: Tensor, shape: tuple[int, ...]) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().reshape(shape).numpy(), dtype=np.float32)
+def _as_real(t: Tensor, shape: tuple[int, ...], real: type) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().reshape(shape).numpy(), dtype=real)
+
+
+def _pixel_type(*tensors: Tensor) -> type:
+    """The arithmetic type of the pixel loops: float64 when any input is float64, else float32."""
+    return np.float64 if any(t.dtype == torch.float64 for t in tensors) else np.float32
 
 
 def _as_float64(t: Tensor) -> np.ndarray:
@@ -139,17 +144,19 @@ class TileRasterizer(torch.autograd.Function):
     ) -> tuple[Tensor, Tensor]:  # colours [C, H, W, D], alphas [C, H, W, 1]
         n_cams, n_gauss, n_channels = colors.shape
         flat = n_cams * n_gauss
+        real = _pixel_type(means2d, conics, colors, opacities)
         radii_np = radii.numpy()
         depth_order, n_visible = kernels.depth_order(_depth_bits(sort_depths), radii_np)
         bins = kernels.bin_gaussians(
-            _as_float32(means2d, (flat, 2)), _as_float32(conics, (flat, 3)), _as_float32(opacities, (flat,)),
-            _as_float32(colors, (flat, n_channels)), radii_np.reshape(flat, 2), depth_order, n_visible, width, height,
+            _as_real(means2d, (flat, 2), real), _as_real(conics, (flat, 3), real), _as_real(opacities, (flat,), real),
+            _as_real(colors, (flat, n_channels), real), radii_np.reshape(flat, 2), depth_order, n_visible, width,
+            height,
         )
         tile_offsets, isect_packed, _, packed_records, packed_colors, _, _ = bins
-        backgrounds_np = _as_float32(backgrounds, (n_cams, n_channels))
-        out_colors = np.empty((n_cams, height, width, n_channels), dtype=np.float32)
-        out_alphas = np.empty((n_cams, height, width, 1), dtype=np.float32)
-        transmittance = np.empty((n_cams, height, width), dtype=np.float32)
+        backgrounds_np = _as_real(backgrounds, (n_cams, n_channels), real)
+        out_colors = np.empty((n_cams, height, width, n_channels), dtype=real)
+        out_alphas = np.empty((n_cams, height, width, 1), dtype=real)
+        transmittance = np.empty((n_cams, height, width), dtype=real)
         counts = np.empty((n_cams, height, width), dtype=np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             kernels.rasterize_forward(tile_offsets, isect_packed, packed_records, packed_colors,
@@ -169,11 +176,12 @@ class TileRasterizer(torch.autograd.Function):
         width, height, transmittance, counts, backgrounds = ctx.image
         tile_offsets, isect_packed, packed_ids, packed_records, packed_colors, packed_offsets, packed_isects = ctx.bins
         n_cams, n_channels = backgrounds.shape
-        grad_colors_np = (np.zeros((n_cams, height, width, n_channels), dtype=np.float32) if grad_colors is None
-                          else _as_float32(grad_colors, (n_cams, height, width, n_channels)))
-        grad_alphas_np = (np.zeros((n_cams, height, width, 1), dtype=np.float32) if grad_alphas is None
-                          else _as_float32(grad_alphas, (n_cams, height, width, 1)))
-        slots = np.empty((isect_packed.shape[0], kernels.N_GEOMETRY_SLOTS + n_channels), dtype=np.float32)
+        real = backgrounds.dtype.type  # the forward pass's pixel type
+        grad_colors_np = (np.zeros((n_cams, height, width, n_channels), dtype=real) if grad_colors is None
+                          else _as_real(grad_colors, (n_cams, height, width, n_channels), real))
+        grad_alphas_np = (np.zeros((n_cams, height, width, 1), dtype=real) if grad_alphas is None
+                          else _as_real(grad_alphas, (n_cams, height, width, 1), real))
+        slots = np.empty((isect_packed.shape[0], kernels.N_GEOMETRY_SLOTS + n_channels), dtype=real)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors,
                                        backgrounds, transmittance, counts, grad_colors_np, grad_alphas_np, slots)

@@ -25,8 +25,8 @@ from anyio import CapacityLimiter, to_thread
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 
-from omniscs.closedloop import metrics
-from omniscs.closedloop.run import run_summary, write_run
+from omniscs.closedloop.epdms import score_with_epdms
+from omniscs.closedloop.run import run_summary, scored_trace, write_run
 from omniscs.closedloop.scenario import ClosedLoopScenario
 from omniscs.closedloop.simulator import Simulator, StepResult
 from omniscs.errors import OmniscsError, ValidationError
@@ -438,7 +438,7 @@ class _Hub:
 
     def finish(self, s: _Session) -> None:
         sim, res = s.sim, s.last
-        scores = metrics.score_run(sim.trace())
+        scores = score_with_epdms(scored_trace(sim))
         s.last = replace(res, info=dict(res.info, scores=scores.to_dict()))
         s.scene_done = True
         self.note(f"{s.label}: {s.current} ended ({res.reason}) after {sim.episode.step} steps, "

@@ -155,3 +155,27 @@ def test_the_logged_views_are_replayed_once_per_graph_and_read_by_every_annotate
     assert replay.reused and replay.info["n_views"] == 20 and manifests[0].stat().st_mtime_ns == made
     samples = read_rows(again.path)["samples"]  # the proxies of a second annotate run come from the replay
     assert samples and all(s["logged_psnr"] > 10.0 and s["feature_drift"] is not None for s in samples)
+
+
+def test_dataset_export_as_openscenario_passes_asams_checkers_and_reads_back(built, tmp_path):
+    from omniscs.export.asam_checks import check_file
+    from omniscs.export.openscenario import read_scenario
+    from omniscs.scene import load_scene
+
+    _, first, _ = built
+    stores = sorted((Path(first["dataset_path"]) / "scenes").iterdir())
+    out = tmp_path / "xosc"
+    exported = CliRunner().invoke(app, ["dataset", "export", first["dataset_path"], "--format", "openscenario",
+                                        "--out", str(out)])
+    assert exported.exit_code == 0, exported.output
+    files = sorted(p for p in out.iterdir() if p.suffix in (".xosc", ".xodr"))
+    assert len([p for p in files if p.suffix == ".xosc"]) == len(stores) and any(p.suffix == ".xodr" for p in files)
+    for path in files:
+        report = check_file(path)
+        assert report.passed, report.to_dict()
+    for store in stores:  # the annotated variant's agents, as rendered, are the scenario's
+        scene = load_scene(store)
+        read = read_scenario(out / f"{scene.scene_id}.xosc")
+        assert len(read) == 1 + scene.boxes.track_id.nunique()
+        ego_xy = scene.world_from_ego_all[:, :2, 3]
+        assert abs(read["ego"].poses[:, :2] - ego_xy).max() < 0.01

@@ -16,3 +16,8 @@ def test_the_dataset_benchmark_runs_end_to_end_at_thumbnail_size(tmp_path):
     assert all(np.isfinite(v) for pair in scene["with fidelity"]["psnr_drift_pairs"] for v in pair)
     proxies = scene["proxies only"]
     assert all(p is None for p in proxies["fidelity_psnr"]) and all(d is not None for d in proxies["feature_drift"])
+    xosc = result["openscenario"]  # the OpenSCENARIO step: every annotated variant exported and checked
+    assert (tmp_path / "r" / "dataset" / "openscenario.md").is_file()
+    assert xosc["variants"] >= 1 and xosc["files"] >= 2, xosc
+    assert xosc["files_passed"] == xosc["files"] and xosc["errors"] == 0, xosc
+    assert xosc["round_trip_max_position_m"] is not None and xosc["round_trip_max_position_m"] < 0.01, xosc

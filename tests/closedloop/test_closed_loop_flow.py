@@ -36,12 +36,13 @@ def test_closed_loop_eval_catalogues_each_scenario_and_the_run(prefect_harness, 
     out = closed_loop_eval([f"{sid}/log", f"{sid}/stop"], policy="replay", workspace=str(workspace), run_id="cl1",
                            width=64)
     rows = catalog.query(layout.catalog_root(workspace),
-                         "SELECT scenario_id, kind, status, reason, pdms, hd_score, collision, run_path "
+                         "SELECT scenario_id, kind, status, reason, pdms, epdms, hd_score, collision, run_path "
                          "FROM closed_loop_runs WHERE run_id = 'cl1' ORDER BY scenario_id").to_pylist()
     assert [r["scenario_id"] for r in rows] == [f"{sid}/log", f"{sid}/stop"]
     log_row, stop_row = rows
     assert log_row["kind"] == "log" and log_row["status"] == "ok" and not log_row["collision"]
     assert stop_row["kind"] == "behavior" and stop_row["reason"] == "collision" and stop_row["pdms"] < log_row["pdms"]
+    assert stop_row["epdms"] < log_row["epdms"] and log_row["epdms"] > 0.9
     for r in rows:
         assert layout.closedloop_folder(workspace, out["eval_id"]) in Path(r["run_path"]).parents
         assert json.loads((Path(r["run_path"]) / "run.json").read_text())["scores"]
@@ -91,6 +92,8 @@ def test_a_bad_camera_run_id_or_width_is_refused_before_the_flow_starts(workspac
         assert isinstance(result.exception, OmniscsError) and message in str(result.exception), result.output
     result = CliRunner().invoke(app, ["closedloop", "run", ref, "--workspace", str(workspace), "--width", "-5"])
     assert result.exit_code == 2 and "--width" in result.output
+    result = CliRunner().invoke(app, ["closedloop", "run", ref, "--workspace", str(workspace), "--ttc", "carla"])
+    assert result.exit_code == 2 and "--ttc" in result.output
 
 
 def test_the_serve_command_serves_a_workspace_scenario_to_hugsims_client(workspace, world, monkeypatch):
