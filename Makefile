@@ -12,8 +12,17 @@ export OMP_WAIT_POLICY := PASSIVE
 
 setup: $(STAMP)
 
-# open3d needs Debian's libusb-1.0-0 at import time.
+# open3d needs Debian's libusb-1.0-0 at import time; the viewer's browser test drives Debian's chromium (Playwright's
+# own browser download is not reachable from every machine).
 system-deps:
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian package chromium (the headless browser of the viewer's test)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else \
+	    echo "warning: chromium is not installed (apt-get install chromium); the viewer's browser test will be skipped" >&2; \
+	  fi; \
+	fi
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 	  if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
 	    echo "installing Debian package libusb-1.0-0 (needed by open3d)"; \

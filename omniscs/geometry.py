@@ -21,6 +21,16 @@ def rotmat_from_euler(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -
     return rz @ ry @ rx
 
 
+def euler_from_rotmat(R: np.ndarray) -> tuple[float, float, float]:  # [3, 3] -> (roll, pitch, yaw) rad
+    """The inverse of ``rotmat_from_euler``: pitch in [-pi/2, pi/2]; at pitch +-pi/2 (gimbal lock) roll is 0 and
+    yaw carries the whole turn about z."""
+    R = np.asarray(R, dtype=np.float64)
+    pitch = float(np.arctan2(-R[2, 0], np.hypot(R[2, 1], R[2, 2])))
+    if np.hypot(R[2, 1], R[2, 2]) < 1e-12:
+        return 0.0, pitch, float(np.arctan2(-R[0, 1], R[1, 1]))
+    return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
+
+
 def yaw_from_matrix(R: np.ndarray) -> np.ndarray:  # [..., 3, 3] (or the rotation block of a pose) -> [...] rad
     """Heading of the rotated x axis in the xy plane (``quaternions.yaw_from_quaternion`` for quaternions)."""
     R = np.asarray(R, dtype=np.float64)

@@ -38,16 +38,26 @@ def box_pose(row) -> np.ndarray:  # -> [4, 4] world_from_box
 
 def draw_boxes(scene: Scene, cam: str, frame_idx: int, image: np.ndarray | None = None) -> np.ndarray:
     """The camera image with every box of the frame drawn as a projected wireframe, labelled."""
-    img = (scene.image(cam, frame_idx) if image is None else image).copy()
-    K = scene.intrinsics(cam)
-    cam_from_world = invert_transform(scene.world_from_camera(cam, frame_idx))
+    img = scene.image(cam, frame_idx) if image is None else image
+    boxes = [(box_pose(row), (row.length, row.width, row.height), f"{row.category} {row.track_id}",
+              track_colour(row.track_id)) for row in scene.boxes_at(frame_idx).itertuples()]
+    return draw_box_wireframes(img, scene.intrinsics(cam), invert_transform(scene.world_from_camera(cam, frame_idx)),
+                               boxes)
+
+
+def draw_box_wireframes(image: np.ndarray,            # uint8 [H, W, 3] RGB
+                        K: np.ndarray,                # [3, 3]
+                        cam_from_world: np.ndarray,   # [4, 4] (OpenCV camera)
+                        boxes,  # iterable of (world_from_box [4, 4], size (l, w, h), label, RGB colour)
+                        ) -> np.ndarray:              # a copy of ``image`` with the boxes drawn
+    """Each box projected as a wireframe (edges clipped at the near plane and to the image), labelled at its top."""
+    img = image.copy()
     h, w = img.shape[:2]
     thickness = max(1, w // 320)
-    for row in scene.boxes_at(frame_idx).itertuples():
-        corners = transform_points(cam_from_world, box_corners_from_pose(box_pose(row), [row.length, row.width, row.height]))
+    for world_from_box, size, label, colour in boxes:
+        corners = transform_points(cam_from_world, box_corners_from_pose(world_from_box, size))
         if np.all(corners[:, 2] <= 0):
             continue
-        colour = track_colour(row.track_id)
         drawn = []
         for i, j in BOX_EDGES:
             seg = clip_segment_to_near(corners[i], corners[j], near=0.1)
@@ -61,8 +71,8 @@ def draw_boxes(scene: Scene, cam: str, frame_idx: int, image: np.ndarray | None 
                 drawn.append(p0)
         if drawn:
             x, y = min(drawn, key=lambda p: p[1])
-            cv2.putText(img, f"{row.category} {row.track_id}", (max(0, x), max(10, y - 3)),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+            cv2.putText(img, label, (max(0, x), max(10, y - 3)), cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1,
+                        cv2.LINE_AA)
     return img
 
 

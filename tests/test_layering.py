@@ -5,8 +5,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LIBRARY = ROOT / "omniscs"
-#: Model packages (present and future): they may not import the procedural world.
-MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate", "eval")
+#: Model packages (present and future) and the viewer: they may not import the procedural world.
+MODEL_PACKAGES = ("nsg", "scs", "agents", "background", "annotate", "eval", "viewer")
 #: Model packages under DESIGN.md's layers: they may import the ground and data floors, never what sits above them.
 MODELS = ("nsg", "agents", "background", "scs")
 #: The product and wiring floors above the models (evaluation, annotation, closed loop, stages, benchmarks, CLI).

@@ -7,7 +7,7 @@ import sys
 import typer
 
 from omniscs.cli import (bench, catalog, closedloop, dataset, evaluation, export, generate, nsg, pool, predict,
-                         pretrained, scene, scs, world)
+                         pretrained, scene, scs, view, world)
 from omniscs.cli.common import print_error
 from omniscs.errors import OmniscsError
 
@@ -18,6 +18,7 @@ app.command("demo")(generate.demo)
 app.command("ingest")(scene.ingest)
 app.command("fit")(nsg.fit)
 app.command("render")(nsg.render)
+app.command("view")(view.view)
 app.add_typer(world.app, name="world")
 app.add_typer(scs.app, name="scs")
 app.add_typer(scene.app, name="scene")

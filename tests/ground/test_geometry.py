@@ -6,7 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from omniscs.geometry import (box_corners, box_corners_from_pose, clip_segment_to_near, compose,
-                              ego_from_camera_mount, intrinsics_from_fov, invert_transform, is_rigid,
+                              ego_from_camera_mount, euler_from_rotmat, intrinsics_from_fov, invert_transform, is_rigid,
                               make_transform, points_in_box, pose_from_xyz_yaw, project, rotmat_from_euler,
                               transform_points, unproject, world_from_box, wrap_angle, yaw_from_matrix)
 
@@ -18,6 +18,22 @@ def test_inverse_transform_composes_to_identity(x, y, z, yaw):
     T = pose_from_xyz_yaw(x, y, z, yaw)
     np.testing.assert_allclose(compose(T, invert_transform(T)), np.eye(4), atol=1e-9)
     assert is_rigid(invert_transform(T))
+
+
+@given(st.floats(-np.pi, np.pi), st.floats(-np.pi / 2, np.pi / 2), st.floats(-np.pi, np.pi))
+def test_euler_from_rotmat_gives_angles_that_rebuild_the_rotation(roll, pitch, yaw):
+    R = rotmat_from_euler(roll, pitch, yaw)
+    angles = euler_from_rotmat(R)
+    np.testing.assert_allclose(rotmat_from_euler(*angles), R, atol=1e-9)
+    assert abs(angles[1]) <= np.pi / 2 and all(np.isfinite(angles))
+
+
+@pytest.mark.parametrize("pitch", [np.pi / 2, -np.pi / 2])
+def test_euler_from_rotmat_at_gimbal_lock_puts_the_whole_turn_in_yaw(pitch):
+    R = rotmat_from_euler(0.4, pitch, 1.1)
+    roll, found_pitch, yaw = euler_from_rotmat(R)
+    assert roll == 0.0 and found_pitch == pytest.approx(pitch)
+    np.testing.assert_allclose(rotmat_from_euler(roll, found_pitch, yaw), R, atol=1e-9)
 
 
 def test_is_rigid_rejects_scaling_reflection_and_nan():
