@@ -378,6 +378,7 @@ def test_the_cli_exports_a_variants_folder_and_refuses_options_of_other_formats(
 
 
 
+@pytest.mark.slow  # about 10 s: kept out of make test's 5 minutes
 def test_a_recorded_nuscenes_log_gets_its_roads_from_the_map_expansion(scene, tmp_path):
     """The intersection exported as nuScenes (with its map expansion), read back as a recorded log: the scenario's
     roads come from the expansion, the checkers pass, and every lane vertex of the world lies on a road."""

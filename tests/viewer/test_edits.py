@@ -191,6 +191,7 @@ def test_with_its_scene_a_move_is_checked_like_an_appearance_placement(fitted, c
         server.stop()
 
 
+@pytest.mark.slow  # about 10 s: kept out of make test's 5 minutes
 def test_omniscs_view_of_a_bad_target_is_one_line_and_another_host_is_warned(tmp_path):
     import subprocess
     import sys
