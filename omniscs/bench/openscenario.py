@@ -129,7 +129,8 @@ def markdown(result: dict) -> str:
              f"{s['errors']} error(s), {s['warnings']} warning(s), {s['information']} information issue(s) in all.",
              "",
              f"Round trip (box centres read back from the .xosc against the stores): largest difference "
-             f"{s['round_trip_max_position_m']} m; holds within {ROUND_TRIP_M} m: {s['round_trip_holds']}.", "",
+             f"{_number(s['round_trip_max_position_m'])} m; holds within {ROUND_TRIP_M} m: {s['round_trip_holds']}.",
+             "",
              "| file | checker | passed | errors | warnings | information | checks run | skipped | failed |",
              "|---|---|---|---|---|---|---|---|---|"]
     for f in result["files"]:
@@ -138,9 +139,15 @@ def markdown(result: dict) -> str:
     lines += ["", "| store | position error (m) | rotation error | time error (s) | missing | extra | refused |",
               "|---|---|---|---|---|---|---|"]
     for v in result["variants"]:
-        lines.append(f"| {v['store']} | {v.get('position_m')} | {v.get('rotation')} | {v.get('time_s')} | "
+        lines.append(f"| {v['store']} | {_number(v.get('position_m'))} | {_number(v.get('rotation'))} | "
+                     f"{_number(v.get('time_s'))} | "
                      f"{', '.join(v['missing']) or '-'} | {', '.join(v['extra']) or '-'} | {v['refused'] or '-'} |")
     return "\n".join(lines) + "\n"
+
+
+def _number(value) -> str:
+    """A measured difference for the table: three significant digits, '-' when there is none."""
+    return "-" if value is None else f"{float(value):.3g}"
 
 
 def write_openscenario_report(reports_root: str | Path, stores: list[Path], export_dir: Path,
