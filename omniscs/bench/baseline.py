@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -13,6 +12,7 @@ from typing import Any
 
 import omniscs
 from omniscs.errors import OmniscsError
+from omniscs.storage import atomic_directory
 
 #: The package folder of the code that is running (its parent goes on PYTHONPATH for the current side).
 CURRENT_PACKAGE = Path(omniscs.__file__).resolve().parent
@@ -49,23 +49,14 @@ def baseline_tree(ref: str, cache_root: Path) -> tuple[str, Path]:
     dest = Path(cache_root) / "baseline" / commit
     if (dest / "omniscs" / "__init__.py").is_file():
         return commit, dest
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{commit[:12]}-", dir=dest.parent))
     try:
         archive = subprocess.run(["git", "archive", "--format=tar", commit, "omniscs"], cwd=repository_root(),
                                  capture_output=True, check=True)
-        subprocess.run(["tar", "-x", "-C", str(staging)], input=archive.stdout, check=True)
-        try:
-            os.replace(staging, dest)
-        except OSError:  # another run extracted it meanwhile
-            if not (dest / "omniscs" / "__init__.py").is_file():
-                raise
+        with atomic_directory(dest) as staging:
+            subprocess.run(["tar", "-x", "-C", str(staging)], input=archive.stdout, check=True)
     except subprocess.CalledProcessError as e:
         raise OmniscsError(f"could not extract {commit[:12]}'s omniscs package: "
                            f"{(e.stderr or b'').decode(errors='replace').strip()[:200]}") from None
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return commit, dest
 
 

@@ -270,21 +270,29 @@ def run_closedloop_benchmark(out_dir: str | Path, workspace: str | Path | None =
     return result
 
 
-def summarise(scores: list[dict]) -> dict:
-    """Per policy and scenario kind: mean PDMS, HD-Score, route completion, collision rate, and the SCS penalty."""
-    out: dict = {}
+def _groups(scores: list[dict]):
+    """(policy, kind, rows) for every policy and scenario kind ("log", "behavior") that has runs."""
     for policy in sorted({r["policy"] for r in scores}):
-        out[policy] = {}
         for kind in ("log", "behavior"):
             rows = [r for r in scores if r["policy"] == policy and r["kind"] == kind]
-            if not rows:
-                continue
-            mean = (lambda key: statistics.fmean(float(r[key]) for r in rows if r[key] is not None)  # noqa: E731
-                    if any(r[key] is not None for r in rows) else None)
-            out[policy][kind] = {"n": len(rows), "pdms": mean("pdms"), "epdms": mean("epdms"),
-                                 "epdms_navsim_ttc": mean("epdms_navsim_ttc"), "hd_score": mean("hd_score"),
-                                 "route_completion": mean("route_completion"),
-                                 "collision_rate": statistics.fmean(float(r["collision"]) for r in rows)}
+            if rows:
+                yield policy, kind, rows
+
+
+def _mean(rows: list[dict], key: str) -> float | None:
+    """Mean of ``key`` over the rows that have it; None when none has."""
+    values = [float(r[key]) for r in rows if r[key] is not None]
+    return statistics.fmean(values) if values else None
+
+
+def summarise(scores: list[dict]) -> dict:
+    """Per policy and scenario kind: mean PDMS, HD-Score, route completion, collision rate, and the SCS penalty."""
+    out: dict = {policy: {} for policy in sorted({r["policy"] for r in scores})}
+    for policy, kind, rows in _groups(scores):
+        out[policy][kind] = {"n": len(rows), **{key: _mean(rows, key) for key in (
+                                 "pdms", "epdms", "epdms_navsim_ttc", "hd_score", "route_completion")},
+                             "collision_rate": statistics.fmean(float(r["collision"]) for r in rows)}
+    for policy in out:
         log_, scs = out[policy].get("log"), out[policy].get("behavior")
         if log_ and scs:
             out[policy]["scs_penalty"] = {k: (None if log_[k] is None or scs[k] is None else log_[k] - scs[k])
@@ -295,18 +303,11 @@ def summarise(scores: list[dict]) -> dict:
 def summarise_epdms(scores: list[dict]) -> dict:
     """Per policy and scenario kind: the mean of each EPDMS sub-score (each run's mean over steps, after the human
     filter), the mean share of steps the filter set each to 1, and how many runs had a lane map."""
-    out: dict = {}
-    for policy in sorted({r["policy"] for r in scores}):
-        out[policy] = {}
-        for kind in ("log", "behavior"):
-            rows = [r for r in scores if r["policy"] == policy and r["kind"] == kind]
-            if not rows:
-                continue
-            mean = (lambda key: statistics.fmean(float(r[key]) for r in rows if r[key] is not None)  # noqa: E731
-                    if any(r[key] is not None for r in rows) else None)
-            out[policy][kind] = {"n": len(rows), **{name: mean(f"epdms_{name}") for name in EPDMS_SUB_SCORES},
-                                 "filtered": {name: mean(f"filtered_{name}") for name in EPDMS_SUB_SCORES},
-                                 "with_lanes": sum(bool(r["has_lanes"]) for r in rows)}
+    out: dict = {policy: {} for policy in sorted({r["policy"] for r in scores})}
+    for policy, kind, rows in _groups(scores):
+        out[policy][kind] = {"n": len(rows), **{name: _mean(rows, f"epdms_{name}") for name in EPDMS_SUB_SCORES},
+                             "filtered": {name: _mean(rows, f"filtered_{name}") for name in EPDMS_SUB_SCORES},
+                             "with_lanes": sum(bool(r["has_lanes"]) for r in rows)}
     return out
 
 

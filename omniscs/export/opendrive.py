@@ -294,17 +294,11 @@ def procedural_network(layout, name: str = "omniscs") -> RoadNetwork:
             plan.add_fixed_geometry(xodr.ParamPoly3(*u, *v, "normalized", length), float(start[0]),
                                     float(start[1]), heading)
             width = float(lane.width)
-            centre = xodr.Lane(lane_type=xodr.LaneType.none)
             path_lane = xodr.Lane(lane_type=xodr.LaneType.driving, a=width)
             (src_road, src_lane), (dst_road, dst_lane) = places[sources[lane.lane_id]], places[lane.successors[0]]
             path_lane.add_link("predecessor", src_lane)
             path_lane.add_link("successor", dst_lane)
-            section = xodr.LaneSection(0, centre)
-            section.add_right_lane(path_lane)
-            lanes = xodr.Lanes()
-            lanes.add_laneoffset(xodr.LaneOffset(0, width / 2))  # the lane is centred on the path
-            lanes.add_lanesection(section)
-            path = xodr.Road(road_id, plan, lanes, road_type=junction_id, name=lane.lane_id)
+            path = xodr.Road(road_id, plan, _centred_lane(path_lane, width), road_type=junction_id, name=lane.lane_id)
             # incoming lanes of the west road (ids < 0) leave at its end; every other road's at its start
             src_contact = xodr.ContactPoint.end if src_road.road_id == 1 and src_lane < 0 else xodr.ContactPoint.start
             dst_contact = xodr.ContactPoint.end if dst_road.road_id == 1 and dst_lane > 0 else xodr.ContactPoint.start
@@ -331,12 +325,7 @@ def procedural_network(layout, name: str = "omniscs") -> RoadNetwork:
             lane_id = side * len(section)
             walk.add_link("predecessor", lane_id)
             walk.add_link("successor", lane_id)
-            section_xodr = xodr.LaneSection(0, xodr.Lane(lane_type=xodr.LaneType.none))
-            section_xodr.add_right_lane(walk)
-            lanes = xodr.Lanes()
-            lanes.add_laneoffset(xodr.LaneOffset(0, float(width) / 2))
-            lanes.add_lanesection(section_xodr)
-            path = xodr.Road(road_id, plan, lanes, road_type=junction_id,
+            path = xodr.Road(road_id, plan, _centred_lane(walk, float(width)), road_type=junction_id,
                              name=f"sidewalk {'left' if side > 0 else 'right'}")
             path.add_predecessor(xodr.ElementType.road, west.road_id, xodr.ContactPoint.end)
             path.add_successor(xodr.ElementType.road, east.road_id, xodr.ContactPoint.start)
@@ -373,12 +362,7 @@ def road_map_network(road_map: RoadMap, name: str = "omniscs") -> RoadNetwork:
                 geometry = xodr.Arc(curvature, length=piece["segment_length"][0])
             plan.add_fixed_geometry(geometry, x, y, heading, s=s)
             s += sum(piece["segment_length"])
-        centre = xodr.Lane(lane_type=xodr.LaneType.none)
-        section = xodr.LaneSection(0, centre)
-        section.add_right_lane(xodr.Lane(lane_type=xodr.LaneType.driving, a=DEFAULT_LANE_WIDTH_M))
-        lanes = xodr.Lanes()
-        lanes.add_laneoffset(xodr.LaneOffset(0, DEFAULT_LANE_WIDTH_M / 2))
-        lanes.add_lanesection(section)
+        lanes = _centred_lane(xodr.Lane(lane_type=xodr.LaneType.driving, a=DEFAULT_LANE_WIDTH_M), DEFAULT_LANE_WIDTH_M)
         odr.add_road(xodr.Road(road_id, plan, lanes, name=f"lane {road_id}"))
     if road_id == 0:
         raise OmniscsError("the scene's road map has no lane centreline, so no OpenDRIVE road can be written; "
@@ -463,12 +447,7 @@ def expansion_network(path: str | Path, scene: Scene, name: str = "omniscs") -> 
             if lane is not None and lane.get("polygon_token") in polygons:
                 width = float(np.clip(ring(lane["polygon_token"]).area / s_total, *LANE_WIDTH_RANGE_M))
             road_id += 1
-            centre = xodr.Lane(lane_type=xodr.LaneType.none)
-            section = xodr.LaneSection(0, centre)
-            section.add_right_lane(xodr.Lane(lane_type=xodr.LaneType.driving, a=width))
-            lanes = xodr.Lanes()
-            lanes.add_laneoffset(xodr.LaneOffset(0, width / 2))
-            lanes.add_lanesection(section)
+            lanes = _centred_lane(xodr.Lane(lane_type=xodr.LaneType.driving, a=width), width)
             odr.add_road(xodr.Road(road_id, plan, lanes, name=f"nuScenes lane {token}"))
         area = [ring(token) for record in expansion.get("drivable_area", [])
                 for token in record.get("polygon_tokens", [])]
@@ -479,6 +458,20 @@ def expansion_network(path: str | Path, scene: Scene, name: str = "omniscs") -> 
         raise OmniscsError(f"the map expansion {path} has no lane within {EXPANSION_MARGIN_M:g} m of scene "
                            f"{scene.scene_id}; give the expansion of the location the log was recorded in")
     return RoadNetwork(_document(odr), _union(area), "nuscenes_expansion")
+
+
+def _centred_lane(lane, width: float):  # xodr.Lane, metres -> xodr.Lanes
+    """The lanes of a road that is one lane centred on its reference line (a junction path, a sidewalk across a
+    junction mouth, a road-map or map-expansion centreline): an empty centre lane, ``lane`` on its right, the
+    reference line moved half the lane's width to the left."""
+    from scenariogeneration import xodr
+
+    section = xodr.LaneSection(0, xodr.Lane(lane_type=xodr.LaneType.none))
+    section.add_right_lane(lane)
+    lanes = xodr.Lanes()
+    lanes.add_laneoffset(xodr.LaneOffset(0, width / 2))
+    lanes.add_lanesection(section)
+    return lanes
 
 
 def _union(polygons) -> object:  # [[K, 2] arrays or shapely polygons] -> one shapely geometry

@@ -4,29 +4,15 @@ the others; the CLI refuses a bad scenario before Prefect starts."""
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from closedloop_fixtures import stopping_variant
 from omniscs import catalog
 from omniscs.errors import OmniscsError
 from omniscs.pipeline import layout
-
-
-@pytest.fixture(scope="module")
-def workspace(world, world_root, tmp_path_factory):
-    scene = world[0]
-    ws = tmp_path_factory.mktemp("closedloop-ws")
-    shutil.copytree(world_root / "scene", layout.scene_folder(ws, "ingest", scene.scene_id))
-    shutil.copytree(world_root / "graph", layout.stage_folder(ws, "fit", scene.scene_id, "nsg-test-graph"))
-    variants = layout.stage_folder(ws, "behavior", scene.scene_id, "behavior-test") / "variants.json"
-    variants.parent.mkdir(parents=True)
-    variants.write_text(json.dumps([stopping_variant(scene)]))
-    return ws
 
 
 def test_closed_loop_eval_catalogues_each_scenario_and_the_run(prefect_harness, world, workspace):

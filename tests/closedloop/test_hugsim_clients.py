@@ -11,10 +11,8 @@ The server renders at 800x450, the size for which the UniAD and VAD clients' res
 agree (docs/guide/closedloop.md)."""
 from __future__ import annotations
 
-import json
 import math
 import os
-import shutil
 import socket
 import subprocess
 import sys
@@ -26,8 +24,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapely.geometry import Polygon
 
-from closedloop_fixtures import stopping_variant
-from omniscs.pipeline import layout
 from omniscs.scs.behavior.collision import footprints
 
 CAMERA = "CAM_FRONT"
@@ -146,20 +142,14 @@ def _free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def states(world, world_root, tmp_path_factory):
+def states(world, workspace):
     """Every state a client saw in two episodes of the stopping variant, served by ``omniscs closedloop serve`` (a
     separate process) and driven by hugsim-client: {"turning": veering left for 1.1 s, "straight": from reset to
     the collision with the car that stops ahead}, each [(obs, info), ...]."""
     os.environ["IN_HF_SPACE"] = "false"  # else the client starts a web server of its own
     from hugsim_client import HugsimClient
 
-    scene = world[0]
-    ws = tmp_path_factory.mktemp("hugsim-ws")
-    shutil.copytree(world_root / "scene", layout.scene_folder(ws, "ingest", scene.scene_id))
-    shutil.copytree(world_root / "graph", layout.stage_folder(ws, "fit", scene.scene_id, "nsg-test-graph"))
-    variants = layout.stage_folder(ws, "behavior", scene.scene_id, "behavior-test") / "variants.json"
-    variants.parent.mkdir(parents=True)
-    variants.write_text(json.dumps([stopping_variant(scene)]))
+    scene, ws = world[0], workspace
     port = _free_port()
     env = dict(os.environ, OMNISCS_SERVER_TOKENS="tok", OMNISCS_HOME=str(ws))
     server = subprocess.Popen(
