@@ -97,7 +97,7 @@ SCHEMAS: dict[str, pa.Schema] = {
     "variants": pa.schema([                                       # SCS variants: behaviour-level, and appearance-level (kind appearance)
         pa.field("scene_id", pa.string(), nullable=False),
         pa.field("variant_id", pa.string(), nullable=False),
-        pa.field("kind", pa.string(), nullable=False),            # cut_in | head_on | rear_end | t_bone | none | appearance
+        pa.field("kind", pa.string(), nullable=False),            # cut_in | head_on | rear_end | t_bone | none | appearance | designed
         pa.field("adversary", pa.int64(), nullable=False),        # track id (appearance: the composited object's track)
         pa.field("collision_step", pa.int32()),                   # step of first contact in the variant; null = none
         pa.field("collision_time_s", pa.float64()),
@@ -123,7 +123,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("checkpoint", pa.string()),      # content hash (12 hex) of the traffic model
         pa.field("variants_path", pa.string(), nullable=False),   # the variants.json holding the trajectories
         pa.field("bev_path", pa.string()),
-        pa.field("placement", pa.string()),                       # appearance: replace | insert (null: behaviour)
+        pa.field("placement", pa.string()),                       # appearance: replace | insert; designed: designed (null: behaviour)
         pa.field("object_id", pa.string()),                       # appearance: the composited model (pm-... / nsg:...)
         pa.field("object_category", pa.string()),
         pa.field("pose", pa.string()),                            # appearance: upright | on_side | overturned | replace

@@ -24,7 +24,8 @@ class GateConfig:
     """Behaviour: the ego must have a comfortable collision-free avoiding trajectory (what it drives in the
     dataset); without one the variant is only a test case."""
     min_visible_frames: int = 3
-    """Appearance: frames in which the composited object must be visible (``min_mask_pixels`` in one camera and at
+    """Appearance (and designed variants, for each track they edit and keep): frames in which the composited object
+    must be visible (``min_mask_pixels`` in one camera and at
     least ``min_visible_fraction`` of it unoccluded)."""
     min_mask_pixels: int = 100
     """Appearance: mask pixels the object needs in a camera for a frame to count as visible."""
@@ -120,15 +121,18 @@ def edited_visible_frames(annotations: list[dict], track_id: int, gates: GateCon
 
 
 def rendered_verdict(summary: dict, gates: GateConfig) -> Verdict:
-    """What a variant's render shows (its annotate summary: ``level``, ``ego_solved``, ``edited_visible_frames``,
-    the fidelity means) against the gates."""
+    """What a variant's render shows (its annotate summary: ``level``, ``ego_solved``, ``edited_visible_frames`` (of a
+    designed variant: its least visible edited track's, ``least_visible_track``), the fidelity means) against the
+    gates."""
     reasons = []
     if summary.get("level") == "behaviour" and gates.require_ego_solution and summary.get("ego_solved") is False:
         reasons.append("the ego has no comfortable collision-free avoiding trajectory (only a test case)")
-    if summary.get("level") == "appearance":
+    if summary.get("level") in ("appearance", "designed"):
         seen = int(summary.get("edited_visible_frames") or 0)
         if seen < gates.min_visible_frames:
-            reasons.append(f"the composited object is visible in {seen} frame(s), fewer than "
+            what = "the composited object" if summary.get("level") == "appearance" else \
+                f"edited track {summary.get('least_visible_track')}"
+            reasons.append(f"{what} is visible in {seen} frame(s), fewer than "
                            f"{gates.min_visible_frames} (>= {gates.min_mask_pixels} mask pixels, >= "
                            f"{gates.min_visible_fraction:.0%} unoccluded)")
     psnr = summary.get("fidelity_psnr")

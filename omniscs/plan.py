@@ -228,7 +228,7 @@ def make_plan(scene: Scene, edits: list[Edit] | None = None, config: PlanConfig 
         "background_repair": bool(fit_nsg and repair),
         "behavior_variants": behavior_variants > 0,
         "appearance_variants": bool(fit_nsg and appearance_variants > 0),
-        "render_annotate": bool(annotate and fit_nsg and (behavior_variants > 0 or appearance_variants > 0)),
+        "render_annotate": bool(annotate and fit_nsg and (behavior_variants > 0 or appearance_variants > 0 or edits)),
     }
     return ScenePlan(
         scene_id=scene.scene_id, content_hash=scene.content_hash, agent_nodes=nodes, node_reasons=reasons,

@@ -93,7 +93,7 @@ def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path
 
 
 #: The variant levels a card counts, in order.
-LEVELS = ("behaviour", "appearance")
+LEVELS = ("behaviour", "appearance", "designed")
 
 
 def gate_record(rows: dict) -> dict:
@@ -140,9 +140,10 @@ def gate_summary(records: list[dict], keep_failed: bool) -> dict:
 def gate_counts(gates: dict) -> str:
     """The gates' counts as one line, per level asked for or tried (``gate_summary``'s requested/produced/rejected/
     tried): what ``dataset info`` and ``generate`` print."""
-    return "; ".join(f"{level} {gates['produced'][level]} of {gates['requested'][level]} requested passed, "
-                     f"{gates['rejected'][level]} rejected, {gates['tried'][level]} tried"
-                     for level in LEVELS if gates["requested"][level] or gates["tried"][level])
+    n = {k: {level: gates[k].get(level, 0) for level in LEVELS} for k in ("requested", "produced", "rejected", "tried")}
+    return "; ".join(f"{level} {n['produced'][level]} of {n['requested'][level]} requested passed, "
+                     f"{n['rejected'][level]} rejected, {n['tried'][level]} tried"
+                     for level in LEVELS if n["requested"][level] or n["tried"][level])
 
 
 def first_reasons(gates: dict, n: int = 3) -> str:
@@ -212,7 +213,7 @@ def card_warnings(counts: dict, gates: dict, lidar: dict, failed_scenes: list[di
     """What a user must know before training on the dataset, in plain words."""
     out = [f"scene {f['scene']} failed and is not in the dataset: {f['error']}" for f in failed_scenes]
     for level in LEVELS:
-        asked, made, tried = gates["requested"][level], gates["produced"][level], gates["tried"][level]
+        asked, made, tried = (gates[k].get(level, 0) for k in ("requested", "produced", "tried"))
         if asked and made < asked:
             out.append(f"{made} of {asked} requested {level} variant(s) passed the quality gates ({tried} tried)")
     behaviour = [r for r in gates["rejections"] if r["level"] == "behaviour"]
@@ -290,13 +291,15 @@ def card_markdown(card: dict) -> str:
     lines = [f"# Dataset {card['dataset_id']}", ""]
     if card.get("warnings"):
         lines += ["**Warnings**", ""] + [f"- {w}" for w in card["warnings"]] + [""]
+    designed = c['variants_by_level'].get('designed', 0)
     lines += [f"{c['variants']} SCS variant(s) of {c['scenes']} scene(s) ({c['variants_by_level']['behaviour']} "
-              f"behaviour-level, {c['variants_by_level']['appearance']} appearance-level): {c['frames']} frames, "
+              f"behaviour-level, {c['variants_by_level']['appearance']} appearance-level"
+              + (f", {designed} designed" if designed else "") + f"): {c['frames']} frames, "
               f"{c['images']} annotated images, {c['annotations']} box annotations (one per box and camera).", "",
               f"- Sources: {', '.join(card.get('sources') or []) or 'n/a'}",
               f"- The ego drives its avoiding solution in {c['ego_solved']} of "
-              f"{c['variants_by_level']['behaviour']} behaviour variant(s) in the dataset. Appearance variants keep "
-              "the logged ego.",
+              f"{c['variants_by_level']['behaviour']} behaviour variant(s) in the dataset. Appearance and designed "
+              "variants keep the logged ego.",
               f"- Frames not rendered because the ego left the fitted area: {c['dropped_frames']}",
               f"- Fidelity against the exact render (procedural scenes): PSNR {stat(fid['variant_psnr'], ' dB')}; "
               f"SSIM {stat(fid['variant_ssim'])}; on agents, PSNR {stat(fid['variant_masked_psnr'], ' dB')}",
@@ -316,8 +319,9 @@ def card_markdown(card: dict) -> str:
               "## Quality gates", "",
               "| level | requested | passed | rejected | tried |", "|---|---:|---:|---:|---:|"]
     for level in LEVELS:
-        lines.append(f"| {level} | {gates['requested'][level]} | {gates['produced'][level]} | "
-                     f"{gates['rejected'][level]} | {gates['tried'][level]} |")
+        n = [gates[k].get(level, 0) for k in ("requested", "produced", "rejected", "tried")]
+        if level != "designed" or any(n):  # a designed variant only when the request had edits
+            lines.append(f"| {level} | {' | '.join(map(str, n))} |")
     lines.append("")
     if gates["rejections"]:
         where = "in the dataset, marked" if gates["keep_failed"] else "kept in the workspace and the catalog only"

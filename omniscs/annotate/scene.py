@@ -10,7 +10,8 @@ import numpy as np
 
 from omniscs.annotate.config import AnnotateConfig
 from omniscs.annotate.replay import Replay, write_replay
-from omniscs.annotate.variant import AnnotatedVariant, Reference, Sweep, background_tracks, write_annotated_variant
+from omniscs.annotate.variant import (AnnotatedVariant, Reference, Sweep, background_tracks, variant_level,
+                                      write_annotated_variant)
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
 from omniscs.gates import GateConfig, Verdict, edited_visible_frames, rendered_verdict
@@ -25,6 +26,10 @@ log = logging.getLogger(__name__)
 
 #: ``kind`` of an appearance-level variant (``omniscs.scs.appearance``).
 APPEARANCE = "appearance"
+#: ``kind`` of a designed variant (a request's edit spec, ``omniscs.scs.appearance.variants.designed_variant``).
+DESIGNED = "designed"
+#: Variants composed from their edits over the graph (the logged ego), as against driven behaviour variants.
+COMPOSED = (APPEARANCE, DESIGNED)
 #: What the annotate stage writes beside the variant stores: every catalog row and every variant's summary.
 ROWS_JSON = "rows.json"
 
@@ -50,8 +55,8 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
     as a test case (``ego_solved`` false). ``picture(variant, solution, png)`` draws the variant's BEV with the
     solution. ``describe(frames) -> world.json`` (procedural sources) goes into each variant's store. ``replay`` (the
     graph's logged views, ``omniscs.annotate.replay``) spares rendering them again for the fidelity proxies.
-    Appearance variants (``kind`` appearance) keep the logged ego over every frame and are drawn by the graph
-    ``compose(variant)`` returns (``omniscs.scs.appearance.compose.Composite``: the edited graph and the boxes of
+    Appearance and designed variants (``kind`` appearance, designed) keep the logged ego over every frame and are
+    drawn by the graph ``compose(variant)`` returns (``omniscs.scs.appearance.compose.Composite``: the edited graph and the boxes of
     the nodes it changed), compared with ``reference_for(variant)`` (their exact images) when given. ``lidar`` and
     ``lidar_for(variant)`` give the exact LiDAR sweeps of behaviour and appearance variants (procedural scenes);
     without them the sweep is looked up in the graph's depth (``write_annotated_variant``).
@@ -66,9 +71,9 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
     annotator = ViewAnnotator(graph, config, replay)
     members = background_members(graph, background_tracks(scene, graph))
     results, pictures, rejected, spare = [], [], [], []
-    passed = {"behaviour": 0, "appearance": 0}
+    passed = {"behaviour": 0, "appearance": 0, "designed": 0}
     for i, variant in enumerate(variants):
-        level = APPEARANCE if variant.get("kind") == APPEARANCE else "behaviour"
+        level = variant_level(variant)
         if gates is not None and wanted is not None and passed[level] >= wanted.get(level, len(variants)):
             spare.append({"variant_id": str(variant.get("variant_id")), "level": level})
             continue
@@ -86,9 +91,9 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
         def step(k, n, what=None, _done=done):
             progress(int(_done * 1000 + 1000 * k / max(n or 1, 1)), 1000 * len(variants), what)
 
-        if variant.get("kind") == APPEARANCE:
+        if variant.get("kind") in COMPOSED:
             if compose is None:
-                raise OmniscsError(f"variant {vid} is an appearance variant; annotating it needs its composition "
+                raise OmniscsError(f"variant {vid} is an {level} variant; annotating it needs its composition "
                                    "(a model pool or the graph's own nodes)")
             composite = compose(variant)
             framed = dict(variant, source_frames=list(range(scene.n_frames)), ego=None)
@@ -99,8 +104,12 @@ def annotate_variants(graph: SceneGraph, scene: Scene, variants: list[dict], out
                 describe=describe, edited=composite.boxes,
                 lidar=lidar_for(variant) if lidar_for is not None else None)
             if gates is not None:
-                result.summary["edited_visible_frames"] = edited_visible_frames(
-                    result.annotations, int(variant["track_id"]), gates)
+                tracks = variant.get("tracks") if level == DESIGNED else [variant["track_id"]]
+                seen = {int(t): edited_visible_frames(result.annotations, int(t), gates) for t in tracks}
+                least = min(seen, key=seen.get) if seen else None
+                result.summary["edited_visible_frames"] = seen.get(least, 0)
+                if level == DESIGNED:
+                    result.summary["least_visible_track"] = least
                 passed[level] += _judge(result, before, gates)
             results.append(result)
             continue

@@ -321,6 +321,12 @@ def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant:
             "num_lidar_points": -1, "vx": float(velocity[0]), "vy": float(velocity[1]), "vz": float(velocity[2])}
 
 
+def variant_level(variant: dict) -> str:
+    """The dataset level of a variant spec: ``appearance`` and ``designed`` (their ``kind``), else ``behaviour``."""
+    kind = variant.get("kind")
+    return kind if kind in ("appearance", "designed") else "behaviour"
+
+
 def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: list[dict], render_s: float,
              label_s: float, write_s: float, seconds: float, n_images: int, n_annotations: int,
              lidar_s: float, lidar_source: str) -> dict:
@@ -329,7 +335,7 @@ def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: 
         return float(np.mean(values)) if values else None
 
     return {"variant_id": str(variant.get("variant_id")),
-            "level": "appearance" if variant.get("kind") == "appearance" else "behaviour",
+            "level": variant_level(variant),
             "n_frames": vf.n_frames, "n_images": n_images,
             "n_annotations": n_annotations, "dropped_frames": len(vf.dropped_frames),
             "ego_solved": None if solution is None else bool(solution.get("solved")),

@@ -11,7 +11,7 @@ from pathlib import Path
 from omniscs.agents.pool import Pool, model_resolver
 from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.replay import Replay
-from omniscs.annotate.scene import annotate_variants, read_rows, replay_scene
+from omniscs.annotate.scene import COMPOSED, annotate_variants, read_rows, replay_scene
 from omniscs.gates import GateConfig
 from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
@@ -26,9 +26,12 @@ from omniscs.pipeline.reuse import StageKey, produce, reusable
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress, no_progress
 from omniscs.scene import load_scene
+from omniscs.scs.appearance.colour import scene_colour_transform
 from omniscs.scs.appearance.compose import compose_variant
+from omniscs.scs.appearance.variants import designed_catalog_row, designed_variant
 from omniscs.scs.behavior import traffic_from_scene
 from omniscs.scs.behavior.solution import SolutionConfig, solution_bev_picture, solve_ego
+from omniscs.storage import atomic_write_json
 from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
@@ -36,6 +39,8 @@ log = logging.getLogger(__name__)
 #: Bump when the code changes what the stages write (older outputs are then not reused).
 REPLAY_VERSION = 1
 ANNOTATE_VERSION = 2  # 2: the 360° ring LiDAR (num_lidar_points of every box around the ego)
+#: The designed variant's spec in an annotate stage folder (a ``variants.json`` of one entry).
+DESIGNED_JSON = "designed.json"
 
 
 def replay_stage(scene_path: str | Path, model: StageRecord, workspace: str | Path, progress: Progress = no_progress,
@@ -66,7 +71,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                    workspace: str | Path, config=None, progress: Progress = no_progress,
                    reuse: bool = True, appearance: StageRecord | None = None,
                    uncovered: StageRecord | None = None, gates: GateConfig | None = None,
-                   keep_failed: bool = False) -> StageRecord:
+                   keep_failed: bool = False, designed: list[dict] | None = None,
+                   pool: str | Path | None = None) -> StageRecord:
     """Every behaviour variant of the scene rendered through its fitted graph and annotated (``omniscs.annotate``),
     the ego on its solution: one scene store per variant, ``rows.json`` and a BEV per variant, in
     ``annotated/<scene_id>/annotate-<key>/``. Procedural scenes are compared with the world's exact render (unless
@@ -76,7 +82,9 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     some appearance variants uncover) is the graph those variants are composed on; every other variant keeps
     ``model``'s. With ``gates`` each variant gets its quality verdict; those failed before rendering are rendered
     only with ``keep_failed``, and spare candidates only until each level has as many passing variants as its
-    stage was asked for (``omniscs.annotate.scene.annotate_variants``)."""
+    stage was asked for (``omniscs.annotate.scene.annotate_variants``). ``designed`` (the request's edit objects)
+    adds one designed variant (``d000``: those edits, models from ``pool``), rendered after the others, written as
+    ``designed.json`` and catalogued in ``variants``."""
     started = time.perf_counter()
     scene = load_scene(scene_path)
     if not plan.stages.get("render_annotate"):
@@ -84,7 +92,8 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
     behavior = behavior if behavior is not None and not behavior.skipped else None
     appearance = appearance if appearance is not None and not appearance.skipped else None
     uncovered = uncovered if appearance is not None and uncovered is not None and not uncovered.skipped else None
-    if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None):
+    if model is None or model.info.get("status") != "fitted" or (behavior is None and appearance is None
+                                                                  and not designed):
         return StageRecord.skip("annotate", scene.scene_id, "no fitted scene graph or no variants to render")
     config = config or AnnotateConfig()
     solution_config = SolutionConfig()
@@ -93,8 +102,12 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
         inputs["appearance"] = appearance.key
     if uncovered is not None:  # absent otherwise: runs without a repair for their variants keep their keys
         inputs["uncovered"] = uncovered.key
+    if designed:  # likewise
+        inputs["designed"] = {"edits": list(designed), "pool": None if pool is None else str(Path(pool).resolve())}
     wanted = {level: int(r.info.get("n_requested", r.info.get("n_variants", 0)))
               for level, r in (("behaviour", behavior), ("appearance", appearance)) if r is not None}
+    if designed:
+        wanted["designed"] = 1
     gated = {"gates": gates.to_dict(), "keep_failed": bool(keep_failed), "wanted": wanted} if gates else {}
     key = StageKey.of("annotate", ANNOTATE_VERSION, inputs,
                       {"annotate": config.to_dict(), "solution": dataclasses.asdict(solution_config), **gated})
@@ -119,8 +132,12 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                             {v["variant_id"] for v in variants if objects & set(variant_uncovers(scene, v))})
             if appearance is not None and appearance.info.get("n_requested"):
                 variants = without_unrepaired_spares(scene, variants, int(appearance.info["n_requested"]), objects)
+            if designed:
+                variants.append(designed_spec(graph, scene, plan, designed, pool, progress))
 
             def make(tmp: Path) -> dict:
+                if designed:
+                    atomic_write_json(tmp / DESIGNED_JSON, [variants[-1]])
                 results = annotate_variants(
                     graph, scene, variants, tmp, solve=lambda v: solve_ego(v, traffic, solution_config),
                     describe=world_description(scene), config=config,
@@ -128,17 +145,35 @@ def annotate_stage(scene_path: str | Path, plan: ScenePlan, model: StageRecord |
                     picture=lambda v, sol, png: solution_bev_picture(v, sol, traffic, png),
                     compose=appearance_composer(graph, repaired), gates=gates, wanted=wanted if gates else None,
                     keep_failed=keep_failed, **exact_sensors(scene, variants, config))
-                return {"stores": [r.store.name for r in results], "rows": "rows.json"}
+                return {"stores": [r.store.name for r in results], "rows": "rows.json",
+                        **({"designed": DESIGNED_JSON} if designed else {})}
 
             produce(out, key, make)
     rows = read_rows(out)
     summaries = rows["variants"]
+    catalogued = {}
+    if designed:
+        spec = read_own_json(out / DESIGNED_JSON, f"the stage folder {out} is damaged; remove it and run again",
+                             expect=list)
+        catalogued = {"variants": [designed_catalog_row(v, out / DESIGNED_JSON) for v in spec]}
     return StageRecord("annotate", scene.scene_id, str(out), reused=manifest is not None,
-                       seconds=time.perf_counter() - started, key=key.digest,
+                       seconds=time.perf_counter() - started, key=key.digest, rows=catalogued,
                        info={"n_variants": len(summaries), "n_images": len(rows["samples"]),
                              "n_annotations": len(rows["annotations"]),
                              "n_ego_solved": sum(bool(v.get("ego_solved")) for v in summaries),
                              "verdicts": variant_verdicts(rows)})
+
+
+def designed_spec(graph, scene, plan: ScenePlan, edits: list[dict], pool: str | Path | None,
+                  progress: Progress = no_progress) -> dict:
+    """The designed variant of ``edits`` on ``scene`` (``designed_variant``): when they bring models of ``pool``
+    (insert, replace_model of pm-... ids), its objects take the scene's colour transform, estimated as the
+    appearance stage does."""
+    spec = designed_variant(scene.scene_id, edits, None if pool is None else str(pool))
+    if pool is not None and spec["object_id"] is not None:
+        progress(0, 1, f"colour transform of {scene.scene_id} for the designed variant")
+        spec["colour"] = scene_colour_transform(graph, scene, Pool(pool), plan.train_frames).to_dict()["affine"]
+    return spec
 
 
 def exact_sensors(scene, variants: list[dict], config: AnnotateConfig) -> dict:
@@ -149,12 +184,14 @@ def exact_sensors(scene, variants: list[dict], config: AnnotateConfig) -> dict:
     if scene.world is None:
         return {}
     worlds = variant_renderer(scene)
-    pools = {v["pool"] for v in variants if v.get("kind") == "appearance" and v.get("pool")}
-    placed = {p: appearance_renderer(scene, pool_asset_of(Pool(p))) for p in pools}
+    pools = {v.get("pool") for v in variants if v.get("kind") in COMPOSED}
+    placed = {p: appearance_renderer(scene, pool_asset_of(Pool(p)) if p else (lambda model_id: None))
+              for p in pools}
 
     def per_pool(make):
         by_pool = {p: make(scene, None, renderer) for p, renderer in placed.items()}
-        return lambda v: by_pool[v["pool"]](v) if v.get("pool") in by_pool else None
+        return lambda v: by_pool[v.get("pool")](v) if v.get("kind") in COMPOSED and v.get("pool") in by_pool \
+            else None
 
     out = {}
     if config.exact_fidelity:

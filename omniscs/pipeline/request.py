@@ -68,15 +68,16 @@ class SceneRequest(BaseModel):
     behavior_checkpoint: str | None = None
     """Traffic-model checkpoint folder of the behaviour variants; none: the shipped one."""
     edits: list[dict[str, Any]] = Field(default_factory=list)
-    """Edits the variants will apply (edit objects, see the edits guide); their tracks become nodes in every
-    scene's plan."""
+    """Edits of a designed scenario (edit objects, see the edits guide; e.g. a spec saved in ``omniscs view``):
+    their tracks become nodes in every scene's plan, and with annotate they are rendered and annotated as one
+    designed variant (d000) of every scene, beside the drawn ones."""
     previews: bool = True
     """Write a contact sheet and a BEV picture of every scene."""
     device: str = "cpu"
     """Compute device of the scene graph and the behaviour optimisation: cpu, cuda or cuda:N."""
     annotate: bool = False
     """Render and annotate every variant through its scene graph and gather them as one dataset (needs a fit
-    preset and behaviour or appearance variants)."""
+    preset and behaviour or appearance variants, or edits)."""
     pool: str | None = None
     """Model pool folder: tracks the edits turn off their observed views get a 360-degree model from it (or
     online), and appearance variants take their objects from it."""
@@ -131,9 +132,10 @@ class SceneRequest(BaseModel):
         if self.appearance_variants and (self.fit_preset is None or self.pool is None):
             raise ValueError("appearance variants composite pool objects into a scene graph: give a fit preset "
                              "and a model pool")
-        if self.annotate and (self.fit_preset is None or self.behavior_variants + self.appearance_variants < 1):
+        if self.annotate and (self.fit_preset is None
+                              or self.behavior_variants + self.appearance_variants < 1 and not self.edits):
             raise ValueError("a dataset renders variants through a scene graph: give a fit preset and "
-                             "behavior_variants >= 1 or appearance_variants >= 1")
+                             "behavior_variants >= 1, appearance_variants >= 1 or edits (a designed variant)")
         return self
 
     @classmethod

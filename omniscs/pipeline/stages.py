@@ -162,7 +162,8 @@ def _uncovered(s: SceneState, progress: Progress) -> StageRecord:
 def _annotate(s: SceneState, progress: Progress) -> StageRecord:
     return annotate_stage(s.scene_path, s.plan, s.model, s.ran("behavior"), s.workspace, progress=progress,
                           appearance=s.ran("appearance"), uncovered=s.ran("uncovered"), gates=s.request.gates(),
-                          keep_failed=s.request.keep_failed, **_options(s, "annotate"))
+                          keep_failed=s.request.keep_failed, designed=s.request.edits, pool=s.request.pool,
+                          **_options(s, "annotate"))
 
 
 def _always(s: SceneState) -> bool:

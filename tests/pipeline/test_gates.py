@@ -111,9 +111,9 @@ def test_the_card_counts_requested_produced_and_rejected_per_level_and_warns_in_
                                      "reasons": ["no collision within the horizon"]}],
                           wanted={"behaviour": 2, "appearance": 1}))
     gates = gate_summary([a], keep_failed=True)
-    assert gates["requested"] == {"behaviour": 2, "appearance": 1}
-    assert gates["produced"] == {"behaviour": 0, "appearance": 1}
-    assert gates["rejected"] == {"behaviour": 2, "appearance": 0} and gates["tried"]["behaviour"] == 2
+    assert gates["requested"] == {"behaviour": 2, "appearance": 1, "designed": 0}
+    assert gates["produced"] == {"behaviour": 0, "appearance": 1, "designed": 0}
+    assert gates["rejected"] == {"behaviour": 2, "appearance": 0, "designed": 0} and gates["tried"]["behaviour"] == 2
     assert gates["failed_kept"] == 1  # only the rendered one can be in the dataset
     lidar = lidar_coverage([])
     warnings = card_warnings({"dropped_frames": 0}, gates, lidar)
@@ -156,3 +156,36 @@ def test_a_spare_appearance_candidate_that_would_uncover_an_unrepaired_object_is
     kept = annotate.without_unrepaired_spares(None, variants, n_requested=2, repaired={7})
     # a000 is requested (repaired for); a002 would uncover 9, which no repair covers; a003's object 7 is repaired
     assert [v["variant_id"] for v in kept] == ["v00", "a000", "a001", "a003"]
+
+
+def test_a_designed_variant_names_its_least_visible_edited_track_when_it_fails():
+    gates = GateConfig(min_visible_frames=3)
+    hidden = rendered_verdict({"level": "designed", "edited_visible_frames": 1, "least_visible_track": 7}, gates)
+    assert not hidden.passed and hidden.reasons[0].startswith("edited track 7 is visible in 1 frame(s), fewer than 3")
+    assert rendered_verdict({"level": "designed", "edited_visible_frames": 3, "least_visible_track": 7},
+                            gates).passed
+
+
+def test_a_designed_variant_shows_every_edited_track_it_keeps_and_picks_the_new_path_as_adversary():
+    from omniscs.scs.appearance.variants import designed_variant
+
+    spec = [{"op": "insert", "track_id": 9, "asset_id": "pm-0123456789ab", "category": "truck",
+             "pose": [1.0, 2.0, 1.5, 0.0], "roll_deg": 180.0},
+            {"op": "translate", "track_id": 3, "longitudinal": 1.0},
+            {"op": "remove", "track_id": 4},
+            {"op": "set_trajectory", "track_id": 5, "waypoints": [[0.0, 0.0, 0.7, 0.0], None]}]
+    v = designed_variant("scene-a", spec, pool=None)
+    assert (v["variant_id"], v["kind"], v["adversary"], v["tracks"]) == ("d000", "designed", 5, [9, 3, 5])
+    assert (v["object_id"], v["category"]) == ("pm-0123456789ab", "truck")
+    assert designed_variant("scene-a", spec[1:3])["adversary"] == 3  # no new path, no object: the first edited
+    with pytest.raises(OmniscsError, match="at least one edit"):
+        designed_variant("scene-a", [])
+
+
+def test_a_request_with_edits_alone_makes_a_dataset_and_without_them_is_refused():
+    from omniscs.pipeline.request import RunRequest
+
+    edits = [{"op": "translate", "track_id": 1, "longitudinal": 1.0}]
+    assert RunRequest(sources=["syn:straight:0"], fit_preset="fast", annotate=True, edits=edits).annotate
+    with pytest.raises(OmniscsError, match="or edits"):
+        RunRequest.parse(dict(sources=["syn:straight:0"], fit_preset="fast", annotate=True))

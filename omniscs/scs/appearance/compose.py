@@ -24,6 +24,9 @@ from omniscs.quaternions import rotmat_to_quat
 from omniscs.render.sh import SH_C0, SH_COLOR_OFFSET
 
 KIND = "appearance"
+#: ``kind`` of a designed variant: a user's edit spec (e.g. saved in ``omniscs view``) rendered as one variant; composed
+#: as an appearance variant is, its edits as they are.
+DESIGNED = "designed"
 PLACEMENTS = ("replace", "insert")
 SPEC_VERSION = 1
 #: Track ids of contact-shadow nodes: the object's id plus this (never a box, never annotated).
@@ -96,12 +99,13 @@ def _spec(scene_id: str, variant_id: str, placement: str, track_id: int, model_i
 
 
 def check_variant(variant: dict) -> dict:
-    """``variant`` checked as an appearance variant (kind, placement, a track id, parseable edits); one
-    OmniscsError naming what is wrong otherwise."""
+    """``variant`` checked as an appearance variant (kind, placement, a track id, parseable edits) or a designed one
+    (kind and parseable edits); one OmniscsError naming what is wrong otherwise."""
     vid = variant.get("variant_id") if isinstance(variant, dict) else None
-    if not isinstance(variant, dict) or variant.get("kind") != KIND:
-        raise OmniscsError(f"variant {vid}: not an appearance variant (kind must be {KIND!r})")
-    if variant.get("placement") not in PLACEMENTS:
+    if not isinstance(variant, dict) or variant.get("kind") not in (KIND, DESIGNED):
+        raise OmniscsError(f"variant {vid}: not an appearance or designed variant (kind must be {KIND!r} or "
+                           f"{DESIGNED!r})")
+    if variant.get("kind") == KIND and variant.get("placement") not in PLACEMENTS:
         raise OmniscsError(f"variant {vid}: placement must be one of {PLACEMENTS}; got {variant.get('placement')!r}")
     parse_edits(variant.get("edits") or [])
     if not variant.get("edits"):

@@ -14,8 +14,9 @@ import numpy as np
 from omniscs.errors import OmniscsError
 from omniscs.nsg.edit import ModelResolver
 from omniscs.progress import Progress, no_progress
-from omniscs.scs.appearance.compose import (CompositeConfig, insert_variant, model_upright_box, new_track_id,
-                                            replace_variant)
+from omniscs.edits import Insert, Remove, ReplaceModel, SetTrajectory, edit_to_dict, parse_edits
+from omniscs.scs.appearance.compose import (DESIGNED, SPEC_VERSION, CompositeConfig, insert_variant,
+                                            model_upright_box, new_track_id, replace_variant)
 from omniscs.scs.appearance.placement import (PlacementConfig, PlacementError, check_placement, placement_context,
                                               sample_placements)
 from omniscs.storage import atomic_write_json
@@ -171,6 +172,42 @@ def catalog_row(variant: dict, variants_json: Path) -> dict:
             "adversary": int(variant["track_id"]), "placement": variant["placement"],
             "object_id": variant["object_id"], "object_category": variant["category"],
             "pose": pose.get("name", "replace" if variant["placement"] == "replace" else "upright"),
+            "edits_json": json.dumps(variant["edits"], sort_keys=True), "success": None, "plausible": None,
+            "reachable": None, "n_violations": 0, "violations": [], "variants_path": str(variants_json)}
+
+
+#: Variant id of the designed variant a request's edits make (one per scene).
+DESIGNED_ID = "d000"
+
+
+def designed_variant(scene_id: str, edits: list[dict], pool: str | None = None,
+                     colour: list | None = None) -> dict:
+    """A user's edit spec (``edits``: edit objects, e.g. saved by ``omniscs view``) as one variant of ``scene_id``
+    to render and annotate beside the drawn ones (kind ``designed``): composed like an appearance variant (models
+    from ``pool``; inserted and re-modelled objects through the scene's ``colour`` transform [A | b] when given),
+    the ego on its logged path. ``tracks``: the tracks it shows edited (every edited one not removed), whose
+    visibility the quality gates check; ``adversary``: the first track given a new path, else the first inserted
+    or re-modelled one, else the first edited."""
+    parsed = parse_edits(edits)
+    if not parsed:
+        raise OmniscsError("a designed variant needs at least one edit")
+    removed = {int(e.track_id) for e in parsed if isinstance(e, Remove)}
+    tracks = list(dict.fromkeys(int(e.track_id) for e in parsed if int(e.track_id) not in removed))
+    adversary = next((int(e.track_id) for kinds in ((SetTrajectory,), (Insert, ReplaceModel))
+                      for e in parsed if isinstance(e, kinds)), int(parsed[0].track_id))
+    objects = [e for e in parsed if isinstance(e, (Insert, ReplaceModel))]
+    return {"scene_id": scene_id, "variant_id": DESIGNED_ID, "kind": DESIGNED, "spec_version": SPEC_VERSION,
+            "edits": [edit_to_dict(e) for e in parsed], "tracks": tracks, "adversary": adversary,
+            "object_id": objects[0].asset_id if objects else None,
+            "category": getattr(objects[0], "category", None) if objects else None,
+            "pool": None if pool is None else str(Path(pool).resolve()), "colour": colour}
+
+
+def designed_catalog_row(variant: dict, variants_json: Path) -> dict:
+    """The ``variants`` row of a designed variant (kind ``designed``, placement ``designed``)."""
+    return {"scene_id": variant["scene_id"], "variant_id": variant["variant_id"], "kind": DESIGNED,
+            "adversary": int(variant["adversary"]), "placement": DESIGNED, "object_id": variant.get("object_id"),
+            "object_category": variant.get("category"), "pose": None,
             "edits_json": json.dumps(variant["edits"], sort_keys=True), "success": None, "plausible": None,
             "reachable": None, "n_violations": 0, "violations": [], "variants_path": str(variants_json)}
 
