@@ -71,6 +71,7 @@ class ViewerApp:
                 self.sample_list = gui.add_dropdown("Variant store", [r["store_id"] for r in t.samples],
                                                     initial_value=t.samples[0]["store_id"])
                 self.sample_figures = gui.add_markdown(t.sample_summary())
+                self.frame_figures = gui.add_markdown(t.frame_summary(frame))
             self.sample_list.on_update(lambda _: self.pick_sample(self.sample_list.value))
         with gui.add_folder("Time"):
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(t.n_frames - 1, 1), step=1, initial_value=frame,
@@ -180,6 +181,8 @@ class ViewerApp:
                     self.server.scene.add_point_cloud("/lidar", state.points, _height_colours(state.points),
                                                       point_size=0.06)
                 self._place_gizmo(state)
+            if getattr(self.target, "samples", None):
+                self.frame_figures.content = self.target.frame_summary(frame)
             self.refresh_image()
 
     def refresh_image(self) -> None:

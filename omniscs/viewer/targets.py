@@ -238,6 +238,7 @@ class DatasetTarget(StoreTarget):
         self._load = load_scene
         super().__init__(path, load_scene(self._stores[0]), config)
         self.sample = 0
+        self.labels = dataset_labels(path)
 
     def pick(self, index: int) -> None:
         """Show the dataset's ``index``-th variant store."""
@@ -246,6 +247,25 @@ class DatasetTarget(StoreTarget):
         self.scene_id = self.scene.scene_id
         self.n_frames = self.scene.n_frames
         self.camera_names = list(self.scene.camera_names)
+
+    def camera_image(self, camera: str, frame: int, boxes: bool, highlight: int | None = None) -> np.ndarray:
+        """The variant store's image with its 3D boxes and, when the dataset lists them, its annotations' 2D boxes
+        (tight, from the instance mask; else the projected box) labelled ``track vN`` (nuScenes visibility level
+        N), the adversary's in red."""
+        image = store_camera_image(self.scene, camera, frame, boxes)
+        rows = self.labels.get((self.samples[self.sample]["store_id"], int(frame), camera), [])
+        return with_labels(image, rows) if boxes and rows else image
+
+    def frame_summary(self, frame: int) -> str:
+        """The picked store's annotations at ``frame``, per camera, by visibility level, as one Markdown line."""
+        store = self.samples[self.sample]["store_id"]
+        parts = []
+        for camera in self.camera_names:
+            rows = self.labels.get((store, int(frame), camera), [])
+            if rows:
+                levels = [sum(int(r.get("visibility_level", 0)) == v for r in rows) for v in (1, 2, 3, 4)]
+                parts.append(f"{camera} {len(rows)} (v1-v4: {'/'.join(map(str, levels))})")
+        return f"Frame {frame} annotations: " + ("; ".join(parts) if parts else "none listed")
 
     def sample_summary(self) -> str:
         """The picked variant's row of the dataset card, as one Markdown line."""
@@ -260,6 +280,51 @@ class DatasetTarget(StoreTarget):
         counts = self.card.get("counts", {})
         return (f"**{self.card.get('dataset_id', self.path.name)}** ({self.kind}): {len(self.samples)} variant "
                 f"stores, {counts.get('images', '?')} images, {counts.get('annotations', '?')} annotations")
+
+
+#: Largest rows.json a dataset target reads (its every annotation; about 0.5 MB per variant of 20 frames x 3 cameras).
+MAX_ROWS_BYTES = 2**30
+#: 2D box colours: an ordinary annotation, the variant's adversary.
+LABEL_COLOUR = (40, 220, 60)
+ADVERSARY_LABEL_COLOUR = (230, 30, 30)
+
+
+def dataset_labels(path: Path) -> dict[tuple[str, int, str], list[dict]]:
+    """A dataset's annotation rows (its ``rows.json``) by (store id, frame, camera); empty when it has none."""
+    from omniscs.annotate.scene import ROWS_JSON
+    from omniscs.untrusted import read_json
+
+    if not (path / ROWS_JSON).is_file():
+        return {}
+    rows = read_json(path / ROWS_JSON, "build the dataset again (omniscs dataset build)", expect=dict,
+                     max_bytes=MAX_ROWS_BYTES, what="dataset rows")
+    out: dict[tuple[str, int, str], list[dict]] = {}
+    for a in rows.get("annotations") or []:
+        try:
+            key = (str(a["store_id"]), int(a["frame_idx"]), str(a["camera"]))
+        except (KeyError, TypeError, ValueError):
+            raise OmniscsError(f"{path / ROWS_JSON}: an annotation lacks store_id, frame_idx or camera; build the "
+                               "dataset again (omniscs dataset build)") from None
+        out.setdefault(key, []).append(a)
+    return out
+
+
+def with_labels(image: np.ndarray, rows: list[dict]) -> np.ndarray:  # uint8 [H, W, 3] -> a copy, boxes drawn
+    """``image`` with each annotation's 2D box (tight when it has one, else the projected one) and ``track vN``."""
+    import cv2
+
+    out = np.ascontiguousarray(image).copy()
+    for a in rows:
+        tight = all(a.get(f"tight_{k}") is not None for k in ("x1", "y1", "x2", "y2"))
+        x1, y1, x2, y2 = (float(a[f"tight_{k}" if tight else k]) for k in ("x1", "y1", "x2", "y2"))
+        if not all(np.isfinite([x1, y1, x2, y2])):
+            continue
+        colour = ADVERSARY_LABEL_COLOUR if a.get("is_adversary") else LABEL_COLOUR
+        p1, p2 = (int(round(x1)), int(round(y1))), (int(round(x2)) - 1, int(round(y2)) - 1)
+        cv2.rectangle(out, p1, p2, colour, 1)
+        cv2.putText(out, f"{a.get('track_id')} v{a.get('visibility_level', '?')}", (p1[0] + 2, max(p1[1] - 3, 9)),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+    return out
 
 
 def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
