@@ -186,8 +186,9 @@ def replay_record(sim: Simulator, camera: str, frame_files: dict[int, str], fram
                   ) -> dict:
     """replay.json's content: per step the boxes of the agents present (row into ``tracks``, x, y, z, yaw: world
     box centres, metres and radians), the ego's ground height, the track ids the ego touched and its camera frame's
-    file (``frame_files``, None where none was kept; ``frame_size``: their width and height); once, the tracks (id, category, size), the ego's box, the rig
-    as rendered, the scenario's reference ego path and its road map (None when it has none)."""
+    file (``frame_files``, None where none was kept; ``frame_size``: their width and height); once, the tracks
+    (id, category, size), the ego's box, the rig as rendered, the scenario's reference ego path and its road map
+    (None when it has none)."""
     ep = sim.episode
     sc = ep.scenario
     d = REPLAY_DECIMALS
