@@ -348,7 +348,7 @@ SCHEMAS: dict[str, pa.Schema] = {
         pa.field("ego_progress", pa.float64()),                   # mean EP
         pa.field("collision", pa.bool_()),                        # any contact during the run
         pa.field("steps_per_s", pa.float64()),                    # simulation speed (render + policy + control)
-        pa.field("run_path", pa.string()),                        # run.json, steps.json, bev.png, frames.png, replay.gif
+        pa.field("run_path", pa.string()),                        # run.json, steps.json, replay.json, pictures
         pa.field("error", pa.string()),
     ]),
 }

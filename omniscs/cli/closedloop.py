@@ -36,7 +36,8 @@ def run(
                                          "their recorded positions)."),
 ) -> None:
     """Drive each scenario with the policy, score it (PDMS, EPDMS, HD-Score, route completion) and write a run folder
-    (run.json, steps.json, bev.png, frames.png, replay.gif) and a closed_loop_runs catalog row."""
+    (run.json, steps.json, bev.png, frames.png, replay.gif; replay.json and frames/ for `omniscs view RUN`) and a
+    closed_loop_runs catalog row."""
     import os
 
     from omniscs.cli.prefect_api import prefect_api

@@ -1,5 +1,5 @@
-"""``omniscs view``: a scene store or a fitted scene graph in the browser (viser), with agent edits saved as an edit
-spec."""
+"""``omniscs view``: a scene store, a fitted scene graph, a dataset or a closed-loop run in the browser (viser), with
+agent edits saved as an edit spec."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -16,8 +16,9 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
 def view(
     target: Path = typer.Argument(..., help="A scene-graph checkpoint folder (omniscs fit --out), a scene store "
-                                            "(omniscs ingest, omniscs world make) or a dataset (omniscs dataset "
-                                            "build)."),
+                                            "(omniscs ingest, omniscs world make), a dataset (omniscs dataset "
+                                            "build) or a closed-loop run folder (omniscs closedloop run --out: "
+                                            "replayed step by step with its scores)."),
     port: int = typer.Option(8080, min=1, max=65535, help="Port to serve on (the next free one when taken)."),
     host: str = typer.Option("127.0.0.1", help="Address to bind; anything but this machine's loopback serves the "
                                                "viewer to the network, without a password."),
@@ -34,7 +35,8 @@ def view(
 ) -> None:
     """Open TARGET in a browser viewer at http://HOST:PORT: splats or LiDAR, boxes, trajectories, the rig, the
     camera view through our renderer; move, turn, remove, re-model and insert agents of a fitted graph and save the
-    edits as a spec that `omniscs render --edit @spec.json` takes. Serves until Ctrl-C."""
+    edits as a spec that `omniscs render --edit @spec.json` takes; replay a closed-loop run's steps (ego path,
+    agents, contacts, the frames the policy saw, PDMS and EPDMS sub-scores). Serves until Ctrl-C."""
     from omniscs.progress import Stopped
     from omniscs.viewer.app import serve
     from omniscs.viewer.targets import open_target

@@ -1,5 +1,6 @@
 """One closed-loop run from start to end: reset, ask the policy, step, until the episode ends; then its scores, a
-bird's-eye replay picture, a contact sheet of rendered frames and an animated GIF, written as one run folder."""
+bird's-eye replay picture, a contact sheet of rendered frames and an animated GIF, written as one run folder, with
+what a replay of its steps needs (``omniscs view RUN``): the agents' boxes and the camera frame of every step."""
 from __future__ import annotations
 
 import json
@@ -13,7 +14,7 @@ import numpy as np
 from omniscs.closedloop import metrics
 from omniscs.closedloop.epdms import EPDMSConfig, score_with_epdms
 from omniscs.closedloop.scenario import ClosedLoopScenario
-from omniscs.closedloop.simulator import Simulator
+from omniscs.closedloop.simulator import EGO_HEIGHT_M, Simulator, agent_heights
 from omniscs.errors import ValidationError
 from omniscs.progress import Progress, no_progress
 from omniscs.scs.behavior.collision import footprints
@@ -26,6 +27,18 @@ STEPS_JSON = "steps.json"
 BEV_PNG = "bev.png"
 FRAMES_PNG = "frames.png"
 REPLAY_GIF = "replay.gif"
+#: What a step-by-step replay reads (``replay_record``), and the folder of the camera frames the policy saw.
+REPLAY_JSON = "replay.json"
+FRAMES_DIR = "frames"
+#: Layout version of replay.json (bump when it changes).
+REPLAY_VERSION = 1
+#: The frames of FRAMES_DIR: JPEG of this quality, at the run's size or this width when the run's is wider
+#: (measured: 15 KB a frame of the test graph rendered at 640x360, 22 KB a procedural world's 480x270 camera image:
+#: 1 to 2 MB for a 60-step run, less than its replay.gif).
+FRAME_MAX_WIDTH = 640
+FRAME_QUALITY = 85
+#: Decimals of the positions (0.1 mm) and angles of replay.json: exact enough to draw, a third of the bytes.
+REPLAY_DECIMALS = 4
 #: Rendered frames kept for the contact sheet and the GIF (evenly spaced), and the GIF's width in pixels.
 SHEET_FRAMES = 8
 GIF_WIDTH = 320
@@ -77,7 +90,7 @@ def run_episode(sim: Simulator, policy, scenario: ClosedLoopScenario, max_steps:
                           time.perf_counter() - started, policy_s)
     folder = None
     if out_dir is not None:
-        folder = write_run(sim, scores, summary, frames, Path(out_dir), overwrite)
+        folder = write_run(sim, scores, summary, frames, Path(out_dir), overwrite, camera)
     return RunResult(folder, summary, scores, trace)
 
 
@@ -132,7 +145,10 @@ def step_rows(sim: Simulator, scores: "metrics.RunScores") -> list[dict]:
     return rows
 
 
-def write_run(sim: Simulator, scores, summary: dict, frames: list, out_dir: Path, overwrite: bool) -> Path:
+def write_run(sim: Simulator, scores, summary: dict, frames: list, out_dir: Path, overwrite: bool,
+              camera: str | None = None) -> Path:
+    """The run folder: run.json, steps.json, the pictures, and replay.json with the frames of ``frames`` ([(step,
+    uint8 [H, W, 3] or None)], the rig's camera ``camera``, default its first) under FRAMES_DIR."""
     with atomic_directory(out_dir, overwrite=overwrite) as tmp:
         atomic_write_json(tmp / RUN_JSON, summary)
         (tmp / STEPS_JSON).write_text(json.dumps(step_rows(sim, scores), allow_nan=False))
@@ -141,7 +157,68 @@ def write_run(sim: Simulator, scores, summary: dict, frames: list, out_dir: Path
         if shown:
             contact_sheet(shown, sim.episode.scenario.dt, tmp / FRAMES_PNG)
             replay_gif(shown, sim.episode.scenario.dt, tmp / REPLAY_GIF)
+        kept, size = observed_frames(shown, tmp / FRAMES_DIR)
+        (tmp / REPLAY_JSON).write_text(json.dumps(replay_record(sim, camera or sim.rig[0].name, kept, size),
+                                                  allow_nan=False))
     return out_dir
+
+
+def observed_frames(frames: list, folder: Path) -> tuple[dict[int, str], tuple[int, int] | None]:
+    """Each (step, uint8 [H, W, 3]) of ``frames`` as a JPEG in ``folder`` (at most FRAME_MAX_WIDTH wide); returns
+    {step: its path relative to the run folder} and the JPEGs' (width, height) (None without frames)."""
+    from PIL import Image
+
+    out, size = {}, None
+    for k, img in frames:
+        h, w = img.shape[:2]
+        picture = Image.fromarray(img)
+        if w > FRAME_MAX_WIDTH:
+            picture = picture.resize((FRAME_MAX_WIDTH, max(2, int(round(h * FRAME_MAX_WIDTH / w)))), Image.BILINEAR)
+        folder.mkdir(exist_ok=True)
+        name = f"{int(k):06d}.jpg"
+        picture.save(folder / name, quality=FRAME_QUALITY)
+        out[int(k)] = f"{folder.name}/{name}"
+        size = picture.size
+    return out, size
+
+
+def replay_record(sim: Simulator, camera: str, frame_files: dict[int, str], frame_size: tuple[int, int] | None
+                  ) -> dict:
+    """replay.json's content: per step the boxes of the agents present (row into ``tracks``, x, y, z, yaw: world
+    box centres, metres and radians), the ego's ground height, the track ids the ego touched and its camera frame's
+    file (``frame_files``, None where none was kept; ``frame_size``: their width and height); once, the tracks
+    (id, category, size), the ego's box, the rig as rendered, the scenario's reference ego path and its road map
+    (None when it has none)."""
+    ep = sim.episode
+    sc = ep.scenario
+    d = REPLAY_DECIMALS
+    ego = np.array(ep.ego)  # [T, 3]
+    # the height world_from_ego gives each step: the reference's at its position nearest the ego
+    nearest = np.argmin(np.linalg.norm(sc.ego[None, :, :2] - ego[:, None, :2], axis=2), axis=1)
+    agents = []
+    for k, poses in enumerate(ep.agents):
+        z = agent_heights(sc, k)
+        z = np.where(np.isfinite(z), z, 0.5 * sc.sizes[:, 2])
+        agents.append([[int(i), round(float(poses[i, 0]), d), round(float(poses[i, 1]), d), round(float(z[i]), d),
+                        round(float(poses[i, 2]), d)] for i in np.flatnonzero(np.isfinite(poses).all(1))])
+    road = getattr(sc.drivable, "road_map", None)
+    return {
+        "version": REPLAY_VERSION, "dt": sc.dt, "camera": camera,
+        "frame_size": None if frame_size is None else [int(frame_size[0]), int(frame_size[1])],
+        "frames": [frame_files.get(k) for k in range(len(ego))],
+        "ego": {"length": sc.ego_length, "width": sc.ego_width, "height": EGO_HEIGHT_M,
+                "centre_ahead_m": sc.ego_centre_ahead_m,
+                "ground_z": [round(float(z), d) for z in sc.ego_z[nearest]]},
+        "tracks": [{"track_id": int(t), "category": c, "size": [float(v) for v in sc.sizes[i]]}
+                   for i, (t, c) in enumerate(zip(sc.track_ids, sc.categories))],
+        "agents": agents,
+        "contacts": [[int(sc.track_ids[c.track]) for c in cs] for cs in ep.contacts],
+        "rig": [{"name": c.name, "width": int(c.width), "height": int(c.height),
+                 "K": np.asarray(c.K, np.float64).tolist(),
+                 "ego_from_camera": np.asarray(c.ego_from_camera, np.float64).tolist()} for c in sim.rig],
+        "reference": np.round(sc.ego, d).tolist(),
+        "road": None if road is None else road.to_dict(),
+    }
 
 
 def bev_picture(sim: Simulator, summary: dict, out_png: Path) -> Path:

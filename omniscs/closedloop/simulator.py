@@ -298,14 +298,13 @@ class Simulator:
         ep = self._episode()
         sc = ep.scenario
         poses, vel = ep.agents[-1], ep.velocity[-1]
-        z = sc.agents_z[:, min(int(round(ep.traffic.t / sc.dt)), sc.n_steps - 1)] if len(sc.track_ids) else []
+        z = agent_heights(sc, int(round(ep.traffic.t / sc.dt)))
         out = []
         for i, tid in enumerate(sc.track_ids):
             if not np.isfinite(poses[i]).all():
                 continue
-            zi = float(z[i]) if np.isfinite(z[i]) else float(np.nanmean(sc.agents_z[i]))
             out.append({"track_id": int(tid), "category": sc.categories[i],
-                        "center": [float(poses[i, 0]), float(poses[i, 1]), zi],
+                        "center": [float(poses[i, 0]), float(poses[i, 1]), float(z[i])],
                         "size": [float(v) for v in sc.sizes[i]], "yaw": float(poses[i, 2]),
                         "velocity": [float(vel[i, 0]), float(vel[i, 1])]})
         return out
@@ -444,6 +443,16 @@ class Simulator:
         ep.last_observation = obs
         ep.timing.render += time.perf_counter() - tick
         return obs
+
+
+def agent_heights(sc: ClosedLoopScenario, k: int) -> np.ndarray:  # -> [N] metres
+    """Each agent's box centre height at scenario step ``k`` (clamped to the scenario); where the scenario has no
+    height there, the agent's mean height (NaN for an agent that never has one)."""
+    z = sc.agents_z[:, min(max(int(k), 0), sc.n_steps - 1)].astype(np.float64)
+    known = np.isfinite(sc.agents_z)
+    counts = known.sum(1)
+    means = np.where(counts > 0, np.where(known, sc.agents_z, 0.0).sum(1) / np.maximum(counts, 1), np.nan)
+    return np.where(np.isfinite(z), z, means)
 
 
 def _resized(cam: CameraRecord, width: int | None, height: int | None) -> CameraRecord:

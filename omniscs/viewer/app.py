@@ -77,6 +77,8 @@ class ViewerApp:
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(t.n_frames - 1, 1), step=1, initial_value=frame,
                                                disabled=t.n_frames < 2)
             self.play = gui.add_checkbox("Play", False, disabled=t.n_frames < 2)
+            # a target with figures per frame (a closed-loop run's step) shows them under the slider
+            self.step_figures = gui.add_markdown(t.step_summary(frame)) if hasattr(t, "step_summary") else None
         with gui.add_folder("Camera view"):
             self.camera = gui.add_dropdown("Camera", t.camera_names, initial_value=t.camera_names[0])
             self.draw_boxes = gui.add_checkbox("Boxes on image", True)
@@ -183,6 +185,8 @@ class ViewerApp:
                 self._place_gizmo(state)
             if getattr(self.target, "samples", None):
                 self.frame_figures.content = self.target.frame_summary(frame)
+            if self.step_figures is not None:
+                self.step_figures.content = self.target.step_summary(frame)
             self.refresh_image()
 
     def refresh_image(self) -> None:

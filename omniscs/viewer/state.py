@@ -111,7 +111,7 @@ class NodePlacement:
 class AgentBox:
     """An agent's (or a logged track's) box at a frame."""
 
-    track_id: int
+    track_id: int               # negative: the ego's own box (a closed-loop run's replay)
     category: str
     world_from_box: np.ndarray  # [4, 4] float64: box centre, x along the heading
     size: np.ndarray            # [3] float64 (length, width, height) metres
@@ -119,7 +119,7 @@ class AgentBox:
 
     @property
     def label(self) -> str:
-        return f"{self.category} {self.track_id}"
+        return self.category if self.track_id < 0 else f"{self.category} {self.track_id}"  # < 0: the ego's own
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """What ``omniscs view`` can open, each as the view state it draws and the edits it takes: a fitted scene-graph
-checkpoint (optionally with the store it was fitted to and a model pool) or a scene store."""
+checkpoint (optionally with the store it was fitted to and a model pool), a scene store, a dataset, or a closed-loop
+run folder (``omniscs.viewer.runs``)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -334,15 +335,16 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
     ``scene`` store it was fitted to (logged images beside rendered ones, its road map) and a model ``pool``
     (models to replace agents with or insert) and a stage's ``variants`` (a variants.json, or its folder) to pick
     from, or a scene store
-    (``omniscs ingest``, ``omniscs world make``); anything else is one OmniscsError."""
+    (``omniscs ingest``, ``omniscs world make``), a dataset (``omniscs dataset build``) or a closed-loop run folder
+    (``omniscs closedloop run --out``: a folder with run.json); anything else is one OmniscsError."""
     from omniscs.nsg.checkpoint import GRAPH_JSON, check_same_scene, load_graph
     from omniscs.scene.store import MANIFEST, load_scene
 
     config = config or ViewerConfig()
     path = Path(path)
     if not path.exists():
-        raise OmniscsError(f"{path} does not exist; give a scene-graph checkpoint folder (omniscs fit --out) or a "
-                           "scene store (omniscs ingest, omniscs world make)")
+        raise OmniscsError(f"{path} does not exist; give a scene-graph checkpoint folder (omniscs fit --out), a "
+                           "scene store (omniscs ingest, omniscs world make), a dataset or a closed-loop run folder")
     if path.is_dir() and (path / GRAPH_JSON).is_file():
         if progress:
             progress(0, 2, f"reading the scene graph {path}")
@@ -385,6 +387,15 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
         if progress:
             progress(1, 1, "ready")
         return target
+    from omniscs.closedloop.run import RUN_JSON
+    from omniscs.viewer.runs import ClosedLoopRunTarget, is_run_folder
+
+    if is_run_folder(path):
+        if scene is not None or pool is not None or variants is not None:
+            raise OmniscsError(f"{path} is a closed-loop run; --scene, --pool and --variants go with a scene-graph "
+                               "checkpoint")
+        return ClosedLoopRunTarget(path, config)
     raise OmniscsError(f"{path} is neither a scene-graph checkpoint (a folder with {GRAPH_JSON}: omniscs fit --out), "
-                       f"a scene store (a folder with {MANIFEST}) nor a dataset (a folder with {CARD_JSON}); omniscs "
-                       "view opens those")
+                       f"a scene store (a folder with {MANIFEST}), a dataset (a folder with {CARD_JSON}) nor a "
+                       f"closed-loop run (a folder with {RUN_JSON}: omniscs closedloop run --out); omniscs view "
+                       "opens those")

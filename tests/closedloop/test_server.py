@@ -139,6 +139,8 @@ def test_an_episode_capped_by_max_steps_ends_done_and_writes_its_run_folder(serv
     assert len(folders) == 1 and variant_id.replace("/", "__") in folders[0].name
     run = json.loads((folders[0] / "run.json").read_text())
     assert run["steps"] == 3 and run["reason"] == "max_steps" and run["scenario_id"] == variant_id
+    replay = json.loads((folders[0] / "replay.json").read_text())  # what omniscs view replays: every step's frame
+    assert len(replay["agents"]) == 4 and all((folders[0] / f).is_file() for f in replay["frames"])
 
 
 def test_the_same_transaction_id_twice_executes_once(server, token):

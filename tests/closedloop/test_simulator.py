@@ -146,6 +146,37 @@ def test_a_run_folder_holds_its_scores_steps_and_pictures(world, tmp_path):
         run_episode(sim, make_policy("rule"), log, max_steps=2, out_dir=tmp_path / "run")  # no silent overwrite
 
 
+def test_a_run_folder_keeps_every_steps_agent_boxes_contacts_and_camera_frame(world, tmp_path):
+    from omniscs.closedloop.run import FRAMES_DIR, REPLAY_JSON
+    from omniscs.closedloop.simulator import agent_heights
+
+    scene, graph, log = world
+    sim = Simulator(graph, scene, ClosedLoopConfig(outputs=("rgb",)))
+    sc = variant_scenario(scene, stopping_variant(scene), log)
+    run_episode(sim, make_policy("replay"), sc, out_dir=tmp_path / "run")  # drives into the stopped car
+    ep = sim.episode
+    replay = json.loads((tmp_path / "run" / REPLAY_JSON).read_text())
+    steps = json.loads((tmp_path / "run" / STEPS_JSON).read_text())
+    assert len(replay["agents"]) == len(replay["frames"]) == len(replay["contacts"]) == len(steps) == ep.step + 1
+    tracks = replay["tracks"]
+    assert [t["track_id"] for t in tracks] == [int(t) for t in sc.track_ids]
+    for k, rows in enumerate(replay["agents"]):
+        present = np.flatnonzero(np.isfinite(ep.agents[k]).all(1))
+        assert [r[0] for r in rows] == list(present)
+        got = np.array(rows, float).reshape(-1, 5)
+        np.testing.assert_allclose(got[:, [1, 2, 4]], ep.agents[k][present], atol=1e-4)
+        np.testing.assert_allclose(got[:, 3], agent_heights(sc, k)[present], atol=1e-4)
+        assert bool(replay["contacts"][k]) == steps[k]["collision"]
+    assert replay["contacts"][-1] == [1] and not any(replay["contacts"][:-1])  # the stopped car, at the end only
+    assert replay["camera"] == graph.cameras[0].name and replay["frame_size"] == [graph.cameras[0].width,
+                                                                                 graph.cameras[0].height]
+    files = sorted((tmp_path / "run" / FRAMES_DIR).iterdir())
+    assert [f"{FRAMES_DIR}/{f.name}" for f in files] == replay["frames"]
+    last = np.asarray(Image.open(files[-1]).convert("RGB"), float)
+    seen = ep.last_observation.rgb[graph.cameras[0].name].astype(float)
+    assert last.shape == seen.shape and np.abs(last - seen).mean() < 4.0  # the JPEG of what the policy saw last
+
+
 def test_unknown_policies_cameras_and_sizes_are_refused(world):
     scene, graph, log = world
     for spec in ("greedy", "ftp://x", ""):
