@@ -5,7 +5,7 @@ annotate it as a designed variant.
     .venv/bin/python docs/gen_walkthrough.py [--workspace WS] [--out docs/guide/images]
 
 What it runs, in order (about 5 minutes on a 2-core machine, most of it the two fast fits):
-1. `omniscs generate syn:straight:13 --frames 20 --cameras 1 --fit-preset fast --no-previews`: the fitted log.
+1. `omniscs generate syn:straight:33 --frames 20 --cameras 1 --fit-preset fast --no-previews`: the fitted log.
 2. A model pool with the library's first box truck (what `make demo` builds).
 3. The viewer of the fitted graph with `--scene` and `--pool`, in headless chromium (Playwright; software WebGL).
    Clicks in the panel pick the car, show its path's control points, pick the model and how it lies, and save.
@@ -29,15 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-SOURCE = "syn:straight:13"
+SOURCE = "syn:straight:33"
 FRAMES = 20
-#: The car that cuts in (in the next lane, 14 m ahead and faster than the ego) and where it ends: 7 m ahead of the
-#: ego, in its lane.
-CUT_IN_TRACK = 29
-CUT_IN_AHEAD_M = 7.0
+#: The car that cuts in: in the lane right of the ego's, 14 m ahead and a little faster. It moves into the ego's lane
+#: over the middle of the log and brakes there, ending BRAKE_M closer to the ego than it would have been.
+CUT_IN_TRACK = 1
+BRAKE_M = 6.0
 #: Where the truck may lie: ahead of the ego's start, in its lane or the next, first placement that passes.
-TRUCK_AHEAD_M = (40.0, 45.0, 50.0, 55.0, 60.0)
-TRUCK_LATERAL_M = (0.0, 3.4, -3.4)
+TRUCK_AHEAD_M = (45.0, 50.0, 55.0, 40.0, 60.0)
+TRUCK_LATERAL_M = (0.0, -3.7, 3.7)
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
 VIEWPORT = {"width": 1400, "height": 800}
@@ -76,6 +76,36 @@ def ego_frame_point(world_from_ego: np.ndarray, ahead: float, lateral: float) ->
     return (world_from_ego @ np.array([ahead, lateral, 0.0, 1.0]))[:2]
 
 
+def invert(T: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(T)
+
+
+def look(app, world_from_ego: np.ndarray) -> None:  # [4, 4]
+    """Every browser's 3D view from 14 m behind and 8 m above the ego, looking 25 m ahead of it."""
+    eye = (world_from_ego @ np.array([-14.0, 0.0, 8.0, 1.0]))[:3]
+    at = (world_from_ego @ np.array([25.0, 0.0, 0.0, 1.0]))[:3]
+    for client in app.server.get_clients().values():
+        client.camera.position = tuple(float(v) for v in eye)
+        client.camera.look_at = tuple(float(v) for v in at)
+
+
+def camera_view(app, frame: int, png: Path) -> None:
+    """The panel's camera view at ``frame`` (logged left, rendered with the edits right) at full size."""
+    from PIL import Image
+
+    name = app.target.camera_names[0]
+    Image.fromarray(app.target.camera_image(name, frame, True, app.selected)).save(png)
+
+
+def close_notice(page) -> None:
+    """Close the browser's 'software WebGL' notice, when it shows (it would cover the view)."""
+    try:
+        page.get_by_text("Software WebGL rendering detected").locator("xpath=../..").locator("button").first.click(
+            timeout=3000)
+    except Exception:  # no notice: nothing to close
+        pass
+
+
 def design(app, page, out: Path) -> None:
     """The cut-in and the overturned truck, through the panel (and the two 3D handlers), with screenshots."""
     from omniscs.viewer.paths import control_frames
@@ -91,14 +121,20 @@ def design(app, page, out: Path) -> None:
     frames = control_frames(node.present)
     points = np.array([h.position[:2] for h in app._path_handles], dtype=np.float64)
     for k, f in enumerate(frames):
-        if k >= len(frames) // 2:  # the later points: into the ego's lane, CUT_IN_AHEAD_M ahead of it
-            points[k] = ego_frame_point(ego[f], CUT_IN_AHEAD_M, 0.0)
-            app._path_handles[k].position = (float(points[k, 0]), float(points[k, 1]),
-                                             float(app._path_handles[k].position[2]))
+        s = k / max(len(frames) - 1, 1)
+        ahead, lateral = (invert(ego[f]) @ np.array([*points[k], ego[f][2, 3], 1.0]))[:2]
+        into_lane = float(np.clip((s - 0.25) / 0.35, 0.0, 1.0))  # the lane change over the middle of the log
+        braking = float(np.clip((s - 0.5) / 0.5, 0.0, 1.0))      # then it brakes in the ego's lane
+        points[k] = ego_frame_point(ego[f], ahead - BRAKE_M * braking, lateral * (1.0 - into_lane))
+        app._path_handles[k].position = (float(points[k, 0]), float(points[k, 1]),
+                                         float(app._path_handles[k].position[2]))
     app.draw_path(points)
+    print(target.placement_verdict(CUT_IN_TRACK))
+    look(app, ego[FRAMES - 6])
     app.frame_slider.value = FRAMES - 6
     settle(page, 5)
     page.screenshot(path=str(out / "walkthrough-cut-in.png"))
+    camera_view(app, FRAMES - 6, out / "walkthrough-cut-in-camera.png")
 
     page.get_by_text("Models", exact=True).click()
     truck = next(label for label in app._models if label.endswith(" truck"))
@@ -112,7 +148,9 @@ def design(app, page, out: Path) -> None:
         for lateral in TRUCK_LATERAL_M:
             x, y = ego_frame_point(ego[0], ahead, lateral)
             tid = app.insert_at(float(x), float(y), ground)
-            if tid is not None and target.placement_verdict(tid).endswith("seen by a camera."):
+            verdict = None if tid is None else target.placement_verdict(tid)
+            print(f"truck at {ahead:g} m ahead, {lateral:g} m left: {verdict or app.status.content}")
+            if verdict is not None and verdict.endswith("seen by a camera."):
                 break
             if tid is not None:  # refused by the checks: take it out again and try the next point
                 app.remove_selected()
@@ -122,8 +160,10 @@ def design(app, page, out: Path) -> None:
     else:
         raise RuntimeError("no road point ahead passes the placement checks for the truck")
     app.frame_slider.value = 8
+    look(app, ego[8])
     settle(page, 5)
     page.screenshot(path=str(out / "walkthrough-truck.png"))
+    camera_view(app, 8, out / "walkthrough-truck-camera.png")
     page.get_by_role("button", name="Save edits").click()
     page.get_by_text("Saved", exact=False).first.wait_for(timeout=20_000)
     settle(page, 2)
@@ -164,6 +204,8 @@ def main() -> None:
             page = browser.new_page(viewport=VIEWPORT)
             page.goto(f"http://127.0.0.1:{server.get_port()}")
             page.get_by_role("button", name="Save edits").wait_for(timeout=30_000)
+            close_notice(page)
+            look(app, target.session.base.world_from_ego[0])
             settle(page, 6)
             page.screenshot(path=str(out / "walkthrough-log.png"))
             design(app, page, out)
