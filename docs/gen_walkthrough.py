@@ -36,7 +36,7 @@ FRAMES = 20
 CUT_IN_TRACK = 1
 BRAKE_M = 6.0
 #: Where the truck may lie: ahead of the ego's start, in its lane or the next, first placement that passes.
-TRUCK_AHEAD_M = (45.0, 50.0, 55.0, 40.0, 60.0)
+TRUCK_AHEAD_M = (40.0, 45.0, 50.0, 55.0, 60.0)
 TRUCK_LATERAL_M = (0.0, -3.7, 3.7)
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"]
@@ -100,8 +100,7 @@ def camera_view(app, frame: int, png: Path) -> None:
 def close_notice(page) -> None:
     """Close the browser's 'software WebGL' notice, when it shows (it would cover the view)."""
     try:
-        page.get_by_text("Software WebGL rendering detected").locator("xpath=../..").locator("button").first.click(
-            timeout=3000)
+        page.locator("[class*='Notification'] button").first.click(timeout=3000)
     except Exception:  # no notice: nothing to close
         pass
 
@@ -159,11 +158,11 @@ def design(app, page, out: Path) -> None:
         break
     else:
         raise RuntimeError("no road point ahead passes the placement checks for the truck")
-    app.frame_slider.value = 8
-    look(app, ego[8])
+    app.frame_slider.value = FRAMES - 1
+    look(app, ego[FRAMES - 1])
     settle(page, 5)
     page.screenshot(path=str(out / "walkthrough-truck.png"))
-    camera_view(app, 8, out / "walkthrough-truck-camera.png")
+    camera_view(app, FRAMES - 1, out / "walkthrough-truck-camera.png")
     page.get_by_role("button", name="Save edits").click()
     page.get_by_text("Saved", exact=False).first.wait_for(timeout=20_000)
     settle(page, 2)

@@ -17,8 +17,10 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 def view(
     target: Path = typer.Argument(..., help="A scene-graph checkpoint folder (omniscs fit --out), a scene store "
                                             "(omniscs ingest, omniscs world make), a dataset (omniscs dataset "
-                                            "build) or a closed-loop run folder (omniscs closedloop run --out: "
-                                            "replayed step by step with its scores)."),
+                                            "build), a closed-loop run folder (omniscs closedloop run --out: "
+                                            "replayed step by step with its scores) or a workspace's variants "
+                                            "folder (variants/<scene id>/<stage>-<key>: opened on the scene's "
+                                            "graph, store and pool)."),
     port: int = typer.Option(8080, min=1, max=65535, help="Port to serve on (the next free one when taken)."),
     host: str = typer.Option("127.0.0.1", help="Address to bind; anything but this machine's loopback serves the "
                                                "viewer to the network, without a password."),

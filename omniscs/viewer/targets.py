@@ -328,6 +328,37 @@ def with_labels(image: np.ndarray, rows: list[dict]) -> np.ndarray:  # uint8 [H,
     return out
 
 
+#: Workspace folders that hold a scene's fitted graphs (the fit, and the stages that add to it).
+GRAPH_FOLDERS = ("fit", "agents", "background")
+
+
+def variants_context(folder: Path) -> tuple[Path, Path | None, Path | None]:
+    """For a variants stage folder of a workspace (``variants/<scene id>/<stage>-<key>/``): the scene's fitted graph
+    it was drawn on (the newest graph of the scene's fit, agents or background folders written before the variants;
+    the newest otherwise), the scene's store when the workspace has it, and the pool its appearance variants name
+    when that folder exists."""
+    from omniscs.nsg.checkpoint import GRAPH_JSON
+    from omniscs.pipeline import layout
+    from omniscs.viewer.variants import VARIANTS_JSON, read_variants
+
+    listed = read_variants(folder)
+    scenes = sorted({str(v.get("scene_id")) for v in listed if v.get("scene_id")})
+    if len(scenes) != 1:
+        raise OmniscsError(f"{folder / VARIANTS_JSON} names {len(scenes)} scenes; a stage's variants belong to one")
+    workspace = folder.resolve().parents[2]
+    graphs = [g.parent for stage in GRAPH_FOLDERS
+              for g in (workspace / layout.FOLDERS[stage] / scenes[0]).glob(f"*/{GRAPH_JSON}")]
+    if not graphs:
+        raise OmniscsError(f"no fitted scene graph of {scenes[0]} in the workspace {workspace}; open its checkpoint "
+                           f"with --variants {folder}")
+    drawn = (folder / VARIANTS_JSON).stat().st_mtime
+    before = [g for g in graphs if (g / GRAPH_JSON).stat().st_mtime <= drawn] or graphs
+    graph = max(before, key=lambda g: (g / GRAPH_JSON).stat().st_mtime)
+    store = workspace / layout.FOLDERS["ingest"] / scenes[0]
+    pools = sorted({str(v["pool"]) for v in listed if isinstance(v.get("pool"), str) and Path(v["pool"]).is_dir()})
+    return graph, store if store.is_dir() else None, Path(pools[0]) if pools else None
+
+
 def open_target(path: str | Path, config: ViewerConfig | None = None, progress: Progress | None = None,
                 scene: str | Path | None = None, pool: str | Path | None = None,
                 variants: str | Path | None = None) -> GraphTarget | StoreTarget:
@@ -336,7 +367,8 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
     (models to replace agents with or insert) and a stage's ``variants`` (a variants.json, or its folder) to pick
     from, or a scene store
     (``omniscs ingest``, ``omniscs world make``), a dataset (``omniscs dataset build``) or a closed-loop run folder
-    (``omniscs closedloop run --out``: a folder with run.json); anything else is one OmniscsError."""
+    (``omniscs closedloop run --out``: a folder with run.json), or a variants stage folder of a workspace (opened on
+    the scene's graph, store and pool found there: ``variants_context``); anything else is one OmniscsError."""
     from omniscs.nsg.checkpoint import GRAPH_JSON, check_same_scene, load_graph
     from omniscs.scene.store import MANIFEST, load_scene
 
@@ -345,6 +377,14 @@ def open_target(path: str | Path, config: ViewerConfig | None = None, progress: 
     if not path.exists():
         raise OmniscsError(f"{path} does not exist; give a scene-graph checkpoint folder (omniscs fit --out), a "
                            "scene store (omniscs ingest, omniscs world make), a dataset or a closed-loop run folder")
+    from omniscs.viewer.variants import VARIANTS_JSON
+
+    if path.is_dir() and (path / VARIANTS_JSON).is_file() and not (path / GRAPH_JSON).is_file():
+        if variants is not None:
+            raise OmniscsError(f"{path} is a variants folder; --variants goes with a scene-graph checkpoint")
+        graph_path, found_scene, found_pool = variants_context(path)
+        return open_target(graph_path, config, progress, scene if scene is not None else found_scene,
+                           pool if pool is not None else found_pool, path)
     if path.is_dir() and (path / GRAPH_JSON).is_file():
         if progress:
             progress(0, 2, f"reading the scene graph {path}")

@@ -121,3 +121,32 @@ def test_a_bad_variants_file_is_one_error(fitted, checkpoint, tmp_path):
     (tmp_path / "w.json").write_text('[{"variant_id": "v0", "scene_id": "elsewhere", "edits": []}]')
     with pytest.raises(OmniscsError, match="holds variants of \\['elsewhere'\\]"):
         open_target(checkpoint, variants=tmp_path / "w.json")
+
+
+def test_a_variants_folder_of_a_workspace_opens_on_the_graph_it_was_drawn_on(fitted, checkpoint, behaviour,
+                                                                            tmp_path):
+    import os
+    import shutil
+
+    scene, graph = fitted
+    _, variant = behaviour
+    ws = tmp_path / "ws"
+    old = shutil.copytree(checkpoint, ws / "models" / scene.scene_id / "nsg-fast-old")
+    shutil.copytree(scene.path, ws / "scenes" / scene.scene_id)
+    folder = ws / "variants" / scene.scene_id / "behavior-0123"
+    folder.mkdir(parents=True)
+    (folder / "variants.json").write_text(json.dumps([variant]))
+    newer = shutil.copytree(checkpoint, ws / "models" / scene.scene_id / "nsg-fast-new")  # fitted after the draw
+    t = (folder / "variants.json").stat().st_mtime
+    os.utime(old / "graph.json", (t - 10, t - 10))
+    os.utime(newer / "graph.json", (t + 10, t + 10))
+    target = open_target(folder)
+    assert target.path == old and target.scene is not None and target.scene.path == ws / "scenes" / scene.scene_id
+    assert [v["variant_id"] for v in target.variants] == [variant["variant_id"]]
+    target.pick_variant(0)
+    assert target.adversary == 2
+    with pytest.raises(OmniscsError, match="--variants goes with a scene-graph checkpoint"):
+        open_target(folder, variants=folder)
+    shutil.rmtree(ws / "models")
+    with pytest.raises(OmniscsError, match=f"no fitted scene graph of {scene.scene_id}"):
+        open_target(folder)
