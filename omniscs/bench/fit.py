@@ -1,6 +1,7 @@
 """Scene-graph benchmarks: presets' time vs held-out accuracy (``bench fit``) and edit fidelity against the
 procedural world's exact ground truth (``bench edits``, the paper's Table 1 protocol). Both run the pipeline's
-ingest, plan and fit stages. JSON + Markdown + PNG."""
+ingest, plan and fit stages; ``bench fit`` runs each fit in a fresh interpreter, by the current code and, with
+``--baseline``, by an earlier revision's (``omniscs.bench.baseline``). JSON + Markdown + PNG."""
 from __future__ import annotations
 
 import json

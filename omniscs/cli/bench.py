@@ -501,8 +501,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("behavior", BehaviorOptions, run_behavior, "Adversarial success, plausibility violations, "
               "accelerations and time per variant, with and without the plausibility penalty, with and without L_app "
               "(and its appearance drift), plus the traffic model's ADE/FDE."),
-    Benchmark("fit", FitOptions, run_fit, "Fit the same scenes with each preset: wall time, Gaussians and held-out "
-              "PSNR/SSIM; a time-vs-PSNR plot."),
+    Benchmark("fit", FitOptions, run_fit, "Fit the same scenes with each preset, each fit in a fresh interpreter: "
+              "wall time, Gaussians, held-out PSNR/SSIM and peak memory; with --baseline REF the same fits by that "
+              "revision in turns, and the ratios; the speed/accuracy curve as a plot."),
     Benchmark("edits", EditsOptions, run_edits, "Edit fidelity against ground truth: translate 2.0/3.5 m, rotate "
               "90/180/270°; PSNR/SSIM full and masked."),
     Benchmark("render", RenderOptions, run_render, "Time the Gaussian rasterizer (forward, forward+backward) per "
