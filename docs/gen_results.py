@@ -6,6 +6,9 @@
 - Knob tables: a line ``<!-- knobs omniscs/background RepairConfig -->`` in a page becomes the table of that config
   dataclass's fields, defaults and the first sentence of each field's docstring, read from the source (``ast``, no
   import), so option names and defaults in the guide are the code's.
+- The fit guide's preset table: a line ``<!-- fit-presets -->`` becomes each preset's settings beside what
+  ``omniscs bench fit`` measured for it (``reports/fit/report.json``), with the ratios against the baseline revision
+  when the run had one (``--baseline``).
 - Catalog columns (from ``omniscs.catalog.SCHEMAS``) and the READMEs kept beside catalogs/ and infra/.
 """
 from __future__ import annotations
@@ -74,8 +77,16 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                Section("Timings", "rows", columns=("width", "height", "count", "backend", "skipped", "forward_s",
                                                     "forward_backward_s", "forward_hz", "forward_backward_hz")))),
     Benchmark("fit", "Scene-graph fit presets", "omniscs bench fit --seeds 0 --out reports",
-              "Each fit preset on the same log: wall time, Gaussians and held-out PSNR/SSIM.",
-              (Section("Per preset (medians)", "summary"), Section("Fits", "rows"), Section("Targets", "targets"))),
+              "Each fit preset on the same log: wall time, Gaussians, held-out PSNR/SSIM and peak memory, against "
+              "a previous revision measured in the same run (--baseline), and the speed/accuracy curve.",
+              (Section("Per preset (medians)", "summary"),
+               Section("Against the baseline revision (medians; speed-up = its time / ours)", "baseline.comparison"),
+               Section("Issue 55's targets against the baseline", "baseline.targets"),
+               Section("Speed/accuracy curve", "curve"),
+               Section("Fits", "rows", columns=("scene_id", "side", "turn", "preset", "point", "iterations", "status",
+                                                "wall_s", "n_gaussians", "heldout_psnr", "heldout_ssim", "train_psnr",
+                                                "peak_rss_bytes", "load_1min_before", "load_1min_after")),
+               Section("Targets", "targets"))),
     Benchmark("edits", "Edit fidelity", "omniscs bench edits --seeds 0 --out reports",
               "Translate and rotate edits of a fitted graph against the world's exact re-render.",
               (Section("Per edit", "summary"), Section("Fits", "fits"))),
@@ -442,9 +453,80 @@ def knobs_table(package: str, name: str) -> str:
                       "| field | default | meaning |", "|---|---|---|", *rows])
 
 
+PRESETS_MARKER = re.compile(r"^<!-- fit-presets -->$", re.M)
+
+
+def schedule_text(schedule: list) -> str:
+    """A resolution schedule ``[(fraction, factor), ...]`` in words: ``1/4, 1/2 from 25 %, full from 60 %``."""
+    steps = []
+    for start, factor in schedule:
+        size = "full" if factor == 1 else f"1/{factor}"
+        steps.append(size if start == 0 else f"{size} from {start * 100:.0f} %")
+    return ", ".join(steps)
+
+
+def code_preset_settings() -> dict[str, dict]:
+    """The presets' settings as the code defines them (for reports written before the benchmark recorded them)."""
+    import sys
+
+    if str(REPO) not in sys.path:  # the checkout being documented, before any installed copy
+        sys.path.insert(0, str(REPO))
+    from omniscs.nsg.config import PRESETS
+
+    return {name: {"iterations": c.iterations, "resolution_schedule": [list(s) for s in c.resolution_schedule],
+                   "sh_degree": c.sh_degree, "gaussians_per_m2": c.plan.gaussians_per_m2,
+                   "max_gaussians": c.plan.max_gaussians} for name, c in PRESETS.items()}
+
+
+def preset_table(reports: Path = REPORTS) -> str:
+    """The fit guide's preset table: each measured preset's settings (as the report records them) and its medians
+    from ``reports/fit/report.json``; the time and PSNR against the baseline revision where the run had one."""
+    path = reports / "fit" / "report.json"
+    if not path.is_file():
+        return "(no fit benchmark report yet: run `omniscs bench fit --out reports`)"
+    report = json.loads(path.read_text())
+    settings = report.get("preset_settings") or code_preset_settings()
+    base = report.get("baseline") or {}
+    against = {c["preset"]: c for c in base.get("comparison", [])}
+    head = ["preset", "iterations", "resolution schedule", "SH degree", "Gaussian budget", "time", "held-out PSNR",
+            "held-out SSIM", "Gaussians", "peak memory"]
+    if against:
+        head += [f"speed-up vs {base['ref']}", f"PSNR vs {base['ref']}"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for s in report.get("summary", []):
+        given = settings.get(s["preset"], {})
+        measured = [r["iterations"] for r in report.get("rows", []) if r.get("preset") == s["preset"]
+                    and r.get("point", "preset") == "preset" and r.get("side", "current") == "current"]
+        iterations = measured[0] if measured else given.get("iterations", s.get("iterations"))
+        memory = s.get("median_peak_rss_bytes")
+        cells = [f"`{s['preset']}`", "—" if iterations is None else f"{iterations:,}",
+                 schedule_text(given["resolution_schedule"]) if "resolution_schedule" in given else "—",
+                 fmt(given.get("sh_degree")),
+                 f"{given['gaussians_per_m2']:g} /m² (max {given['max_gaussians'] / 1000:g}k)"
+                 if "gaussians_per_m2" in given else "—",
+                 f"{s['median_wall_s']:,.0f} s", f"{s['median_heldout_psnr']:.2f} dB", f"{s['median_heldout_ssim']:.3f}",
+                 f"{s['median_gaussians']:,}", "—" if memory is None else f"{memory / 2**30:.2f} GiB"]
+        if against:
+            c = against.get(s["preset"])
+            cells += ["—", "—"] if c is None else [f"{c['speedup']:.2f}x", f"{c['psnr_difference_db']:+.2f} dB"]
+        lines.append("| " + " | ".join(cells) + " |")
+    machine = report.get("machine", {})
+    load = machine.get("load_average_start") or [None]
+    source = "as the report records them" if report.get("preset_settings") else "the code's (`PRESETS`)"
+    fits = max((s["fits"] for s in report.get("summary", [])), default=0)
+    note = (f"Measured by `omniscs bench fit` on {report.get('label', 'its scene')}: medians of {fits} fit(s) per "
+            f"preset, {machine.get('cpus', '?')} CPUs, 1-min load "
+            f"{'?' if load[0] is None else f'{load[0]:.1f}'} at start (generated from `reports/fit/report.json`; settings {source}).")
+    if against:
+        note += (f" Against {base['ref']} ({base['commit'][:12]}): the same scenes fitted by that revision in "
+                 "alternating turns of the same run; speed-up = its time / ours, PSNR difference = ours - its.")
+    return "\n".join(lines + ["", note])
+
+
 def on_page_markdown(markdown, page, config, files):
-    """MkDocs hook: expand the knob-table markers of a page."""
-    return KNOBS_MARKER.sub(lambda m: knobs_table(m.group(1), m.group(2)), markdown)
+    """MkDocs hook: expand the knob-table and preset-table markers of a page."""
+    markdown = KNOBS_MARKER.sub(lambda m: knobs_table(m.group(1), m.group(2)), markdown)
+    return PRESETS_MARKER.sub(lambda m: preset_table(), markdown)
 
 
 def on_files(files, config):

@@ -1,10 +1,11 @@
 """Scene-graph benchmarks: presets' time vs held-out accuracy (``bench fit``) and edit fidelity against the
 procedural world's exact ground truth (``bench edits``, the paper's Table 1 protocol). Both run the pipeline's
-ingest, plan and fit stages. JSON + Markdown + PNG."""
+ingest, plan and fit stages; ``bench fit`` runs each fit in a fresh interpreter, by the current code and, with
+``--baseline``, by an earlier revision's (``omniscs.bench.baseline``). JSON + Markdown + PNG."""
 from __future__ import annotations
 
+import json
 import logging
-import os
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -13,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omniscs.bench.baseline import CURRENT_PACKAGE, run_probe
 from omniscs.bench.harness import drop_partial, finish, machine_info, save_partial, write_report
 from omniscs.edits import Edit, edit_from_dict, edit_to_dict
 from omniscs.geometry import box_corners_from_pose, invert_transform, transform_points
 from omniscs.nsg.checkpoint import load_graph
-from omniscs.nsg.config import fit_preset
+from omniscs.nsg.config import FitConfig, fit_preset
 from omniscs.nsg.edit import apply_graph_edits
 from omniscs.quality import psnr, ssim
 from omniscs.nsg.observations import MIN_POINT_DEPTH
@@ -102,44 +104,179 @@ def _fit(path: Path, request: SceneRequest, workspace: Path, overrides: dict | N
 
 
 # ----------------------------------------------------------------------------- bench fit
+#: ``--quick``: a thumbnail log (10 frames, 1 camera, 96x54) fitted for 30 iterations at full resolution: a smoke run
+#: of the whole benchmark (probes, baseline, curve, report) in about a minute; its figures measure nothing.
+QUICK_SCENES = {"n_frames": 10, "n_cameras": 1, "width": 96, "height": 54}
+QUICK_OVERRIDES = {"iterations": 30, "resolution_schedule": ((0.0, 1),)}
+
+#: Issue 55's targets, read against the code before it (``--baseline``) measured in the same run: the balanced preset
+#: reaches at least 31.0 dB held-out within 5 minutes; the fast preset is at least twice as fast as the baseline's at
+#: the baseline's held-out PSNR (within FAST_PSNR_TOLERANCE_DB: the issue quotes 28.6 dB to one decimal); a balanced
+#: fit's peak resident memory is not above the baseline's.
+THROUGHPUT_BALANCED_S = 5 * 60
+THROUGHPUT_BALANCED_PSNR = 31.0
+THROUGHPUT_FAST_SPEEDUP = 2.0
+FAST_PSNR_TOLERANCE_DB = 0.05
+
+#: Wall-clock limit of one probe's fit (the first accurate fit took 1,587 s at a load of 1.5-3.9).
+PROBE_TIMEOUT_S = 4 * 3600.0
+
+#: Loads the rasteriser's Numba kernels from their cache (compiling and caching them on a revision's first run) with
+#: one forward+backward of a tiny street scene, as render's probe does; API every revision has (rasterize,
+#: street_scene). Run alone once per side before the fits, so that no fit's time or peak memory holds a compile, and
+#: at the start of every fit probe, so that its clock starts with the kernels loaded.
+_KERNELS_WARM_UP = """
+from omniscs.render import rasterize
+from omniscs.render.scenes import street_scene
+warm = street_scene(1_000, 64, 36)
+names = ("means", "quats", "scales", "opacities", "colors")
+params = {n: getattr(warm, n).detach().clone().requires_grad_(True) for n in names}
+colors, alphas, _ = rasterize(**{**warm.as_kwargs(), **params}, backend="cpu")
+(colors.sum() + alphas.sum()).backward()
+"""
+
+#: One fit in a fresh interpreter that imports ``omniscs`` from one side's package (``baseline.run_probe``): the
+#: pipeline's plan and fit stages on the given scene store, timed around the fit stage as ``_fit`` times it, in a
+#: workspace inside the probe's temporary folder. It uses only API that every revision since the stage table has
+#: (plan_stage, load_plan, fit_stage, SceneRequest, fit_preset, rasterize, street_scene) and refuses, in one line, a
+#: store whose schema version that revision does not read. Peak memory is the process's VmHWM: what a worker
+#: running this one fit needs. Prints JSON.
+_FIT_PROBE = """
+import dataclasses, json, os, sys, time
+from pathlib import Path
+store, preset, overrides = Path(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+import omniscs.scene
+found = json.loads((store / "manifest.json").read_text()).get("schema_version")
+reads = getattr(omniscs.scene, "SCHEMA_VERSION", None)
+if reads is not None and found != reads:
+    sys.exit(f"the scene store {store} (made by the current code) has schema_version {found} but this revision "
+             f"reads {reads}; choose a baseline that reads version {found} (git log -S SCHEMA_VERSION omniscs/scene)")
+from omniscs.nsg.config import fit_preset
+from omniscs.pipeline.request import SceneRequest
+from omniscs.pipeline.stages import fit_stage, load_plan, plan_stage
+def status_bytes(field):
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+""" + _KERNELS_WARM_UP + """
+config = fit_preset(preset)
+for name, value in list(overrides.items()):
+    if dataclasses.is_dataclass(getattr(config, name, None)):
+        overrides[name] = dataclasses.replace(getattr(config, name), **value)
+    elif name == "resolution_schedule":
+        overrides[name] = tuple(tuple(step) for step in value)
+workspace = Path.cwd() / "workspace"
+plan = load_plan(plan_stage(store, SceneRequest(fit_preset=preset), workspace))
+out = {"load_1min_before": os.getloadavg()[0], "rss_before_fit_bytes": status_bytes("VmRSS")}
+started = time.perf_counter()
+record = fit_stage(store, plan, preset, workspace, reuse=False, **overrides)
+out["wall_s"] = time.perf_counter() - started
+out.update(load_1min_after=os.getloadavg()[0], peak_rss_bytes=status_bytes("VmHWM"), status=record.info["status"],
+           iterations=fit_preset(preset, **overrides).iterations)
+if record.info["status"] == "fitted":
+    metrics = record.info["metrics"]
+    out.update({k: metrics.get(k) for k in ("fit_seconds", "n_gaussians", "n_agent_nodes", "heldout_psnr",
+                                            "heldout_ssim", "train_psnr")})
+else:
+    out["error"] = record.info.get("error")
+print(json.dumps(out))
+"""
+
+
+def schedule_scaled(config: FitConfig, iterations: int) -> dict:
+    """Overrides that compress (or stretch) ``config``'s whole schedule to ``iterations`` steps: every step count of
+    it (SH-degree interval, densification start, stop and interval, opacity resets) scaled by ``iterations /
+    config.iterations``; the resolution schedule is in fractions of the fit already. A point of the speed/accuracy
+    curve that a user can fit too: ``fit_preset(preset, **overrides)``, the nested dict as a DensifyStrategy."""
+    ratio = iterations / config.iterations
+    s = config.strategy
+
+    def every(n: int) -> int:  # an interval stays at least 1, and 0 (never) stays 0
+        return 0 if n == 0 else max(1, round(n * ratio))
+
+    return {"iterations": iterations, "sh_degree_interval": every(config.sh_degree_interval),
+            "strategy": {"refine_start_iter": round(s.refine_start_iter * ratio),
+                         "refine_stop_iter": round(s.refine_stop_iter * ratio), "refine_every": every(s.refine_every),
+                         "reset_every": every(s.reset_every)}}
+
+
+def preset_settings(preset: str, overrides: dict | None = None) -> dict:
+    """What a preset fits with, as the docs' preset table shows it (recorded in the report beside its figures)."""
+    config = fit_preset(preset, **(overrides or {}))
+    return {"iterations": config.iterations, "resolution_schedule": [list(s) for s in config.resolution_schedule],
+            "sh_degree": config.sh_degree, "gaussians_per_m2": config.plan.gaussians_per_m2,
+            "max_gaussians": config.plan.max_gaussians}
+
+
 def run_fit_benchmark(out_dir: Path, scenes: BenchScenes, presets: tuple[str, ...] = ("fast", "balanced", "accurate"),
                       workspace: Path | None = None, overrides: dict | None = None,
-                      progress: Progress | None = None) -> dict:
-    """Fit every scene with every preset; wall time, Gaussians and held-out PSNR/SSIM per fit."""
+                      progress: Progress | None = None, baseline: tuple[str, str, Path] | None = None,
+                      rounds: int = 1, curve_iterations: tuple[int, ...] = (), curve_preset: str = "balanced") -> dict:
+    """Fit every scene with every preset, each fit in a fresh interpreter (a probe, so that its peak memory is its
+    own): wall time, Gaussians, held-out PSNR/SSIM and peak resident memory per fit, and the speed/accuracy curve.
+
+    With ``baseline`` (ref, commit, folder holding that revision's package), that revision fits the same scene
+    stores (made once, by the current code) with the same presets, overrides and seeds, in ``rounds`` turns that
+    alternate with the current code's (who goes first alternates too); the report gives medians per side and the
+    ratios. ``curve_iterations`` adds points of the current code to the curve: ``curve_preset`` with its schedule
+    compressed to each count (``schedule_scaled``), one fit per scene each."""
     machine = machine_info()
     ws = workspace_root(workspace)
-    rows = []
+    sides = {"current": CURRENT_PACKAGE.parent}
+    if baseline is not None:
+        sides["baseline"] = baseline[2]
+    overrides = dict(overrides or {})
+    curve = {n: {**overrides, **schedule_scaled(fit_preset(curve_preset, **overrides), n)} for n in curve_iterations}
+    fits: list[tuple[Path, str, str, dict, str, int, str]] = []  # (store, scene, preset, overrides, side, turn, point)
     for path in _scene_paths(scenes, ws, progress):
-        scene = load_scene(path)
+        scene_id = load_scene(path).scene_id
         for preset in presets:
-            config = fit_preset(preset, **(overrides or {}))
-            if progress:
-                progress(len(rows), None, f"fit {scene.scene_id} with {preset}")
-            load_before = os.getloadavg()[0]
-            _, record, wall = _fit(path, SceneRequest(fit_preset=preset), ws, overrides)
-            if record.info["status"] == "diverged":  # reported as a row, not a crash of the whole benchmark
-                log.warning("%s %s: %s", scene.scene_id, preset, record.info["error"])
-                rows.append({"scene_id": scene.scene_id, "preset": preset, "iterations": config.iterations,
-                             "wall_s": wall, "status": "diverged", "error": record.info["error"]})
-                continue
-            m = record.info["metrics"]
-            rows.append({"scene_id": scene.scene_id, "preset": preset, "iterations": config.iterations,
-                         "status": "fitted", "wall_s": wall, "fit_s": m["fit_seconds"], "n_gaussians": m["n_gaussians"],
-                         "n_agent_nodes": m["n_agent_nodes"], "heldout_psnr": m["heldout_psnr"],
-                         "heldout_ssim": m["heldout_ssim"], "train_psnr": m["train_psnr"],
-                         "load_1min_before": load_before, "load_1min_after": os.getloadavg()[0]})
-            log.info("%s %s: %.0f s, %.2f dB", scene.scene_id, preset, wall, m["heldout_psnr"])
-            # the partial table is on disk after every fit: a long run cut short still reports what it measured
-            save_partial(out_dir, "fit", rows)
-    summary = _fit_summary(rows, presets)
-    report = {"scenes": asdict(scenes), "label": scenes.label(), "presets": list(presets),
-              "overrides": overrides or {}, "machine": finish(machine),
-              "rows": rows, "summary": summary,
+            for turn in range(rounds):
+                order = list(sides) if (len(fits) // len(sides) + turn) % 2 else list(sides)[::-1]
+                fits += [(path, scene_id, preset, overrides, side, turn, "preset") for side in order]
+        fits += [(path, scene_id, curve_preset, extra, "current", 0, f"{curve_preset} at {n:,} iterations")
+                 for n, extra in curve.items()]
+    for side, package_parent in sides.items():
+        if progress:
+            progress(0, len(fits), f"loading (or compiling) the {side} code's kernels")
+        run_probe(package_parent, _KERNELS_WARM_UP + "\nprint('{}')", [], PROBE_TIMEOUT_S)
+    rows: list[dict] = []
+    for path, scene_id, preset, fit_overrides, side, turn, point in fits:
+        if progress:
+            progress(len(rows), len(fits), f"{scene_id}: {point if point != 'preset' else preset} ({side} code)")
+        rows.append(_probe_fit(sides[side], path, scene_id, preset, fit_overrides, side, turn, point))
+        save_partial(out_dir, "fit", rows)  # a long run cut short still reports what it measured
+    summary = _fit_summary(_side_rows(rows, "current"), presets)
+    report = {"scenes": asdict(scenes), "label": scenes.label(), "presets": list(presets), "overrides": overrides,
+              "machine": finish(machine), "rounds": rounds,
+              "preset_settings": {p: preset_settings(p, overrides) for p in presets},
+              "rows": rows, "summary": summary, "curve": _curve(rows, presets),
+              "baseline": _against_baseline(baseline, rows, presets, summary, rounds) if baseline else None,
               "targets": {"fast_s": FAST_TARGET_S, "balanced_s": BALANCED_TARGET_S,
                           "balanced_psnr_db": BALANCED_TARGET_PSNR}}
     write_report(out_dir, "fit", report, fit_markdown(report), {"": lambda buf: _fit_plot(report, buf)})
     drop_partial(out_dir, "fit")
     return report
+
+
+def _probe_fit(package_parent: Path, path: Path, scene_id: str, preset: str, overrides: dict, side: str, turn: int,
+               point: str) -> dict:
+    """One fit by one side's code in a fresh interpreter, as a row of the report."""
+    got = run_probe(package_parent, _FIT_PROBE, [str(path), preset, json.dumps(overrides)], PROBE_TIMEOUT_S)
+    row = {"scene_id": scene_id, "preset": preset, "side": side, "turn": turn, "point": point, **got}
+    if point != "preset":
+        row["overrides"] = overrides
+    if got["status"] == "diverged":  # reported as a row, not a crash of the whole benchmark
+        log.warning("%s %s (%s code): %s", scene_id, preset, side, got.get("error"))
+    else:
+        log.info("%s %s (%s code): %.0f s, %.2f dB, peak %.0f MiB", scene_id, point if point != "preset" else preset,
+                 side, got["wall_s"], got["heldout_psnr"], got["peak_rss_bytes"] / 2**20)
+    return row
+
+
+def _side_rows(rows: list[dict], side: str) -> list[dict]:
+    """The preset fits of one side (rows without a side are the current code's: reports before --baseline)."""
+    return [r for r in rows if r.get("side", "current") == side and r.get("point", "preset") == "preset"]
 
 
 def _fit_summary(rows: list[dict], presets) -> list[dict]:
@@ -149,12 +286,76 @@ def _fit_summary(rows: list[dict], presets) -> list[dict]:
         diverged = sum(1 for x in rows if x["preset"] == preset and x["status"] == "diverged")
         if not r:
             continue
-        out.append({"preset": preset, "fits": len(r), "diverged": diverged,
+        out.append({"preset": preset, "fits": len(r), "diverged": diverged, "iterations": r[0]["iterations"],
                     "median_wall_s": statistics.median(x["wall_s"] for x in r),
                     "median_gaussians": int(statistics.median(x["n_gaussians"] for x in r)),
                     "median_heldout_psnr": statistics.median(x["heldout_psnr"] for x in r),
-                    "median_heldout_ssim": statistics.median(x["heldout_ssim"] for x in r)})
+                    "median_heldout_ssim": statistics.median(x["heldout_ssim"] for x in r),
+                    "median_peak_rss_bytes": int(statistics.median(x["peak_rss_bytes"] for x in r))})
     return out
+
+
+def _curve(rows: list[dict], presets) -> list[dict]:
+    """The speed/accuracy curve: one point per preset and side (medians over scenes and turns), then the extra
+    points of the current code (medians over scenes), each side's points in order of time."""
+    points = []
+    for side in ("baseline", "current"):
+        for s in _fit_summary(_side_rows(rows, side), presets):
+            points.append({"side": side, "point": s["preset"], "preset": s["preset"], "iterations": s["iterations"],
+                           "median_wall_s": s["median_wall_s"], "median_heldout_psnr": s["median_heldout_psnr"]})
+    extra = [r for r in rows if r.get("point", "preset") != "preset" and r["status"] == "fitted"]
+    for point in dict.fromkeys(r["point"] for r in extra):
+        r = [x for x in extra if x["point"] == point]
+        points.append({"side": "current", "point": point, "preset": r[0]["preset"], "iterations": r[0]["iterations"],
+                       "median_wall_s": statistics.median(x["wall_s"] for x in r),
+                       "median_heldout_psnr": statistics.median(x["heldout_psnr"] for x in r)})
+    return sorted(points, key=lambda p: (p["side"], p["median_wall_s"]))
+
+
+def _against_baseline(baseline: tuple[str, str, Path], rows: list[dict], presets, summary: list[dict],
+                      rounds: int) -> dict:
+    """Per preset, the baseline's medians beside the current code's: time ratio baseline / current (the speed-up),
+    PSNR and SSIM differences current - baseline, memory ratio current / baseline; and issue 55's targets."""
+    ref, commit, _ = baseline
+    theirs = {s["preset"]: s for s in _fit_summary(_side_rows(rows, "baseline"), presets)}
+    comparison = []
+    for ours in summary:
+        base = theirs.get(ours["preset"])
+        if base is None:
+            continue
+        comparison.append({
+            "preset": ours["preset"], "baseline_iterations": base["iterations"], "current_iterations": ours["iterations"],
+            "baseline_wall_s": base["median_wall_s"], "current_wall_s": ours["median_wall_s"],
+            "speedup": base["median_wall_s"] / ours["median_wall_s"],
+            "baseline_heldout_psnr": base["median_heldout_psnr"], "current_heldout_psnr": ours["median_heldout_psnr"],
+            "psnr_difference_db": ours["median_heldout_psnr"] - base["median_heldout_psnr"],
+            "baseline_heldout_ssim": base["median_heldout_ssim"], "current_heldout_ssim": ours["median_heldout_ssim"],
+            "ssim_difference": ours["median_heldout_ssim"] - base["median_heldout_ssim"],
+            "baseline_gaussians": base["median_gaussians"], "current_gaussians": ours["median_gaussians"],
+            "baseline_peak_rss_bytes": base["median_peak_rss_bytes"],
+            "current_peak_rss_bytes": ours["median_peak_rss_bytes"],
+            "memory_ratio": ours["median_peak_rss_bytes"] / base["median_peak_rss_bytes"]})
+    return {"ref": ref, "commit": commit, "rounds": rounds, "summary": list(theirs.values()),
+            "comparison": comparison, "targets": _throughput_targets({c["preset"]: c for c in comparison})}
+
+
+def _throughput_targets(by_preset: dict[str, dict]) -> dict:
+    """Issue 55's fit targets against the baseline (None where the preset was not measured)."""
+    balanced, fast = by_preset.get("balanced"), by_preset.get("fast")
+    return {
+        "balanced_psnr_db": THROUGHPUT_BALANCED_PSNR, "balanced_s": THROUGHPUT_BALANCED_S,
+        "fast_speedup": THROUGHPUT_FAST_SPEEDUP, "fast_psnr_tolerance_db": FAST_PSNR_TOLERANCE_DB,
+        "balanced_met": None if balanced is None else bool(
+            balanced["current_heldout_psnr"] >= THROUGHPUT_BALANCED_PSNR
+            and balanced["current_wall_s"] <= THROUGHPUT_BALANCED_S),
+        "balanced_memory_met": None if balanced is None else bool(balanced["memory_ratio"] <= 1.0),
+        "fast_met": None if fast is None else bool(fast["speedup"] >= THROUGHPUT_FAST_SPEEDUP
+                                                   and fast["psnr_difference_db"] >= -FAST_PSNR_TOLERANCE_DB),
+    }
+
+
+def _mib(value) -> str:
+    return "n/a" if value is None else f"{value / 2**20:,.0f}"
 
 
 def fit_markdown(report: dict) -> str:
@@ -163,45 +364,100 @@ def fit_markdown(report: dict) -> str:
              f"Machine: {m['cpus']} CPUs, {m['platform']}; 1-min load average {m['load_average_start'][0]:.1f} at "
              f"start, {m['load_average_end'][0]:.1f} at end (shared machine: times are noisy). "
              f"Held-out = every 4th frame, full resolution. Targets: fast <= {FAST_TARGET_S // 60} min; balanced "
-             f">= {BALANCED_TARGET_PSNR:.0f} dB in <= {BALANCED_TARGET_S // 60} min (full-size scenes).", "",
-             "| preset | fits | median time (s) | median Gaussians | median held-out PSNR (dB) | median held-out SSIM |",
-             "|---|---|---|---|---|---|"]
+             f">= {BALANCED_TARGET_PSNR:.0f} dB in <= {BALANCED_TARGET_S // 60} min (full-size scenes). Each fit runs in "
+             "a fresh interpreter; peak memory is that process's peak resident set (VmHWM).", "",
+             "| preset | fits | iterations | median time (s) | median Gaussians | median held-out PSNR (dB) "
+             "| median held-out SSIM | peak memory (MiB) |", "|---|---|---|---|---|---|---|---|"]
     for s in report["summary"]:
-        lines.append(f"| {s['preset']} | {s['fits']} | {s['median_wall_s']:.0f} | {s['median_gaussians']:,} | "
-                     f"{s['median_heldout_psnr']:.2f} | {s['median_heldout_ssim']:.3f} |")
-    lines += ["", "Per fit:", "", "| scene | preset | iterations | time (s) | Gaussians | held-out PSNR | held-out SSIM "
-              "| train PSNR | load before/after |", "|---|---|---|---|---|---|---|---|---|"]
+        lines.append(f"| {s['preset']} | {s['fits']} | {s.get('iterations', 'n/a')} | {s['median_wall_s']:.0f} | "
+                     f"{s['median_gaussians']:,} | {s['median_heldout_psnr']:.2f} | {s['median_heldout_ssim']:.3f} | "
+                     f"{_mib(s.get('median_peak_rss_bytes'))} |")
+    base = report.get("baseline")
+    if base:
+        lines += ["", f"Against {base['ref']} ({base['commit'][:12]}): the same scene stores, presets and seeds fitted "
+                  f"by that revision's code, {base['rounds']} turn(s) per preset alternating with the current code's, "
+                  "each in a fresh interpreter; medians over the turns. Speed-up = baseline time / current time; "
+                  "differences are current - baseline.", "",
+                  "| preset | iterations (baseline / now) | time s (baseline / now) | speed-up | held-out PSNR dB "
+                  "(baseline / now) | PSNR difference (dB) | held-out SSIM (baseline / now) | Gaussians (baseline / now)"
+                  " | peak memory MiB (baseline / now) |", "|---|---|---|---|---|---|---|---|---|"]
+        for c in base["comparison"]:
+            lines.append(f"| {c['preset']} | {c['baseline_iterations']} / {c['current_iterations']} | "
+                         f"{c['baseline_wall_s']:.0f} / {c['current_wall_s']:.0f} | {c['speedup']:.2f}x | "
+                         f"{c['baseline_heldout_psnr']:.2f} / {c['current_heldout_psnr']:.2f} | "
+                         f"{c['psnr_difference_db']:+.2f} | {c['baseline_heldout_ssim']:.3f} / "
+                         f"{c['current_heldout_ssim']:.3f} | {c['baseline_gaussians']:,} / {c['current_gaussians']:,} "
+                         f"| {_mib(c['baseline_peak_rss_bytes'])} / {_mib(c['current_peak_rss_bytes'])} |")
+        t = base["targets"]
+
+        def met(value) -> str:
+            return "not measured" if value is None else ("met" if value else "NOT met")
+
+        lines += ["", f"Issue 55's targets: balanced >= {t['balanced_psnr_db']:.1f} dB held-out in <= "
+                  f"{t['balanced_s'] // 60} min: {met(t['balanced_met'])}; fast >= {t['fast_speedup']:.0f}x faster "
+                  f"than the baseline at its held-out PSNR (within {t['fast_psnr_tolerance_db']} dB): "
+                  f"{met(t['fast_met'])}; balanced peak memory not above the baseline's: "
+                  f"{met(t['balanced_memory_met'])}."]
+    if report.get("curve"):
+        lines += ["", "Speed/accuracy curve (report.png): every preset of each side; extra points are a preset with "
+                  "its whole schedule compressed to fewer iterations (`schedule_scaled`).", "",
+                  "| code | point | iterations | median time (s) | median held-out PSNR (dB) |", "|---|---|---|---|---|"]
+        for p in report["curve"]:
+            lines.append(f"| {p['side']} | {p['point']} | {p['iterations']:,} | {p['median_wall_s']:.0f} | "
+                         f"{p['median_heldout_psnr']:.2f} |")
+    lines += ["", "Per fit:", "", "| scene | code | turn | preset | iterations | time (s) | Gaussians | held-out PSNR "
+              "| held-out SSIM | train PSNR | peak memory (MiB) | load before/after |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
+        head = (f"| {r['scene_id']} | {r.get('side', 'current')} | {r.get('turn', 0) + 1} | "
+                f"{r['preset'] if r.get('point', 'preset') == 'preset' else r['point']} | {r['iterations']} | "
+                f"{r['wall_s']:.0f} |")
         if r.get("status") == "diverged":
-            lines.append(f"| {r['scene_id']} | {r['preset']} | {r['iterations']} | {r['wall_s']:.0f} | diverged | "
-                         f"{r['error']} | | | |")
+            lines.append(f"{head} diverged | {r['error']} | | | | |")
             continue
-        lines.append(f"| {r['scene_id']} | {r['preset']} | {r['iterations']} | {r['wall_s']:.0f} | {r['n_gaussians']:,} "
-                     f"| {r['heldout_psnr']:.2f} | {r['heldout_ssim']:.3f} | {r['train_psnr']:.2f} | "
+        lines.append(f"{head} {r['n_gaussians']:,} | {r['heldout_psnr']:.2f} | {r['heldout_ssim']:.3f} | "
+                     f"{r['train_psnr']:.2f} | {_mib(r.get('peak_rss_bytes'))} | "
                      f"{r['load_1min_before']:.1f}/{r['load_1min_after']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
 def _fit_plot(report: dict, buf) -> None:
+    """Held-out PSNR against wall time: the current code's points joined in order of time (solid), the baseline's
+    (dashed, hollow markers), each point labelled; issue 55's balanced target as dotted lines on full-size scenes."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     colours = {"fast": "tab:green", "balanced": "tab:blue", "accurate": "tab:red"}
-    for preset in report["presets"]:
-        r = [x for x in report["rows"] if x["preset"] == preset and x.get("status", "fitted") == "fitted"]
-        ax.scatter([x["wall_s"] / 60 for x in r], [x["heldout_psnr"] for x in r], alpha=0.4,
-                   color=colours.get(preset))
-    for s in report["summary"]:
-        ax.scatter([s["median_wall_s"] / 60], [s["median_heldout_psnr"]], s=90, marker="D",
-                   color=colours.get(s["preset"]), label=f"{s['preset']} (median)")
-    ax.axhline(BALANCED_TARGET_PSNR, ls=":", color="grey")
-    ax.axvline(BALANCED_TARGET_S / 60, ls=":", color="grey")
-    ax.set_xlabel("wall time (min)")
+    base = report.get("baseline")
+    names = {"current": "current code", "baseline": f"baseline {base['ref']}" if base else "baseline"}
+    curve = report.get("curve", [])
+    minutes = max((p["median_wall_s"] for p in curve), default=0.0) > 120
+    unit, scale = ("min", 1 / 60) if minutes else ("s", 1.0)
+    for side, style in (("baseline", {"linestyle": "--", "marker": "s", "fillstyle": "none"}),
+                        ("current", {"linestyle": "-", "marker": "o"})):
+        points = [p for p in curve if p["side"] == side]
+        if not points:
+            continue
+        ax.plot([p["median_wall_s"] * scale for p in points], [p["median_heldout_psnr"] for p in points],
+                color="grey", alpha=0.6, label=names[side], **style)
+        marker = {k: v for k, v in style.items() if k != "linestyle"}
+        for p in points:
+            preset_point = p["point"] == p["preset"]
+            xy = (p["median_wall_s"] * scale, p["median_heldout_psnr"])
+            ax.plot(*([v] for v in xy), color=colours.get(p["preset"], "black"), markersize=9 if preset_point else 5,
+                    linestyle="none", **marker)
+            ax.annotate(p["point"] if preset_point else f"{p['iterations']:,} it.", xy, textcoords="offset points",
+                        xytext=(5, -11 if side == "baseline" else 5), fontsize=7)
+    if {k: report.get("scenes", {}).get(k) for k in FULL_SIZE} == FULL_SIZE:
+        ax.axhline(THROUGHPUT_BALANCED_PSNR, ls=":", color="grey")
+        ax.axvline(THROUGHPUT_BALANCED_S * scale, ls=":", color="grey")
+    ax.set_xlabel(f"wall time ({unit})")
     ax.set_ylabel("held-out PSNR (dB)")
-    ax.set_title("Scene-graph presets: time vs accuracy\n" + report["label"], fontsize=8)
+    ax.set_title("Scene-graph fit: held-out PSNR against time\n" + report["label"], fontsize=8)
     ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
     fig.tight_layout()
     fig.savefig(buf, format="png")
     plt.close(fig)

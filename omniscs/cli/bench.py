@@ -150,18 +150,46 @@ class FitOptions(SceneRigOptions):
     """Comma-separated presets."""
     template: str = "straight"
     """Road layout template of the scenes."""
+    baseline: Optional[str] = None
+    """A git revision of the project (branch, tag, hash) that fits the same scenes with the same presets, in turns
+    with the current code, each fit in a fresh interpreter: the report gives both sides and the ratios."""
+    baseline_rounds: int = 1
+    """Turns per side and preset with --baseline (medians over them)."""
+    curve_iterations: str = ""
+    """Comma-separated iteration counts: extra points of the speed/accuracy curve, each a fit of --curve-preset with
+    its whole schedule compressed to that many iterations (current code)."""
+    curve_preset: str = "balanced"
+    """The preset whose schedule --curve-iterations compresses."""
+    quick: bool = False
+    """Smoke run: a 10-frame, 1-camera 96x54 log fitted for 30 iterations (overrides the rig options)."""
 
 
 def run_fit(o: FitOptions, out: Path, bars: Bars) -> Path:
-    from omniscs.bench.fit import BenchScenes, run_fit_benchmark
+    from omniscs.bench.baseline import baseline_tree
+    from omniscs.bench.fit import QUICK_OVERRIDES, QUICK_SCENES, BenchScenes, run_fit_benchmark
     from omniscs.nsg.config import PRESETS
+    from omniscs.storage import workspace_path
 
     chosen = comma_list(o.presets)
-    unknown = [p for p in chosen if p not in PRESETS]
+    unknown = [p for p in (*chosen, o.curve_preset) if p not in PRESETS]
     if unknown or not chosen:
         raise OmniscsError(f"unknown preset(s) {unknown}; use some of {list(PRESETS)}")
-    scenes = BenchScenes(parse_seeds(o.seeds), o.template, "day", o.frames, o.cameras, o.width, o.height)
-    run_fit_benchmark(out, scenes, chosen, o.workspace, progress=bars.sink("bench fit"))
+    curve = comma_list(o.curve_iterations, int, "--curve-iterations", "750,1500,2250")
+    if any(n < 1 for n in curve):
+        raise OmniscsError(f"--curve-iterations takes positive counts like 750,1500,2250; got {o.curve_iterations!r}")
+    if o.baseline_rounds < 1:
+        raise OmniscsError("--baseline-rounds must be at least 1")
+    rig = QUICK_SCENES if o.quick else {"n_frames": o.frames, "n_cameras": o.cameras, "width": o.width,
+                                        "height": o.height}
+    scenes = BenchScenes(parse_seeds(o.seeds), o.template, "day", **rig)
+    baseline = None
+    if o.baseline is not None:
+        commit, tree = baseline_tree(o.baseline, workspace_path(o.workspace) / "cache")
+        baseline = (o.baseline, commit, tree)
+    run_fit_benchmark(out, scenes, chosen, o.workspace, overrides=dict(QUICK_OVERRIDES) if o.quick else None,
+                      progress=bars.sink("bench fit"), baseline=baseline,
+                      rounds=o.baseline_rounds if baseline is not None else 1, curve_iterations=tuple(curve),
+                      curve_preset=o.curve_preset)
     return out / "fit" / "report.md"
 
 
@@ -473,8 +501,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("behavior", BehaviorOptions, run_behavior, "Adversarial success, plausibility violations, "
               "accelerations and time per variant, with and without the plausibility penalty, with and without L_app "
               "(and its appearance drift), plus the traffic model's ADE/FDE."),
-    Benchmark("fit", FitOptions, run_fit, "Fit the same scenes with each preset: wall time, Gaussians and held-out "
-              "PSNR/SSIM; a time-vs-PSNR plot."),
+    Benchmark("fit", FitOptions, run_fit, "Fit the same scenes with each preset, each fit in a fresh interpreter: "
+              "wall time, Gaussians, held-out PSNR/SSIM and peak memory; with --baseline REF the same fits by that "
+              "revision in turns, and the ratios; the speed/accuracy curve as a plot."),
     Benchmark("edits", EditsOptions, run_edits, "Edit fidelity against ground truth: translate 2.0/3.5 m, rotate "
               "90/180/270°; PSNR/SSIM full and masked."),
     Benchmark("render", RenderOptions, run_render, "Time the Gaussian rasterizer (forward, forward+backward) per "
