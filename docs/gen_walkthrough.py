@@ -222,16 +222,15 @@ def main() -> None:
 
 
 def annotated_front(dataset: Path, png: Path, frames=(4, 10, 16)) -> None:
-    """The designed variant's front camera at ``frames``, its annotation boxes drawn, side by side."""
+    """The designed variant's front camera at ``frames`` as the viewer shows the dataset (3D boxes, 2D boxes with
+    their visibility levels), side by side."""
     import cv2
 
-    from omniscs.annotate.dataset import SCENES
-    from omniscs.scene.store import load_scene
-    from omniscs.viewer.state import store_camera_image
+    from omniscs.viewer.targets import open_target
 
-    store = next(p for p in (dataset / SCENES).iterdir() if p.name.endswith("-d000"))
-    scene = load_scene(store)
-    tiles = [store_camera_image(scene, scene.camera_names[0], f, boxes=True) for f in frames]
+    target = open_target(dataset)
+    target.pick(next(i for i, r in enumerate(target.samples) if r["variant_id"] == "d000"))
+    tiles = [target.camera_image(target.camera_names[0], f, boxes=True) for f in frames]
     for f, tile in zip(frames, tiles):
         cv2.putText(tile, f"frame {f}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2)
     from PIL import Image

@@ -46,6 +46,7 @@ from typing import Callable
 
 import numpy as np
 
+from omniscs.edits import Insert, parse_edits
 from omniscs.errors import OmniscsError
 from omniscs.export.opendrive import RoadNetwork, road_network_of, road_source_id
 from omniscs.quaternions import quat_to_rotmat
@@ -147,13 +148,21 @@ def _unwrapped(poses: np.ndarray) -> np.ndarray:  # [T, 6] -> [T, 6] with h, p, 
 
 
 def inserted_static_tracks(scene: Scene) -> set[int]:
-    """Track ids an appearance variant inserted standing still (from the store's variant.json; empty otherwise)."""
+    """Track ids an appearance or designed variant inserted standing still (from the store's variant.json: an
+    appearance variant's static insert, a designed variant's inserts at one pose; empty otherwise)."""
     path = scene.path / VARIANT_JSON
     if not path.exists():
         return set()
     record = read_json(path, f"the variant store {scene.path} is damaged; build it again", expect=dict,
                        what="variant description")
     variant = record.get("variant")
+    if isinstance(variant, dict) and variant.get("kind") == "designed":
+        try:
+            return {int(e.track_id) for e in parse_edits(variant.get("edits") or [])
+                    if isinstance(e, Insert) and e.pose is not None}
+        except OmniscsError as exc:
+            raise OmniscsError(f"{path}: the designed variant's edits are damaged ({exc}); build the variant again") \
+                from None
     if not isinstance(variant, dict) or variant.get("kind") != "appearance" or variant.get("placement") != "insert":
         return set()
     pose = variant.get("pose")

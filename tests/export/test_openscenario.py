@@ -490,3 +490,20 @@ def test_the_ego_is_marked_as_carlas_scenario_runner_finds_it(exported):
     marked = [obj.get("name") for obj in root.iter("ScenarioObject")
               if any(p.get("name") == "type" and p.get("value") == "ego_vehicle" for p in obj.iter("Property"))]
     assert marked == ["ego"]
+
+
+def test_a_designed_variants_inserts_at_one_pose_are_its_static_objects(tmp_path):
+    from types import SimpleNamespace
+
+    from omniscs.export.openscenario import inserted_static_tracks
+
+    edits = [{"op": "insert", "track_id": 9, "asset_id": "pm-0123456789ab", "category": "truck",
+              "pose": [1.0, 2.0, 1.5, 0.0], "roll_deg": 180.0},
+             {"op": "insert", "track_id": 10, "asset_id": "pm-0123456789ab", "category": "truck",
+              "waypoints": [[1.0, 2.0, 1.5, 0.0], [2.0, 2.0, 1.5, 0.0]]},
+             {"op": "set_trajectory", "track_id": 3, "waypoints": [[0.0, 0.0, 0.7, 0.0], None]}]
+    (tmp_path / "variant.json").write_text(json.dumps({"variant": {"kind": "designed", "edits": edits}}))
+    assert inserted_static_tracks(SimpleNamespace(path=tmp_path)) == {9}
+    (tmp_path / "variant.json").write_text(json.dumps({"variant": {"kind": "designed", "edits": [{"op": "fly"}]}}))
+    with pytest.raises(OmniscsError, match="designed variant's edits are damaged"):
+        inserted_static_tracks(SimpleNamespace(path=tmp_path))
