@@ -132,7 +132,7 @@ def design(app, page, out: Path) -> None:
     look(app, ego[FRAMES - 6])
     app.frame_slider.value = FRAMES - 6
     settle(page, 5)
-    page.screenshot(path=str(out / "walkthrough-cut-in.png"))
+    page.screenshot(path=str(out / "walkthrough-cut-in.jpg"), type="jpeg", quality=85)
     camera_view(app, FRAMES - 6, out / "walkthrough-cut-in-camera.png")
 
     page.get_by_text("Models", exact=True).click()
@@ -161,7 +161,7 @@ def design(app, page, out: Path) -> None:
     app.frame_slider.value = FRAMES - 1
     look(app, ego[FRAMES - 1])
     settle(page, 5)
-    page.screenshot(path=str(out / "walkthrough-truck.png"))
+    page.screenshot(path=str(out / "walkthrough-truck.jpg"), type="jpeg", quality=85)
     camera_view(app, FRAMES - 1, out / "walkthrough-truck-camera.png")
     page.get_by_role("button", name="Save edits").click()
     page.get_by_text("Saved", exact=False).first.wait_for(timeout=20_000)
@@ -206,7 +206,7 @@ def main() -> None:
             close_notice(page)
             look(app, target.session.base.world_from_ego[0])
             settle(page, 6)
-            page.screenshot(path=str(out / "walkthrough-log.png"))
+            page.screenshot(path=str(out / "walkthrough-log.jpg"), type="jpeg", quality=85)
             design(app, page, out)
             browser.close()
     finally:
