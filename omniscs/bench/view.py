@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import shutil
 import statistics
 import threading
@@ -144,6 +143,30 @@ def densified(graph: SceneGraph, count: int, seed: int = 0, opacity_share: float
                    content_hash=f"{graph.content_hash}+densified-{int(count)}")
 
 
+def seen_agents(graph: SceneGraph, frame: int, camera: str | None = None) -> list[int]:
+    """Track ids of the agent nodes whose box centre the camera (default: the first) sees at ``frame``, nearest first:
+    an edit of an agent out of view leaves the camera image as it was."""
+    from omniscs.geometry import invert_transform
+
+    cam = graph.cameras[0] if camera is None else graph.camera(camera)
+    cam_from_world = invert_transform(graph.world_from_ego[frame] @ cam.ego_from_camera)
+    seen = []
+    for a in graph.agents:
+        if not a.present[frame]:
+            continue
+        x, y, z = (cam_from_world @ a.world_from_agent[frame][:, 3])[:3]
+        u, v = cam.K[0, 0] * x / max(z, 1e-9) + cam.K[0, 2], cam.K[1, 1] * y / max(z, 1e-9) + cam.K[1, 2]
+        if z > 1.0 and 0 <= u < cam.width and 0 <= v < cam.height:
+            seen.append((float(z), a.track_id))
+    return [tid for _, tid in sorted(seen)]
+
+
+def busiest_frame(graph: SceneGraph) -> int:
+    """The frame whose front camera sees the most agent nodes (ties: the one nearest the middle of the log)."""
+    middle = graph.n_frames // 2
+    return max(range(graph.n_frames), key=lambda f: (len(seen_agents(graph, f)), -abs(f - middle)))
+
+
 def resized_cameras(graph: SceneGraph, width: int, height: int) -> SceneGraph:
     """``graph`` whose logged cameras render at ``width`` x ``height`` (intrinsics scaled; the same viewpoints)."""
     cameras = []
@@ -166,6 +189,7 @@ FRAME_COUNTER = """
 (() => {
   let drew = false;
   window.__omniscsFrames = 0;
+  window.__omniscsFirstDraw = null;  // performance.now() of the first tick that drew: ms after navigation start
   for (const proto of [WebGLRenderingContext.prototype, WebGL2RenderingContext.prototype]) {
     for (const name of ["drawArrays", "drawElements", "drawArraysInstanced", "drawElementsInstanced",
                         "drawRangeElements"]) {
@@ -175,7 +199,11 @@ FRAME_COUNTER = """
     }
   }
   const tick = () => {
-    if (drew) { window.__omniscsFrames += 1; drew = false; }
+    if (drew) {
+      window.__omniscsFrames += 1;
+      if (window.__omniscsFirstDraw === null) window.__omniscsFirstDraw = performance.now();
+      drew = false;
+    }
     requestAnimationFrame(tick);
   };
   requestAnimationFrame(tick);
@@ -228,9 +256,12 @@ def settled_shot(page, columns: int, timeout_s: float = 30.0) -> np.ndarray:
 
 def first_frame(page, url: str, empty: np.ndarray, config: ViewBenchConfig) -> dict:
     """Load ``url`` and screenshot the 3D view back to back until it settles on a picture that is not the empty
-    scene; the first frame is the first shot that shows at least ``splats_shown_share`` of the settled view's
-    change from the empty scene. Times are from the start of the page load to the end of a shot (a shot itself
-    takes tens to hundreds of milliseconds: the resolution of these times)."""
+    scene. The first frame is the first shot that shows at least ``splats_shown_share`` of the settled view's change
+    from the empty scene: ``first_frame_s`` is the end of that shot, ``first_frame_after_s`` the end of the shot
+    before it (which did not show them; 0 for the first shot), so the splats appeared between the two. A shot waits
+    for the page to produce a frame, and the first one for the page to show its canvas at all. Times are seconds
+    from the start of the page load; ``first_draw_s`` is the page's first WebGL draw of anything (its own clock,
+    from navigation start)."""
     shots: list[tuple[float, np.ndarray]] = []
     start = time.perf_counter()
     page.goto(url)
@@ -240,18 +271,21 @@ def first_frame(page, url: str, empty: np.ndarray, config: ViewBenchConfig) -> d
     while time.perf_counter() < deadline:
         shot = scene_pixels(page, config.scene_columns)
         shots.append((time.perf_counter() - start, shot))
-        recent = [s for t, s in shots if t >= shots[-1][0] - 0.6]
         if len(shots) >= 3 and shots[-1][0] - shots[-3][0] >= 0.4 and changed_share(shot, empty) > 0.02 \
-                and all(np.abs(s.astype(np.int16) - shot).max() <= 2 for s in recent[-3:]):
+                and all(np.abs(s.astype(np.int16) - shot).max() <= 2 for _, s in shots[-3:-1]):
             settled_at = shots[-3][0]
             break
-        page.wait_for_timeout(100)
-    final = shots[-1][1]
-    full = changed_share(final, empty)
-    shown = next(((t, s) for t, s in shots if changed_share(s, empty) >= config.splats_shown_share * full), None)
-    return {"page_load_s": loaded_s, "first_frame_s": None if settled_at is None or shown is None else shown[0],
+        page.wait_for_timeout(50)
+    full = changed_share(shots[-1][1], empty)
+    shown = next((k for k, (_, s) in enumerate(shots) if changed_share(s, empty) >= config.splats_shown_share * full),
+                 None)
+    first_draw = page.evaluate("window.__omniscsFirstDraw")
+    ok = settled_at is not None and shown is not None
+    return {"page_load_s": loaded_s, "first_draw_s": None if first_draw is None else first_draw / 1000.0,
+            "first_frame_s": shots[shown][0] if ok else None,
+            "first_frame_after_s": (shots[shown - 1][0] if shown > 0 else 0.0) if ok else None,
             "settled_s": settled_at, "shots": len(shots), "changed_vs_empty": full,
-            "blank": bool(final.std() < 5.0)}
+            "blank": bool(shots[-1][1].std() < 5.0)}
 
 
 def orbit_fps(page, server, config: ViewBenchConfig) -> dict:
@@ -357,55 +391,79 @@ def _moved(world_from_box: np.ndarray, sideways_m: float, yaw_deg: float) -> np.
     return np.asarray(world_from_box, dtype=np.float64) @ step
 
 
-def measure_edits(app, frame: int, config: ViewBenchConfig, progress: Progress = no_progress) -> dict:
+#: The sources of the page's images, joined: viser gives each new camera image a new blob URL.
+IMAGE_SOURCES = "() => Array.from(document.images).map(i => i.src).join('|')"
+#: True once the page's images are others than ``old`` and all of them decoded.
+IMAGES_CHANGED = ("old => { const imgs = Array.from(document.images); "
+                  "return imgs.map(i => i.src).join('|') !== old && imgs.every(i => i.complete); }")
+
+
+def quiet_images(page, quiet_s: float = 0.6, timeout_s: float = 60.0) -> str:
+    """The page's image sources once they have not changed for ``quiet_s`` (every update sent has arrived)."""
+    last, since = page.evaluate(IMAGE_SOURCES), time.monotonic()
+    deadline = since + timeout_s
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(50)
+        now = page.evaluate(IMAGE_SOURCES)
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return now
+    raise OmniscsError(f"the viewer's camera image kept changing for {timeout_s:.0f} s; is the machine overloaded?")
+
+
+def measure_edits(app, page, frame: int, config: ViewBenchConfig, progress: Progress = no_progress) -> dict:
     """Edits of the agents present at ``frame``, in turn, each through ``ViewerApp.move_selected`` (what a gizmo
-    release runs) until it returns with the new camera image set; and the camera image alone (render + boxes) after
-    each, the share of the edit it takes. The first image (kernels compiled or loaded) is made before timing."""
+    release runs), with the viewer open in ``page``: ``handler_s`` until the handler returns with the new camera image
+    set, ``shown_s`` until the page holds the new image (decoded); and the camera image alone (render + boxes)
+    after each. The first image (kernels compiled or loaded) is made before timing."""
     target = app.target
     camera = app.camera.value
     app.refresh_image()  # warm-up
-    tracks = [b.track_id for b in target.frame_state(frame).boxes if target.session.editable(b.track_id)]
+    tracks = seen_agents(target.session.graph, frame, camera)
     if not tracks:
-        raise OmniscsError(f"no agent node is present at frame {frame}; nothing to edit")
+        raise OmniscsError(f"camera {camera} sees no agent node at frame {frame}; nothing to edit in its view")
     rows = []
     for k in range(config.edits):
         tid = tracks[k % len(tracks)]
         progress(k, config.edits, f"edit {k + 1}: agent {tid}")
         app.select(tid)
+        old = quiet_images(page)  # the selection's own images have arrived
         box = next(b for b in target.frame_state(frame).boxes if b.track_id == tid)
         pose = _moved(box.world_from_box, config.edit_step_m * (1 if k % 2 == 0 else -1), 5.0)
-        before = len(target.session.edits())
+        handled: dict[str, float] = {}
+
+        def edit() -> None:
+            began = time.perf_counter()
+            app.move_selected(pose)
+            handled["s"] = time.perf_counter() - began
+
         started = time.perf_counter()
-        app.move_selected(pose)
-        edit_s = time.perf_counter() - started
-        started = time.perf_counter()
+        worker = threading.Thread(target=edit, name="omniscs-bench-edit")  # as viser runs a handler: off the page
+        worker.start()
+        try:
+            page.wait_for_function(IMAGES_CHANGED, arg=old, polling=10, timeout=60_000)
+            shown_s = time.perf_counter() - started
+        except Exception:  # noqa: BLE001 - playwright's timeout: counted as not shown, the run goes on
+            shown_s = None
+        worker.join()
+        quiet_images(page)
+        began = time.perf_counter()
         image = target.camera_image(camera, frame, True, tid)
-        image_s = time.perf_counter() - started
-        rows.append({"edit": k, "track_id": tid, "edit_s": edit_s, "camera_image_s": image_s,
-                     "accepted": not app.status.content.startswith("Move refused"),
-                     "edits_in_session": len(target.session.edits()), "edits_before": before,
+        image_s = time.perf_counter() - began
+        rows.append({"edit": k, "track_id": tid, "shown_s": shown_s, "handler_s": handled["s"],
+                     "camera_image_s": image_s, "accepted": not app.status.content.startswith("Move refused"),
                      "image_size": f"{image.shape[1]}x{image.shape[0]}"})
     return {"rows": rows, "tracks": tracks, "camera": camera}
 
 
-def screenshot(app, server, config: ViewBenchConfig, track_id: int | None) -> tuple[bytes, str]:
-    """The viewer in the browser (splats, boxes, the panel with the camera view), with ``track_id`` selected: PNG,
-    and the browser's version."""
-    from playwright.sync_api import sync_playwright
-
-    if track_id is not None:
-        app.select(track_id)
-    width, height = config.viewport
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium_path(), headless=True, args=list(CHROMIUM_ARGS))
+def close_notifications(page) -> None:
+    """Close the browser's toasts (chromium's software WebGL is announced by one) so they do not hide the view."""
+    for button in page.locator(".mantine-Notification-root button").all():
         try:
-            page = browser.new_page(viewport={"width": width, "height": height})
-            page.goto(f"http://127.0.0.1:{server.get_port()}")
-            page.get_by_role("button", name="Save edits").wait_for(timeout=60_000)
-            settled_shot(page, config.scene_columns)
-            return page.screenshot(), browser.version
-        finally:
-            browser.close()
+            button.click(timeout=2_000)
+        except Exception:  # noqa: BLE001 - a toast that closed by itself meanwhile
+            continue
 
 
 def _quantised_png(png: bytes, f) -> None:
@@ -436,40 +494,61 @@ def run_view_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
     try:
         import playwright.sync_api  # noqa: F401
     except ImportError:
-        raise OmniscsError("the Python package playwright is not installed; `pip install -e .[dev]` installs it") \
+        raise OmniscsError("the Python package playwright is not installed; `pip install -e .[test]` installs it") \
             from None
     machine = machine_info()
     ws = workspace_root(workspace)
     world = prepare(config, ws, progress)
     checkpoint = Path(world["checkpoint"])
     graph = load_graph(checkpoint)
-    frame = graph.n_frames // 2
+    frame = busiest_frame(graph)
     world.update({"fitted_gaussians": graph.n_gaussians, "agent_nodes": len(graph.agents), "frame": frame})
 
-    # edits first: the browser measurements leave chromium's processes running for a while after
+    # edits first, with the viewer of the fitted graph open in the browser; then its screenshot
+    from playwright.sync_api import sync_playwright
+
     edit_graph = resized_cameras(graph, *config.image_size)
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     app = ViewerApp(server, GraphTarget(checkpoint, edit_graph, ViewerConfig()), frame=frame)
+    width, height = config.viewport
     try:
-        edits = measure_edits(app, frame, config, progress)
-        progress(0, None, "screenshot of the viewer")
-        picture, browser_version = screenshot(app, server, config, edits["tracks"][0])
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium_path(), headless=True, args=list(CHROMIUM_ARGS))
+            try:
+                browser_version = browser.version
+                page = browser.new_page(viewport={"width": width, "height": height})
+                page.goto(f"http://127.0.0.1:{server.get_port()}")
+                page.get_by_role("button", name="Save edits").wait_for(timeout=120_000)
+                settled_shot(page, config.scene_columns)
+                edits = measure_edits(app, page, frame, config, progress)
+                progress(0, None, "screenshot of the viewer")
+                app.select(edits["tracks"][0])
+                quiet_images(page)
+                close_notifications(page)
+                settled_shot(page, config.scene_columns)
+                picture = page.screenshot()
+            finally:
+                browser.close()
     finally:
         app.close()
         server.stop()
     splat_rows = measure_splat_view(graph, checkpoint, frame, config, progress)
 
-    accepted = [r for r in edits["rows"] if r["accepted"]]
-    times = [r["edit_s"] for r in accepted]
-    images = [r["camera_image_s"] for r in accepted]
-    summary = {"edits": len(edits["rows"]), "accepted": len(accepted), "agents": len({r["track_id"] for r in accepted}),
-               "image_size": f"{config.image_size[0]}x{config.image_size[1]}",
-               "median_s": statistics.median(times) if times else None,
-               "p90_s": _percentile(times, 90) if times else None, "max_s": max(times) if times else None,
-               "camera_image_median_s": statistics.median(images) if images else None,
+    accepted = [r for r in edits["rows"] if r["accepted"] and r["shown_s"] is not None]
+
+    def spread(key: str) -> dict:
+        values = [r[key] for r in accepted]
+        return {"median_s": statistics.median(values), "p90_s": _percentile(values, 90), "max_s": max(values)} \
+            if values else {"median_s": None, "p90_s": None, "max_s": None}
+
+    shown = spread("shown_s")
+    summary = {"edits": len(edits["rows"]), "accepted": sum(r["accepted"] for r in edits["rows"]),
+               "timed": len(accepted), "agents": len({r["track_id"] for r in accepted}),
+               "image_size": f"{config.image_size[0]}x{config.image_size[1]}", "shown": shown,
+               "handler": spread("handler_s"), "camera_image": spread("camera_image_s"),
                "target_s": config.edit_target_s,
-               "meets_target": bool(times) and statistics.median(times) < config.edit_target_s
-               and _percentile(times, 90) < config.edit_target_s}
+               "meets_target": shown["median_s"] is not None and shown["median_s"] < config.edit_target_s
+               and shown["p90_s"] < config.edit_target_s}
     report = {"benchmark": BENCH, "config": asdict(config), "world": world, "splat_view": splat_rows,
               "edit_latency": summary, "edits": edits["rows"],
               "renderer": "chromium (Debian) headless, WebGL through ANGLE over SwiftShader: software, on the CPU",
@@ -500,40 +579,46 @@ def markdown(report: dict) -> str:
         "## Splat view", "",
         "Time to first frame: from the start of the page load to the end of the first screenshot of the 3D view "
         f"(the canvas left of the panel) that shows at least {cfg['splats_shown_share']:.0%} of the settled view's "
-        "change from the empty scene (a viser server with the same camera and nothing in it); screenshots are taken "
-        "back to back, so the times are good to a shot's duration. Settled: three shots over 0.4 s or more agree. "
-        f"Frame rate: frames the page drew (animation-frame ticks with a WebGL draw call) over {cfg['orbit_seconds']:g} s "
-        f"while the server orbits the browser's camera about its look-at point (one turn per "
-        f"{cfg['orbit_period_s']:g} s, {cfg['orbit_updates_hz']:g} poses per second through viser's client camera "
-        "API). Server set-up: the target (activation, splat layers) and the viewer's scene and panel.", "",
+        "change from the empty scene (a viser server with the same camera and nothing in it). Screenshots are taken "
+        "back to back; each waits for the page to produce a frame, so the splats appeared between the end of the shot "
+        "before (the 'after' column) and the end of that shot. First draw: the page's first WebGL draw call of "
+        "anything (its own clock, from navigation start). Settled: three shots over 0.4 s or more agree. "
+        f"Frame rate: frames the page drew (animation-frame ticks with a WebGL draw call; viser draws on demand) over "
+        f"{cfg['orbit_seconds']:g} s while the server orbits the browser's camera about its look-at point (one turn "
+        f"per {cfg['orbit_period_s']:g} s, {cfg['orbit_updates_hz']:g} poses per second through viser's client camera "
+        "API). Server set-up: the target (activation, splat layers) and the viewer's scene and panel, before the page "
+        "load.", "",
         f"How each count was made: {report['densify_rule']}. A count below the fit's Gaussians keeps the most "
         "opaque (the viewer's own budget).", "",
-        "| Gaussians | drawn splats | densified copies | server set-up (s) | page load (s) | first frame (s) | "
-        "settled (s) | orbit fps | orbit frames | view changed by orbit |",
-        "|---|---|---|---|---|---|---|---|---|---|"]
+        "| Gaussians | drawn splats | densified copies | server set-up (s) | page load (s) | first draw (s) | "
+        "first frame (s) | after (s) | settled (s) | orbit fps | orbit frames | view changed by orbit |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["splat_view"]:
         lines.append(f"| {r['gaussians']:,} | {r['drawn_splats']:,} | {r['densified_copies']:,} | "
-                     f"{_num(r['server_setup_s'])} | {_num(r['page_load_s'])} | {_num(r['first_frame_s'])} | "
-                     f"{_num(r['settled_s'])} | {_num(r['orbit_fps'], '{:.1f}')} | {r['orbit_frames']} | "
-                     f"{r['orbit_changed_view']:.0%} |")
+                     f"{_num(r['server_setup_s'])} | {_num(r['page_load_s'])} | {_num(r['first_draw_s'])} | "
+                     f"{_num(r['first_frame_s'])} | {_num(r['first_frame_after_s'])} | {_num(r['settled_s'])} | "
+                     f"{_num(r['orbit_fps'], '{:.1f}')} | {r['orbit_frames']} | {r['orbit_changed_view']:.0%} |")
     verdict = "meets" if e["meets_target"] else "misses"
     lines += [
         "", "## Edit to camera image", "",
-        f"{e['edits']} moves ({e['accepted']} accepted) of {e['agents']} agents present at frame {world['frame']}, in "
-        f"turn, each {cfg['edit_step_m']:g} m sideways and turned 5 degrees, through the viewer's gizmo-release "
+        f"{e['edits']} moves ({e['accepted']} accepted, {e['timed']} seen arriving in the browser) of {e['agents']} agents "
+        f"that the camera sees at frame {world['frame']} (the frame where it sees the most agent nodes), in turn, each {cfg['edit_step_m']:g} m sideways and turned 5 degrees, through the viewer's gizmo-release "
         "handler (`ViewerApp.move_selected`: the edit session, the 3D scene, and the camera image rendered by our "
-        f"rasteriser at {e['image_size']} with its boxes), timed until it returns with the image set. Camera image "
-        "alone: the same render and boxes timed again after each edit. The first image (kernel compilation) is made "
-        "before timing; no browser is connected while timing.", "",
-        "| edits | median (s) | p90 (s) | max (s) | camera image alone, median (s) | target (s) |",
-        "|---|---|---|---|---|---|",
-        f"| {e['accepted']} | {_num(e['median_s'], '{:.3f}')} | {_num(e['p90_s'], '{:.3f}')} | "
-        f"{_num(e['max_s'], '{:.3f}')} | {_num(e['camera_image_median_s'], '{:.3f}')} | {e['target_s']:g} |", "",
-        f"The camera view {verdict} the issue's target (under {e['target_s']:g} s at {e['image_size']} after each edit, "
-        "median and p90).", "",
+        f"rasteriser at {e['image_size']} with its boxes), run on a thread as viser runs handlers, with the viewer "
+        "open in the browser. Shown: from the call until the page holds the new camera image, decoded. Handler: until "
+        "the handler returns with the image set. Camera image: the same render and boxes timed again after each edit. "
+        "The first image (kernel compilation) is made before timing.", "",
+        "| step | median (s) | p90 (s) | max (s) |", "|---|---|---|---|"]
+    for key, name in (("shown", "edit to image shown in the browser"), ("handler", "edit handler (server)"),
+                      ("camera_image", "camera image alone (render + boxes)")):
+        lines.append(f"| {name} | {_num(e[key]['median_s'], '{:.3f}')} | {_num(e[key]['p90_s'], '{:.3f}')} | "
+                     f"{_num(e[key]['max_s'], '{:.3f}')} |")
+    lines += [
+        "", f"The camera view {verdict} the issue's target (shown in the browser under {e['target_s']:g} s at "
+        f"{e['image_size']} after each edit, median and p90, on this machine).", "",
         "![the viewer](viewer.png)", "",
-        "The viewer after the timed edits: splats, agent boxes with their track ids, the selected agent's gizmo, and "
-        "the panel with the camera view.", "",
+        "The viewer after the timed edits, the first edited agent selected: splats, agent boxes with their track ids, "
+        "the gizmo, and the panel with the camera view.", "",
         load_line(report["machine"]), ""]
     return "\n".join(lines)
 
