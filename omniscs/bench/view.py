@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omniscs.bench.harness import finish, load_line, machine_info, write_report
+from omniscs.bench.harness import drop_partial, finish, load_line, machine_info, save_partial, write_report
 from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, concat_params
 from omniscs.nsg.graph import SceneGraph
@@ -61,7 +61,7 @@ class ViewBenchConfig:
     """Browser window (width, height) in CSS pixels; viser's panel covers the right of it."""
     scene_columns: int = 700
     """Columns of the 3D view left of the panel that the screenshots compare."""
-    first_frame_timeout_s: float = 180.0
+    first_frame_timeout_s: float = 300.0
     """Longest wait for the splats to show after the page load."""
     splats_shown_share: float = 0.5
     """A screenshot shows the splats when its pixels that differ from the empty scene are at least this share of
@@ -229,11 +229,15 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def scene_pixels(page, columns: int) -> np.ndarray:  # -> uint8 [H, columns, 3] the 3D view, the panel left out
+def scene_pixels(page, columns: int, timeout_s: float = 300.0) -> np.ndarray:  # -> uint8 [H, columns, 3]
+    """The 3D view left of the panel, as the page shows it. A page screenshot of that region, not the canvas
+    element's: an element shot first waits for the element to hold still, which a page busy taking in hundreds of
+    thousands of splats does not do for tens of seconds."""
     from PIL import Image
 
-    png = page.locator("canvas").first.screenshot()
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.uint8)[:, :columns]
+    height = page.viewport_size["height"]
+    png = page.screenshot(clip={"x": 0, "y": 0, "width": columns, "height": height}, timeout=timeout_s * 1000)
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.uint8)
 
 
 def changed_share(a: np.ndarray, b: np.ndarray) -> float:
@@ -328,8 +332,9 @@ def orbit_fps(page, server, config: ViewBenchConfig) -> dict:
 
 # ----------------------------------------------------------------------------- the measurements
 def measure_splat_view(graph: SceneGraph, checkpoint: Path, frame: int, config: ViewBenchConfig,
-                       progress: Progress = no_progress) -> list[dict]:
-    """Per count: the server's set-up, the browser's time to first frame and its frame rate while orbiting."""
+                       progress: Progress = no_progress, measured=None) -> list[dict]:
+    """Per count: the server's set-up, the browser's time to first frame and its frame rate while orbiting.
+    ``measured(rows)`` gets the rows so far after each count."""
     import viser
     from playwright.sync_api import sync_playwright
 
@@ -377,6 +382,8 @@ def measure_splat_view(graph: SceneGraph, checkpoint: Path, frame: int, config: 
                 rows.append({"gaussians": count, "drawn_splats": drawn, "fitted_gaussians": graph.n_gaussians,
                              "densified_copies": max(0, dense.n_gaussians - graph.n_gaussians),
                              "server_setup_s": setup_s, **shown, **fps})
+                if measured is not None:
+                    measured(rows)
         finally:
             browser.close()
     return rows
@@ -413,9 +420,9 @@ def quiet_images(page, quiet_s: float = 0.6, timeout_s: float = 60.0) -> str:
 
 
 def measure_edits(app, page, frame: int, config: ViewBenchConfig, progress: Progress = no_progress) -> dict:
-    """Edits of the agents present at ``frame``, in turn, each through ``ViewerApp.move_selected`` (what a gizmo
-    release runs), with the viewer open in ``page``: ``handler_s`` until the handler returns with the new camera image
-    set, ``shown_s`` until the page holds the new image (decoded); and the camera image alone (render + boxes)
+    """Edits of the agents the camera sees at ``frame``, in turn, each through ``ViewerApp.move_selected`` (what a
+    gizmo release runs), with the viewer open in ``page``: ``handler_s`` until the handler returns with the new camera
+    image set, ``shown_s`` until the page holds the new image (decoded); and the camera image alone (render + boxes)
     after each. The first image (kernels compiled or loaded) is made before timing."""
     target = app.target
     camera = app.camera.value
@@ -532,7 +539,9 @@ def run_view_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
     finally:
         app.close()
         server.stop()
-    splat_rows = measure_splat_view(graph, checkpoint, frame, config, progress)
+    save_partial(out_dir, BENCH, edits["rows"])  # a run cut short in the browser part still has its edits
+    splat_rows = measure_splat_view(graph, checkpoint, frame, config, progress,
+                                    lambda rows: save_partial(out_dir, BENCH, edits["rows"] + rows))
 
     accepted = [r for r in edits["rows"] if r["accepted"] and r["shown_s"] is not None]
 
@@ -552,9 +561,11 @@ def run_view_benchmark(out_dir: str | Path, workspace: str | Path | None = None,
     report = {"benchmark": BENCH, "config": asdict(config), "world": world, "splat_view": splat_rows,
               "edit_latency": summary, "edits": edits["rows"],
               "renderer": "chromium (Debian) headless, WebGL through ANGLE over SwiftShader: software, on the CPU",
-              "browser": browser_version, "densify_rule": DENSIFY_RULE.format(opacity=config.densify_opacity), "machine": finish(machine)}
+              "browser": browser_version, "densify_rule": DENSIFY_RULE.format(opacity=config.densify_opacity),
+              "machine": finish(machine)}
     write_report(out_dir, BENCH, report, markdown(report),
                  {"": lambda f: _plot(splat_rows, f), "viewer": lambda f: _quantised_png(picture, f)})
+    drop_partial(out_dir, BENCH)
     return report
 
 
@@ -601,8 +612,9 @@ def markdown(report: dict) -> str:
     verdict = "meets" if e["meets_target"] else "misses"
     lines += [
         "", "## Edit to camera image", "",
-        f"{e['edits']} moves ({e['accepted']} accepted, {e['timed']} seen arriving in the browser) of {e['agents']} agents "
-        f"that the camera sees at frame {world['frame']} (the frame where it sees the most agent nodes), in turn, each {cfg['edit_step_m']:g} m sideways and turned 5 degrees, through the viewer's gizmo-release "
+        f"{e['edits']} moves ({e['accepted']} accepted, {e['timed']} seen arriving in the browser) of {e['agents']} "
+        f"agents that the camera sees at frame {world['frame']} (the frame where it sees the most agent nodes), in "
+        f"turn, each {cfg['edit_step_m']:g} m sideways and turned 5 degrees, through the viewer's gizmo-release "
         "handler (`ViewerApp.move_selected`: the edit session, the 3D scene, and the camera image rendered by our "
         f"rasteriser at {e['image_size']} with its boxes), run on a thread as viser runs handlers, with the viewer "
         "open in the browser. Shown: from the call until the page holds the new camera image, decoded. Handler: until "
