@@ -82,7 +82,8 @@ def test_the_quick_benchmark_times_the_splat_view_and_edits_and_writes_a_screens
         assert r["orbit_frames"] > 0 and r["orbit_changed_view"] > 0.02, "the orbit did not move the view"
     e = report["edit_latency"]
     assert e["accepted"] == config.edits and e["timed"] == config.edits
-    assert 0 < e["handler"]["median_s"] <= e["shown"]["median_s"]
+    assert 0 < e["handler"]["median_s"] <= e["shown"]["median_s"] and e["handler_no_browser"]["median_s"] > 0
+    assert all(r["frames_drawn_until_shown"] >= 0 for r in report["edits"] if r["browser"])
     assert all(r["image_size"] == "160x90" for r in report["edits"])
     assert report["machine"]["load_average_end"] and report["browser"]
     md = (folder / "report.md").read_text()
