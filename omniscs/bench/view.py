@@ -479,13 +479,20 @@ def measure_edits(app, page, frame: int, config: ViewBenchConfig, progress: Prog
     return {"rows": rows, "tracks": tracks, "camera": camera}
 
 
-def close_notifications(page) -> None:
-    """Close the browser's toasts (chromium's software WebGL is announced by one) so they do not hide the view."""
-    for button in page.locator(".mantine-Notification-root button").all():
+def close_notifications(page, wait_s: float = 10.0) -> None:
+    """Close the browser's toasts (chromium's software WebGL is announced by one, a few seconds after the page
+    loads) so they do not hide the view; waits up to ``wait_s`` for one to appear (a GPU browser shows none)."""
+    toast = page.locator(".mantine-Notification-root")
+    try:
+        toast.first.wait_for(timeout=wait_s * 1000)
+    except Exception:  # noqa: BLE001 - playwright's timeout: no toast to close
+        return
+    for button in toast.locator("button").all():
         try:
             button.click(timeout=2_000)
         except Exception:  # noqa: BLE001 - a toast that closed by itself meanwhile
             continue
+    page.wait_for_timeout(500)  # its closing animation
 
 
 def _quantised_png(png: bytes, f) -> None:
@@ -623,9 +630,9 @@ def markdown(report: dict) -> str:
         "Frame rate: frames the page drew (animation-frame ticks with a WebGL draw call; viser draws on demand) over "
         f"{cfg['orbit_seconds']:g} s (longer until it drew {cfg['orbit_min_frames']} frames, at most "
         f"{cfg['orbit_max_seconds']:g} s) while the server orbits the browser's camera about its look-at point (one "
-        f"turn per {cfg['orbit_period_s']:g} s, {cfg['orbit_updates_hz']:g} poses per second through viser's client camera "
-        "API). Server set-up: the target (activation, splat layers) and the viewer's scene and panel, before the page "
-        "load.", "",
+        f"turn per {cfg['orbit_period_s']:g} s, {cfg['orbit_updates_hz']:g} poses per second through viser's client "
+        "camera API). Server set-up: the target (activation, splat layers) and the viewer's scene and panel, before "
+        "the page load.", "",
         f"How each count was made: {report['densify_rule']}. A count below the fit's Gaussians keeps the most "
         "opaque (the viewer's own budget).", "",
         "| Gaussians | drawn splats | densified copies | server set-up (s) | page load (s) | first draw (s) | "
@@ -659,8 +666,8 @@ def markdown(report: dict) -> str:
     if e["handler_no_browser"]["median_s"] is not None and drawn:
         lines += ["", f"With no browser connected the handler takes {e['handler_no_browser']['median_s']:.3f} s "
                   f"(median; the camera image {e['camera_image_no_browser']['median_s']:.3f} s of it); with the page "
-                  f"open, {e['handler']['median_s']:.3f} s, and the page drew {statistics.median(drawn):g} frames "
-                  "(median) of its 3D view between an edit and its new camera image: chromium's software WebGL "
+                  f"open, {e['handler']['median_s']:.3f} s, and the page drew a median of {statistics.median(drawn):g} "
+                  "frame(s) of its 3D view between an edit and its new camera image: chromium's software WebGL "
                   "redraws on the same CPUs as the server."]
     lines += [
         "", f"The camera view {verdict} the issue's target (shown in the browser under {e['target_s']:g} s at "
