@@ -482,17 +482,17 @@ def measure_edits(app, page, frame: int, config: ViewBenchConfig, progress: Prog
 def close_notifications(page, wait_s: float = 10.0) -> None:
     """Close the browser's toasts (chromium's software WebGL is announced by one, a few seconds after the page
     loads) so they do not hide the view; waits up to ``wait_s`` for one to appear (a GPU browser shows none)."""
-    toast = page.locator(".mantine-Notification-root")
+    close = page.locator(".mantine-Notification-closeButton")
     try:
-        toast.first.wait_for(timeout=wait_s * 1000)
+        close.first.wait_for(timeout=wait_s * 1000)
     except Exception:  # noqa: BLE001 - playwright's timeout: no toast to close
         return
-    for button in toast.locator("button").all():
+    for button in close.all():
         try:
             button.click(timeout=2_000)
         except Exception:  # noqa: BLE001 - a toast that closed by itself meanwhile
             continue
-    page.wait_for_timeout(500)  # its closing animation
+    page.wait_for_timeout(1_500)  # its closing animation
 
 
 def _quantised_png(png: bytes, f) -> None:
