@@ -183,6 +183,18 @@ BENCHMARKS: tuple[Benchmark, ...] = (
                Section("EPDMS sub-scores per policy", "epdms_sub_scores", per_key=True,
                        columns=("n", "nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc", "ec", "with_lanes")),
                Section("Load", "load"))),
+    Benchmark("view", "Viewer", "omniscs bench view",
+              "`omniscs view` in Debian's headless chromium, whose WebGL is software (SwiftShader, on the CPU): time "
+              "to first frame and frame rate of the splat view while the camera orbits, for 50k / 200k / 500k "
+              "Gaussians (a floor for a machine with a GPU), and the time from an edit to the new camera image in "
+              "the browser at 640x360 against the 1 s target.",
+              (Section("Splat view", "splat_view",
+                       columns=("gaussians", "drawn_splats", "densified_copies", "server_setup_s", "page_load_s",
+                                "first_draw_s", "first_frame_after_s", "first_frame_s", "settled_s", "orbit_fps",
+                                "orbit_frames")),
+               Section("Edit to camera image", "edit_latency"),
+               Section("World", "world", columns=("scene", "scene_id", "fitted_gaussians", "agent_nodes", "frame",
+                                                  "fit_seconds", "heldout_psnr")))),
     Benchmark("scaleout", "Scale-out", "omniscs bench scaleout",
               "generate_dataset on 8 scenes with 1 and 2 Dask workers, a worker killed mid-fit, a projection.",
               (Section("Runs", "runs", columns=("workers", "killed", "wall_s", "scenes", "failed", "scenes_per_hour")),

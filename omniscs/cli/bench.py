@@ -370,6 +370,22 @@ def run_closedloop(o: ClosedloopOptions, out: Path, bars: Bars) -> Path:
 
 
 @dataclass(frozen=True)
+class ViewOptions:
+    workspace: Optional[Path] = None
+    """Where the benchmark's scene and fit go (reused)."""
+    quick: bool = False
+    """A tiny world and two small counts, one pass (a smoke run of the code path, not a measurement)."""
+
+
+def run_view(o: ViewOptions, out: Path, bars: Bars) -> Path:
+    from omniscs.bench.view import ViewBenchConfig, quick_config, run_view_benchmark
+
+    run_view_benchmark(out, o.workspace, quick_config() if o.quick else ViewBenchConfig(),
+                       progress=bars.sink("viewer bench"))
+    return out / "view" / "report.md"
+
+
+@dataclass(frozen=True)
 class AppearanceOptions:
     workspace: Optional[Path] = None
     """Where the scenes, fits and the benchmark pool go (reused)."""
@@ -520,6 +536,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     Benchmark("closedloop", ClosedloopOptions, run_closedloop, "Closed-loop testing: steps per second (1 x 640x360 "
               "and 6 x 800x450; render / policy / controller), the shipped policies' PDMS and HD-Score on logs vs "
               "behaviour-SCS variants, and 20 HUGSIM clients at once."),
+    Benchmark("view", ViewOptions, run_view, "The viewer in headless chromium (software WebGL): time to first "
+              "frame and orbiting frame rate of the splat view for 50k / 200k / 500k Gaussians, and the edit-to-camera-"
+              "image latency at 640x360 against the 1 s target; a screenshot."),
     Benchmark("appearance", AppearanceOptions, run_appearance, "Appearance-level SCS against the world's exact "
               "ground truth: pool objects inserted upright, on the side and overturned at sampled poses and "
               "replacing a vehicle, in the fitted graph and in the world; object masked PSNR/SSIM (plain, + colour "

@@ -15,7 +15,7 @@ from tests.test_layering import imported_modules
 
 ROOT = Path(__file__).resolve().parents[2]
 NAMES = ("world", "sources", "behavior", "fit", "edits", "render", "plan", "dataset", "agents", "scaleout",
-         "closedloop", "appearance", "background", "downstream", "reliability", "bad-inputs")
+         "closedloop", "view", "appearance", "background", "downstream", "reliability", "bad-inputs")
 runner = CliRunner()
 
 
