@@ -251,7 +251,7 @@ def test_impossible_and_malformed_requests_are_clear_errors(scene, graph, resolv
     with pytest.raises(OmniscsError, match="found 0 of 1"):
         make_appearance_variants(graph, scene, lambda _: giant, ["pm-giant"], 1)
     v = replace_variant(graph.scene_id, "a000", 1, huge, truck)
-    with pytest.raises(OmniscsError, match="not an appearance variant"):
+    with pytest.raises(OmniscsError, match="not an appearance or designed variant"):
         check_variant(dict(v, kind="cut_in"))
     with pytest.raises(OmniscsError, match="placement must be"):
         check_variant(dict(v, placement="teleport"))

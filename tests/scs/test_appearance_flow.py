@@ -64,7 +64,7 @@ def test_the_flow_makes_catalogues_and_annotates_appearance_variants(built):
     assert all((v, t) in seen for v, t in objects.items())  # each composited object is annotated where it shows
     assert all(a["is_adversary"] == (a["track_id"] == objects[a["variant_id"]]) for a in ann)
     card = json.loads((Path(result["dataset_path"]) / "dataset.json").read_text())
-    assert card["counts"]["variants_by_level"] == {"behaviour": 0, "appearance": 2}
+    assert card["counts"]["variants_by_level"] == {"behaviour": 0, "appearance": 2, "designed": 0}
 
 
 def test_an_unknown_object_or_a_missing_pool_fails_the_run_before_any_scene(prefect_harness, tmp_path, pool_path):
