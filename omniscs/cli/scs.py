@@ -9,7 +9,7 @@ import typer
 
 from omniscs.checks import MAX_SEED, MAX_THREADS
 
-from omniscs.cli.common import check_out, console, print_error, print_table, progress_bars
+from omniscs.cli.common import check_out, console, print_error, print_table, progress_bars, read_edits
 from omniscs.errors import OmniscsError
 from omniscs.untrusted import read_own_json
 
@@ -151,10 +151,14 @@ def scs_appearance(
     colour: bool = typer.Option(True, "--colour/--no-colour", help="Map objects' colours by the scene's colour "
                                                                    "transform (estimated from its vehicles)."),
     shadow: bool = typer.Option(True, "--shadow/--no-shadow", help="A soft contact shadow under each object."),
+    edit: Optional[str] = typer.Option(None, help="A designed scenario instead: an edit spec (JSON or @file, e.g. "
+                                                  "saved by omniscs view) rendered as one variant d000 (models from "
+                                                  "--pool)."),
     overwrite: bool = typer.Option(False, help="Replace an existing --out written by omniscs."),
 ) -> None:
     """Appearance-level SCS: composite pool objects into a fitted scene (replace an agent's model, insert at a pose,
-    or sample N valid placements) and render them with automatic ground truth."""
+    sample N valid placements, or render an edit spec as one designed variant) and render them with automatic
+    ground truth."""
     from omniscs.pipeline.appearance import appearance_scene_set
 
     check_out(out, overwrite)
@@ -162,10 +166,12 @@ def scs_appearance(
         result = appearance_scene_set(scene, out, pool=pool, checkpoint=nsg, insert=insert, pose=pose,
                                       replace=replace, with_model=with_model, sample=sample,
                                       objects=tuple(object_ids or ()), camera=camera, distance=distance, seed=seed,
-                                      colour=colour, shadow=shadow, progress=bars.sink(f"{scene.name} appearance"))
-    print_table([{"variant": v["variant_id"], "placement": v["placement"], "object": v["object_id"],
-                  "track": v["track_id"], "pose": (v.get("pose") or {}).get("name", "user") if v["placement"] == "insert"
-                  else "its motion"}
+                                      colour=colour, shadow=shadow, edits=read_edits(edit),
+                                      progress=bars.sink(f"{scene.name} appearance"))
+    print_table([{"variant": v["variant_id"], "placement": v.get("placement", v["kind"]), "object": v["object_id"],
+                  "track": v.get("track_id", v.get("adversary")),
+                  "pose": (v.get("pose") or {}).get("name", "user") if v.get("placement") == "insert"
+                  else "its motion" if v.get("placement") == "replace" else f"{len(v['edits'])} edit(s)"}
                  for v in result["specs"]], title=str(out / "variants.json"))
     print_table([{"variant": s["variant_id"], "frames": s["n_frames"], "images": s["n_images"],
                   "boxes": s["n_annotations"], "PSNR dB": s["fidelity_psnr"], "object PSNR dB":

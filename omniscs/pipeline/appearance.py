@@ -15,6 +15,7 @@ from omniscs.agents.dual import DualConfig, cropped_to_box, mirror_completed, se
 from omniscs.agents.pool import Pool, model_resolver
 from omniscs.annotate.dataset import PREVIEW_PNG, SCENES, write_preview
 from omniscs.annotate.scene import annotate_variants
+from omniscs.edits import edit_to_dict
 from omniscs.errors import OmniscsError
 from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
@@ -40,6 +41,7 @@ from omniscs.scs.appearance.compose import (
 from omniscs.scs.appearance.placement import PlacementConfig, check_placement, placement_context
 from omniscs.scs.appearance.variants import (
     AppearanceConfig,
+    designed_variant,
     make_appearance_variants,
     replacement_check,
     write_appearance_variants,
@@ -200,10 +202,11 @@ def render_appearance_set(scene, graph, variants: list[dict], out: Path, pool=No
 
 def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, insert=None, pose=None, replace=None,
                          with_model=None, sample=None, objects=(), camera=None, distance="8,30", seed=0,
-                         colour: bool = True, shadow: bool = True, workspace=None,
+                         colour: bool = True, shadow: bool = True, workspace=None, edits: list | None = None,
                          progress: Progress = no_progress) -> dict:
-    """What ``omniscs scs appearance`` does: the scene and its graph, the variants asked for (one by hand or ``sample``
-    drawn), the scene's colour transform, then ``render_appearance_set`` into ``out`` (a temporary folder that
+    """What ``omniscs scs appearance`` does: the scene and its graph, the variants asked for (one by hand, ``sample``
+    drawn, or ``edits``: an edit spec such as ``omniscs view`` saves, as one designed variant), the scene's colour
+    transform, then ``render_appearance_set`` into ``out`` (a temporary folder that
     becomes ``out`` only when everything is written). ``unrepaired`` in the result lists the large static objects
     whose footprint the variants uncover (``omniscs.plan.repair_objects``): rendered here without the background
     repair that ``omniscs generate`` runs for them (its uncovered stage), they leave a ghost."""
@@ -215,6 +218,8 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
         raise OmniscsError(f"--distance must be finite; got {distance!r}")
     if sample is not None and (insert is not None or replace is not None):
         raise OmniscsError("--sample draws its own placements: give it without --insert/--replace")
+    if edits and (sample is not None or insert is not None or replace is not None):
+        raise OmniscsError("--edit is a whole designed scenario: give it without --sample/--insert/--replace")
     if sample is not None and sample < 1:
         raise OmniscsError(f"--sample must be at least 1; got {sample}")
     if pool is not None and not Path(pool).is_dir():
@@ -229,7 +234,9 @@ def appearance_scene_set(scene_path, out: Path, pool=None, checkpoint=None, inse
     resolve = model_resolver(pool, node_model_resolver(graph)) if pool is not None else node_model_resolver(graph)
     p = Pool(pool) if pool is not None else None
     transform = scene_colour_transform(graph, scene, p) if colour else None
-    if sample is not None:
+    if edits:
+        specs = [designed_variant(scene.scene_id, [edit_to_dict(e) for e in edits])]
+    elif sample is not None:
         if p is None and not objects:
             raise OmniscsError("--sample takes its objects from --pool (or give --object ids)")
         ids = pool_objects(pool, tuple(objects)) if p is not None else list(objects)

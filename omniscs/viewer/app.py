@@ -423,7 +423,8 @@ class ViewerApp:
             n = len(self.target.session.edits())
             pool = f" --pool {self.target.pool}" if self.target.pool is not None else ""
             self.status.content = f"Saved {n} edit(s) to `{path}`. Render them: `omniscs render {self.target.path} " \
-                                  f"--edit @{path}{pool} --out edited.png`"
+                                  f"--edit @{path}{pool} --out edited.png`; make them a dataset: `omniscs generate " \
+                                  f"SOURCE --fit-preset fast --edit @{path}{pool} --annotate`"
             return path
 
     def pick_sample(self, store_id: str) -> None:

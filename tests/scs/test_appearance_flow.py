@@ -103,6 +103,31 @@ def test_scs_appearance_inserts_at_a_user_pose_and_refuses_an_overlap(built, poo
     assert "not repaired here" not in ok.output
 
 
+def test_scs_appearance_renders_a_saved_edit_spec_as_one_designed_variant(built, pool_path, tmp_path):
+    from omniscs.agents.pool import Pool
+
+    _, store, result = built
+    truck = Pool(pool_path).table().set_index("source").loc["box_truck-0020", "model_id"]
+    spec = [{"op": "insert", "track_id": 40, "asset_id": truck, "category": "truck", "pose": [24.0, 0.0, 1.7, 0.0],
+             "roll_deg": 180.0}, {"op": "translate", "track_id": 2, "lateral": -3.3}]
+    (tmp_path / "saved.json").write_text(json.dumps(spec))
+    out = tmp_path / "designed"
+    ok = CliRunner().invoke(app, ["scs", "appearance", str(store), "--nsg", _checkpoint(result), "--pool",
+                                  str(pool_path), "--edit", f"@{tmp_path / 'saved.json'}", "--out", str(out)])
+    assert ok.exit_code == 0, ok.output
+    (variant,) = json.loads((out / "variants.json").read_text())
+    assert (variant["variant_id"], variant["kind"], variant["tracks"]) == ("d000", "designed", [40, 2])
+    assert [e["op"] for e in variant["edits"]] == ["insert", "translate"] and variant["colour"] is not None
+    rows = json.loads((out / "scenes" / "rows.json").read_text())
+    assert rows["variants"][0]["level"] == "designed"
+    truck_rows = [a for a in rows["annotations"] if a["track_id"] == 40]
+    assert truck_rows and all(a["category"] == "truck" and abs(a["cx"] - 24.0) < 0.05 for a in truck_rows)
+    both = CliRunner().invoke(app, ["scs", "appearance", str(store), "--nsg", _checkpoint(result), "--edit",
+                                    json.dumps(spec[1:]), "--sample", "1", "--out", str(tmp_path / "x")])
+    assert isinstance(both.exception, OmniscsError) and "whole designed scenario" in str(both.exception)
+    assert not (tmp_path / "x").exists()
+
+
 def test_scs_appearance_warns_when_a_variant_uncovers_a_large_object_it_does_not_repair(built, pool_path, tmp_path,
                                                                                       monkeypatch):
     """By hand the background is not repaired (``omniscs generate``'s uncovered stage does it): the command says
