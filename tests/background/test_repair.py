@@ -44,6 +44,7 @@ def fitted(tmp_path_factory):
     return store, plan, record, tmp
 
 
+@pytest.mark.slow  # the module's fit (24 s) is shared with the slow tests: all of them in make test-slow
 def test_the_plan_asks_for_repair_and_the_holes_cover_the_trucks_pixels(fitted):
     from omniscs.nsg.checkpoint import load_graph
     from omniscs.nsg.observations import Observations
@@ -151,6 +152,7 @@ def test_the_refit_runs_at_the_fits_learning_rates_times_refit_lr_scale(fitted, 
             RepairConfig(refit_lr_scale=bad)
 
 
+@pytest.mark.slow  # the module's fit (24 s) is shared with the slow tests: all of them in make test-slow
 def test_inpainting_the_whole_hole_with_the_embedded_network_keeps_no_observed_pixel(fitted):
     from omniscs.background.inpaintnet import SHIPPED
     from omniscs.nsg.checkpoint import load_graph
@@ -221,6 +223,7 @@ def test_the_background_stage_writes_a_repaired_checkpoint_its_files_and_rows_an
     assert again.reused and again.path == first.path
 
 
+@pytest.mark.slow  # the module's fit (24 s) is shared with the slow tests: all of them in make test-slow
 def test_the_background_stage_skips_scenes_that_need_no_repair(fitted, tmp_path):
     store, _, record, _ = fitted
     plan = stages.load_plan(stages.plan_stage(store, SceneRequest(fit_preset="fast"), tmp_path / "ws"))

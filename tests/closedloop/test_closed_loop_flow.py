@@ -53,6 +53,7 @@ def test_a_scenario_that_cannot_run_is_recorded_failed_and_the_others_still_run(
     assert run == [{"status": "failed"}]
 
 
+@pytest.mark.slow  # 15 s (the flow starts before the refusal): make test's five minutes
 def test_the_cli_refuses_an_unknown_scene_or_policy_in_one_line(workspace, world):
     for args in (["closedloop", "run", "no-such-scene/log"],
                  ["closedloop", "run", f"{world[0].scene_id}/log", "--policy", "greedy"],
