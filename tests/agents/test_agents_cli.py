@@ -8,6 +8,9 @@ from omniscs.agents.pool import Pool
 from omniscs.cli import app
 from tests.nsg_fixtures import nsg_world, write_nsg_scene
 
+#: A pool build and a 360-degree fit, about 45 s: in `make test-slow` (make test's five minutes).
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):

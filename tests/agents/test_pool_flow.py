@@ -1,9 +1,12 @@
 """The build_pool flow: assets into a pool, catalogued (who added what); a rerun adds nothing new."""
 from __future__ import annotations
 
+import pytest
+
 from omniscs import catalog
 
 
+@pytest.mark.slow  # 11 s of pool building: make test's five minutes
 def test_build_pool_catalogues_every_model_and_a_rerun_adds_nothing_new(prefect_harness, tmp_path):
     from flows.pool import build_pool
 
