@@ -26,6 +26,9 @@ from shapely.geometry import Polygon
 
 from omniscs.scs.behavior.collision import footprints
 
+#: The server runs as its own process and serves two episodes at 800 px: in `make test-slow` (make test's five minutes).
+pytestmark = pytest.mark.slow
+
 CAMERA = "CAM_FRONT"
 #: The UniAD and VAD clients resize every image to this size and double the focal: a server for them renders at half.
 CLIENT_SIZE = (1600, 900)
