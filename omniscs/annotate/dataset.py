@@ -92,6 +92,9 @@ def assemble_dataset(annotated: list[str | Path], out_dir: Path, final_dir: Path
     return {"card": card, "samples": samples, "annotations": annotations, "variants": variants}
 
 
+#: 2D box colours of an annotation in the preview (and the viewer's dataset view): an ordinary one, the adversary.
+LABEL_COLOUR = (40, 220, 60)
+ADVERSARY_LABEL_COLOUR = (230, 30, 30)
 #: The variant levels a card counts, in order.
 LEVELS = ("behaviour", "appearance", "designed")
 
@@ -373,7 +376,7 @@ def write_preview(root: Path, samples: list[dict], annotations: list[dict], out_
         img = cv2.resize(img, (PREVIEW_TILE_WIDTH, max(1, int(round(img.shape[0] * scale)))),
                          interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_NEAREST)
         for a in by_image.get((s["store_id"], s["frame_idx"], s["camera"]), []):
-            colour = (230, 30, 30) if a["is_adversary"] else (40, 220, 60)
+            colour = ADVERSARY_LABEL_COLOUR if a["is_adversary"] else LABEL_COLOUR
             p1 = (int(a["x1"] * scale), int(a["y1"] * scale))
             p2 = (int(a["x2"] * scale) - 1, int(a["y2"] * scale) - 1)
             cv2.rectangle(img, p1, p2, colour, 1)

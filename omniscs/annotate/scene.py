@@ -10,8 +10,8 @@ import numpy as np
 
 from omniscs.annotate.config import AnnotateConfig
 from omniscs.annotate.replay import Replay, write_replay
-from omniscs.annotate.variant import (AnnotatedVariant, Reference, Sweep, background_tracks, variant_level,
-                                      write_annotated_variant)
+from omniscs.annotate.variant import (COMPOSED, DESIGNED, AnnotatedVariant, Reference, Sweep, background_tracks,
+                                      variant_level, write_annotated_variant)
 from omniscs.annotate.views import ViewAnnotator, background_members
 from omniscs.errors import OmniscsError
 from omniscs.gates import GateConfig, Verdict, edited_visible_frames, rendered_verdict
@@ -24,12 +24,6 @@ from omniscs.untrusted import read_own_json
 
 log = logging.getLogger(__name__)
 
-#: ``kind`` of an appearance-level variant (``omniscs.scs.appearance``).
-APPEARANCE = "appearance"
-#: ``kind`` of a designed variant (a request's edit spec, ``omniscs.scs.appearance.variants.designed_variant``).
-DESIGNED = "designed"
-#: Variants composed from their edits over the graph (the logged ego), as against driven behaviour variants.
-COMPOSED = (APPEARANCE, DESIGNED)
 #: What the annotate stage writes beside the variant stores: every catalog row and every variant's summary.
 ROWS_JSON = "rows.json"
 

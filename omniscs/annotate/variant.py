@@ -321,10 +321,18 @@ def _annotation_row(label, row, vf: VariantFrames, t: int, camera: str, variant:
             "num_lidar_points": -1, "vx": float(velocity[0]), "vy": float(velocity[1]), "vz": float(velocity[2])}
 
 
+#: ``kind`` of an appearance-level variant (``omniscs.scs.appearance``).
+APPEARANCE = "appearance"
+#: ``kind`` of a designed variant (a request's edit spec, ``omniscs.scs.appearance.variants.designed_variant``).
+DESIGNED = "designed"
+#: Variants composed from their edits over the graph (the logged ego), as against driven behaviour variants.
+COMPOSED = (APPEARANCE, DESIGNED)
+
+
 def variant_level(variant: dict) -> str:
     """The dataset level of a variant spec: ``appearance`` and ``designed`` (their ``kind``), else ``behaviour``."""
     kind = variant.get("kind")
-    return kind if kind in ("appearance", "designed") else "behaviour"
+    return kind if kind in COMPOSED else "behaviour"
 
 
 def _summary(variant: dict, vf: VariantFrames, solution: dict | None, fidelity: list[dict], render_s: float,

@@ -11,7 +11,8 @@ from pathlib import Path
 from omniscs.agents.pool import Pool, model_resolver
 from omniscs.annotate import AnnotateConfig
 from omniscs.annotate.replay import Replay
-from omniscs.annotate.scene import COMPOSED, annotate_variants, read_rows, replay_scene
+from omniscs.annotate.scene import annotate_variants, read_rows, replay_scene
+from omniscs.annotate.variant import COMPOSED
 from omniscs.gates import GateConfig
 from omniscs.locks import output_lock
 from omniscs.nsg.checkpoint import load_graph
@@ -185,8 +186,7 @@ def exact_sensors(scene, variants: list[dict], config: AnnotateConfig) -> dict:
         return {}
     worlds = variant_renderer(scene)
     pools = {v.get("pool") for v in variants if v.get("kind") in COMPOSED}
-    placed = {p: appearance_renderer(scene, pool_asset_of(Pool(p)) if p else (lambda model_id: None))
-              for p in pools}
+    placed = {p: appearance_renderer(scene, pool_asset_of(Pool(p) if p else None)) for p in pools}
 
     def per_pool(make):
         by_pool = {p: make(scene, None, renderer) for p, renderer in placed.items()}

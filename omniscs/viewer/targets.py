@@ -285,9 +285,6 @@ class DatasetTarget(StoreTarget):
 
 #: Largest rows.json a dataset target reads (its every annotation; about 0.5 MB per variant of 20 frames x 3 cameras).
 MAX_ROWS_BYTES = 2**30
-#: 2D box colours: an ordinary annotation, the variant's adversary.
-LABEL_COLOUR = (40, 220, 60)
-ADVERSARY_LABEL_COLOUR = (230, 30, 30)
 
 
 def dataset_labels(path: Path) -> dict[tuple[str, int, str], list[dict]]:
@@ -313,6 +310,8 @@ def dataset_labels(path: Path) -> dict[tuple[str, int, str], list[dict]]:
 def with_labels(image: np.ndarray, rows: list[dict]) -> np.ndarray:  # uint8 [H, W, 3] -> a copy, boxes drawn
     """``image`` with each annotation's 2D box (tight when it has one, else the projected one) and ``track vN``."""
     import cv2
+
+    from omniscs.annotate.dataset import ADVERSARY_LABEL_COLOUR, LABEL_COLOUR
 
     out = np.ascontiguousarray(image).copy()
     for a in rows:
