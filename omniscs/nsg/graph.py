@@ -5,7 +5,7 @@ import dataclasses
 import functools
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Collection, Mapping
+from typing import Any, Collection, Mapping, NamedTuple
 
 import numpy as np
 import torch
@@ -17,6 +17,7 @@ from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
+from omniscs.nsg.prepare import prepare_nodes
 from omniscs.nsg.relight import Relight
 from omniscs.nsg.sky import SkyParams, sky_colors
 from omniscs.render import rasterize
@@ -277,6 +278,15 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         parts.append((static, static.colours))
         slices[BACKGROUND] = slice(0, len(static.means))
         start = len(static.means)
+    if _fused_preparation(nodes, labels, static, activated):
+        nodes = [n for n in nodes if len(n[2])]
+        means, quats, scales, opacities, colours = prepare_nodes([(pose, params) for _, pose, params, _ in nodes],
+                                                                 camera_centre, degree)
+        parts.append((_Placed(means, quats, scales, opacities), colours))
+        for key, _, params, _ in nodes:
+            slices[key] = slice(start, start + len(params))
+            start += len(params)
+        nodes = []
     for key, world_from_node, params, relight in nodes:
         if len(params) == 0:
             continue
@@ -327,6 +337,28 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     if affine is not None:
         rgb = rgb @ affine[:, :3].T + affine[:, 3]
     return RenderOutput(rgb, depth, alpha, meta, slices, label_image)
+
+
+class _Placed(NamedTuple):
+    """World-frame rasterizer inputs of prepared nodes (what render_view concatenates)."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+
+
+def _fused_preparation(nodes, labels, static, activated) -> bool:
+    """Whether a render's nodes go through ``prepare_nodes`` (one fused pass, CPU) rather than node by node: when
+    gradients are being taken into the Gaussians (a fit or refit step, where the per-node operations' overhead
+    counts; other renders keep the node-by-node code, whose images they are compared with) and the nodes
+    are plain float32 CPU Gaussians at fixed poses (no differentiable pose, relighting, labels or prepared
+    background)."""
+    if not torch.is_grad_enabled() or labels is not None or static is not None or activated is not None:
+        return False
+    return any(p.means.requires_grad or p.sh_dc.requires_grad for _, _, p, _ in nodes) and all(
+        relight is None and not isinstance(pose, NodePose) and p.means.device.type == "cpu"
+        and p.means.dtype == torch.float32 for _, pose, p, relight in nodes)
 
 
 def _label_width(labels: Mapping[str, Tensor]) -> int:

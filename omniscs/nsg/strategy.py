@@ -62,7 +62,8 @@ class OptimisedGaussians:
         # one Adam with a group per parameter: the same update as one Adam each (state is per tensor), in one
         # step() call per node instead of six (a fit step's Python overhead)
         self.optimizer = torch.optim.Adam([{"params": [self.params[k]], "lr": learning_rates[k], "name": k}
-                                           for k in PARAM_NAMES], eps=1e-15)
+                                           for k in PARAM_NAMES], eps=1e-15,
+                                          fused=True)
         self._group = {k: i for i, k in enumerate(PARAM_NAMES)}
         self.device = params.device
         self.grad2d = torch.zeros(len(params), device=self.device)
@@ -86,7 +87,10 @@ class OptimisedGaussians:
         self.optimizer.param_groups[self._group[name]]["lr"] = lr
 
     def is_finite(self) -> bool:
-        return all(bool(torch.isfinite(v).all()) for v in self.params.values())
+        # a float64 sum of float32 values cannot overflow, and is NaN or infinite exactly when one value is: one
+        # reduction per tensor and one test, instead of a boolean tensor per parameter (checked every step)
+        with torch.no_grad():
+            return bool(torch.isfinite(torch.stack([v.sum(dtype=torch.float64) for v in self.params.values()])).all())
 
     # -- row surgery: parameters and Adam moments change together --------------------------
     def keep_and_append(self, keep: Tensor, new_rows: dict[str, Tensor] | None = None) -> None:

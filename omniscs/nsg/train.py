@@ -159,7 +159,7 @@ class _Trainer:
         if aux:
             self.aux_optimizer = torch.optim.Adam(
                 [{"params": [self.sky], "lr": config.lr.sky},
-                 {"params": list(self.exposure.values()), "lr": config.lr.exposure}], eps=1e-15)
+                 {"params": list(self.exposure.values()), "lr": config.lr.exposure}], eps=1e-15, fused=True)
 
     @classmethod
     def for_scene(cls, scene: Scene, plan: ScenePlan, config: FitConfig, obs: Observations) -> "_Trainer":
@@ -191,8 +191,11 @@ class _Trainer:
         return self.template.replace(background=get(BACKGROUND), agents=agents, sky=SkyParams(sky), exposure=exposure)
 
     def finite(self) -> bool:
-        return all(n.is_finite() for n in self.nodes.values()) and bool(torch.isfinite(self.sky).all()) and \
-            all(bool(torch.isfinite(t).all()) for t in self.exposure.values())
+        if not all(n.is_finite() for n in self.nodes.values()):
+            return False
+        with torch.no_grad():  # as OptimisedGaussians.is_finite: one float64 sum each, one test
+            sums = [self.sky.sum(dtype=torch.float64)] + [t.sum(dtype=torch.float64) for t in self.exposure.values()]
+            return bool(torch.isfinite(torch.stack(sums)).all())
 
     @property
     def n_gaussians(self) -> int:
