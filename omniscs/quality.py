@@ -22,6 +22,7 @@ from kornia.filters import get_gaussian_kernel1d
 from kornia.metrics import ssim as kornia_ssim
 from torch import Tensor
 
+from omniscs._ssim import FusedSSIMLoss
 from omniscs.errors import OmniscsError
 
 #: PSNR (dB) reported for identical images instead of +inf.
@@ -114,9 +115,21 @@ def ssim_loss(rendered: Tensor,  # [B, C, H, W], differentiable
     of sigma ``SSIM_SIGMA``), the same value, with gradients equal to rounding. kornia pads and filters each of the
     five moments (x, y, x², y², xy) on its own; here each image is padded once and the five moments are filtered
     by one grouped separable convolution: a fit step's SSIM forward+backward is 1.6x (120x68) to 2.4x (240x135)
-    faster on the CPU."""
+    faster on the CPU. A single float32 CPU image pair (a fit step) goes through ``omniscs._ssim``'s fused passes
+    instead, which accumulate in float64."""
     if window < 1 or window % 2 == 0:
         raise OmniscsError(f"ssim_loss: the window must be a positive odd number of pixels, got {window}")
+    if (rendered.device.type == "cpu" and rendered.dtype == torch.float32 and rendered.dim() == 4
+            and rendered.shape[0] == 1 and target.shape == rendered.shape and window // 2 < min(rendered.shape[2:])):
+        # a fit step's case: the fused Numba passes (omniscs._ssim), held to the code below by the tests
+        kernel = get_gaussian_kernel1d(window, SSIM_SIGMA, dtype=torch.float64)[0].numpy()
+        return FusedSSIMLoss.apply(rendered, target.to(torch.float32), kernel, (SSIM_K1 * data_range) ** 2,
+                                   (SSIM_K2 * data_range) ** 2, SSIM_EPS)
+    return _ssim_loss_torch(rendered, target, window, data_range)
+
+
+def _ssim_loss_torch(rendered: Tensor, target: Tensor, window: int, data_range: float = 1.0) -> Tensor:
+    """``ssim_loss`` in PyTorch operations: its definition, and its code for other devices and types."""
     channels = rendered.shape[1]
     kernel = get_gaussian_kernel1d(window, SSIM_SIGMA, device=rendered.device, dtype=rendered.dtype)[0]  # [k]
     pad = window // 2

@@ -136,3 +136,24 @@ def test_the_ssim_loss_of_identical_flat_black_images_is_zero_not_nan_and_even_w
     assert loss.item() == pytest.approx(1e-12 / (1e-4 * 9e-4) / 2, rel=1e-2) and torch.isfinite(black.grad).all()
     with pytest.raises(OmniscsError, match="odd"):
         ssim_loss(black, black.detach(), 4)
+
+
+@pytest.mark.parametrize("size, window", [((68, 120), 11), ((6, 6), 11), ((9, 7), 5), ((1, 3), 1)])
+def test_the_fused_cpu_ssim_loss_is_its_float64_definition_in_value_and_gradient(size, window):
+    from omniscs.quality import _ssim_loss_torch
+
+    g = torch.Generator().manual_seed(7)
+    rendered = torch.rand(1, 3, *size, generator=g) * 1.4 - 0.2  # a render may leave [0, 1]
+    target = torch.rand(1, 3, *size, generator=g)
+    rendered[0, 1] = 0.0  # a flat black plane against a flat black target
+    target[0, 1] = 0.0
+    fused_in = rendered.clone().requires_grad_(True)
+    reference_in = rendered.double().requires_grad_(True)
+    fused = ssim_loss(fused_in, target, window)
+    reference = _ssim_loss_torch(reference_in, target.double(), window)
+    fused.backward()
+    reference.backward()
+    assert fused.dtype == torch.float32 and bool(torch.isfinite(fused_in.grad).all())
+    assert abs(fused.item() - reference.item()) <= 1e-7
+    scale = reference_in.grad.abs().max().item()
+    assert scale > 0 and (fused_in.grad.double() - reference_in.grad).abs().max().item() <= 1e-5 * scale
