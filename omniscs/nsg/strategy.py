@@ -52,19 +52,61 @@ class DensifyStrategy:
         return self.reset_every > 0 and step > 0 and step % self.reset_every == 0 and step < self.refine_stop_iter
 
 
-class OptimisedGaussians:
-    """A node's raw parameters as leaf tensors, their Adam (a parameter group each, so rows can be added and
-    removed), and the gradient statistics the strategy accumulates between refinements."""
+class SharedAdam:
+    """One fused Adam for the raw parameters of many nodes: a parameter group per (name, learning rate), so every
+    node's tensors of one name and rate are updated by one kernel call (Adam is elementwise: the same update as an
+    optimiser per node, with a dozen nodes' six tensors in about a dozen calls instead of seventy)."""
 
-    def __init__(self, params: GaussianParams, learning_rates: dict[str, float]) -> None:
+    def __init__(self) -> None:
+        self.optimizer: torch.optim.Adam | None = None
+        self._group: dict[tuple, int] = {}
+
+    def add(self, key: tuple, tensor: Tensor, lr: float) -> None:
+        """Optimise ``tensor`` in the group named ``key`` (made with rate ``lr`` when new)."""
+        if key in self._group:
+            self.optimizer.param_groups[self._group[key]]["params"].append(tensor)
+            return
+        group = {"params": [tensor], "lr": lr}
+        if self.optimizer is None:
+            self.optimizer = torch.optim.Adam([group], eps=1e-15, fused=True)
+        else:
+            self.optimizer.add_param_group(group)
+        self._group[key] = len(self.optimizer.param_groups) - 1
+
+    def replace(self, key: tuple, old: Tensor, new: Tensor, state: dict | None) -> None:
+        """Put ``new`` where ``old`` was in group ``key``, with ``state`` (Adam's moments for its rows) or none."""
+        params = self.optimizer.param_groups[self._group[key]]["params"]
+        params[next(i for i, t in enumerate(params) if t is old)] = new
+        self.optimizer.state.pop(old, None)
+        if state is not None:
+            self.optimizer.state[new] = state
+
+    def state(self, tensor: Tensor) -> dict | None:
+        return None if self.optimizer is None else self.optimizer.state.get(tensor)
+
+    def set_lr(self, key: tuple, lr: float) -> None:
+        self.optimizer.param_groups[self._group[key]]["lr"] = lr
+
+    def step(self) -> None:
+        if self.optimizer is not None:
+            self.optimizer.step()
+            self.optimizer.zero_grad(set_to_none=True)
+
+
+class OptimisedGaussians:
+    """A node's raw parameters as leaf tensors, their Adam moments, and the gradient statistics the strategy
+    accumulates between refinements. ``adam`` shares one optimiser between nodes (the caller then steps it once for
+    all of them; ``step`` only steps an optimiser the node made for itself)."""
+
+    def __init__(self, params: GaussianParams, learning_rates: dict[str, float], adam: SharedAdam | None = None) -> None:
         self.params: dict[str, Tensor] = {k: v.detach().clone().requires_grad_(True)
                                           for k, v in params.as_dict().items()}
-        # one Adam with a group per parameter: the same update as one Adam each (state is per tensor), in one
-        # step() call per node instead of six (a fit step's Python overhead)
-        self.optimizer = torch.optim.Adam([{"params": [self.params[k]], "lr": learning_rates[k], "name": k}
-                                           for k in PARAM_NAMES], eps=1e-15,
-                                          fused=True)
-        self._group = {k: i for i, k in enumerate(PARAM_NAMES)}
+        self._owns_adam = adam is None
+        self.adam = SharedAdam() if adam is None else adam
+        # the means' rate is this node's own (it decays, and scales with the node's size); nodes share the others
+        self._key = {k: (k, id(self)) if k == "means" else (k, learning_rates[k]) for k in PARAM_NAMES}
+        for k in PARAM_NAMES:
+            self.adam.add(self._key[k], self.params[k], learning_rates[k])
         self.device = params.device
         self.grad2d = torch.zeros(len(params), device=self.device)
         self.count = torch.zeros(len(params), device=self.device)
@@ -80,11 +122,14 @@ class OptimisedGaussians:
         return GaussianParams.from_dict({k: v.detach().clone() for k, v in self.params.items()})
 
     def step(self) -> None:
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+        """One Adam step of this node's own optimiser (a shared one is stepped by its owner)."""
+        if self._owns_adam:
+            self.adam.step()
 
     def set_lr(self, name: str, lr: float) -> None:
-        self.optimizer.param_groups[self._group[name]]["lr"] = lr
+        if name != "means" and not self._owns_adam:
+            raise ValueError("only the means' rate is a node's own when nodes share an optimiser")
+        self.adam.set_lr(self._key[name], lr)
 
     def is_finite(self) -> bool:
         # a float64 sum of float32 values cannot overflow, and is NaN or infinite exactly when one value is: one
@@ -102,9 +147,7 @@ class OptimisedGaussians:
             if n_new:
                 data = torch.cat([data, new_rows[name].to(data.dtype)])
             fresh = data.clone().requires_grad_(True)
-            opt = self.optimizer
-            state = opt.state.pop(old, None)
-            opt.param_groups[self._group[name]]["params"] = [fresh]
+            state = self.adam.state(old)
             if state is not None:
                 for buf in ADAM_BUFFERS:
                     if buf in state:
@@ -112,13 +155,13 @@ class OptimisedGaussians:
                         if n_new:
                             moved = torch.cat([moved, moved.new_zeros((n_new,) + moved.shape[1:])])
                         state[buf] = moved
-                opt.state[fresh] = state
+            self.adam.replace(self._key[name], old, fresh, state)
             self.params[name] = fresh
         self.grad2d = torch.cat([self.grad2d[keep], torch.zeros(n_new, device=self.device)])
         self.count = torch.cat([self.count[keep], torch.zeros(n_new, device=self.device)])
 
     def reset_moments(self, name: str) -> None:
-        state = self.optimizer.state.get(self.params[name])
+        state = self.adam.state(self.params[name])
         if state:
             for buf in ADAM_BUFFERS:
                 if buf in state:

@@ -22,7 +22,7 @@ from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_
 from omniscs.quality import psnr, ssim, ssim_loss
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
-from omniscs.nsg.strategy import OptimisedGaussians, accumulate_gradients, refine, reset_opacities
+from omniscs.nsg.strategy import OptimisedGaussians, SharedAdam, accumulate_gradients, refine, reset_opacities
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress
 from omniscs.scene.store import Scene
@@ -136,6 +136,7 @@ class _Trainer:
                  aux: bool = True) -> None:
         self.config, self.template = config, template
         self.generator = torch.Generator().manual_seed(config.seed)  # host generator: same splits on any device
+        self.adam = SharedAdam()  # every node's Gaussians, stepped once a step
         self.nodes: dict[str, OptimisedGaussians] = {}
         self.fixed: dict[str, GaussianParams] = {}
         self.scene_scale: dict[str, float] = {}
@@ -175,7 +176,7 @@ class _Trainer:
         lr = self.config.lr
         rates = {"means": lr.means * scene_scale, "quats": lr.quats, "log_scales": lr.log_scales,
                  "opacity_logits": lr.opacity_logits, "sh_dc": lr.sh_dc, "sh_rest": lr.sh_rest}
-        self.nodes[key] = OptimisedGaussians(params, rates)
+        self.nodes[key] = OptimisedGaussians(params, rates, self.adam)
         self.scene_scale[key] = scene_scale
         self.budget[key] = max(budget, len(params))
         self.base_means_lr[key] = rates["means"]
@@ -236,7 +237,7 @@ class _Trainer:
         decay = cfg.lr.means_final_ratio ** progress
         for key, node in self.nodes.items():
             node.set_lr("means", self.base_means_lr[key] * decay)
-            node.step()
+        self.adam.step()
         if self.aux_optimizer is not None:
             self.aux_optimizer.step()
             self.aux_optimizer.zero_grad(set_to_none=True)

@@ -92,8 +92,10 @@ def test_densify_clones_small_splits_large_and_respects_the_budget():
     counts = refine(strategy, node, 100, scene_scale=1.0, budget=10_000, generator=torch.Generator())
     assert counts == {"cloned": 50, "split": 50, "pruned": 0}
     assert len(node) == 300
-    for group in node.optimizer.param_groups:
-        assert group["params"][0].shape[0] == 300 and group["params"][0] is node.params[group["name"]]
+    optimised = [t for group in node.adam.optimizer.param_groups for t in group["params"]]
+    assert len(optimised) == len(node.params)
+    for tensor in node.params.values():
+        assert tensor.shape[0] == 300 and any(t is tensor for t in optimised)
     capped = _synthetic_node(200)
     accumulate_gradients(strategy, capped, torch.ones(200, 2), torch.ones(200, 2, dtype=torch.int32), 10, 10)
     refine(strategy, capped, 100, scene_scale=1.0, budget=230, generator=torch.Generator())
@@ -177,3 +179,34 @@ def test_a_scene_too_short_to_hold_frames_out_has_no_held_out_score_rather_than_
 
     held = evaluate_graph(SimpleNamespace(cameras=[SimpleNamespace(name="CAM_FRONT")]), None, [])
     assert held == {"psnr": None, "ssim": None, "n_views": 0, "views": []}
+
+
+def test_nodes_sharing_one_adam_update_exactly_as_nodes_with_their_own_through_row_surgery():
+    from omniscs.nsg.strategy import SharedAdam
+
+    strategy = DensifyStrategy(grow_grad2d=0.1, grow_scale3d=0.1, refine_start_iter=0, prune_opa=0.2)
+    shared = SharedAdam()
+    pairs = [(_synthetic_node(120), OptimisedGaussians(_synthetic_node(120).current(), RATES, shared))
+             for _ in range(2)]
+    pairs[1][0].set_lr("means", 3e-3)  # a node's own means rate
+    pairs[1][1].set_lr("means", 3e-3)
+    for step in range(6):
+        for k, (own, member) in enumerate(pairs):
+            for node in (own, member):
+                loss = sum(((v - 0.1 * (k + 1)) ** 2).sum() for v in node.params.values())
+                loss.backward()
+            own.step()
+        shared.step()
+        if step == 2:  # clone / split / prune on both copies of node 0 alike
+            for node in pairs[0]:
+                accumulate_gradients(strategy, node, torch.ones(120, 2), torch.ones(120, 2, dtype=torch.int32), 10, 10)
+                refine(strategy, node, 100, scene_scale=1.0, budget=150, generator=torch.Generator().manual_seed(1))
+            moments = shared.state(pairs[0][1].params["sh_dc"])["exp_avg_sq"]  # moved with the rows, new rows at 0
+            assert moments.shape[0] == len(pairs[0][1]) and 0 < int((moments.abs().sum(-1) > 0).sum()) < len(moments)
+    for own, member in pairs:
+        assert len(own) == len(member)
+        for name in own.params:
+            assert torch.equal(own.params[name], member.params[name]), name
+            assert torch.equal(own.adam.state(own.params[name])["exp_avg_sq"],
+                               shared.state(member.params[name])["exp_avg_sq"]), name
+    assert len(pairs[0][0]) != 120  # the surgery happened
