@@ -25,10 +25,6 @@ SIGMA_CUT_SLACK = 1e-5
 #: rounding never skips a row holding a pixel that passes the per-pixel sigma test.
 ROW_SPAN_SLACK = 1e-4
 
-#: Pixels of slack of the test that skips a tile row whose stretch of the cut-off ellipse lies wholly left or right
-#: of the Gaussian's lanes in the tile (only skips rows where every lane would fail the per-pixel sigma test).
-SPAN_SLACK_PX = 0.05
-
 #: Columns of a packed Gaussian record (float32, one 64-byte cache line): centre x, y; conic a, b, c;
 #: opacity; sigma cut-off; for the row test 2 a (cut-off + ROW_SPAN_SLACK) and a c - b^2; the
 #: inclusive pixel box x_lo, x_hi, y_lo, y_hi (integers, exact in float32); 3 unused.
@@ -55,7 +51,6 @@ REAL = np.float32
 _ZERO, _HALF, _ONE = REAL(0.0), REAL(0.5), REAL(1.0)
 _MAX_ALPHA, _ALPHA_THRESHOLD, _TRANSMITTANCE_STOP = REAL(MAX_ALPHA), REAL(ALPHA_THRESHOLD), REAL(TRANSMITTANCE_STOP)
 _EXP_SCALE = REAL(1.0 / (1 << EXP_SQUARINGS))
-_SPAN_SLACK_PX = REAL(SPAN_SLACK_PX)
 _TAYLOR = (REAL(1.0 / 2.0), REAL(1.0 / 6.0), REAL(1.0 / 24.0), REAL(1.0 / 120.0))
 
 #: Bits per pass of the radix sort of depth keys (2^11 buckets fit in L1).
@@ -279,21 +274,6 @@ def _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row):
 
 
 @nb.njit(cache=True, inline="always")
-def _row_misses(records, g, dy, x0, first, last):
-    """True when tile row dy (centre minus pixel row) holds no pixel of Gaussian g's cut-off ellipse among lanes
-    first..last: the row misses the ellipse, or the ellipse's stretch of it lies beside those lanes. The stretch is
-    where sigma(dx) <= cut + ROW_SPAN_SLACK, |dx - dx*| <= sqrt(2 a (cut + slack) - dy^2 (a c - b^2)) / a about
-    dx* = -b dy / a, widened by SPAN_SLACK_PX; forward and backward skip the same rows."""
-    disc = records[g, REC_ROW_SCALE] - dy * dy * records[g, REC_CONIC_DET]
-    if disc < _ZERO:
-        return True
-    a = records[g, REC_A]
-    half = math.sqrt(disc) / a + _SPAN_SLACK_PX
-    middle = records[g, REC_X] + records[g, REC_B] * dy / a - (REAL(x0) + _HALF)  # in lanes
-    return middle + half < REAL(first) or middle - half > REAL(last)
-
-
-@nb.njit(cache=True, inline="always")
 def _tile_of(job, width, height):
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
@@ -334,6 +314,8 @@ def rasterize_forward(
             g = isect_gaussians[p]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
+            row_scale = records[g, REC_ROW_SCALE]
+            conic_det = records[g, REC_CONIC_DET]
             c0 = colors[g, 0] if n_channels > 0 else _ZERO
             c1 = colors[g, 1] if n_channels > 1 else _ZERO
             c2 = colors[g, 2] if n_channels > 2 else _ZERO
@@ -341,7 +323,7 @@ def rasterize_forward(
             for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
                 dy = records[g, REC_Y] - (REAL(py) + _HALF)
-                if live_in_row[ly] == 0 or _row_misses(records, g, dy, x0, first, last):
+                if live_in_row[ly] == 0 or row_scale < dy * dy * conic_det:
                     continue  # the row is finished or misses the cut-off ellipse
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
                 stopped = 0
@@ -439,7 +421,6 @@ def rasterize_backward(
         weight_row = np.empty(TILE_SIZE, dtype=records.dtype)
         grad_alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
         lanes = np.zeros((N_GEOMETRY_SLOTS + n_planes, TILE_SIZE), dtype=records.dtype)  # back to 0 after each Gaussian
-        pairs = np.empty(TILE_SIZE // 2, dtype=records.dtype)
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
             g = isect_gaussians[p]
@@ -448,6 +429,8 @@ def rasterize_backward(
             cb = records[g, REC_B]
             cc = records[g, REC_C]
             opacity = records[g, REC_OPACITY]
+            row_scale = records[g, REC_ROW_SCALE]
+            conic_det = records[g, REC_CONIC_DET]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
             c0 = colors[g, 0] if n_channels > 0 else _ZERO
@@ -459,7 +442,7 @@ def rasterize_backward(
             for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
                 dy = records[g, REC_Y] - (REAL(py) + _HALF)
-                if rank >= row_max_count[ly] or _row_misses(records, g, dy, x0, first, last):
+                if rank >= row_max_count[ly] or row_scale < dy * dy * conic_det:
                     continue
                 _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
                 valid_lanes = 0
@@ -520,12 +503,12 @@ def rasterize_backward(
                     lanes[7, i] += abs(gy)
             if touched == 0:
                 continue  # lanes were only ever incremented by zero
-            for k in range(n_slots):  # a fixed pairwise order over the 16 lanes (zero outside first..last)
-                for i in range(TILE_SIZE // 2):
-                    pairs[i] = lanes[k, i] + lanes[k, i + TILE_SIZE // 2]
+            for k in range(n_slots):
+                total = 0.0
+                for i in range(first, last + 1):
+                    total += lanes[k, i]
                     lanes[k, i] = _ZERO
-                    lanes[k, i + TILE_SIZE // 2] = _ZERO
-                slots[p, k] = ((pairs[0] + pairs[4]) + (pairs[2] + pairs[6])) + ((pairs[1] + pairs[5]) + (pairs[3] + pairs[7]))
+                slots[p, k] = total
 
 
 @nb.njit(cache=True, parallel=True)
