@@ -522,6 +522,14 @@ def preset_table(reports: Path = REPORTS) -> str:
             c = against.get(s["preset"])
             cells += ["—", "—"] if c is None else [f"{c['speedup']:.2f}x", f"{c['psnr_difference_db']:+.2f} dB"]
         lines.append("| " + " | ".join(cells) + " |")
+    measured_presets = {s["preset"] for s in report.get("summary", [])}
+    for name, given in code_preset_settings().items():  # a preset the run left out: its settings, no figures
+        if name in measured_presets:
+            continue
+        cells = [f"`{name}`", f"{given['iterations']:,}", schedule_text(given["resolution_schedule"]),
+                 fmt(given.get("sh_degree")), f"{given['gaussians_per_m2']:g} /m² (max {given['max_gaussians'] / 1000:g}k)",
+                 "not measured in this run"] + ["—"] * (len(head) - 6)
+        lines.append("| " + " | ".join(cells) + " |")
     machine = report.get("machine", {})
     load = machine.get("load_average_start") or [None]
     source = "as the report records them" if report.get("preset_settings") else "the code's (`PRESETS`)"
