@@ -52,6 +52,17 @@ class DensifyStrategy:
         return self.reset_every > 0 and step > 0 and step % self.reset_every == 0 and step < self.refine_stop_iter
 
 
+def all_finite(tensors) -> bool:
+    """Whether every value of the float32 ``tensors`` is finite, in one reduction each and one test (a fit checks its
+    parameters every step): a float64 sum of float32 values cannot overflow, and is NaN or infinite exactly when one
+    value is. Tensors of another type are tested value by value."""
+    tensors = list(tensors)
+    with torch.no_grad():
+        if any(t.dtype != torch.float32 for t in tensors):
+            return all(bool(torch.isfinite(t).all()) for t in tensors)
+        return bool(torch.isfinite(torch.stack([t.sum(dtype=torch.float64) for t in tensors])).all())
+
+
 class SharedAdam:
     """One fused Adam for the raw parameters of many nodes: a parameter group per (name, learning rate), so every
     node's tensors of one name and rate are updated by one kernel call (Adam is elementwise: the same update as an
@@ -132,10 +143,7 @@ class OptimisedGaussians:
         self.adam.set_lr(self._key[name], lr)
 
     def is_finite(self) -> bool:
-        # a float64 sum of float32 values cannot overflow, and is NaN or infinite exactly when one value is: one
-        # reduction per tensor and one test, instead of a boolean tensor per parameter (checked every step)
-        with torch.no_grad():
-            return bool(torch.isfinite(torch.stack([v.sum(dtype=torch.float64) for v in self.params.values()])).all())
+        return all_finite(self.params.values())
 
     # -- row surgery: parameters and Adam moments change together --------------------------
     def keep_and_append(self, keep: Tensor, new_rows: dict[str, Tensor] | None = None) -> None:

@@ -22,7 +22,8 @@ from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_
 from omniscs.quality import psnr, ssim, ssim_loss
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
-from omniscs.nsg.strategy import OptimisedGaussians, SharedAdam, accumulate_gradients, refine, reset_opacities
+from omniscs.nsg.strategy import (OptimisedGaussians, SharedAdam, accumulate_gradients, all_finite, refine,
+                                  reset_opacities)
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress
 from omniscs.scene.store import Scene
@@ -192,11 +193,7 @@ class _Trainer:
         return self.template.replace(background=get(BACKGROUND), agents=agents, sky=SkyParams(sky), exposure=exposure)
 
     def finite(self) -> bool:
-        if not all(n.is_finite() for n in self.nodes.values()):
-            return False
-        with torch.no_grad():  # as OptimisedGaussians.is_finite: one float64 sum each, one test
-            sums = [self.sky.sum(dtype=torch.float64)] + [t.sum(dtype=torch.float64) for t in self.exposure.values()]
-            return bool(torch.isfinite(torch.stack(sums)).all())
+        return all(n.is_finite() for n in self.nodes.values()) and all_finite([self.sky, *self.exposure.values()])
 
     @property
     def n_gaussians(self) -> int:
