@@ -53,6 +53,9 @@ _MAX_ALPHA, _ALPHA_THRESHOLD, _TRANSMITTANCE_STOP = REAL(MAX_ALPHA), REAL(ALPHA_
 _EXP_SCALE = REAL(1.0 / (1 << EXP_SQUARINGS))
 _TAYLOR = (REAL(1.0 / 2.0), REAL(1.0 / 6.0), REAL(1.0 / 24.0), REAL(1.0 / 120.0))
 
+#: Tile-list entries between two refreshes of the forward pass's per-row liveness.
+LIVENESS_CHECK = 32
+
 #: Bits per pass of the radix sort of depth keys (2^11 buckets fit in L1).
 RADIX_BITS = 11
 
@@ -249,28 +252,28 @@ def _exp_neg(sigma):
 
 
 @nb.njit(cache=True, inline="always")
-def _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row):
-    """exp(-sigma) and alpha of Gaussian g over the TILE_SIZE pixels of one tile row (alpha 0 = skipped).
+def _lane_alpha(mx, ca, cb_dy, cc_dy2, opacity, cut, left, i, first, last):
+    """exp(-sigma) and alpha of a Gaussian at lane i (tile-relative column) of one tile row (alpha 0 = skipped).
 
-    Lanes first..last (tile-relative columns) are the Gaussian's pixel box; the loop has a fixed
-    trip count and no branches so that LLVM vectorises it. Forward and backward both call it, so
-    they take identical decisions.
+    Lanes first..last are the Gaussian's pixel box. Branch-free, so that LLVM vectorises the 16-lane
+    loops that call it; forward and backward both call it, so they take identical decisions.
     """
-    mx = records[g, REC_X]
-    ca = records[g, REC_A]
-    cb_dy = records[g, REC_B] * dy
-    cc_dy2 = records[g, REC_C] * dy * dy
-    opacity = records[g, REC_OPACITY]
-    cut = records[g, REC_CUT]
-    left = REAL(x0) + _HALF
-    for i in range(TILE_SIZE):
-        dx = mx - (left + REAL(i))
-        sigma = _HALF * (ca * dx * dx + cc_dy2) + cb_dy * dx
-        inside = (i >= first) & (i <= last) & (sigma >= _ZERO) & (sigma <= cut)
-        gaussian = _exp_neg(min(max(sigma, _ZERO), cut))
-        alpha = min(_MAX_ALPHA, opacity * gaussian)
-        gaussian_row[i] = gaussian
-        alpha_row[i] = alpha if inside & (alpha >= _ALPHA_THRESHOLD) else _ZERO
+    dx = mx - (left + REAL(i))
+    sigma = _HALF * (ca * dx * dx + cc_dy2) + cb_dy * dx
+    inside = (i >= first) & (i <= last) & (sigma >= _ZERO) & (sigma <= cut)
+    gaussian = _exp_neg(min(max(sigma, _ZERO), cut))
+    alpha = min(_MAX_ALPHA, opacity * gaussian)
+    return gaussian, (alpha if inside & (alpha >= _ALPHA_THRESHOLD) else _ZERO)
+
+
+@nb.njit(cache=True, inline="always")
+def _sum_lanes(row):
+    """Sum of a row's TILE_SIZE lanes in float64, in a fixed pairwise order."""
+    s0 = (np.float64(row[0]) + np.float64(row[8])) + (np.float64(row[4]) + np.float64(row[12]))
+    s1 = (np.float64(row[2]) + np.float64(row[10])) + (np.float64(row[6]) + np.float64(row[14]))
+    s2 = (np.float64(row[1]) + np.float64(row[9])) + (np.float64(row[5]) + np.float64(row[13]))
+    s3 = (np.float64(row[3]) + np.float64(row[11])) + (np.float64(row[7]) + np.float64(row[15]))
+    return (s0 + s1) + (s2 + s3)
 
 
 @nb.njit(cache=True, inline="always")
@@ -293,46 +296,70 @@ def rasterize_forward(
     out_alphas,         # [C, H, W, 1] float32: 1 - final transmittance
     out_transmittance,  # [C, H, W] float32: final transmittance (kept for the backward pass)
     out_counts,         # [C, H, W] int32: list entries up to and including the last one composited
+    out_row_masks,      # [M] int32: per intersection, bit ly set where it composited a pixel of tile row ly
 ):
+    """Composite each tile's list front to back.
+
+    A pixel stops when its transmittance would fall to TRANSMITTANCE_STOP; the tile buffer then holds
+    its transmittance negated (one buffer for both). Which rows still have a live pixel, and whether
+    any has, is refreshed every LIVENESS_CHECK entries rather than counted per row (a per-row count
+    is a horizontal sum that costs more than the rows it skips).
+    """
     n_cams, height, width, n_channels = out_colors.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     for job in nb.prange(n_cams * tiles_x * tiles_y):
         cam, x0, y0, tw, th = _tile_of(job, width, height)
         transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
-        active = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)  # 1 until the pixel stops
+        for ly in range(TILE_SIZE):
+            for lx in range(TILE_SIZE):
+                if ly >= th or lx >= tw:
+                    transmittance[ly, lx] = -_ONE  # outside the image: never composited
         counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int32)
         accumulated = np.zeros((max(n_channels, FUSED_CHANNELS), TILE_SIZE, TILE_SIZE), dtype=records.dtype)
-        gaussian_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
         weight_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        live_in_row = np.zeros(TILE_SIZE, dtype=np.int64)  # pixels of each row still compositing
-        live_in_row[:th] = tw
-        n_done = 0
+        row_live = np.zeros(TILE_SIZE, dtype=np.bool_)
+        row_live[:th] = True
+        left = REAL(x0) + _HALF
         start = tile_offsets[job]
-        for p in range(start, tile_offsets[job + 1]):
+        end = tile_offsets[job + 1]
+        for p in range(start, end):
+            out_row_masks[p] = 0
+        for p in range(start, end):
+            if (p - start) % LIVENESS_CHECK == LIVENESS_CHECK - 1:
+                any_live = False
+                for ly in range(th):
+                    live = 0
+                    for i in range(TILE_SIZE):
+                        live += 1 if transmittance[ly, i] > _ZERO else 0
+                    row_live[ly] = live > 0
+                    any_live |= live > 0
+                if not any_live:
+                    break
             g = isect_gaussians[p]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
-            row_scale = records[g, REC_ROW_SCALE]
-            conic_det = records[g, REC_CONIC_DET]
+            mx, ca, cb, cc = records[g, REC_X], records[g, REC_A], records[g, REC_B], records[g, REC_C]
+            opacity, cut = records[g, REC_OPACITY], records[g, REC_CUT]
+            row_scale, conic_det = records[g, REC_ROW_SCALE], records[g, REC_CONIC_DET]
             c0 = colors[g, 0] if n_channels > 0 else _ZERO
             c1 = colors[g, 1] if n_channels > 1 else _ZERO
             c2 = colors[g, 2] if n_channels > 2 else _ZERO
             c3 = colors[g, 3] if n_channels > 3 else _ZERO
+            row_mask = 0
             for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
                 ly = py - y0
                 dy = records[g, REC_Y] - (REAL(py) + _HALF)
-                if live_in_row[ly] == 0 or row_scale < dy * dy * conic_det:
+                if not row_live[ly] or row_scale < dy * dy * conic_det:
                     continue  # the row is finished or misses the cut-off ellipse
-                _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
-                stopped = 0
-                composited = 0
+                cb_dy = cb * dy
+                cc_dy2 = cc * dy * dy
+                any_go = False
                 for i in range(TILE_SIZE):
-                    alpha = alpha_row[i]
+                    _, alpha = _lane_alpha(mx, ca, cb_dy, cc_dy2, opacity, cut, left, i, first, last)
                     t_before = transmittance[ly, i]
                     t_after = t_before * (_ONE - alpha)
-                    live = (alpha > _ZERO) & (active[ly, i] > _ZERO)
+                    live = (alpha > _ZERO) & (t_before > _ZERO)
                     go = live & (t_after > _TRANSMITTANCE_STOP)
                     stop = live & (t_after <= _TRANSMITTANCE_STOP)
                     weight = alpha * t_before if go else _ZERO
@@ -341,25 +368,22 @@ def rasterize_forward(
                     accumulated[1, ly, i] += weight * c1
                     accumulated[2, ly, i] += weight * c2
                     accumulated[3, ly, i] += weight * c3
-                    transmittance[ly, i] = t_after if go else t_before
+                    transmittance[ly, i] = t_after if go else (-t_before if stop else t_before)
                     counts[ly, i] = np.int32(p - start + 1) if go else counts[ly, i]
-                    active[ly, i] = _ZERO if stop else active[ly, i]
-                    stopped += 1 if stop else 0
-                    composited += 1 if go else 0
-                if composited > 0:
-                    for k in range(FUSED_CHANNELS, n_channels):
-                        color = colors[g, k]
-                        if color == _ZERO:
-                            continue  # adds exactly nothing (weights are finite): sparse channels such as labels
-                        for i in range(TILE_SIZE):
-                            accumulated[k, ly, i] += weight_row[i] * color
-                live_in_row[ly] -= stopped
-                n_done += stopped
-            if n_done == tw * th:
-                break
+                    any_go |= go
+                if not any_go:
+                    continue
+                row_mask |= 1 << ly
+                for k in range(FUSED_CHANNELS, n_channels):
+                    color = colors[g, k]
+                    if color == _ZERO:
+                        continue  # adds exactly nothing (weights are finite): sparse channels such as labels
+                    for i in range(TILE_SIZE):
+                        accumulated[k, ly, i] += weight_row[i] * color
+            out_row_masks[p] = row_mask
         for ly in range(th):
             for lx in range(tw):
-                t_final = transmittance[ly, lx]
+                t_final = abs(transmittance[ly, lx])
                 out_transmittance[cam, y0 + ly, x0 + lx] = t_final
                 out_alphas[cam, y0 + ly, x0 + lx, 0] = _ONE - t_final
                 out_counts[cam, y0 + ly, x0 + lx] = counts[ly, lx]
@@ -367,129 +391,132 @@ def rasterize_forward(
                     out_colors[cam, y0 + ly, x0 + lx, k] = accumulated[k, ly, lx] + t_final * backgrounds[cam, k]
 
 
+#: Planes of the backward pass's tile state (one array: fewer arrays in a loop, fewer runtime alias
+#: checks between them): running transmittance, final transmittance, dL/d(final transmittance), the
+#: first FUSED_CHANNELS colour gradients, and the colour composited behind, per fused channel.
+_P_T, _P_FINAL, _P_GRAD_FINAL, _P_GRAD_OUT, _P_BEHIND = 0, 1, 2, 3, 3 + FUSED_CHANNELS
+_N_PLANES = 3 + 2 * FUSED_CHANNELS
+
+#: Rows of the backward pass's per-row scratch: exp(-sigma), transmittance before, 1 / (1 - alpha), weight, dL/dalpha.
+_R_GAUSSIAN, _R_T_BEFORE, _R_INV_KEEP, _R_WEIGHT, _R_GRAD_ALPHA = range(5)
+
+
 @nb.njit(cache=True, parallel=True)
 def rasterize_backward(
     tile_offsets, isect_gaussians, records, colors, backgrounds,  # as in rasterize_forward
     transmittance_final,  # [C, H, W] float32 from the forward pass
     counts,               # [C, H, W] int32 from the forward pass
+    row_masks,            # [M] int32 from the forward pass
     grad_colors,          # [C, H, W, D] float32, dL/d(rendered colours)
     grad_alphas,          # [C, H, W, 1] float32, dL/d(rendered alphas)
     slots,                # [M, N_GEOMETRY_SLOTS + D] float32 out: this intersection's gradient terms
 ):
     """Walk each tile's list back to front, rebuilding transmittance by division (as gsplat).
 
-    Per-Gaussian sums are kept per lane (pixel column) and added across lanes in a fixed order at
-    the end, which vectorises without reassociating floating-point sums.
+    Only the rows where the forward pass composited a pixel are visited (``row_masks``): a pixel
+    gets a gradient from exactly the Gaussians that were composited there. Per-Gaussian sums are
+    kept per lane (pixel column) and added across lanes in a fixed order at the end, which
+    vectorises without reassociating floating-point sums.
     """
     n_cams, height, width, n_channels = grad_colors.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
     tiles_y = (height + TILE_SIZE - 1) // TILE_SIZE
     n_slots = N_GEOMETRY_SLOTS + n_channels
+    n_extra = max(n_channels - FUSED_CHANNELS, 0)
     for job in nb.prange(n_cams * tiles_x * tiles_y):
         cam, x0, y0, tw, th = _tile_of(job, width, height)
         start = tile_offsets[job]
         for p in range(start, tile_offsets[job + 1]):
             for k in range(n_slots):
                 slots[p, k] = 0.0
-        transmittance = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
-        final = np.ones((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
-        grad_final = np.zeros((TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        state = np.zeros((_N_PLANES, TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        state[_P_T] = _ONE
+        state[_P_FINAL] = _ONE
         tile_counts = np.zeros((TILE_SIZE, TILE_SIZE), dtype=np.int32)
-        n_planes = max(n_channels, FUSED_CHANNELS)
-        grad_out = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=records.dtype)
-        behind = np.zeros((n_planes, TILE_SIZE, TILE_SIZE), dtype=records.dtype)  # colour composited behind
+        extra_grad_out = np.zeros((n_extra, TILE_SIZE, TILE_SIZE), dtype=records.dtype)
+        extra_behind = np.zeros((n_extra, TILE_SIZE, TILE_SIZE), dtype=records.dtype)
         max_count = 0
-        row_max_count = np.zeros(TILE_SIZE, dtype=np.int64)  # no pixel of the row composited beyond this
         for ly in range(th):
             for lx in range(tw):
-                final[ly, lx] = transmittance_final[cam, y0 + ly, x0 + lx]
-                transmittance[ly, lx] = final[ly, lx]
+                t_final = transmittance_final[cam, y0 + ly, x0 + lx]
+                state[_P_FINAL, ly, lx] = t_final
+                state[_P_T, ly, lx] = t_final
                 # colour = composited + T_final * background and alpha = 1 - T_final
                 grad_t = -grad_alphas[cam, y0 + ly, x0 + lx, 0]
                 for k in range(n_channels):
                     grad_t += backgrounds[cam, k] * grad_colors[cam, y0 + ly, x0 + lx, k]
-                grad_final[ly, lx] = grad_t
+                state[_P_GRAD_FINAL, ly, lx] = grad_t
                 tile_counts[ly, lx] = counts[cam, y0 + ly, x0 + lx]
                 max_count = max(max_count, counts[cam, y0 + ly, x0 + lx])
-                row_max_count[ly] = max(row_max_count[ly], counts[cam, y0 + ly, x0 + lx])
-                for k in range(n_channels):
-                    grad_out[k, ly, lx] = grad_colors[cam, y0 + ly, x0 + lx, k]
-        gaussian_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        t_before_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        inv_keep_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        weight_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        grad_alpha_row = np.empty(TILE_SIZE, dtype=records.dtype)
-        lanes = np.zeros((N_GEOMETRY_SLOTS + n_planes, TILE_SIZE), dtype=records.dtype)  # back to 0 after each Gaussian
+                for k in range(min(n_channels, FUSED_CHANNELS)):
+                    state[_P_GRAD_OUT + k, ly, lx] = grad_colors[cam, y0 + ly, x0 + lx, k]
+                for k in range(n_extra):
+                    extra_grad_out[k, ly, lx] = grad_colors[cam, y0 + ly, x0 + lx, FUSED_CHANNELS + k]
+        rows = np.empty((5, TILE_SIZE), dtype=records.dtype)
+        lanes = np.zeros((N_GEOMETRY_SLOTS + max(n_channels, FUSED_CHANNELS), TILE_SIZE), dtype=records.dtype)
+        left = REAL(x0) + _HALF
         for rank in range(max_count - 1, -1, -1):
             p = start + rank
+            row_mask = row_masks[p]
+            if row_mask == 0:
+                continue  # composited no pixel of this tile
             g = isect_gaussians[p]
-            mx = records[g, REC_X]
-            ca = records[g, REC_A]
-            cb = records[g, REC_B]
-            cc = records[g, REC_C]
-            opacity = records[g, REC_OPACITY]
-            row_scale = records[g, REC_ROW_SCALE]
-            conic_det = records[g, REC_CONIC_DET]
+            mx, ca, cb, cc = records[g, REC_X], records[g, REC_A], records[g, REC_B], records[g, REC_C]
+            opacity, cut = records[g, REC_OPACITY], records[g, REC_CUT]
             first = max(int(records[g, REC_X_LO]), x0) - x0
             last = min(int(records[g, REC_X_HI]), x0 + tw - 1) - x0
             c0 = colors[g, 0] if n_channels > 0 else _ZERO
             c1 = colors[g, 1] if n_channels > 1 else _ZERO
             c2 = colors[g, 2] if n_channels > 2 else _ZERO
             c3 = colors[g, 3] if n_channels > 3 else _ZERO
-            left = REAL(x0) + _HALF
-            touched = 0
-            for py in range(max(int(records[g, REC_Y_LO]), y0), min(int(records[g, REC_Y_HI]), y0 + th - 1) + 1):
-                ly = py - y0
-                dy = records[g, REC_Y] - (REAL(py) + _HALF)
-                if rank >= row_max_count[ly] or row_scale < dy * dy * conic_det:
+            for ly in range(th):
+                if (row_mask >> ly) & 1 == 0:
                     continue
-                _row_alphas(records, g, dy, x0, first, last, gaussian_row, alpha_row)
-                valid_lanes = 0
+                dy = records[g, REC_Y] - (REAL(y0 + ly) + _HALF)
+                cb_dy = cb * dy
+                cc_dy2 = cc * dy * dy
                 for i in range(TILE_SIZE):
-                    alpha = alpha_row[i]
+                    gaussian, alpha = _lane_alpha(mx, ca, cb_dy, cc_dy2, opacity, cut, left, i, first, last)
                     valid = (alpha > _ZERO) & (rank < tile_counts[ly, i])
                     inv_keep = _ONE / (_ONE - alpha)
-                    t_before = transmittance[ly, i] * inv_keep
-                    transmittance[ly, i] = t_before if valid else transmittance[ly, i]
-                    t_before_row[i] = t_before
-                    inv_keep_row[i] = inv_keep
+                    t_before = state[_P_T, ly, i] * inv_keep
+                    state[_P_T, ly, i] = t_before if valid else state[_P_T, ly, i]
                     weight = alpha * t_before if valid else _ZERO
-                    weight_row[i] = weight
                     # the first FUSED_CHANNELS colour channels, written out so the loop stays vectorised
-                    g0, g1, g2, g3 = grad_out[0, ly, i], grad_out[1, ly, i], grad_out[2, ly, i], grad_out[3, ly, i]
+                    g0, g1 = state[_P_GRAD_OUT, ly, i], state[_P_GRAD_OUT + 1, ly, i]
+                    g2, g3 = state[_P_GRAD_OUT + 2, ly, i], state[_P_GRAD_OUT + 3, ly, i]
                     lanes[N_GEOMETRY_SLOTS, i] += weight * g0
                     lanes[N_GEOMETRY_SLOTS + 1, i] += weight * g1
                     lanes[N_GEOMETRY_SLOTS + 2, i] += weight * g2
                     lanes[N_GEOMETRY_SLOTS + 3, i] += weight * g3
-                    grad_alpha = -final[ly, i] * inv_keep * grad_final[ly, i]
-                    grad_alpha += (c0 * t_before - behind[0, ly, i] * inv_keep) * g0
-                    grad_alpha += (c1 * t_before - behind[1, ly, i] * inv_keep) * g1
-                    grad_alpha += (c2 * t_before - behind[2, ly, i] * inv_keep) * g2
-                    grad_alpha += (c3 * t_before - behind[3, ly, i] * inv_keep) * g3
-                    grad_alpha_row[i] = grad_alpha if valid else _ZERO
-                    behind[0, ly, i] += c0 * weight
-                    behind[1, ly, i] += c1 * weight
-                    behind[2, ly, i] += c2 * weight
-                    behind[3, ly, i] += c3 * weight
-                    valid_lanes += 1 if valid else 0
-                if valid_lanes == 0:
-                    continue
-                touched += valid_lanes
-                for k in range(FUSED_CHANNELS, n_channels):
-                    color = colors[g, k]
+                    grad_alpha = -state[_P_FINAL, ly, i] * inv_keep * state[_P_GRAD_FINAL, ly, i]
+                    grad_alpha += (c0 * t_before - state[_P_BEHIND, ly, i] * inv_keep) * g0
+                    grad_alpha += (c1 * t_before - state[_P_BEHIND + 1, ly, i] * inv_keep) * g1
+                    grad_alpha += (c2 * t_before - state[_P_BEHIND + 2, ly, i] * inv_keep) * g2
+                    grad_alpha += (c3 * t_before - state[_P_BEHIND + 3, ly, i] * inv_keep) * g3
+                    state[_P_BEHIND, ly, i] += c0 * weight
+                    state[_P_BEHIND + 1, ly, i] += c1 * weight
+                    state[_P_BEHIND + 2, ly, i] += c2 * weight
+                    state[_P_BEHIND + 3, ly, i] += c3 * weight
+                    rows[_R_GAUSSIAN, i] = gaussian
+                    rows[_R_T_BEFORE, i] = t_before
+                    rows[_R_INV_KEEP, i] = inv_keep
+                    rows[_R_WEIGHT, i] = weight
+                    rows[_R_GRAD_ALPHA, i] = grad_alpha if valid else _ZERO
+                for k in range(n_extra):
+                    color = colors[g, FUSED_CHANNELS + k]
                     for i in range(TILE_SIZE):
-                        g_out = grad_out[k, ly, i]
-                        weight = weight_row[i]
-                        lanes[N_GEOMETRY_SLOTS + k, i] += weight * g_out
-                        term = (color * t_before_row[i] - behind[k, ly, i] * inv_keep_row[i]) * g_out
-                        grad_alpha_row[i] += term if weight > _ZERO else _ZERO
-                        behind[k, ly, i] += color * weight
+                        g_out = extra_grad_out[k, ly, i]
+                        weight = rows[_R_WEIGHT, i]
+                        lanes[N_GEOMETRY_SLOTS + FUSED_CHANNELS + k, i] += weight * g_out
+                        term = (color * rows[_R_T_BEFORE, i] - extra_behind[k, ly, i] * rows[_R_INV_KEEP, i]) * g_out
+                        rows[_R_GRAD_ALPHA, i] += term if weight > _ZERO else _ZERO
+                        extra_behind[k, ly, i] += color * weight
                 for i in range(TILE_SIZE):
                     dx = mx - (left + REAL(i))
-                    raw_alpha = opacity * gaussian_row[i]
-                    unclamped = (weight_row[i] > _ZERO) & (raw_alpha <= _MAX_ALPHA)
-                    grad_alpha = grad_alpha_row[i] if unclamped else _ZERO
+                    raw_alpha = opacity * rows[_R_GAUSSIAN, i]
+                    unclamped = (rows[_R_WEIGHT, i] > _ZERO) & (raw_alpha <= _MAX_ALPHA)
+                    grad_alpha = rows[_R_GRAD_ALPHA, i] if unclamped else _ZERO
                     grad_sigma = -raw_alpha * grad_alpha
                     gx = grad_sigma * (ca * dx + cb * dy)
                     gy = grad_sigma * (cb * dx + cc * dy)
@@ -498,17 +525,13 @@ def rasterize_backward(
                     lanes[2, i] += _HALF * grad_sigma * dx * dx
                     lanes[3, i] += grad_sigma * dx * dy
                     lanes[4, i] += _HALF * grad_sigma * dy * dy
-                    lanes[5, i] += gaussian_row[i] * grad_alpha
+                    lanes[5, i] += rows[_R_GAUSSIAN, i] * grad_alpha
                     lanes[6, i] += abs(gx)
                     lanes[7, i] += abs(gy)
-            if touched == 0:
-                continue  # lanes were only ever incremented by zero
+            # lanes outside first..last only ever added zeros
             for k in range(n_slots):
-                total = 0.0
-                for i in range(first, last + 1):
-                    total += lanes[k, i]
-                    lanes[k, i] = _ZERO
-                slots[p, k] = total
+                slots[p, k] = _sum_lanes(lanes[k])
+            lanes[:] = _ZERO
 
 
 @nb.njit(cache=True, parallel=True)

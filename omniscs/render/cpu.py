@@ -158,11 +158,12 @@ class TileRasterizer(torch.autograd.Function):
         out_alphas = np.empty((n_cams, height, width, 1), dtype=real)
         transmittance = np.empty((n_cams, height, width), dtype=real)
         counts = np.empty((n_cams, height, width), dtype=np.int32)
+        row_masks = np.empty(isect_packed.shape[0], dtype=np.int32)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             kernels.rasterize_forward(tile_offsets, isect_packed, packed_records, packed_colors,
-                                      backgrounds_np, out_colors, out_alphas, transmittance, counts)
+                                      backgrounds_np, out_colors, out_alphas, transmittance, counts, row_masks)
         ctx.bins = bins
-        ctx.image = (width, height, transmittance, counts, backgrounds_np)
+        ctx.image = (width, height, transmittance, counts, row_masks, backgrounds_np)
         ctx.n_flat = flat
         ctx.absgrad = absgrad
         ctx.dtypes = (means2d.dtype, colors.dtype, backgrounds.dtype)
@@ -173,7 +174,7 @@ class TileRasterizer(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_colors: Tensor | None, grad_alphas: Tensor | None):
         (means2d,) = ctx.saved_tensors
-        width, height, transmittance, counts, backgrounds = ctx.image
+        width, height, transmittance, counts, row_masks, backgrounds = ctx.image
         tile_offsets, isect_packed, packed_ids, packed_records, packed_colors, packed_offsets, packed_isects = ctx.bins
         n_cams, n_channels = backgrounds.shape
         real = backgrounds.dtype.type  # the forward pass's pixel type
@@ -184,7 +185,8 @@ class TileRasterizer(torch.autograd.Function):
         slots = np.empty((isect_packed.shape[0], kernels.N_GEOMETRY_SLOTS + n_channels), dtype=real)
         with numba.parallel_chunksize(TILES_PER_CHUNK):
             kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors,
-                                       backgrounds, transmittance, counts, grad_colors_np, grad_alphas_np, slots)
+                                       backgrounds, transmittance, counts, row_masks, grad_colors_np, grad_alphas_np,
+                                       slots)
         per_gaussian = np.zeros((ctx.n_flat, slots.shape[1]), dtype=np.float64)
         kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, per_gaussian)
         dt_means, dt_colors, dt_backgrounds = ctx.dtypes
