@@ -102,7 +102,7 @@ def depth_order(
     return order, n_visible
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _pixel_boxes(means2d, conics, radii, width, height, tile):
     """Inclusive pixel box (x_lo, x_hi, y_lo, y_hi) of every Gaussian and how many tiles it touches.
 
@@ -112,7 +112,7 @@ def _pixel_boxes(means2d, conics, radii, width, height, tile):
     n = means2d.shape[0]
     boxes = np.zeros((n, 4), dtype=np.int32)
     n_tiles = np.zeros(n, dtype=np.int64)
-    for g in range(n):
+    for g in nb.prange(n):
         mx = np.float64(means2d[g, 0])
         my = np.float64(means2d[g, 1])
         ca = np.float64(conics[g, 0])
@@ -136,13 +136,13 @@ def _pixel_boxes(means2d, conics, radii, width, height, tile):
     return boxes, n_tiles
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, parallel=True)
 def _pack(packed_ids, means2d, conics, opacities, colors, boxes):
     """Rows of the drawn Gaussians in packed order: records (all the pixel loops read) and colours."""
     n = packed_ids.shape[0]
     records = np.zeros((n, N_RECORD), dtype=means2d.dtype)
     packed_colors = np.empty((n, colors.shape[1]), dtype=colors.dtype)
-    for s in range(n):
+    for s in nb.prange(n):
         g = packed_ids[s]
         ca = np.float64(conics[g, 0])
         cb = np.float64(conics[g, 1])
