@@ -182,14 +182,13 @@ def accumulate_gradients(strategy: DensifyStrategy, node: OptimisedGaussians,
                          width: int, height: int) -> None:
     """Add this view's normalised screen-space gradient norms to the Gaussians it saw."""
     visible = (radii.reshape(radii.shape[0], -1) > 0).any(-1)
-    if not bool(visible.any()):
-        return
     scaled = grad2d.detach().clone()
     scaled[:, 0] *= 0.5 * width
     scaled[:, 1] *= 0.5 * height
     norms = torch.nan_to_num(scaled.norm(dim=-1), nan=0.0, posinf=0.0)
-    node.grad2d[visible] += norms[visible]
-    node.count[visible] += 1
+    # masks rather than boolean indexing: no gather/scatter and no host sync (a step calls this per node)
+    node.grad2d += torch.where(visible, norms, 0.0)
+    node.count += visible
 
 
 def refine(strategy: DensifyStrategy, node: OptimisedGaussians, step: int, scene_scale: float, budget: int,
