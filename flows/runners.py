@@ -70,5 +70,21 @@ def scene_task_runner(task_runner: str = "threads", workers: int | None = None, 
     threads = str(worker_threads(n))
     env = {"OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
            "OPENBLAS_NUM_THREADS": threads, "OMP_WAIT_POLICY": "PASSIVE"}
-    return DaskTaskRunner(cluster_kwargs={"n_workers": n, "threads_per_worker": 1, "processes": True, "env": env,
+    return DaskTaskRunner(cluster_class=local_cluster,
+                          cluster_kwargs={"n_workers": n, "threads_per_worker": 1, "processes": True, "env": env,
                                           "dashboard_address": None})
+
+
+def local_cluster(**cluster_kwargs):
+    """``distributed.LocalCluster``, except that its workers keep glibc's own malloc tuning.
+
+    Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (its default ``pre-spawn-environ``), which
+    hands freed memory back to the system at once and, being set explicitly, also stops glibc from raising its
+    mmap threshold: every large array a fit step allocates is then fresh pages from the kernel. Measured on this
+    2-core machine (fast fit, one 160x90 camera, 20 frames): 41 s in a plain process, 64-71 s with that variable,
+    a third of it system time. A variable the user's own environment sets is still passed on."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        return LocalCluster(**cluster_kwargs)

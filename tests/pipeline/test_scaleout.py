@@ -15,7 +15,7 @@ import time
 import pytest
 from prefect import flow, task
 
-from flows.runners import check_runner, scene_task_runner, worker_threads
+from flows.runners import check_runner, local_cluster, scene_task_runner, worker_threads
 from omniscs.pipeline.request import RunRequest
 from omniscs import catalog
 from omniscs.errors import OmniscsError, ValidationError
@@ -43,6 +43,24 @@ def test_local_workers_share_the_cores_without_oversubscribing():
     env = runner.cluster_kwargs["env"]
     assert runner.cluster_kwargs["n_workers"] == 2 and runner.cluster_kwargs["threads_per_worker"] == 1
     assert env["NUMBA_NUM_THREADS"] == env["OMP_NUM_THREADS"] == str(worker_threads(2))
+
+
+def _malloc_setting() -> str | None:
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+
+@pytest.mark.skipif("MALLOC_TRIM_THRESHOLD_" in os.environ, reason="this shell sets the variable itself")
+def test_local_workers_keep_glibc_malloc_tuning_and_leave_this_process_unchanged():
+    from distributed import Client
+
+    runner = scene_task_runner("dask", workers=1)
+    assert runner.cluster_class is local_cluster
+    with local_cluster(**{**runner.cluster_kwargs, "n_workers": 1}) as cluster, Client(cluster) as client:
+        worker_env = client.run(_malloc_setting)
+        threads = client.run(lambda: os.environ.get("NUMBA_NUM_THREADS"))
+    assert list(worker_env.values()) == [None]  # dask's own default would be "65536"
+    assert list(threads.values()) == [runner.cluster_kwargs["env"]["NUMBA_NUM_THREADS"]]
+    assert "MALLOC_TRIM_THRESHOLD_" not in os.environ  # the nanny copies its variables into this process too
 
 
 def test_only_transient_failures_count_as_transient():
