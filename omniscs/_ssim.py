@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.devices import keeps_torch_threads
+
 
 @nb.njit(cache=True, inline="always")
 def _reflect(i, n):
@@ -141,6 +143,7 @@ class FusedSSIMLoss(torch.autograd.Function):
     """mean(clamp((1 - SSIM) / 2, 0, 1)) of [1, C, H, W] float32 CPU images; differentiable in ``rendered``."""
 
     @staticmethod
+    @keeps_torch_threads
     def forward(ctx, rendered: Tensor, target: Tensor, kernel: np.ndarray, c1: float, c2: float,
                 eps: float) -> Tensor:
         x = np.ascontiguousarray(rendered.detach()[0].numpy(), dtype=np.float32)
@@ -151,6 +154,7 @@ class FusedSSIMLoss(torch.autograd.Function):
         return torch.tensor(total / x.size, dtype=rendered.dtype)
 
     @staticmethod
+    @keeps_torch_threads
     def backward(ctx, grad: Tensor):
         x, y, kernel, grad_maps = ctx.saved
         out = np.empty(x.shape, dtype=np.float32)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.devices import keeps_torch_threads
 from omniscs.gaussians import LOG_SCALE_RANGE, GaussianParams
 from omniscs.nsg import _cpu_nodes as kernels
 from omniscs.quaternions import rotmat_to_quat
@@ -19,6 +20,7 @@ class _PreparedNodes(torch.autograd.Function):
     colours (float32); differentiable in the raw parameters. Node poses and camera centres get no gradient."""
 
     @staticmethod
+    @keeps_torch_threads
     def forward(ctx, means: Tensor, quats: Tensor, log_scales: Tensor, logits: Tensor, sh_dc: Tensor,
                 sh_rest: Tensor, node_of: np.ndarray, poses: tuple[np.ndarray, ...], degree: int,
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -33,6 +35,7 @@ class _PreparedNodes(torch.autograd.Function):
         return tuple(torch.from_numpy(a) for a in out)
 
     @staticmethod
+    @keeps_torch_threads
     def backward(ctx, *upstream):
         n = ctx.raw[0].shape[0]
         shapes = ((n, 3), (n, 4), (n, 3), (n,), (n, 3))

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omniscs.devices import keeps_torch_threads
 from omniscs.render import _cpu_kernels as kernels
 from omniscs.render import _cpu_projection as projection_kernels
 from omniscs.render.projection import ScreenGaussians
@@ -66,6 +67,7 @@ class CpuProjection(torch.autograd.Function):
     """
 
     @staticmethod
+    @keeps_torch_threads
     def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor,
                 width: int, height: int, near_plane: float, far_plane: float, eps2d: float, antialiased: bool,
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # ScreenGaussians' fields, float64 depths
@@ -87,6 +89,7 @@ class CpuProjection(torch.autograd.Function):
                 _from_float64(opacities_c, dtype), radii_t, sort_depths)
 
     @staticmethod
+    @keeps_torch_threads
     def backward(ctx, v_means2d, v_conics, v_depths, v_opacities, _v_radii, _v_sort_depths):
         means, quats, scales, opacities, viewmats, Ks = ctx.inputs
         n_cams, n_gauss = viewmats.shape[0], means.shape[0]
@@ -129,6 +132,7 @@ class TileRasterizer(torch.autograd.Function):
     """
 
     @staticmethod
+    @keeps_torch_threads
     def forward(
         ctx,
         means2d: Tensor,      # [C, N, 2]
@@ -172,6 +176,7 @@ class TileRasterizer(torch.autograd.Function):
         return torch.from_numpy(out_colors).to(dtype), torch.from_numpy(out_alphas).to(dtype)
 
     @staticmethod
+    @keeps_torch_threads
     def backward(ctx, grad_colors: Tensor | None, grad_alphas: Tensor | None):
         (means2d,) = ctx.saved_tensors
         width, height, transmittance, counts, row_masks, backgrounds = ctx.image

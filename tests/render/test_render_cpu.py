@@ -135,6 +135,24 @@ def test_cpu_results_do_not_depend_on_the_number_of_threads():
         assert torch.equal(runs[0][key], runs[1][key]), key
 
 
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="Numba runs one thread here: nothing to leak")
+def test_the_kernels_leave_torch_thread_count_as_they_found_it():
+    # Numba's OpenMP layer sets the calling thread's OpenMP thread count, which torch reads too
+    from omniscs.quality import ssim_loss
+
+    scene = as_dtype(street_scene(2000, 64, 36, seed=2), torch.float32)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        gradients(scene, torch.float32, "cpu")
+        assert torch.get_num_threads() == 1
+        rendered = torch.rand(1, 3, 36, 64, requires_grad=True)
+        ssim_loss(rendered, torch.rand(1, 3, 36, 64), 11).backward()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_means2d_gradient_and_absgrad_are_available_for_densification():
     s = as_dtype(random_scene(200, 40, 30, seed=7), torch.float32)
     means = s.means.clone().requires_grad_(True)
