@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Collection, Mapping, NamedTuple
@@ -15,11 +14,12 @@ from omniscs.errors import OmniscsError
 from omniscs.gaussians import GaussianParams, activate
 from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
+from omniscs.nsg.backdrop import with_backdrop
 from omniscs.nsg.compose import NodePose, place_gaussians
 from omniscs.nsg.observations import View
 from omniscs.nsg.prepare import prepare_nodes
 from omniscs.nsg.relight import Relight
-from omniscs.nsg.sky import SkyParams, sky_colors
+from omniscs.nsg.sky import SkyParams
 from omniscs.render import rasterize
 from omniscs.render.sh import colors_from_sh
 from omniscs.scene.store import CameraRecord
@@ -144,22 +144,6 @@ class SceneGraph:
     def render(self, view: View) -> RenderOutput:
         """Render without gradients (for inspection, evaluation and edited variants)."""
         return render_view(self, view)
-
-
-def pixel_directions(view: View, device: torch.device | str = "cpu") -> Tensor:  # [H, W, 3] float32 unit, world
-    """Viewing direction through every pixel centre: the camera's unit rays (made once per intrinsics) turned into
-    the world by the view's rotation."""
-    rays = _camera_rays(view.width, view.height, tuple(np.asarray(view.K, np.float64).ravel().tolist()))
-    rotation = torch.from_numpy(np.ascontiguousarray(view.world_from_camera[:3, :3], np.float32))
-    return (rays @ rotation.T).to(device)
-
-
-@functools.lru_cache(maxsize=32)
-def _camera_rays(width: int, height: int, K: tuple[float, ...]) -> Tensor:  # [H, W, 3] float32 unit, camera frame
-    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    d = np.stack([(u - K[2]) / K[0], (v - K[5]) / K[4], np.ones_like(u)], -1)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return torch.from_numpy(d.astype(np.float32))
 
 
 @dataclass(frozen=True)
@@ -307,11 +291,10 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         start += len(local)
 
     device = graph.sky.texture.device
-    sky = sky_colors(graph.sky, pixel_directions(view, device))
     label_image = None
     if start == 0:
         zeros = torch.zeros(view.height, view.width, device=device)
-        rgb, depth, alpha, meta = sky, zeros, zeros, {}
+        colour, depth, alpha, meta = zeros[..., None].expand(-1, -1, 3), zeros, zeros, {}
         if n_labels:
             label_image = torch.zeros(view.height, view.width, n_labels, device=device)
     else:
@@ -329,13 +312,12 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
                                       render_mode="RGB+ED", backend=s.backend, rasterize_mode=s.rasterize_mode,
                                       absgrad=absgrad)
         alpha = alphas[0, ..., 0]
-        rgb = out[0, ..., :3] + (1.0 - alpha)[..., None] * sky
+        colour = out[0, ..., :3]
         depth = out[0, ..., -1]
         if n_labels:
             label_image = out[0, ..., 3:3 + n_labels]
     affine = graph.exposure.get(view.camera) if view.camera is not None else None
-    if affine is not None:
-        rgb = rgb @ affine[:, :3].T + affine[:, 3]
+    rgb = with_backdrop(colour, alpha, graph.sky, affine, view)
     return RenderOutput(rgb, depth, alpha, meta, slices, label_image)
 
 

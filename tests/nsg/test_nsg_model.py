@@ -171,7 +171,7 @@ def test_eq1_is_exact_for_any_pose_rotation_including_half_turns(q_pose, q_speci
 
 
 def test_pixel_directions_are_the_unit_rays_through_pixel_centres_turned_into_the_world():
-    from omniscs.nsg.graph import pixel_directions
+    from omniscs.nsg.backdrop import pixel_directions
 
     rng = np.random.default_rng(5)
     K = intrinsics_from_fov(37, 23, np.radians(70.0))
