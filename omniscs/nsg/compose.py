@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -52,3 +53,35 @@ def place_gaussians(local: Gaussians,
     means = local.means @ R.T + t
     quats = quat_multiply(q_R.expand_as(local.quats), local.quats)
     return Gaussians(means, quats, local.scales, local.opacities, local.sh)
+
+
+def place_many(local: Gaussians,  # several nodes' Gaussians in their own frames, concatenated
+               node_of: Tensor,  # [N] int64: which of ``poses`` each Gaussian belongs to
+               poses: Sequence[np.ndarray | NodePose | None],  # as in place_gaussians; None: already in the world
+               ) -> tuple[Gaussians, Tensor, Tensor]:  # placed, rotations [K, 3, 3], translations [K, 3]
+    """``place_gaussians`` of several nodes in one go: the poses are stacked and gathered per Gaussian, so the number
+    of tensor operations (and of autograd nodes behind them) does not grow with the number of nodes.
+    Differentiable poses (NodePose) carry gradients. Also returns the stacked world_from_node rotations and
+    translations."""
+    on = dict(device=local.means.device, dtype=local.means.dtype)
+    count = len(poses)
+    fixed_rotations = np.tile(np.eye(3), (count, 1, 1))
+    fixed_translations = np.zeros((count, 3))
+    fixed_quats = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (count, 1))
+    for k, pose in enumerate(poses):
+        if pose is not None and not isinstance(pose, NodePose):
+            T = np.asarray(pose, dtype=np.float64)
+            fixed_rotations[k], fixed_translations[k], fixed_quats[k] = T[:3, :3], T[:3, 3], rotmat_to_quat(T[:3, :3])
+    rotations = torch.from_numpy(fixed_rotations).to(**on)
+    translations = torch.from_numpy(fixed_translations).to(**on)
+    rotation_quats = torch.from_numpy(fixed_quats).to(**on)
+    posed = [k for k, pose in enumerate(poses) if isinstance(pose, NodePose)]
+    if posed:  # the differentiable poses, all together
+        index = torch.tensor(posed, device=local.means.device)
+        quats = torch.stack([poses[k].quat.to(**on) for k in posed])
+        rotations = rotations.index_put((index,), rotmats_from_quats(quats))
+        rotation_quats = rotation_quats.index_put((index,), normalize_quats(quats))
+        translations = translations.index_put((index,), torch.stack([poses[k].translation.to(**on) for k in posed]))
+    means = torch.einsum("nij,nj->ni", rotations[node_of], local.means) + translations[node_of]
+    quats = quat_multiply(rotation_quats[node_of], local.quats)
+    return Gaussians(means, quats, local.scales, local.opacities, local.sh), rotations, translations

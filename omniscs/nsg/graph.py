@@ -11,11 +11,11 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
-from omniscs.gaussians import GaussianParams, activate
+from omniscs.gaussians import Gaussians, GaussianParams, activate
 from omniscs.geometry import invert_transform, transform_points
 from omniscs.nsg.agent import AgentNode
 from omniscs.nsg.backdrop import with_backdrop
-from omniscs.nsg.compose import NodePose, place_gaussians
+from omniscs.nsg.compose import NodePose, place_gaussians, place_many
 from omniscs.nsg.observations import View
 from omniscs.nsg.prepare import prepare_nodes
 from omniscs.nsg.relight import Relight
@@ -262,8 +262,8 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         parts.append((static, static.colours))
         slices[BACKGROUND] = slice(0, len(static.means))
         start = len(static.means)
+    nodes = [n for n in nodes if len(n[2])]
     if _fused_preparation(nodes, labels, static, activated):
-        nodes = [n for n in nodes if len(n[2])]
         means, quats, scales, opacities, colours = prepare_nodes([(pose, params) for _, pose, params, _ in nodes],
                                                                  camera_centre, degree)
         parts.append((_Placed(means, quats, scales, opacities), colours))
@@ -271,9 +271,14 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
             slices[key] = slice(start, start + len(params))
             start += len(params)
         nodes = []
+    if len(nodes) > 1 and not n_labels and all(relight is None for *_, relight in nodes):
+        placed, colours = _place_and_colour(nodes, camera_centre, degree, activated)
+        parts.append((placed, colours))
+        for key, _, params, _ in nodes:
+            slices[key] = slice(start, start + len(params))
+            start += len(params)
+        nodes = []
     for key, world_from_node, params, relight in nodes:
-        if len(params) == 0:
-            continue
         local = activated.get(key) if activated is not None else None
         if local is None or len(local) != len(params):
             local = activate(params)
@@ -298,11 +303,14 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
         if n_labels:
             label_image = torch.zeros(view.height, view.width, n_labels, device=device)
     else:
-        means = torch.cat([p.means for p, _ in parts])
-        quats = torch.cat([p.quats for p, _ in parts])
-        scales = torch.cat([p.scales for p, _ in parts])
-        opacities = torch.cat([p.opacities for p, _ in parts])
-        colours = torch.cat([c for _, c in parts])
+        def joined(tensors: list[Tensor]) -> Tensor:  # one part (a fit step's prepared nodes) needs no copy
+            return tensors[0] if len(tensors) == 1 else torch.cat(tensors)
+
+        means = joined([p.means for p, _ in parts])
+        quats = joined([p.quats for p, _ in parts])
+        scales = joined([p.scales for p, _ in parts])
+        opacities = joined([p.opacities for p, _ in parts])
+        colours = joined([c for _, c in parts])
         # CUDA tensors go to gsplat, CPU ones to the Numba kernels (backend 'auto' dispatches on the device)
         viewmat = torch.from_numpy(invert_transform(view.world_from_camera)).to(means.device, means.dtype)[None]
         K = torch.from_numpy(view.K).to(means.device, means.dtype)[None]
@@ -319,6 +327,26 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
     affine = graph.exposure.get(view.camera) if view.camera is not None else None
     rgb = with_backdrop(colour, alpha, graph.sky, affine, view)
     return RenderOutput(rgb, depth, alpha, meta, slices, label_image)
+
+
+def _place_and_colour(nodes, camera_centre: np.ndarray, degree: int,
+                      activated: Mapping[str, GaussianParams] | None) -> tuple[Gaussians, Tensor]:
+    """The node-by-node loop of ``render_view`` (activate, colour as seen from the camera in the node's frame,
+    place by Eq. 1) for several nodes without relight data at once, through ``place_many``: a behaviour-level
+    step renders a few dozen agent nodes with differentiable poses, and node by node that was some forty small
+    operations per node each way. The same values to float32 rounding."""
+    parts = []
+    for key, _, params, _ in nodes:
+        g = activated.get(key) if activated is not None else None
+        parts.append(g if g is not None and len(g) == len(params) else activate(params))
+    local = Gaussians(*(torch.cat([getattr(g, name) for g in parts])
+                        for name in ("means", "quats", "scales", "opacities", "sh")))
+    node_of = torch.repeat_interleave(torch.arange(len(nodes), device=local.means.device),
+                                      torch.tensor([len(g) for g in parts], device=local.means.device))
+    placed, rotations, translations = place_many(local, node_of, [pose for _, pose, _, _ in nodes])
+    centre = torch.from_numpy(np.asarray(camera_centre, dtype=np.float64)).to(rotations.device, rotations.dtype)
+    centres = torch.einsum("kji,kj->ki", rotations, centre - translations)  # the camera in each node's frame
+    return placed, colors_from_sh(degree, local.sh, (local.means - centres[node_of])[None])[0]
 
 
 class _Placed(NamedTuple):

@@ -10,8 +10,9 @@ scene's plan left in the background cannot move in the render (they are part of 
 Cost control (every optimisation step renders): a few steps spread over the horizon, one camera, a downscaled
 image (``RenderConsistencyConfig``; the benchmark reports the time per variant it costs), and the background
 prepared once per rendered view (``nsg.graph.static_layer``: activated, coloured and culled to what the view
-shows), so each step only places, colours and projects the agent nodes on top of it, and only those whose
-bounding sphere where they are placed may reach the image (``nsg.graph.agent_may_show``).
+shows) and the agents' Gaussians activated once, so each step only places (all together), colours and projects
+the agent nodes on top of it, and only those whose bounding sphere where they are placed may reach the image
+(``nsg.graph.agent_may_show``).
 """
 from __future__ import annotations
 
@@ -23,9 +24,10 @@ import torch
 from torch import Tensor
 
 from omniscs.errors import OmniscsError
+from omniscs.gaussians import activate
 from omniscs.nsg.checkpoint import load_graph
 from omniscs.nsg.compose import NodePose
-from omniscs.nsg.graph import SceneGraph, agent_may_show, node_radius, render_view, static_layer
+from omniscs.nsg.graph import SceneGraph, agent_key, agent_may_show, node_radius, render_view, static_layer
 from omniscs.scs.behavior.adversarial_config import AdversarialConfig
 from omniscs.scs.behavior.checkpoint import load_traffic_model as load_model
 from omniscs.scs.behavior.render_consistency import (AgentTrajectories, FeatureNetConfig, RenderConsistencyTerm,
@@ -90,6 +92,8 @@ class GraphTrajectoryRenderer:
         self.static = [static_layer(self.graph, v) for v in self.views]
         # and agent nodes whose bounding sphere, where they are placed, misses the view are left out of that step
         self.radii = {a.track_id: node_radius(a.gaussians) for a in self.graph.agents}
+        # the agents' Gaussians never change either: activated once, not at every render
+        self.activated = {agent_key(a.track_id): activate(a.gaussians) for a in self.graph.agents}
 
     def poses(self, trajectories: AgentTrajectories, position: int, frame: int) -> dict[int, NodePose]:
         """Differentiable poses of the agent nodes present in ``frame``; heights as logged."""
@@ -101,7 +105,7 @@ class GraphTrajectoryRenderer:
         for position, frame, view, static in zip(self.positions, self.frames, self.views, self.static):
             poses = self.poses(trajectories, int(position), int(frame))
             out = render_view(self.graph, view, agent_poses=poses, static=static,
-                              only_agents=self.showing(view, poses))
+                              only_agents=self.showing(view, poses), activated=self.activated)
             images.append(out.rgb.clamp(0.0, 1.0).permute(2, 0, 1))
         return torch.stack(images)
 
