@@ -35,6 +35,11 @@ def _camera_rays(width: int, height: int, K: tuple[float, ...]) -> Tensor:  # [H
     return torch.from_numpy(d.astype(np.float32))
 
 
+def identity_exposure(device: torch.device | str = "cpu") -> Tensor:  # [3, 4]
+    """The exposure correction that changes nothing: [I | 0]."""
+    return torch.cat([torch.eye(3, device=device), torch.zeros(3, 1, device=device)], 1)
+
+
 def backdrop_reference(colour: Tensor,  # [H, W, 3] what the Gaussians composited
                        alpha: Tensor,   # [H, W] how much of each pixel they cover
                        sky: SkyParams, affine: Tensor | None, view: View) -> Tensor:  # [H, W, 3]
@@ -52,9 +57,8 @@ def with_backdrop(colour: Tensor, alpha: Tensor, sky: SkyParams, affine: Tensor 
     grid = np.empty((view.height * view.width, 2), np.float32)
     kernels.sky_grid(view.width, view.height, np.asarray(view.K, np.float64),
                      np.ascontiguousarray(view.world_from_camera[:3, :3], np.float64), grid)
-    if affine is None:
-        affine = torch.cat([torch.eye(3), torch.zeros(3, 1)], 1)
-    return _Backdrop.apply(colour, alpha, torch.sigmoid(sky.texture), affine, grid)
+    return _Backdrop.apply(colour, alpha, torch.sigmoid(sky.texture), identity_exposure() if affine is None else affine,
+                           grid)
 
 
 class _Backdrop(torch.autograd.Function):

@@ -330,19 +330,19 @@ def render_view(graph: SceneGraph, view: View, sh_degree: int | None = None, abs
 
 
 def _place_and_colour(nodes, camera_centre: np.ndarray, degree: int,
-                      activated: Mapping[str, GaussianParams] | None) -> tuple[Gaussians, Tensor]:
+                      activated: Mapping[str, Gaussians] | None) -> tuple[Gaussians, Tensor]:
     """The node-by-node loop of ``render_view`` (activate, colour as seen from the camera in the node's frame,
     place by Eq. 1) for several nodes without relight data at once, through ``place_many``: a behaviour-level
     step renders a few dozen agent nodes with differentiable poses, and node by node that was some forty small
     operations per node each way. The same values to float32 rounding."""
-    parts = []
+    each = []
     for key, _, params, _ in nodes:
         g = activated.get(key) if activated is not None else None
-        parts.append(g if g is not None and len(g) == len(params) else activate(params))
-    local = Gaussians(*(torch.cat([getattr(g, name) for g in parts])
+        each.append(g if g is not None and len(g) == len(params) else activate(params))
+    local = Gaussians(*(torch.cat([getattr(g, name) for g in each])
                         for name in ("means", "quats", "scales", "opacities", "sh")))
     node_of = torch.repeat_interleave(torch.arange(len(nodes), device=local.means.device),
-                                      torch.tensor([len(g) for g in parts], device=local.means.device))
+                                      torch.tensor([len(g) for g in each], device=local.means.device))
     placed, rotations, translations = place_many(local, node_of, [pose for _, pose, _, _ in nodes])
     centre = torch.from_numpy(np.asarray(camera_centre, dtype=np.float64)).to(rotations.device, rotations.dtype)
     centres = torch.einsum("kji,kj->ki", rotations, centre - translations)  # the camera in each node's frame
@@ -396,7 +396,3 @@ def _centre_in_node(camera_centre: np.ndarray, world_from_node: np.ndarray | Nod
         c = torch.from_numpy(camera_centre).to(R.device, R.dtype)
         return (c - world_from_node.translation.to(R.device, R.dtype)) @ R
     return torch.from_numpy(transform_points(invert_transform(world_from_node), camera_centre[None])[0])
-
-
-def identity_exposure(device: torch.device | str = "cpu") -> Tensor:  # [3, 4]
-    return torch.cat([torch.eye(3, device=device), torch.zeros(3, 1, device=device)], 1)

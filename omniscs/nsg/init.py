@@ -11,9 +11,10 @@ from omniscs.gaussians import GaussianParams, concat_params, empty_params, param
 from omniscs.geometry import transform_points
 from omniscs.nsg.agent import (AgentNode, box_surface_points, init_agent_gaussians, points_in_agent_box,
                                track_poses)
+from omniscs.nsg.backdrop import identity_exposure
 from omniscs.nsg.background import init_background, voxel_subsample
 from omniscs.nsg.config import FitConfig
-from omniscs.nsg.graph import SceneGraph, identity_exposure
+from omniscs.nsg.graph import SceneGraph
 from omniscs.nsg.observations import Observations
 from omniscs.nsg.sky import init_sky
 from omniscs.plan import ScenePlan

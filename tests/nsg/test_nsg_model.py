@@ -10,8 +10,9 @@ from omniscs.gaussians import GaussianParams, activate, params_from_values
 from omniscs.geometry import (ego_from_camera_mount, intrinsics_from_fov, make_transform, pose_from_xyz_yaw,
                               rotmat_from_euler)
 from omniscs.nsg.agent import AgentNode, box_surface_points
+from omniscs.nsg.backdrop import identity_exposure
 from omniscs.nsg.compose import place_gaussians
-from omniscs.nsg.graph import SceneGraph, identity_exposure
+from omniscs.nsg.graph import SceneGraph
 from omniscs.nsg.observations import View
 from omniscs.nsg.sky import init_sky
 from omniscs.quaternions import quat_to_rotmat
