@@ -25,12 +25,17 @@ SIGMA_CUT_SLACK = 1e-5
 #: rounding never skips a row holding a pixel that passes the per-pixel sigma test.
 ROW_SPAN_SLACK = 1e-4
 
+#: Margin (in pixels) of the test that skips a tile row whose chord of the cut-off ellipse lies left or
+#: right of the Gaussian's columns in the tile; far above the float32 rounding of the pixel loops' sigma.
+ROW_CHORD_SLACK = 1e-2
+
 #: Columns of a packed Gaussian record (float32, one 64-byte cache line): centre x, y; conic a, b, c;
-#: opacity; sigma cut-off; for the row test 2 a (cut-off + ROW_SPAN_SLACK) and a c - b^2; the
-#: inclusive pixel box x_lo, x_hi, y_lo, y_hi (integers, exact in float32); 3 unused.
+#: opacity; sigma cut-off; for the row tests 2 a (cut-off + ROW_SPAN_SLACK), a c - b^2, 1 / a and b / a;
+#: the inclusive pixel box x_lo, x_hi, y_lo, y_hi (integers, exact in float32); 1 unused.
 N_RECORD = 16
 REC_X, REC_Y, REC_A, REC_B, REC_C, REC_OPACITY, REC_CUT, REC_ROW_SCALE, REC_CONIC_DET = range(9)
 REC_X_LO, REC_X_HI, REC_Y_LO, REC_Y_HI = range(9, 13)
+REC_INV_A, REC_B_OVER_A = 13, 14
 
 #: exp(-sigma) is evaluated as (Taylor polynomial at sigma / 2^EXP_SQUARINGS)^(2^EXP_SQUARINGS): plain
 #: arithmetic that vectorises (libm exp does not), relative error < 1e-7 for sigma up to ln(255).
@@ -65,39 +70,51 @@ def depth_order(
     depth_bits,  # [C, N] uint64: IEEE bits of the depths (order-preserving for positive depths)
     radii,       # [C, N, 2] int32, 0 where culled
 ):  # -> order [C, N] int64 (visible first, front to back, ties by index), n_visible [C] int64
-    """Stable LSD radix sort of each camera's visible Gaussians by depth (ties keep index order)."""
+    """Stable LSD radix sort of each camera's visible Gaussians by depth (ties keep index order).
+
+    Keys travel with their indices (each pass reads memory in order), and one pass over the keys
+    counts the digits of every pass, so a pass whose digit is the same for all keys is skipped.
+    """
     n_cams, n_gauss = depth_bits.shape
     order = np.empty((n_cams, n_gauss), dtype=np.int64)
     n_visible = np.zeros(n_cams, dtype=np.int64)
     n_buckets = 1 << RADIX_BITS
+    n_passes = (64 + RADIX_BITS - 1) // RADIX_BITS
     for cam in range(n_cams):
-        ids = np.empty(n_gauss, dtype=np.int64)
         n = 0
         for g in range(n_gauss):
-            if radii[cam, g, 0] > 0:
-                ids[n] = g
-                n += 1
-        culled = n
+            n += 1 if radii[cam, g, 0] > 0 else 0
+        ids, keys = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.uint64)
+        i, culled = 0, n
         for g in range(n_gauss):
-            if radii[cam, g, 0] <= 0:
-                ids[culled] = g
+            if radii[cam, g, 0] > 0:
+                ids[i] = g
+                keys[i] = depth_bits[cam, g]
+                i += 1
+            else:
+                order[cam, culled] = g
                 culled += 1
-        scratch = np.empty(n, dtype=np.int64)
-        counts = np.empty(n_buckets + 1, dtype=np.int64)
-        for shift in range(0, 64, RADIX_BITS):
-            counts[:] = 0
-            for i in range(n):
-                counts[((depth_bits[cam, ids[i]] >> shift) & (n_buckets - 1)) + 1] += 1
-            if counts.max() == n:
+        counts = np.zeros((n_passes, n_buckets), dtype=np.int64)
+        for i in range(n):
+            for k in range(n_passes):
+                counts[k, (keys[i] >> (k * RADIX_BITS)) & (n_buckets - 1)] += 1
+        ids_out, keys_out = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.uint64)
+        starts = np.empty(n_buckets, dtype=np.int64)
+        for k in range(n_passes):
+            if counts[k].max() == n:
                 continue  # every key has the same digit here: the pass would not move anything
+            total = 0
             for b in range(n_buckets):
-                counts[b + 1] += counts[b]
+                starts[b] = total
+                total += counts[k, b]
             for i in range(n):
-                digit = (depth_bits[cam, ids[i]] >> shift) & (n_buckets - 1)
-                scratch[counts[digit]] = ids[i]
-                counts[digit] += 1
-            ids[:n] = scratch
-        order[cam] = ids
+                digit = (keys[i] >> (k * RADIX_BITS)) & (n_buckets - 1)
+                keys_out[starts[digit]] = keys[i]
+                ids_out[starts[digit]] = ids[i]
+                starts[digit] += 1
+            ids, ids_out = ids_out, ids
+            keys, keys_out = keys_out, keys
+        order[cam, :n] = ids
         n_visible[cam] = n
     return order, n_visible
 
@@ -158,6 +175,8 @@ def _pack(packed_ids, means2d, conics, opacities, colors, boxes):
         records[s, REC_CUT] = cut
         records[s, REC_ROW_SCALE] = 2.0 * ca * (cut + ROW_SPAN_SLACK)
         records[s, REC_CONIC_DET] = ca * cc - cb * cb
+        records[s, REC_INV_A] = 1.0 / ca
+        records[s, REC_B_OVER_A] = cb / ca
         records[s, REC_X_LO] = boxes[g, 0]
         records[s, REC_X_HI] = boxes[g, 1]
         records[s, REC_Y_LO] = boxes[g, 2]
@@ -342,6 +361,10 @@ def rasterize_forward(
             mx, ca, cb, cc = records[g, REC_X], records[g, REC_A], records[g, REC_B], records[g, REC_C]
             opacity, cut = records[g, REC_OPACITY], records[g, REC_CUT]
             row_scale, conic_det = records[g, REC_ROW_SCALE], records[g, REC_CONIC_DET]
+            # the chord test in float64 (scalar, once per row): pixel centres left + i for i in first..last
+            inv_a, b_over_a = np.float64(records[g, REC_INV_A]), np.float64(records[g, REC_B_OVER_A])
+            chord_lo = np.float64(left) + first - ROW_CHORD_SLACK - np.float64(mx)
+            chord_hi = np.float64(left) + last + ROW_CHORD_SLACK - np.float64(mx)
             c0 = colors[g, 0] if n_channels > 0 else _ZERO
             c1 = colors[g, 1] if n_channels > 1 else _ZERO
             c2 = colors[g, 2] if n_channels > 2 else _ZERO
@@ -352,6 +375,12 @@ def rasterize_forward(
                 dy = records[g, REC_Y] - (REAL(py) + _HALF)
                 if not row_live[ly] or row_scale < dy * dy * conic_det:
                     continue  # the row is finished or misses the cut-off ellipse
+                # sigma <= cut on this row where |px - mx - (b / a) dy| <= sqrt(2 a cut - dy^2 (a c - b^2)) / a
+                dy64 = np.float64(dy)
+                chord_centre = b_over_a * dy64
+                chord_half = math.sqrt(max(np.float64(row_scale) - dy64 * dy64 * np.float64(conic_det), 0.0)) * inv_a
+                if chord_centre + chord_half < chord_lo or chord_centre - chord_half > chord_hi:
+                    continue  # the chord lies beside the Gaussian's pixels in this tile row
                 cb_dy = cb * dy
                 cc_dy2 = cc * dy * dy
                 any_go = False

@@ -248,3 +248,41 @@ def test_feature_channels_of_any_count_match_reference(n_channels):
     ref = gradients(scene, torch.float64, "reference", backgrounds=backgrounds)
     for key in ref:
         assert (cpu[key] - ref[key]).abs().max().item() <= GRAD_RELATIVE_TOLERANCE * ref[key].abs().max().item(), key
+
+
+def test_row_tests_never_skip_a_pixel_inside_the_cut_off_ellipse():
+    # thin, tilted, off-centre Gaussians (one per camera, so nothing occludes): the row and chord tests
+    # skip tile rows by geometry; every pixel whose float64 alpha is clearly above the threshold (and
+    # inside the pixel box) must still be composited, with the alpha the float64 formula gives
+    from omniscs.render.constants import ALPHA_THRESHOLD
+    from omniscs.render.cpu import rasterize_cpu
+    from omniscs.render.projection import ScreenGaussians
+    rng = np.random.default_rng(31)
+    n_cams, width, height = 64, 72, 56
+    angle = rng.uniform(0.0, np.pi, n_cams)
+    long_sigma, short_sigma = rng.uniform(3.0, 25.0, n_cams), rng.uniform(0.6, 1.5, n_cams)
+    rot = np.stack([np.cos(angle), np.sin(angle), -np.sin(angle), np.cos(angle)], -1).reshape(n_cams, 2, 2)
+    cov = rot @ (np.eye(2) * np.stack([long_sigma ** 2, short_sigma ** 2], -1)[:, None, :]) @ rot.transpose(0, 2, 1)
+    inv = np.linalg.inv(cov)
+    conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    means2d = np.stack([rng.uniform(8.0, width - 8.0, n_cams), rng.uniform(8.0, height - 8.0, n_cams)], -1)
+    opacities = rng.uniform(0.05, 0.3, n_cams)  # cut-off ellipse inside the 3-sigma pixel box
+    radius = np.ceil(3.0 * np.sqrt(np.linalg.eigvalsh(cov)[:, -1]))
+    screen = ScreenGaussians(
+        means2d=torch.tensor(means2d[:, None], dtype=torch.float32),
+        conics=torch.tensor(conics[:, None], dtype=torch.float32),
+        depths=torch.ones(n_cams, 1), opacities=torch.tensor(opacities[:, None], dtype=torch.float32),
+        radii=torch.tensor(np.stack([radius, radius], -1)[:, None], dtype=torch.int32))
+    _, alphas = rasterize_cpu(screen, torch.ones(n_cams, 1, 3), torch.zeros(n_cams, 3), width, height)
+    ys, xs = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    f32 = lambda a: a.astype(np.float32).astype(np.float64)  # noqa: E731  the kernels' inputs
+    dx, dy = f32(means2d[:, 0])[:, None, None] - xs, f32(means2d[:, 1])[:, None, None] - ys
+    a, b, c = (f32(conics[:, k])[:, None, None] for k in range(3))
+    alpha = f32(opacities)[:, None, None] * np.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy))
+    in_box = (np.abs(dx) <= radius[:, None, None]) & (np.abs(dy) <= radius[:, None, None])
+    clearly_in = in_box & (alpha >= 1.02 * ALPHA_THRESHOLD)
+    clearly_out = alpha <= 0.98 * ALPHA_THRESHOLD
+    rendered = alphas[..., 0].double().numpy()
+    assert clearly_in.sum() > 10_000  # many pixels on rows of every kind (tile edges, chord ends)
+    assert np.abs(rendered - alpha)[clearly_in].max() < 1e-5
+    assert (rendered[clearly_out] == 0.0).all()
