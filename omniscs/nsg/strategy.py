@@ -176,19 +176,31 @@ class OptimisedGaussians:
                     state[buf].zero_()
 
 
+def screen_gradient_norms(grad2d: Tensor,  # [N, 2] d loss / d means2d (or absgrad) of one view
+                          radii: Tensor,   # [N, 2] or [N] screen radii; 0 = culled
+                          width: int, height: int) -> tuple[Tensor, Tensor]:  # norms [N], visible [N] bool
+    """Each Gaussian's screen-space gradient norm in normalised device units, and whether the view saw it; a
+    step computes them once for all nodes (``add_screen_gradients`` per node's rows)."""
+    visible = (radii.reshape(radii.shape[0], -1) > 0).any(-1)
+    scaled = grad2d.detach().clone()
+    scaled[:, 0] *= 0.5 * width
+    scaled[:, 1] *= 0.5 * height
+    return torch.nan_to_num(scaled.norm(dim=-1), nan=0.0, posinf=0.0), visible
+
+
+def add_screen_gradients(node: OptimisedGaussians, norms: Tensor, visible: Tensor) -> None:
+    """Add one view's gradient norms (``screen_gradient_norms``, this node's rows) to the Gaussians it saw."""
+    # masks rather than boolean indexing: no gather/scatter and no host sync (a step calls this per node)
+    node.grad2d += torch.where(visible, norms, 0.0)
+    node.count += visible
+
+
 def accumulate_gradients(strategy: DensifyStrategy, node: OptimisedGaussians,
                          grad2d: Tensor,  # [N, 2] this node's rows of d loss / d means2d (or absgrad)
                          radii: Tensor,   # [N, 2] or [N] screen radii; 0 = culled
                          width: int, height: int) -> None:
     """Add this view's normalised screen-space gradient norms to the Gaussians it saw."""
-    visible = (radii.reshape(radii.shape[0], -1) > 0).any(-1)
-    scaled = grad2d.detach().clone()
-    scaled[:, 0] *= 0.5 * width
-    scaled[:, 1] *= 0.5 * height
-    norms = torch.nan_to_num(scaled.norm(dim=-1), nan=0.0, posinf=0.0)
-    # masks rather than boolean indexing: no gather/scatter and no host sync (a step calls this per node)
-    node.grad2d += torch.where(visible, norms, 0.0)
-    node.count += visible
+    add_screen_gradients(node, *screen_gradient_norms(grad2d, radii, width, height))
 
 
 def refine(strategy: DensifyStrategy, node: OptimisedGaussians, step: int, scene_scale: float, budget: int,

@@ -22,8 +22,8 @@ from omniscs.nsg.init import agent_scene_scale, background_scene_scale, initial_
 from omniscs.quality import psnr, ssim, ssim_loss
 from omniscs.nsg.observations import Observations, View
 from omniscs.nsg.sky import SkyParams
-from omniscs.nsg.strategy import (OptimisedGaussians, SharedAdam, accumulate_gradients, all_finite, refine,
-                                  reset_opacities)
+from omniscs.nsg.strategy import (OptimisedGaussians, SharedAdam, add_screen_gradients, all_finite, refine,
+                                  reset_opacities, screen_gradient_norms)
 from omniscs.plan import ScenePlan
 from omniscs.progress import Progress
 from omniscs.scene.store import Scene
@@ -224,12 +224,11 @@ class _Trainer:
         refining = step < cfg.strategy.refine_stop_iter
         if refining and means2d is not None and means2d.grad is not None:
             grads = means2d.absgrad if cfg.strategy.absgrad else means2d.grad
+            norms, visible = screen_gradient_norms(grads[0], out.meta["radii"][0], view.width, view.height)
             for key, sl in out.node_slices.items():
                 sl = slice(sl.start + len(self.fixed.get(key, ())), sl.stop)  # fixed rows come first
-                if sl.stop <= sl.start:
-                    continue
-                accumulate_gradients(cfg.strategy, self.nodes[key], grads[0, sl], out.meta["radii"][0, sl],
-                                     view.width, view.height)
+                if sl.stop > sl.start:
+                    add_screen_gradients(self.nodes[key], norms[sl], visible[sl])
         progress = step / max(1, cfg.iterations - 1)
         decay = cfg.lr.means_final_ratio ** progress
         for key, node in self.nodes.items():

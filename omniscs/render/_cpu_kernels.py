@@ -569,12 +569,14 @@ def reduce_slots(
     packed_offsets,  # [V + 1]
     packed_isects,   # [M]
     slots,           # [M, S] float32
-    out,             # [C*N, S] float64, zeros: per-Gaussian sums in tile order (undrawn ones stay 0)
+    out,             # [C*N, S] zeros (float32 or float64): per-Gaussian sums, in float64 in tile order, rounded
+                     # once to out's type (undrawn Gaussians stay 0)
 ):
     n_slots = slots.shape[1]
     for s in nb.prange(packed_ids.shape[0]):
         g = packed_ids[s]
-        for i in range(packed_offsets[s], packed_offsets[s + 1]):
-            row = packed_isects[i]
-            for k in range(n_slots):
-                out[g, k] += slots[row, k]
+        for k in range(n_slots):
+            total = 0.0
+            for i in range(packed_offsets[s], packed_offsets[s + 1]):
+                total += np.float64(slots[packed_isects[i], k])
+            out[g, k] = total

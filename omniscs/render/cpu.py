@@ -192,11 +192,11 @@ class TileRasterizer(torch.autograd.Function):
             kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors,
                                        backgrounds, transmittance, counts, row_masks, grad_colors_np, grad_alphas_np,
                                        slots)
-        per_gaussian = np.zeros((ctx.n_flat, slots.shape[1]), dtype=np.float64)
-        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, per_gaussian)
         dt_means, dt_colors, dt_backgrounds = ctx.dtypes
-        grads = torch.from_numpy(per_gaussian if dt_means == torch.float64 else per_gaussian.astype(np.float32))
-        grads = grads.reshape(n_cams, -1, slots.shape[1])
+        per_gaussian = np.zeros((ctx.n_flat, slots.shape[1]),
+                                dtype=np.float64 if dt_means == torch.float64 else np.float32)
+        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, per_gaussian)
+        grads = torch.from_numpy(per_gaussian).reshape(n_cams, -1, slots.shape[1])
         if ctx.absgrad:
             means2d.absgrad = grads[..., 6:8]
         grad_backgrounds = None
