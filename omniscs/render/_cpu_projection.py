@@ -1,7 +1,8 @@
 """Numba kernels of the CPU backend's projection: the EWA math of ``projection.py``, fused per Gaussian.
 
 Forward and a hand-derived backward, parallel over Gaussians with the cameras looped inside, in
-float64. Fusing matters on shared machines: one parallel region instead of about a hundred small
+float64 whatever the arrays' type: every value is read as float64 and rounded once when written, so
+float32 Gaussians need no float64 copies in or out (one compiled version per type). Fusing matters on shared machines: one parallel region instead of about a hundred small
 PyTorch ops, each of which waits for every thread. The PyTorch version in ``projection.py`` is the
 definition; tests hold this one to it.
 """
@@ -21,7 +22,7 @@ from omniscs.render.projection import MIN_COMPENSATION_RATIO
 def _unit_quat(quats, n):
     """Normalised quaternion and its norm; the identity (norm 0) when too short to have a direction
     (the rule of ``omniscs.quaternions.normalize_quats``, fused here because Numba cannot call torch)."""
-    w, x, y, z = quats[n, 0], quats[n, 1], quats[n, 2], quats[n, 3]
+    w, x, y, z = np.float64(quats[n, 0]), np.float64(quats[n, 1]), np.float64(quats[n, 2]), np.float64(quats[n, 3])
     norm = math.sqrt(w * w + x * x + y * y + z * z)
     if not norm >= MIN_QUAT_NORM:
         return 1.0, 0.0, 0.0, 0.0, 0.0
@@ -50,7 +51,7 @@ def _rotated_scaled(viewmats, c, i, R, k):
 @nb.njit(cache=True, inline="always")
 def _camera_frame(means, n, viewmats, Ks, c, width, height, near, far):
     """Camera-frame centre, the in-depth flag, 1/z, and the clamped and unclamped x/z, y/z with their clamp flags."""
-    px, py, pz = means[n, 0], means[n, 1], means[n, 2]
+    px, py, pz = np.float64(means[n, 0]), np.float64(means[n, 1]), np.float64(means[n, 2])
     x = viewmats[c, 0, 0] * px + viewmats[c, 0, 1] * py + viewmats[c, 0, 2] * pz + viewmats[c, 0, 3]
     y = viewmats[c, 1, 0] * px + viewmats[c, 1, 1] * py + viewmats[c, 1, 2] * pz + viewmats[c, 1, 3]
     z = viewmats[c, 2, 0] * px + viewmats[c, 2, 1] * py + viewmats[c, 2, 2] * pz + viewmats[c, 2, 3]
@@ -72,13 +73,13 @@ def _camera_frame(means, n, viewmats, Ks, c, width, height, near, far):
 
 @nb.njit(cache=True, parallel=True)
 def project_forward(
-    means, quats, scales, opacities,  # [N, 3], [N, 4], [N, 3], [N] float64
+    means, quats, scales, opacities,  # [N, 3], [N, 4], [N, 3], [N] float32 or float64
     viewmats, Ks,                     # [C, 4, 4], [C, 3, 3] float64
     width, height, near, far, eps2d, antialiased,
-    out_means2d,    # [C, N, 2] float64
-    out_conics,     # [C, N, 3] float64
-    out_depths,     # [C, N] float64
-    out_opacities,  # [C, N] float64
+    out_means2d,    # [C, N, 2] the Gaussians' type
+    out_conics,     # [C, N, 3] the Gaussians' type
+    out_depths,     # [C, N] float64 (the sort key)
+    out_opacities,  # [C, N] the Gaussians' type
     out_radii,      # [C, N, 2] int32
 ):
     n_cams = viewmats.shape[0]
@@ -86,7 +87,7 @@ def project_forward(
         w, qx, qy, qz, _ = _unit_quat(quats, n)
         R = np.empty((3, 3))
         _rotation(w, qx, qy, qz, R)
-        opacity = opacities[n]
+        opacity = np.float64(opacities[n])
         for c in range(n_cams):
             x, y, z, in_depth, inv_z, u, v, uc, vc, _, _ = _camera_frame(means, n, viewmats, Ks, c, width, height, near, far)
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
@@ -95,9 +96,9 @@ def project_forward(
             # A = J W R S, row by row: J = [[fx/z, 0, -fx uc/z], [0, fy/z, -fy vc/z]]
             a00 = a01 = a02 = a10 = a11 = a12 = 0.0
             for k in range(3):
-                b0 = _rotated_scaled(viewmats, c, 0, R, k) * scales[n, k]
-                b1 = _rotated_scaled(viewmats, c, 1, R, k) * scales[n, k]
-                b2 = _rotated_scaled(viewmats, c, 2, R, k) * scales[n, k]
+                b0 = _rotated_scaled(viewmats, c, 0, R, k) * np.float64(scales[n, k])
+                b1 = _rotated_scaled(viewmats, c, 1, R, k) * np.float64(scales[n, k])
+                b2 = _rotated_scaled(viewmats, c, 2, R, k) * np.float64(scales[n, k])
                 row0 = fx * inv_z * b0 - fx * uc * inv_z * b2
                 row1 = fy * inv_z * b1 - fy * vc * inv_z * b2
                 if k == 0:
@@ -144,11 +145,11 @@ def project_backward(
     means, quats, scales, opacities, viewmats, Ks,  # as in project_forward
     width, height, near, far, eps2d, antialiased,
     radii,          # [C, N, 2] int32 from the forward pass
-    v_means2d,      # [C, N, 2] float64 upstream gradients
+    v_means2d,      # [C, N, 2] upstream gradients (float32 or float64)
     v_conics,       # [C, N, 3]
     v_depths,       # [C, N]
     v_opacities_c,  # [C, N]
-    out_means,      # [N, 3] float64
+    out_means,      # [N, 3] the Gaussians' type
     out_quats,      # [N, 4]
     out_scales,     # [N, 3]
     out_opacities,  # [N]
@@ -170,7 +171,7 @@ def project_backward(
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
             for i in range(3):
                 for k in range(3):
-                    B[i, k] = _rotated_scaled(viewmats, c, i, R, k) * scales[n, k]
+                    B[i, k] = _rotated_scaled(viewmats, c, i, R, k) * np.float64(scales[n, k])
             j00 = fx * inv_z
             j02 = -fx * uc * inv_z
             j11 = fy * inv_z
@@ -193,7 +194,7 @@ def project_backward(
             inv_det = 1.0 / det
 
             # conic = (cc, -cb0, ca) / det
-            ka, kb, kc = v_conics[c, n, 0], v_conics[c, n, 1], v_conics[c, n, 2]
+            ka, kb, kc = np.float64(v_conics[c, n, 0]), np.float64(v_conics[c, n, 1]), np.float64(v_conics[c, n, 2])
             v_inv = ka * cc - kb * cb0 + kc * ca
             v_cc0 = ka * inv_det
             v_cb0 = -kb * inv_det
@@ -202,13 +203,13 @@ def project_backward(
             if antialiased:
                 ratio = det0 * inv_det
                 compensation = math.sqrt(max(ratio, MIN_COMPENSATION_RATIO))
-                v_opacity += v_opacities_c[c, n] * compensation
+                v_opacity += np.float64(v_opacities_c[c, n]) * compensation
                 if ratio > MIN_COMPENSATION_RATIO:
-                    v_ratio = v_opacities_c[c, n] * opacities[n] * 0.5 / compensation
+                    v_ratio = np.float64(v_opacities_c[c, n]) * np.float64(opacities[n]) * 0.5 / compensation
                     v_det0 += v_ratio * inv_det
                     v_inv += v_ratio * det0
             else:
-                v_opacity += v_opacities_c[c, n]
+                v_opacity += np.float64(v_opacities_c[c, n])
             v_det = -v_inv * inv_det * inv_det
             v_det0 += v_det
             v_ca0 += eps2d * v_det
@@ -245,11 +246,11 @@ def project_backward(
 
             # J and means2d through z, u, v
             v_z = -(j00 * v_j00 + j11 * v_j11) * inv_z - (j02 * v_j02 + j12 * v_j12) * inv_z
-            v_u = fx * v_means2d[c, n, 0] + (-fx * inv_z * v_j02 if u_free else 0.0)
-            v_v = fy * v_means2d[c, n, 1] + (-fy * inv_z * v_j12 if v_free else 0.0)
+            v_u = fx * np.float64(v_means2d[c, n, 0]) + (-fx * inv_z * v_j02 if u_free else 0.0)
+            v_v = fy * np.float64(v_means2d[c, n, 1]) + (-fy * inv_z * v_j12 if v_free else 0.0)
             v_x = v_u * inv_z
             v_y = v_v * inv_z
-            v_z += -(v_u * x + v_v * y) * inv_z * inv_z + v_depths[c, n]
+            v_z += -(v_u * x + v_v * y) * inv_z * inv_z + np.float64(v_depths[c, n])
             for i in range(3):
                 v_mean[i] += viewmats[c, 0, i] * v_x + viewmats[c, 1, i] * v_y + viewmats[c, 2, i] * v_z
 
@@ -261,7 +262,7 @@ def project_backward(
         for k in range(3):
             out_scales[n, k] = v_M[0, k] * R[0, k] + v_M[1, k] * R[1, k] + v_M[2, k] * R[2, k]
             for i in range(3):
-                G[i, k] = v_M[i, k] * scales[n, k]
+                G[i, k] = v_M[i, k] * np.float64(scales[n, k])
         if qnorm == 0.0:
             for i in range(4):
                 out_quats[n, i] = 0.0

@@ -59,11 +59,15 @@ def _from_float64(a: np.ndarray, dtype: torch.dtype) -> Tensor:
     return torch.from_numpy(a if dtype == torch.float64 else a.astype(np.float32))
 
 
+def _as_array(t: Tensor) -> np.ndarray:  # in its own type: the projection kernels read values as float64
+    return np.ascontiguousarray(t.detach().numpy())
+
+
 class CpuProjection(torch.autograd.Function):
     """``projection.project_gaussians`` as fused Numba kernels; differentiable in means, quats, scales, opacities.
 
-    Computes in float64 whatever the input dtype (one compiled kernel; geometry wants it) and returns
-    the dtype of ``means``.
+    Computes in float64 whatever the input dtype (geometry wants it; the kernels read every value as float64,
+    so float32 inputs are not copied) and returns the dtype of ``means``.
     """
 
     @staticmethod
@@ -71,22 +75,22 @@ class CpuProjection(torch.autograd.Function):
     def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor,
                 width: int, height: int, near_plane: float, far_plane: float, eps2d: float, antialiased: bool,
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # ScreenGaussians' fields, float64 depths
-        inputs = tuple(_as_float64(t) for t in (means, quats, scales, opacities, viewmats, Ks))
+        real = np.float64 if means.dtype == torch.float64 else np.float32
+        inputs = (*(_as_array(t) for t in (means, quats, scales, opacities)), _as_float64(viewmats), _as_float64(Ks))
         settings = (width, height, float(near_plane), float(far_plane), float(eps2d), bool(antialiased))
         n_cams, n_gauss = viewmats.shape[0], means.shape[0]
-        means2d = np.empty((n_cams, n_gauss, 2))
-        conics = np.empty((n_cams, n_gauss, 3))
+        means2d = np.empty((n_cams, n_gauss, 2), dtype=real)
+        conics = np.empty((n_cams, n_gauss, 3), dtype=real)
         depths = np.empty((n_cams, n_gauss))
-        opacities_c = np.empty((n_cams, n_gauss))
+        opacities_c = np.empty((n_cams, n_gauss), dtype=real)
         radii = np.empty((n_cams, n_gauss, 2), dtype=np.int32)
         projection_kernels.project_forward(*inputs, *settings, means2d, conics, depths, opacities_c, radii)
         ctx.inputs, ctx.settings, ctx.radii = inputs, settings, radii
-        ctx.dtypes = tuple(t.dtype for t in (means, quats, scales, opacities))
         radii_t, sort_depths = torch.from_numpy(radii), torch.from_numpy(depths)
         ctx.mark_non_differentiable(radii_t, sort_depths)
         dtype = means.dtype
-        return (_from_float64(means2d, dtype), _from_float64(conics, dtype), _from_float64(depths, dtype),
-                _from_float64(opacities_c, dtype), radii_t, sort_depths)
+        return (torch.from_numpy(means2d), torch.from_numpy(conics), _from_float64(depths, dtype),
+                torch.from_numpy(opacities_c), radii_t, sort_depths)
 
     @staticmethod
     @keeps_torch_threads
@@ -94,13 +98,13 @@ class CpuProjection(torch.autograd.Function):
         means, quats, scales, opacities, viewmats, Ks = ctx.inputs
         n_cams, n_gauss = viewmats.shape[0], means.shape[0]
         upstream = [
-            np.zeros(shape) if grad is None else _as_float64(grad)
+            np.zeros(shape, dtype=means.dtype) if grad is None else _as_array(grad)
             for grad, shape in ((v_means2d, (n_cams, n_gauss, 2)), (v_conics, (n_cams, n_gauss, 3)),
                                 (v_depths, (n_cams, n_gauss)), (v_opacities, (n_cams, n_gauss)))
         ]
         grads = (np.empty_like(means), np.empty_like(quats), np.empty_like(scales), np.empty_like(opacities))
         projection_kernels.project_backward(*ctx.inputs, *ctx.settings, ctx.radii, *upstream, *grads)
-        return (*(_from_float64(g, dt) for g, dt in zip(grads, ctx.dtypes)),
+        return (*(torch.from_numpy(g) for g in grads),
                 None, None, None, None, None, None, None, None)
 
 
