@@ -82,17 +82,32 @@ def project_forward(
     out_opacities,  # [C, N] the Gaussians' type
     out_radii,      # [C, N, 2] int32
 ):
+    """Culled pairs get radii 0 and finite values that mean nothing; those outside [near, far] skip the covariance
+    (in a fit's view, about two in five Gaussians are behind the camera)."""
     n_cams = viewmats.shape[0]
     for n in nb.prange(means.shape[0]):
-        w, qx, qy, qz, _ = _unit_quat(quats, n)
         R = np.empty((3, 3))
-        _rotation(w, qx, qy, qz, R)
+        rotated = False
         opacity = np.float64(opacities[n])
         for c in range(n_cams):
             x, y, z, in_depth, inv_z, u, v, uc, vc, _, _ = _camera_frame(means, n, viewmats, Ks, c, width, height, near, far)
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
             mx = fx * u + Ks[c, 0, 2]
             my = fy * v + Ks[c, 1, 2]
+            if not in_depth:
+                out_means2d[c, n, 0] = mx if math.isfinite(mx) else 0.0
+                out_means2d[c, n, 1] = my if math.isfinite(my) else 0.0
+                for k in range(3):
+                    out_conics[c, n, k] = 0.0
+                out_depths[c, n] = z
+                out_opacities[c, n] = opacity
+                out_radii[c, n, 0] = 0
+                out_radii[c, n, 1] = 0
+                continue
+            if not rotated:
+                w, qx, qy, qz, _ = _unit_quat(quats, n)
+                _rotation(w, qx, qy, qz, R)
+                rotated = True
             # A = J W R S, row by row: J = [[fx/z, 0, -fx uc/z], [0, fy/z, -fy vc/z]]
             a00 = a01 = a02 = a10 = a11 = a12 = 0.0
             for k in range(3):
@@ -157,6 +172,17 @@ def project_backward(
     """Chain rule through projection_forward; culled (Gaussian, camera) pairs contribute nothing."""
     n_cams = viewmats.shape[0]
     for n in nb.prange(means.shape[0]):
+        seen = False
+        for c in range(n_cams):
+            seen |= radii[c, n, 0] > 0
+        if not seen:  # culled by every camera: no gradient
+            for i in range(3):
+                out_means[n, i] = 0.0
+                out_scales[n, i] = 0.0
+            for i in range(4):
+                out_quats[n, i] = 0.0
+            out_opacities[n] = 0.0
+            continue
         w, qx, qy, qz, qnorm = _unit_quat(quats, n)
         R = np.empty((3, 3))
         _rotation(w, qx, qy, qz, R)
