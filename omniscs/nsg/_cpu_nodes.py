@@ -129,6 +129,31 @@ def prepare_forward(
             out_colours[i, ch] = max(value + SH_COLOR_OFFSET, 0.0)
 
 
+@nb.njit(cache=True, inline="always")
+def _no_gradient(v_means, v_quats, v_scales, v_opacities, v_colours, i):
+    """Whether every upstream gradient of Gaussian i is 0."""
+    nonzero = v_opacities[i] != 0.0
+    for r in range(3):
+        nonzero |= (v_means[i, r] != 0.0) | (v_scales[i, r] != 0.0) | (v_colours[i, r] != 0.0)
+    for r in range(4):
+        nonzero |= v_quats[i, r] != 0.0
+    return not nonzero
+
+
+@nb.njit(cache=True, inline="always")
+def _zero_row(g_means, g_quats, g_log_scales, g_logits, g_sh_dc, g_sh_rest, i):
+    for r in range(3):
+        g_means[i, r] = 0.0
+        g_log_scales[i, r] = 0.0
+        g_sh_dc[i, r] = 0.0
+    for r in range(4):
+        g_quats[i, r] = 0.0
+    g_logits[i] = 0.0
+    for j in range(g_sh_rest.shape[1]):
+        for ch in range(3):
+            g_sh_rest[i, j, ch] = 0.0
+
+
 @nb.njit(cache=True, parallel=True)
 def prepare_backward(
     means, quats, log_scales, logits, sh_dc, sh_rest, node_of, rotations, translations, rotation_quats, centres,
@@ -138,6 +163,9 @@ def prepare_backward(
 ):
     n_bases = (degree + 1) * (degree + 1)
     for i in nb.prange(means.shape[0]):
+        if _no_gradient(v_means, v_quats, v_scales, v_opacities, v_colours, i):
+            _zero_row(g_means, g_quats, g_log_scales, g_logits, g_sh_dc, g_sh_rest, i)
+            continue  # a Gaussian the view did not see (most of them): every gradient is 0
         k = node_of[i]
         b = np.empty(MAX_BASES)  # private to the iteration
         gb = np.zeros(MAX_BASES)
