@@ -34,7 +34,13 @@ def voxel_subsample(points: np.ndarray,  # [N, 3]
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
     cells = np.floor(points / voxel).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    cells -= cells.min(axis=0)
+    extent = cells.max(axis=0) + 1
+    if float(extent[0]) * float(extent[1]) * float(extent[2]) < 2.0 ** 62:
+        # one int64 key per cell, in the rows' lexicographic order: a 1-D unique is much faster than one over rows
+        _, first = np.unique((cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2], return_index=True)
+    else:
+        _, first = np.unique(cells, axis=0, return_index=True)
     first = rng.permutation(first)
     return np.sort(first[:budget])
 
