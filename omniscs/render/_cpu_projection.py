@@ -71,29 +71,58 @@ def _camera_frame(means, n, viewmats, Ks, c, width, height, near, far):
     return x, y, z, in_depth, inv_z, u, v, u_clamped, v_clamped, u_free, v_free
 
 
+#: 2 ln(1 / ALPHA_THRESHOLD): the squared cut-off extent (in sigmas) of an opacity of 1.
+_EXTENT2_OPAQUE = 2.0 * math.log(1.0 / ALPHA_THRESHOLD)
+
+#: Relative slack on the radii's bound (rounding of the bound's own arithmetic).
+_BOUND_SLACK = 1.0 + 1e-9
+
+
+def norms2(viewmats: np.ndarray) -> np.ndarray:  # [C, 4, 4] -> [C]
+    """The square of each camera rotation's largest singular value (1 for a rotation), a little above."""
+    return np.linalg.norm(viewmats[:, :3, :3], ord=2, axis=(1, 2)) ** 2 * (1.0 + 1e-12)
+
+
 @nb.njit(cache=True, parallel=True)
 def project_forward(
     means, quats, scales, opacities,  # [N, 3], [N, 4], [N, 3], [N] float32 or float64
     viewmats, Ks,                     # [C, 4, 4], [C, 3, 3] float64
     width, height, near, far, eps2d, antialiased,
+    rotation_norms2,  # [C] float64, at least the square of each camera's largest singular value (``norms2``)
     out_means2d,    # [C, N, 2] the Gaussians' type
     out_conics,     # [C, N, 3] the Gaussians' type
     out_depths,     # [C, N] float64 (the sort key)
     out_opacities,  # [C, N] the Gaussians' type
     out_radii,      # [C, N, 2] int32
 ):
-    """Culled pairs get radii 0 and finite values that mean nothing; those outside [near, far] skip the covariance
-    (in a fit's view, about two in five Gaussians are behind the camera)."""
+    """Culled pairs get radii 0 and finite values that mean nothing. Pairs outside [near, far], and those whose
+    bound on the radii keeps them off the screen, skip the covariance (in a fit's view about two in five
+    Gaussians are behind the camera and one in three is in front but off the screen)."""
     n_cams = viewmats.shape[0]
     for n in nb.prange(means.shape[0]):
         R = np.empty((3, 3))
         rotated = False
         opacity = np.float64(opacities[n])
+        # extent^2 of the cut-off (as below) at the most opaque the compensation allows: the radii's bound
+        extent2 = 2.0 * math.log(max(opacity, ALPHA_THRESHOLD) / ALPHA_THRESHOLD) if opacity > 1.0 else _EXTENT2_OPAQUE
+        scales2 = 0.0
+        for k in range(3):
+            scales2 += np.float64(scales[n, k]) ** 2
         for c in range(n_cams):
             x, y, z, in_depth, inv_z, u, v, uc, vc, _, _ = _camera_frame(means, n, viewmats, Ks, c, width, height, near, far)
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
             mx = fx * u + Ks[c, 0, 2]
             my = fy * v + Ks[c, 1, 2]
+            if in_depth:
+                # |row of J W R S|^2 <= (f / z)^2 (1 + clamped^2) |W|^2 sum_k s_k^2, and ceil(r) < r + 1
+                spread = rotation_norms2[c] * scales2 * inv_z * inv_z
+                bound_x = extent2 * (fx * fx * (1.0 + uc * uc) * spread + eps2d) * _BOUND_SLACK
+                bound_y = extent2 * (fy * fy * (1.0 + vc * vc) * spread + eps2d) * _BOUND_SLACK
+                off_x = (mx + 1.0 < 0.0 and bound_x <= (mx + 1.0) ** 2) or (
+                    mx - 1.0 - width > 0.0 and bound_x <= (mx - 1.0 - width) ** 2)
+                off_y = (my + 1.0 < 0.0 and bound_y <= (my + 1.0) ** 2) or (
+                    my - 1.0 - height > 0.0 and bound_y <= (my - 1.0 - height) ** 2)
+                in_depth = not (off_x or off_y)
             if not in_depth:
                 out_means2d[c, n, 0] = mx if math.isfinite(mx) else 0.0
                 out_means2d[c, n, 1] = my if math.isfinite(my) else 0.0

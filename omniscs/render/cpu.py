@@ -84,7 +84,8 @@ class CpuProjection(torch.autograd.Function):
         depths = np.empty((n_cams, n_gauss))
         opacities_c = np.empty((n_cams, n_gauss), dtype=real)
         radii = np.empty((n_cams, n_gauss, 2), dtype=np.int32)
-        projection_kernels.project_forward(*inputs, *settings, means2d, conics, depths, opacities_c, radii)
+        projection_kernels.project_forward(*inputs, *settings, projection_kernels.norms2(inputs[4]), means2d, conics,
+                                           depths, opacities_c, radii)
         ctx.inputs, ctx.settings, ctx.radii = inputs, settings, radii
         radii_t, sort_depths = torch.from_numpy(radii), torch.from_numpy(depths)
         ctx.mark_non_differentiable(radii_t, sort_depths)

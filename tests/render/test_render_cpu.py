@@ -112,6 +112,28 @@ def test_cpu_projection_matches_pytorch_definition():
                                    rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("rotation_scale", [1.0, 1.7])
+def test_cpu_projection_culls_off_screen_gaussians_as_the_definition_does(rotation_scale):
+    # centres all around the screen's edges and behind the camera, sizes from specks to ones that reach far
+    # into the screen: the bound that skips the covariance of off-screen Gaussians must never cull a visible
+    # one (also for a camera matrix that is not a rotation)
+    rng = np.random.default_rng(12)
+    n = 6000
+    depth = rng.uniform(-2.0, 30.0, n)
+    means = np.stack([rng.uniform(-2.5, 2.5, n) * np.abs(depth), rng.uniform(-2.0, 2.0, n) * np.abs(depth), depth], -1)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] *= rotation_scale
+    args = (torch.tensor(means), torch.tensor(rng.standard_normal((n, 4))),
+            torch.tensor(np.exp(rng.uniform(np.log(0.01), np.log(4.0), (n, 3)))),
+            torch.tensor(rng.uniform(0.005, 1.0, n)), viewmat[None],
+            torch.tensor([[[60.0, 0.0, 40.0], [0.0, 60.0, 30.0], [0.0, 0.0, 1.0]]], dtype=torch.float64), 80, 60,
+            0.01, 1e10, 0.3, True)
+    (ours, _), definition = project_cpu(*args), project_gaussians(*args)
+    assert 0.1 < definition.visible.double().mean().item() < 0.6  # many of both kinds
+    assert torch.equal(ours.visible, definition.visible)
+    assert (ours.radii - definition.radii).abs().max().item() <= 1
+
+
 def test_cpu_backend_is_bitwise_deterministic():
     scene = as_dtype(street_scene(4000, 96, 54, seed=6), torch.float32)
     runs = [gradients(scene, torch.float32, "cpu", render_mode="RGB+ED") for _ in range(2)]
