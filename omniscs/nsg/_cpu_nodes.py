@@ -120,7 +120,9 @@ def prepare_forward(
         for r in range(3):
             out_scales[i, r] = math.exp(min(max(np.float64(log_scales[i, r]), log_scale_lo), log_scale_hi))
         out_opacities[i] = 1.0 / (1.0 + math.exp(-np.float64(logits[i])))
-        ux, uy, uz, _ = _direction(means, centres, i, k)
+        ux, uy, uz = 0.0, 0.0, 1.0  # degree 0 has no direction
+        if degree > 0:
+            ux, uy, uz, _ = _direction(means, centres, i, k)
         _basis(ux, uy, uz, degree, b)
         for ch in range(3):
             value = b[0] * sh_dc[i, ch]
@@ -200,7 +202,9 @@ def prepare_backward(
         opacity = 1.0 / (1.0 + math.exp(-np.float64(logits[i])))
         g_logits[i] = v_opacities[i] * opacity * (1.0 - opacity)
         # colours: clamp_min's mask, the coefficients' gradient, then the direction's
-        dx, dy, dz, dnorm = _direction(means, centres, i, k)
+        dx, dy, dz, dnorm = 0.0, 0.0, 1.0, 0.0
+        if degree > 0:
+            dx, dy, dz, dnorm = _direction(means, centres, i, k)
         _basis(dx, dy, dz, degree, b)
         for ch in range(3):
             value = b[0] * sh_dc[i, ch]

@@ -568,15 +568,24 @@ def reduce_slots(
     packed_ids,      # [V] flat Gaussian of each packed one
     packed_offsets,  # [V + 1]
     packed_isects,   # [M]
-    slots,           # [M, S] float32
-    out,             # [C*N, S] zeros (float32 or float64): per-Gaussian sums, in float64 in tile order, rounded
-                     # once to out's type (undrawn Gaussians stay 0)
+    slots,           # [M, N_GEOMETRY_SLOTS + D] float32
+    out_means2d,     # [C*N, 2] zeros (float32 or float64): per-Gaussian sums, in float64 in tile order, rounded
+    out_conics,      # [C*N, 3]   once to the outputs' type; undrawn Gaussians stay 0. One array per
+    out_opacities,   # [C*N]      gradient, so that the next backward reads each without a copy
+    out_absgrad,     # [C*N, 2]
+    out_colors,      # [C*N, D]
 ):
     n_slots = slots.shape[1]
     for s in nb.prange(packed_ids.shape[0]):
         g = packed_ids[s]
-        for k in range(n_slots):
-            total = 0.0
-            for i in range(packed_offsets[s], packed_offsets[s + 1]):
-                total += np.float64(slots[packed_isects[i], k])
-            out[g, k] = total
+        total = np.zeros(n_slots)
+        for i in range(packed_offsets[s], packed_offsets[s + 1]):
+            row = packed_isects[i]
+            for k in range(n_slots):
+                total[k] += slots[row, k]
+        out_means2d[g, 0], out_means2d[g, 1] = total[0], total[1]
+        out_conics[g, 0], out_conics[g, 1], out_conics[g, 2] = total[2], total[3], total[4]
+        out_opacities[g] = total[5]
+        out_absgrad[g, 0], out_absgrad[g, 1] = total[6], total[7]
+        for k in range(N_GEOMETRY_SLOTS, n_slots):
+            out_colors[g, k - N_GEOMETRY_SLOTS] = total[k]

@@ -2,8 +2,9 @@
 
 Forward and a hand-derived backward, parallel over Gaussians with the cameras looped inside, in
 float64 whatever the arrays' type: every value is read as float64 and rounded once when written, so
-float32 Gaussians need no float64 copies in or out (one compiled version per type). Fusing matters on shared machines: one parallel region instead of about a hundred small
-PyTorch ops, each of which waits for every thread. The PyTorch version in ``projection.py`` is the
+float32 Gaussians need no float64 copies in or out (one compiled version per type). Fusing matters on
+shared machines: one parallel region instead of about a hundred small PyTorch ops, each of which waits
+for every thread. The PyTorch version in ``projection.py`` is the
 definition; tests hold this one to it.
 """
 from __future__ import annotations
@@ -113,6 +114,7 @@ def project_forward(
             fx, fy = Ks[c, 0, 0], Ks[c, 1, 1]
             mx = fx * u + Ks[c, 0, 2]
             my = fy * v + Ks[c, 1, 2]
+            off_x = off_y = False
             if in_depth:
                 # |row of J W R S|^2 <= (f / z)^2 (1 + clamped^2) |W|^2 sum_k s_k^2, and ceil(r) < r + 1
                 spread = rotation_norms2[c] * scales2 * inv_z * inv_z
@@ -122,13 +124,12 @@ def project_forward(
                     mx - 1.0 - width > 0.0 and bound_x <= (mx - 1.0 - width) ** 2)
                 off_y = (my + 1.0 < 0.0 and bound_y <= (my + 1.0) ** 2) or (
                     my - 1.0 - height > 0.0 and bound_y <= (my - 1.0 - height) ** 2)
-                in_depth = not (off_x or off_y)
-            if not in_depth:
+            if not in_depth or off_x or off_y:
                 out_means2d[c, n, 0] = mx if math.isfinite(mx) else 0.0
                 out_means2d[c, n, 1] = my if math.isfinite(my) else 0.0
                 for k in range(3):
                     out_conics[c, n, k] = 0.0
-                out_depths[c, n] = z
+                out_depths[c, n] = z if math.isfinite(z) else 0.0
                 out_opacities[c, n] = opacity
                 out_radii[c, n, 0] = 0
                 out_radii[c, n, 1] = 0

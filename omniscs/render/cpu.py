@@ -198,18 +198,20 @@ class TileRasterizer(torch.autograd.Function):
                                        backgrounds, transmittance, counts, row_masks, grad_colors_np, grad_alphas_np,
                                        slots)
         dt_means, dt_colors, dt_backgrounds = ctx.dtypes
-        per_gaussian = np.zeros((ctx.n_flat, slots.shape[1]),
-                                dtype=np.float64 if dt_means == torch.float64 else np.float32)
-        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, per_gaussian)
-        grads = torch.from_numpy(per_gaussian).reshape(n_cams, -1, slots.shape[1])
+        out_type = np.float64 if dt_means == torch.float64 else np.float32
+        per_gaussian = tuple(np.zeros((ctx.n_flat,) + shape, dtype=out_type)
+                             for shape in ((2,), (3,), (), (2,), (n_channels,)))
+        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, *per_gaussian)
+        g_means2d, g_conics, g_opacities, g_absgrad, g_colors = (
+            torch.from_numpy(a).reshape((n_cams, -1) + a.shape[1:]) for a in per_gaussian)
         if ctx.absgrad:
-            means2d.absgrad = grads[..., 6:8]
+            means2d.absgrad = g_absgrad
         grad_backgrounds = None
         if ctx.needs_input_grad[4]:
             seen = transmittance[..., None].astype(np.float64) * grad_colors_np
             grad_backgrounds = torch.from_numpy(seen.sum(axis=(1, 2))).to(dt_backgrounds)
-        return (grads[..., 0:2], grads[..., 2:5], grads[..., kernels.N_GEOMETRY_SLOTS:].to(dt_colors),
-                grads[..., 5], grad_backgrounds, None, None, None, None, None)
+        return (g_means2d, g_conics, g_colors.to(dt_colors), g_opacities, grad_backgrounds,
+                None, None, None, None, None)
 
 
 def rasterize_cpu(
