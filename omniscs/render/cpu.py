@@ -75,7 +75,7 @@ class CpuProjection(torch.autograd.Function):
     def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmats: Tensor, Ks: Tensor,
                 width: int, height: int, near_plane: float, far_plane: float, eps2d: float, antialiased: bool,
                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:  # ScreenGaussians' fields, float64 depths
-        real = np.float64 if means.dtype == torch.float64 else np.float32
+        real = _pixel_type(means)  # the outputs' type, as means'
         inputs = (*(_as_array(t) for t in (means, quats, scales, opacities)), _as_float64(viewmats), _as_float64(Ks))
         settings = (width, height, float(near_plane), float(far_plane), float(eps2d), bool(antialiased))
         n_cams, n_gauss = viewmats.shape[0], means.shape[0]
@@ -175,7 +175,7 @@ class TileRasterizer(torch.autograd.Function):
         ctx.image = (width, height, transmittance, counts, row_masks, backgrounds_np)
         ctx.n_flat = flat
         ctx.absgrad = absgrad
-        ctx.dtypes = (means2d.dtype, colors.dtype, backgrounds.dtype)
+        ctx.dtypes = (colors.dtype, backgrounds.dtype)
         ctx.save_for_backward(means2d)
         dtype = colors.dtype
         return torch.from_numpy(out_colors).to(dtype), torch.from_numpy(out_alphas).to(dtype)
@@ -197,9 +197,8 @@ class TileRasterizer(torch.autograd.Function):
             kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors,
                                        backgrounds, transmittance, counts, row_masks, grad_colors_np, grad_alphas_np,
                                        slots)
-        dt_means, dt_colors, dt_backgrounds = ctx.dtypes
-        out_type = np.float64 if dt_means == torch.float64 else np.float32
-        per_gaussian = tuple(np.zeros((ctx.n_flat,) + shape, dtype=out_type)
+        dt_colors, dt_backgrounds = ctx.dtypes
+        per_gaussian = tuple(np.zeros((ctx.n_flat,) + shape, dtype=_pixel_type(means2d))
                              for shape in ((2,), (3,), (), (2,), (n_channels,)))
         kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, *per_gaussian)
         g_means2d, g_conics, g_opacities, g_absgrad, g_colors = (
