@@ -37,10 +37,6 @@ from omniscs.render import _cpu_kernels as kernels
 from omniscs.render import _cpu_projection as projection_kernels
 from omniscs.render.projection import ScreenGaussians
 
-#: Tiles handed to a thread at a time; small chunks balance the uneven cost of sky and street tiles.
-TILES_PER_CHUNK = 4
-
-
 def _as_real(t: Tensor, shape: tuple[int, ...], real: type) -> np.ndarray:
     return np.ascontiguousarray(t.detach().reshape(shape).numpy(), dtype=real)
 
@@ -159,7 +155,7 @@ class TileRasterizer(torch.autograd.Function):
         bins = kernels.bin_gaussians(
             _as_real(means2d, (flat, 2), real), _as_real(conics, (flat, 3), real), _as_real(opacities, (flat,), real),
             _as_real(colors, (flat, n_channels), real), radii_np.reshape(flat, 2), depth_order, n_visible, width,
-            height,
+            height, numba.get_num_threads(),
         )
         tile_offsets, isect_packed, _, packed_records, packed_colors, _, _ = bins
         backgrounds_np = _as_real(backgrounds, (n_cams, n_channels), real)
@@ -168,11 +164,11 @@ class TileRasterizer(torch.autograd.Function):
         transmittance = np.empty((n_cams, height, width), dtype=real)
         counts = np.empty((n_cams, height, width), dtype=np.int32)
         row_masks = np.empty(isect_packed.shape[0], dtype=np.int32)
-        with numba.parallel_chunksize(TILES_PER_CHUNK):
-            kernels.rasterize_forward(tile_offsets, isect_packed, packed_records, packed_colors,
-                                      backgrounds_np, out_colors, out_alphas, transmittance, counts, row_masks)
+        tile_order = kernels.spread_order(tile_offsets.shape[0] - 1, numba.get_num_threads())
+        kernels.rasterize_forward(tile_offsets, isect_packed, packed_records, packed_colors,
+                                  backgrounds_np, out_colors, out_alphas, transmittance, counts, row_masks, tile_order)
         ctx.bins = bins
-        ctx.image = (width, height, transmittance, counts, row_masks, backgrounds_np)
+        ctx.image = (width, height, transmittance, counts, row_masks, backgrounds_np, tile_order)
         ctx.n_flat = flat
         ctx.absgrad = absgrad
         ctx.dtypes = (colors.dtype, backgrounds.dtype)
@@ -184,7 +180,7 @@ class TileRasterizer(torch.autograd.Function):
     @keeps_torch_threads
     def backward(ctx, grad_colors: Tensor | None, grad_alphas: Tensor | None):
         (means2d,) = ctx.saved_tensors
-        width, height, transmittance, counts, row_masks, backgrounds = ctx.image
+        width, height, transmittance, counts, row_masks, backgrounds, tile_order = ctx.image
         tile_offsets, isect_packed, packed_ids, packed_records, packed_colors, packed_offsets, packed_isects = ctx.bins
         n_cams, n_channels = backgrounds.shape
         real = backgrounds.dtype.type  # the forward pass's pixel type
@@ -193,14 +189,12 @@ class TileRasterizer(torch.autograd.Function):
         grad_alphas_np = (np.zeros((n_cams, height, width, 1), dtype=real) if grad_alphas is None
                           else _as_real(grad_alphas, (n_cams, height, width, 1), real))
         slots = np.empty((isect_packed.shape[0], kernels.N_GEOMETRY_SLOTS + n_channels), dtype=real)
-        with numba.parallel_chunksize(TILES_PER_CHUNK):
-            kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors,
-                                       backgrounds, transmittance, counts, row_masks, grad_colors_np, grad_alphas_np,
-                                       slots)
+        kernels.rasterize_backward(tile_offsets, isect_packed, packed_records, packed_colors, backgrounds,
+                                   transmittance, counts, row_masks, grad_colors_np, grad_alphas_np, slots, tile_order)
         dt_colors, dt_backgrounds = ctx.dtypes
         per_gaussian = tuple(np.zeros((ctx.n_flat,) + shape, dtype=_pixel_type(means2d))
                              for shape in ((2,), (3,), (), (2,), (n_channels,)))
-        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, *per_gaussian)
+        kernels.reduce_slots(packed_ids, packed_offsets, packed_isects, slots, *per_gaussian, numba.get_num_threads())
         g_means2d, g_conics, g_opacities, g_absgrad, g_colors = (
             torch.from_numpy(a).reshape((n_cams, -1) + a.shape[1:]) for a in per_gaussian)
         if ctx.absgrad:

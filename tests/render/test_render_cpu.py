@@ -157,6 +157,40 @@ def test_cpu_results_do_not_depend_on_the_number_of_threads():
         assert torch.equal(runs[0][key], runs[1][key]), key
 
 
+def test_tile_lists_and_reduction_do_not_depend_on_how_the_work_is_split():
+    # the parallel counting sort of the tile lists and the gradient reduction cut their work into `parts` runs
+    # (the thread count); any count, thread or not, must give the serial result, for several cameras
+    scene = random_scene(2000, 70, 45, n_cameras=3, seed=21)
+    screen, depths = project_cpu(scene.means.float(), scene.quats.float(), scene.scales.float(),
+                                 scene.opacities.float(), scene.viewmats, scene.Ks, scene.width, scene.height,
+                                 0.01, 1e10, 0.3)
+    n_cams, n = screen.radii.shape[:2]
+    radii = screen.radii.numpy()
+    order, n_visible = kernels.depth_order(_depth_bits(depths), radii)
+    colors = np.random.default_rng(3).uniform(size=(n_cams * n, 3)).astype(np.float32)
+    flat = [screen.means2d.reshape(-1, 2).numpy(), screen.conics.reshape(-1, 3).numpy(),
+            screen.opacities.reshape(-1).numpy(), colors, radii.reshape(-1, 2), order, n_visible,
+            scene.width, scene.height]
+    serial = kernels.bin_gaussians(*flat, 1)
+    assert serial[1].size > 1000  # the scene crosses many tiles of every camera
+    slots = np.random.default_rng(4).standard_normal((serial[1].size, kernels.N_GEOMETRY_SLOTS + 3)).astype(np.float32)
+
+    def reduced(bins, parts):
+        outs = tuple(np.zeros((n_cams * n,) + shape, np.float64) for shape in ((2,), (3,), (), (2,), (3,)))
+        kernels.reduce_slots(bins[2], bins[5], bins[6], slots, *outs, parts)
+        return outs
+
+    for parts in (2, 3, 7):
+        split = kernels.bin_gaussians(*flat, parts)
+        for a, b in zip(serial, split):
+            assert np.array_equal(a, b)
+        for a, b in zip(reduced(serial, 1), reduced(split, parts)):
+            assert np.array_equal(a, b)
+        tiles = kernels.spread_order(1000, parts)
+        assert np.array_equal(np.sort(tiles), np.arange(1000))
+        assert np.array_equal(tiles[:(1000 + parts - 1) // parts], np.arange(0, 1000, parts))
+
+
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="Numba runs one thread here: nothing to leak")
 def test_the_kernels_leave_torch_thread_count_as_they_found_it():
     # Numba's OpenMP layer sets the calling thread's OpenMP thread count, which torch reads too
