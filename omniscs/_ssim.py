@@ -63,7 +63,7 @@ def ssim_forward(x, y,       # [P, H, W] float32 rendered and target planes
         for q in range(5):
             for j in range(width):
                 horizontal[p, q, r, j] = acc[q, j]
-    row_sums = np.zeros(planes * height)
+    row_sums = np.empty(planes * height)
     for job in nb.prange(planes * height):
         p, i = job // height, job % height
         m = np.zeros((5, width))
@@ -92,7 +92,12 @@ def ssim_forward(x, y,       # [P, H, W] float32 rendered and target planes
             grad_maps[1, p, i, j] = d_den * b1
             grad_maps[2, p, i, j] = d_num * 2.0 * a1
         row_sums[job] = total
-    return row_sums.sum()
+    # summed in order by a plain loop: row_sums.sum() would be a parallel reduction, a region of its own whose
+    # order depends on the thread count
+    total = 0.0
+    for job in range(planes * height):
+        total += row_sums[job]
+    return total
 
 
 @nb.njit(cache=True, parallel=True)

@@ -153,9 +153,13 @@ def _pixel_boxes(means2d, conics, radii, width, height, tile):
     finite or whose conic is not positive definite (possible after rounding to float32).
     """
     n = means2d.shape[0]
-    boxes = np.zeros((n, 4), dtype=np.int32)
-    n_tiles = np.zeros(n, dtype=np.int64)
+    # np.empty, and zeros written by the loop: a top-level np.zeros in a parallel function is a parallel region
+    # of its own, and each region costs a wake-up of the threads
+    boxes = np.empty((n, 4), dtype=np.int32)
+    n_tiles = np.empty(n, dtype=np.int64)
     for g in nb.prange(n):
+        boxes[g, 0] = boxes[g, 1] = boxes[g, 2] = boxes[g, 3] = 0
+        n_tiles[g] = 0
         mx = np.float64(means2d[g, 0])
         my = np.float64(means2d[g, 1])
         ca = np.float64(conics[g, 0])
@@ -183,10 +187,11 @@ def _pixel_boxes(means2d, conics, radii, width, height, tile):
 def _pack(packed_ids, means2d, conics, opacities, colors, boxes):
     """Rows of the drawn Gaussians in packed order: records (all the pixel loops read) and colours."""
     n = packed_ids.shape[0]
-    records = np.zeros((n, N_RECORD), dtype=means2d.dtype)
+    records = np.empty((n, N_RECORD), dtype=means2d.dtype)
     packed_colors = np.empty((n, colors.shape[1]), dtype=colors.dtype)
     for s in nb.prange(n):
         g = packed_ids[s]
+        records[s, N_RECORD - 1] = 0.0  # the unused column
         ca = np.float64(conics[g, 0])
         cb = np.float64(conics[g, 1])
         cc = np.float64(conics[g, 2])
@@ -231,7 +236,8 @@ def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
     tile's list is increasing exactly as a serial scatter makes it.
     """
     n_packed = packed_ids.shape[0]
-    packed_offsets = np.zeros(n_packed + 1, dtype=np.int64)
+    packed_offsets = np.empty(n_packed + 1, dtype=np.int64)
+    packed_offsets[0] = 0
     for s in nb.prange(n_packed):
         tx_lo, tx_hi = int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE
         ty_lo, ty_hi = int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE
@@ -240,8 +246,9 @@ def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
         packed_offsets[s + 1] += packed_offsets[s]
     n_isects = packed_offsets[n_packed]
     run_bounds = _balanced_runs(packed_offsets, parts)
-    run_counts = np.zeros((parts, n_cams * n_tiles), dtype=np.int64)
+    run_counts = np.empty((parts, n_cams * n_tiles), dtype=np.int64)
     for run in nb.prange(parts):
+        run_counts[run] = 0
         for s in range(run_bounds[run], run_bounds[run + 1]):
             base = (packed_ids[s] // n_gauss) * n_tiles
             for ty in range(int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE + 1):
