@@ -37,6 +37,7 @@ def built(prefect_harness, tmp_path_factory):
     return root / "ws", first, second
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_the_flow_builds_a_catalogued_dataset_of_every_variant(built):
     ws, first, _ = built
     assert first["dataset_id"].startswith("ds-") and Path(first["dataset_path"]).is_dir()
@@ -53,6 +54,7 @@ def test_the_flow_builds_a_catalogued_dataset_of_every_variant(built):
     assert a == d[0]["n_annotations"] > 0
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_a_variant_that_fails_the_gates_is_catalogued_with_its_reasons_and_marked_in_the_card(built):
     ws, first, _ = built
     root = catalog.catalog_root(ws)
@@ -67,6 +69,7 @@ def test_a_variant_that_fails_the_gates_is_catalogued_with_its_reasons_and_marke
     assert "behaviour 0 of 1 requested passed, 1 rejected, 1 tried" in " ".join(info.output.split())
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_a_run_none_of_whose_variants_passes_writes_no_dataset_and_says_why(built):
     from flows.generate import generate_dataset
 
@@ -88,12 +91,14 @@ def test_a_run_none_of_whose_variants_passes_writes_no_dataset_and_says_why(buil
     assert run["status"] == "failed" and "quality gates" in run["error"]
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_a_rerun_reuses_every_stage_and_gives_the_same_dataset(built):
     _, first, second = built
     assert second["dataset_id"] == first["dataset_id"]
     assert all(r["reused"] for name, r in second["scenes"][0]["stages"].items() if not r["skipped"])
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_dataset_info_and_export_read_what_was_built(built, tmp_path):
     ws, first, _ = built
     info = CliRunner().invoke(app, ["dataset", "info", first["dataset_id"], "--workspace", str(ws)])
@@ -115,6 +120,7 @@ def test_a_dataset_is_refused_without_a_fit_or_variants(prefect_harness, tmp_pat
     assert isinstance(result.exception, OmniscsError) and "is not a dataset" in str(result.exception)
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_dataset_export_for_uniad_takes_location_box_convention_and_val_scenes(built, tmp_path):
     import pickle
 
@@ -138,6 +144,7 @@ def test_dataset_export_for_uniad_takes_location_box_convention_and_val_scenes(b
     assert not (tmp_path / "n2").exists()
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_the_logged_views_are_replayed_once_per_graph_and_read_by_every_annotate_run(built):
     from omniscs.annotate import AnnotateConfig
     from omniscs.annotate.scene import read_rows
@@ -157,6 +164,7 @@ def test_the_logged_views_are_replayed_once_per_graph_and_read_by_every_annotate
     assert samples and all(s["logged_psnr"] > 10.0 and s["feature_drift"] is not None for s in samples)
 
 
+@pytest.mark.slow  # shares the module's 30 s flow build: make test's five minutes
 def test_dataset_export_as_openscenario_passes_asams_checkers_and_reads_back(built, tmp_path):
     from omniscs.export.asam_checks import check_file
     from omniscs.export.openscenario import read_scenario

@@ -50,6 +50,7 @@ def _malloc_setting() -> str | None:
 
 
 @pytest.mark.skipif("MALLOC_TRIM_THRESHOLD_" in os.environ, reason="this shell sets the variable itself")
+@pytest.mark.slow  # starts a Dask worker process (11 s): make test's five minutes
 def test_local_workers_keep_glibc_malloc_tuning_and_leave_this_process_unchanged():
     from distributed import Client
 
