@@ -227,6 +227,13 @@ def _balanced_runs(offsets, parts):
     return bounds
 
 
+@nb.njit(cache=True, inline="always")
+def _tile_box(records, s):
+    """Inclusive tile columns and rows (tx_lo, tx_hi, ty_lo, ty_hi) of packed Gaussian s's pixel box."""
+    return (int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE,
+            int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE)
+
+
 @nb.njit(cache=True, parallel=True)
 def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
     """Per tile (n_tiles a camera), the packed Gaussians whose pixel box touches it, in packed order (a counting sort).
@@ -239,8 +246,7 @@ def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
     packed_offsets = np.empty(n_packed + 1, dtype=np.int64)
     packed_offsets[0] = 0
     for s in nb.prange(n_packed):
-        tx_lo, tx_hi = int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE
-        ty_lo, ty_hi = int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE
+        tx_lo, tx_hi, ty_lo, ty_hi = _tile_box(records, s)
         packed_offsets[s + 1] = (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1)
     for s in range(n_packed):
         packed_offsets[s + 1] += packed_offsets[s]
@@ -251,8 +257,9 @@ def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
         run_counts[run] = 0
         for s in range(run_bounds[run], run_bounds[run + 1]):
             base = (packed_ids[s] // n_gauss) * n_tiles
-            for ty in range(int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE + 1):
-                for tx in range(int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE + 1):
+            tx_lo, tx_hi, ty_lo, ty_hi = _tile_box(records, s)
+            for ty in range(ty_lo, ty_hi + 1):
+                for tx in range(tx_lo, tx_hi + 1):
                     run_counts[run, base + ty * tiles_x + tx] += 1
     tile_offsets = np.empty(n_cams * n_tiles + 1, dtype=np.int64)
     cursors = np.empty((parts, n_cams * n_tiles), dtype=np.int64)
@@ -269,8 +276,9 @@ def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
         for s in range(run_bounds[run], run_bounds[run + 1]):
             base = (packed_ids[s] // n_gauss) * n_tiles
             k = packed_offsets[s]
-            for ty in range(int(records[s, REC_Y_LO]) // TILE_SIZE, int(records[s, REC_Y_HI]) // TILE_SIZE + 1):
-                for tx in range(int(records[s, REC_X_LO]) // TILE_SIZE, int(records[s, REC_X_HI]) // TILE_SIZE + 1):
+            tx_lo, tx_hi, ty_lo, ty_hi = _tile_box(records, s)
+            for ty in range(ty_lo, ty_hi + 1):
+                for tx in range(tx_lo, tx_hi + 1):
                     t = base + ty * tiles_x + tx
                     isect_packed[cursors[run, t]] = s
                     packed_isects[k] = cursors[run, t]

@@ -152,10 +152,11 @@ class TileRasterizer(torch.autograd.Function):
         real = _pixel_type(means2d, conics, colors, opacities)
         radii_np = radii.numpy()
         depth_order, n_visible = kernels.depth_order(_depth_bits(sort_depths), radii_np)
+        threads = numba.get_num_threads()  # how the kernels split their work (results do not depend on it)
         bins = kernels.bin_gaussians(
             _as_real(means2d, (flat, 2), real), _as_real(conics, (flat, 3), real), _as_real(opacities, (flat,), real),
             _as_real(colors, (flat, n_channels), real), radii_np.reshape(flat, 2), depth_order, n_visible, width,
-            height, numba.get_num_threads(),
+            height, threads,
         )
         tile_offsets, isect_packed, _, packed_records, packed_colors, _, _ = bins
         backgrounds_np = _as_real(backgrounds, (n_cams, n_channels), real)
@@ -164,7 +165,7 @@ class TileRasterizer(torch.autograd.Function):
         transmittance = np.empty((n_cams, height, width), dtype=real)
         counts = np.empty((n_cams, height, width), dtype=np.int32)
         row_masks = np.empty(isect_packed.shape[0], dtype=np.int32)
-        tile_order = kernels.spread_order(tile_offsets.shape[0] - 1, numba.get_num_threads())
+        tile_order = kernels.spread_order(tile_offsets.shape[0] - 1, threads)
         kernels.rasterize_forward(tile_offsets, isect_packed, packed_records, packed_colors,
                                   backgrounds_np, out_colors, out_alphas, transmittance, counts, row_masks, tile_order)
         ctx.bins = bins
