@@ -76,15 +76,37 @@ def scene_task_runner(task_runner: str = "threads", workers: int | None = None, 
 
 
 def local_cluster(**cluster_kwargs):
-    """``distributed.LocalCluster``, except that its workers keep glibc's own malloc tuning.
+    """``distributed.LocalCluster`` whose worker processes start with their thread settings, keep glibc's own malloc
+    tuning and run no statistical profiler.
 
-    Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (its default ``pre-spawn-environ``), which
-    hands freed memory back to the system at once and, being set explicitly, also stops glibc from raising its
-    mmap threshold: every large array a fit step allocates is then fresh pages from the kernel. Measured on this
-    2-core machine (fast fit, one 160x90 camera, 20 frames): 41 s in a plain process, 64-71 s with that variable,
-    a third of it system time. A variable the user's own environment sets is still passed on."""
+    - Threads: the ``env`` variables (``scene_task_runner``'s thread counts) are also set before each worker
+      process starts (Dask's ``pre-spawn-environ``), not only once it runs: a spawned worker first imports the
+      parent's main module, so a script that imports the flows (and with them numba) at its top fixed numba's
+      thread count before the nanny's ``env`` arrived. Measured on this 2-core machine with 2 workers: numba ran two
+      threads in each worker, 4 on 2 cores. The variables are put back in this process once the workers are up
+      (the nanny sets them here to spawn; a worker Dask restarts later sets them here again).
+    - Malloc: Dask's nannies start workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (its default ``pre-spawn-environ``),
+      which hands freed memory back to the system at once and, being set explicitly, also stops glibc from raising its
+      mmap threshold: every large array a fit step allocates is then fresh pages from the kernel. Measured (fast
+      fit, one 160x90 camera, 20 frames): 41 s in a plain process, 64-71 s with that variable, a third of it system
+      time. A variable the user's own environment sets is still passed on.
+    - Profiler: a Dask worker samples its running task's Python stack every 10 ms (for the dashboard's profile
+      page, which these clusters do not serve), from its event loop thread, which takes the interpreter lock from
+      the task each time. Measured with 2 workers on 2 cores (two dev scenes, fast fits at the scale-out setting):
+      fits of 45 and 63 s with it, 38 and 54 s without."""
     import dask
     from distributed import LocalCluster
 
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
-        return LocalCluster(**cluster_kwargs)
+    env = {k: str(v) for k, v in (cluster_kwargs.get("env") or {}).items()}
+    before = {k: os.environ.get(k) for k in env}
+    spawn = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in env.items()}
+    try:
+        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                              "distributed.worker.profile.enabled": False, **spawn}):
+            return LocalCluster(**cluster_kwargs)
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
