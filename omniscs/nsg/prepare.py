@@ -60,14 +60,16 @@ def prepare_nodes(nodes: list[tuple[np.ndarray | None, GaussianParams]],  # (wor
     rotation_quats = np.zeros((count, 4))
     centres = np.zeros((count, 3))
     centre = np.asarray(camera_centre, dtype=np.float64)
+    posed = np.zeros(count, dtype=bool)
     for k, (pose, _) in enumerate(nodes):
         if pose is None:
             rotations[k], rotation_quats[k], centres[k] = np.eye(3), (1.0, 0.0, 0.0, 0.0), centre
         else:
             T = np.asarray(pose, dtype=np.float64)
-            rotations[k], translations[k] = T[:3, :3], T[:3, 3]
-            rotation_quats[k] = rotmat_to_quat(T[:3, :3])
+            rotations[k], translations[k], posed[k] = T[:3, :3], T[:3, 3], True
             centres[k] = T[:3, :3].T @ (centre - T[:3, 3])
+    if posed.any():
+        rotation_quats[posed] = rotmat_to_quat(rotations[posed])  # one call for every node (a fit step has dozens)
     node_of = np.repeat(np.arange(count, dtype=np.int64), [len(p) for _, p in nodes])
     params = [p for _, p in nodes]
     raw = [torch.cat([getattr(p, name) for p in params]) if count > 1 else getattr(params[0], name)

@@ -99,9 +99,40 @@ class SharedAdam:
         self.optimizer.param_groups[self._group[key]]["lr"] = lr
 
     def step(self) -> None:
-        if self.optimizer is not None:
-            self.optimizer.step()
-            self.optimizer.zero_grad(set_to_none=True)
+        """One Adam step of every tensor that has a gradient, then the gradients cleared. The update is
+        ``torch.optim.Adam(fused=True)``'s own kernel, called once per learning rate with the tensors of every group
+        at that rate, instead of through the optimiser's Python for each group: a fit with 40 agent nodes has 50
+        groups (one means rate per node), and that Python was a tenth of its step at the scale-out setting."""
+        opt = self.optimizer
+        if opt is None:
+            return
+        calls: dict[tuple, tuple[list[Tensor], ...]] = {}
+        steps: list[Tensor] = []
+        with torch.no_grad():
+            for group in opt.param_groups:
+                if group["amsgrad"] or group["maximize"] or group["weight_decay"] or not group["fused"]:
+                    raise ValueError("SharedAdam's groups are plain fused Adam")
+                for p in group["params"]:
+                    grad = p.grad
+                    if grad is None:
+                        continue
+                    state = opt.state[p]
+                    if not state:  # as Adam makes it lazily for a fused group
+                        state["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
+                        state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                        state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    key = (group["lr"], *group["betas"], group["eps"], p.device, p.dtype)
+                    lists = calls.setdefault(key, ([], [], [], [], []))
+                    for items, item in zip(lists, (p, grad, state["exp_avg"], state["exp_avg_sq"], state["step"])):
+                        items.append(item)
+                    steps.append(state["step"])
+                    p.grad = None
+            if steps:
+                torch._foreach_add_(steps, 1)
+            for (lr, beta1, beta2, eps, _, _), (params, grads, exp_avgs, exp_avg_sqs, state_steps) in calls.items():
+                torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], state_steps, amsgrad=False, lr=lr,
+                                   beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, maximize=False,
+                                   grad_scale=None, found_inf=None)
 
 
 class OptimisedGaussians:
@@ -141,9 +172,6 @@ class OptimisedGaussians:
         if name != "means" and not self._owns_adam:
             raise ValueError("only the means' rate is a node's own when nodes share an optimiser")
         self.adam.set_lr(self._key[name], lr)
-
-    def is_finite(self) -> bool:
-        return all_finite(self.params.values())
 
     # -- row surgery: parameters and Adam moments change together --------------------------
     def keep_and_append(self, keep: Tensor, new_rows: dict[str, Tensor] | None = None) -> None:

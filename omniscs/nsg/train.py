@@ -193,7 +193,9 @@ class _Trainer:
         return self.template.replace(background=get(BACKGROUND), agents=agents, sky=SkyParams(sky), exposure=exposure)
 
     def finite(self) -> bool:
-        return all(n.is_finite() for n in self.nodes.values()) and all_finite([self.sky, *self.exposure.values()])
+        # one test over every node's tensors (per node, the tests' own overhead was 2.5 ms of a step with 40 nodes)
+        return all_finite([t for n in self.nodes.values() for t in n.params.values()] + [self.sky,
+                                                                                          *self.exposure.values()])
 
     @property
     def n_gaussians(self) -> int:

@@ -144,3 +144,18 @@ def test_the_yaw_of_a_quaternion_is_the_yaw_of_its_matrix_and_the_same_for_minus
 def test_yaw_from_quaternion_inverts_yaw_to_quat_over_a_batch():
     yaws = np.linspace(-3.0, 3.0, 7)
     assert np.allclose(yaw_from_quaternion(3.0 * yaw_to_quat(yaws)), yaws)  # any non-zero norm
+
+
+def test_a_batch_of_rotations_gives_each_the_quaternion_it_gets_alone_on_every_branch():
+    rng = np.random.default_rng(12)
+    q = rng.normal(size=(400, 4))
+    q[:4] = np.eye(4)  # 0 and 180 degree turns: each of Shepperd's four branches
+    q[4:8] = np.eye(4) + 1e-9 * rng.normal(size=(4, 4))
+    R = quat_to_rotmat(q)
+    R[8:40] = R[8:40].round(2)  # not quite orthonormal
+    alone = np.stack([rotmat_to_quat(r) for r in R])
+    picked = np.argmax(np.concatenate([np.trace(R, axis1=1, axis2=2)[:, None],
+                                       np.diagonal(R, axis1=1, axis2=2)], 1), 1)
+    assert set(picked.tolist()) == {0, 1, 2, 3}
+    assert np.array_equal(rotmat_to_quat(R), alone)  # bit for bit: a fit's nodes are converted together
+    assert np.array_equal(rotmat_to_quat(R.reshape(20, 20, 3, 3)).reshape(-1, 4), alone)

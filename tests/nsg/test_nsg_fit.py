@@ -181,6 +181,56 @@ def test_a_scene_too_short_to_hold_frames_out_has_no_held_out_score_rather_than_
     assert held == {"psnr": None, "ssim": None, "n_views": 0, "views": []}
 
 
+def test_shared_adam_steps_exactly_as_torch_fused_adam_with_rates_missing_gradients_and_replaced_tensors():
+    from omniscs.nsg.strategy import SharedAdam
+
+    gen = torch.Generator().manual_seed(4)
+    shapes = [(50, 3), (50, 4), (7,), (50, 3), (31, 15, 3), (5, 3)]
+    init = [torch.randn(s, generator=gen) for s in shapes]
+    keys = [("means", 0), ("quats", 1e-3), ("opacity", 5e-2), ("means", 1), ("quats", 1e-3), ("means", 2)]
+    rates = [1.6e-4, 1e-3, 5e-2, 3e-4, 1e-3, 1.6e-4]  # two groups share a rate; one group holds two tensors
+    ours, theirs = SharedAdam(), None
+    mine = [t.clone().requires_grad_(True) for t in init]
+    ref = [t.clone().requires_grad_(True) for t in init]
+    groups: dict = {}
+    for key, rate, a, b in zip(keys, rates, mine, ref):
+        ours.add(key, a, rate)
+        groups.setdefault(key, {"params": [], "lr": rate})["params"].append(b)
+    theirs = torch.optim.Adam(list(groups.values()), eps=1e-15, fused=True)
+    for step in range(7):
+        if step == 3:  # a node's means rate decays: both sides change that group's rate
+            ours.set_lr(("means", 1), 1e-4)
+            groups[("means", 1)]["lr"] = 1e-4
+        if step == 4:  # row surgery: a tensor replaced by a longer one with its moments carried over
+            for side, params in ((ours, mine), (None, ref)):
+                old = params[0]
+                new = torch.cat([old.detach(), old.detach()[:5]]).requires_grad_(True)
+                state = (ours.state(old) if side else theirs.state[old])
+                moved = {"step": state["step"], **{b: torch.cat([state[b], torch.zeros(5, 3)])
+                                                   for b in ("exp_avg", "exp_avg_sq")}}
+                if side:
+                    ours.replace(keys[0], old, new, moved)
+                else:
+                    plist = groups[keys[0]]["params"]
+                    plist[plist.index(old)] = new
+                    theirs.state.pop(old)
+                    theirs.state[new] = moved
+                params[0] = new
+        for params in (mine, ref):
+            target = torch.randn(1, generator=torch.Generator().manual_seed(step)).item()
+            loss = sum(((p - target) ** 3).sum() for k, p in enumerate(params) if (k + step) % 4)  # some miss out
+            loss.backward()
+        ours.step()
+        theirs.step()
+        theirs.zero_grad(set_to_none=True)
+    for a, b in zip(mine, ref):
+        assert a.grad is None
+        assert torch.equal(a, b)
+        for buf in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(ours.state(a)[buf], theirs.state[b][buf]), buf
+    assert not torch.equal(mine[2], init[2])
+
+
 def test_nodes_sharing_one_adam_update_exactly_as_nodes_with_their_own_through_row_surgery():
     from omniscs.nsg.strategy import SharedAdam
 
