@@ -238,29 +238,32 @@ def _tile_box(records, s):
 def _tile_lists(packed_ids, records, n_gauss, n_cams, tiles_x, n_tiles, parts):
     """Per tile (n_tiles a camera), the packed Gaussians whose pixel box touches it, in packed order (a counting sort).
 
-    The packed Gaussians are cut into ``parts`` runs with about as many intersections each; every run
-    counts and scatters its own (in parallel), and a tile's slots are laid out run by run, so each
-    tile's list is increasing exactly as a serial scatter makes it.
+    The packed Gaussians are cut into ``parts`` runs of about as many Gaussians each; every run counts and
+    scatters its own (in parallel), and a tile's slots are laid out run by run, so each tile's list is
+    increasing exactly as a serial scatter makes it.
     """
     n_packed = packed_ids.shape[0]
     packed_offsets = np.empty(n_packed + 1, dtype=np.int64)
     packed_offsets[0] = 0
-    for s in nb.prange(n_packed):
-        tx_lo, tx_hi, ty_lo, ty_hi = _tile_box(records, s)
-        packed_offsets[s + 1] = (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1)
-    for s in range(n_packed):
-        packed_offsets[s + 1] += packed_offsets[s]
-    n_isects = packed_offsets[n_packed]
-    run_bounds = _balanced_runs(packed_offsets, parts)
+    # one pass over the records counts each Gaussian's tiles and each run's Gaussians per tile (runs of equal
+    # Gaussian counts: their intersection counts are not known yet); 2.44 -> 1.99 ms at 640x360 with 100k
+    # Gaussians on 2 threads against a first pass for the Gaussians' counts and runs of equal intersection counts
+    run_bounds = np.empty(parts + 1, dtype=np.int64)
+    for run in range(parts + 1):
+        run_bounds[run] = (n_packed * run) // parts
     run_counts = np.empty((parts, n_cams * n_tiles), dtype=np.int64)
     for run in nb.prange(parts):
         run_counts[run] = 0
         for s in range(run_bounds[run], run_bounds[run + 1]):
             base = (packed_ids[s] // n_gauss) * n_tiles
             tx_lo, tx_hi, ty_lo, ty_hi = _tile_box(records, s)
+            packed_offsets[s + 1] = (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1)
             for ty in range(ty_lo, ty_hi + 1):
                 for tx in range(tx_lo, tx_hi + 1):
                     run_counts[run, base + ty * tiles_x + tx] += 1
+    for s in range(n_packed):
+        packed_offsets[s + 1] += packed_offsets[s]
+    n_isects = packed_offsets[n_packed]
     tile_offsets = np.empty(n_cams * n_tiles + 1, dtype=np.int64)
     cursors = np.empty((parts, n_cams * n_tiles), dtype=np.int64)
     k = 0
