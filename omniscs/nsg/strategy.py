@@ -107,7 +107,6 @@ class SharedAdam:
         if opt is None:
             return
         calls: dict[tuple, tuple[list[Tensor], ...]] = {}
-        steps: list[Tensor] = []
         with torch.no_grad():
             for group in opt.param_groups:
                 if group["amsgrad"] or group["maximize"] or group["weight_decay"] or not group["fused"]:
@@ -125,10 +124,9 @@ class SharedAdam:
                     lists = calls.setdefault(key, ([], [], [], [], []))
                     for items, item in zip(lists, (p, grad, state["exp_avg"], state["exp_avg_sq"], state["step"])):
                         items.append(item)
-                    steps.append(state["step"])
                     p.grad = None
-            if steps:
-                torch._foreach_add_(steps, 1)
+            if calls:
+                torch._foreach_add_([step for lists in calls.values() for step in lists[4]], 1)
             for (lr, beta1, beta2, eps, _, _), (params, grads, exp_avgs, exp_avg_sqs, state_steps) in calls.items():
                 torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], state_steps, amsgrad=False, lr=lr,
                                    beta1=beta1, beta2=beta2, weight_decay=0.0, eps=eps, maximize=False,

@@ -189,7 +189,7 @@ def test_shared_adam_steps_exactly_as_torch_fused_adam_with_rates_missing_gradie
     init = [torch.randn(s, generator=gen) for s in shapes]
     keys = [("means", 0), ("quats", 1e-3), ("opacity", 5e-2), ("means", 1), ("quats", 1e-3), ("means", 2)]
     rates = [1.6e-4, 1e-3, 5e-2, 3e-4, 1e-3, 1.6e-4]  # two groups share a rate; one group holds two tensors
-    ours, theirs = SharedAdam(), None
+    ours = SharedAdam()
     mine = [t.clone().requires_grad_(True) for t in init]
     ref = [t.clone().requires_grad_(True) for t in init]
     groups: dict = {}
